@@ -1,0 +1,444 @@
+"""ModelBuilder: cloths from grids or triangle meshes, raw particles and springs, pins, handles."""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from . import topology as topo
+from .materials import FabricMaterial, preset
+from .model import ClothInfo, Handle, Keyframe, Model
+from .topology import ClothTopology, MeshError, SpringKind, SpringLaw, SpringModel
+
+log = logging.getLogger(__name__)
+
+UP_AXES = {"Y": (0.0, -9.81, 0.0), "Z": (0.0, 0.0, -9.81)}
+
+
+@dataclass
+class ClothRef:
+    """A cloth added to a builder: its particle range and named selections.
+
+    Selections return global particle indices. Grid names: "corners", "corner:<bottom|top>_<left|right>",
+    "edge:<bottom|top|left|right>" (bottom is grid row 0, left is column 0, in the grid's own frame).
+    """
+
+    builder: ModelBuilder
+    name: str
+    particle_start: int
+    topology: ClothTopology
+
+    @property
+    def particle_count(self) -> int:
+        return self.topology.particle_count
+
+    def indices(self, local=None) -> np.ndarray:
+        """Global indices of local particle ids (all particles when None)."""
+        if local is None:
+            return np.arange(self.particle_count) + self.particle_start
+        local = np.asarray(local, np.int64).ravel()
+        if local.size and (local.min() < 0 or local.max() >= self.particle_count):
+            raise IndexError(f"cloth {self.name!r}: particle index out of range [0, {self.particle_count})")
+        return local + self.particle_start
+
+    def select(self, name: str) -> np.ndarray:
+        """Global indices of a named selection (see class docstring)."""
+        shape = self.topology.grid_shape
+        if shape is None:
+            raise ValueError(f"cloth {self.name!r} is a mesh: named selections {name!r} need a grid; use select_box or a vertex mask")
+        nx, ny = shape
+
+        def vid(i, j):
+            return j * (nx + 1) + i
+
+        corners = {
+            "bottom_left": vid(0, 0),
+            "bottom_right": vid(nx, 0),
+            "top_left": vid(0, ny),
+            "top_right": vid(nx, ny),
+        }
+        edges = {
+            "bottom": [vid(i, 0) for i in range(nx + 1)],
+            "top": [vid(i, ny) for i in range(nx + 1)],
+            "left": [vid(0, j) for j in range(ny + 1)],
+            "right": [vid(nx, j) for j in range(ny + 1)],
+        }
+        if name == "corners":
+            return self.indices(list(corners.values()))
+        kind, _, which = name.partition(":")
+        if kind == "corner" and which in corners:
+            return self.indices([corners[which]])
+        if kind == "edge" and which in edges:
+            return self.indices(edges[which])
+        allowed = ["corners"] + [f"corner:{c}" for c in corners] + [f"edge:{e}" for e in edges]
+        raise ValueError(f"unknown selection {name!r}; allowed: {', '.join(allowed)}")
+
+    def select_box(self, lower, upper) -> np.ndarray:
+        """Global indices of particles whose initial world position lies inside an axis-aligned box [m]."""
+        p = self.builder.particle_positions[self.particle_start : self.particle_start + self.particle_count]
+        inside = np.all((p >= np.asarray(lower)) & (p <= np.asarray(upper)), axis=1)
+        return self.indices(np.flatnonzero(inside))
+
+    def select_mask(self, mask) -> np.ndarray:
+        """Global indices where a per-vertex attribute (of the original, unwelded mesh) is > 0.5."""
+        m = np.asarray(mask, float).ravel()
+        r2p = self.topology.render_to_particle
+        if r2p is not None and len(m) == len(r2p):
+            local = np.unique(r2p[m > 0.5])
+        elif len(m) == self.particle_count:
+            local = np.flatnonzero(m > 0.5)
+        else:
+            raise ValueError(f"cloth {self.name!r}: vertex mask has {len(m)} entries, expected {self.particle_count} (particles) or {0 if r2p is None else len(r2p)} (mesh vertices)")
+        return self.indices(local)
+
+
+def rotation_matrix(rotation) -> np.ndarray:
+    """3x3 rotation from None, a quaternion (x, y, z, w), or a 3x3 matrix."""
+    if rotation is None:
+        return np.eye(3)
+    r = np.asarray(rotation, float)
+    if r.shape == (3, 3):
+        return r
+    if r.shape == (4,):
+        from .model import _quat_to_matrix
+
+        return _quat_to_matrix(r)
+    raise ValueError(f"rotation must be a quaternion (x, y, z, w) or a 3x3 matrix, got shape {r.shape}")
+
+
+def quat_from_axis_angle(axis, angle_deg: float) -> tuple[float, float, float, float]:
+    """Quaternion (x, y, z, w) for a rotation of `angle_deg` degrees about `axis`."""
+    a = np.asarray(axis, float)
+    a = a / np.linalg.norm(a)
+    h = math.radians(angle_deg) / 2.0
+    s = math.sin(h)
+    return (a[0] * s, a[1] * s, a[2] * s, math.cos(h))
+
+
+class ModelBuilder:
+    """Collects cloths, particles, springs, pins and handles, then builds a :class:`Model`.
+
+    Args:
+        up_axis: "Y" (default) or "Z"; sets gravity to -9.81 m/s^2 along it unless `gravity` is given.
+        gravity: gravity vector [m/s^2].
+        global_damping: mass-proportional damping rate [1/s] (f = -rate m v).
+    """
+
+    def __init__(self, *, up_axis: str = "Y", gravity=None, global_damping: float = 0.0):
+        if up_axis not in UP_AXES:
+            raise ValueError(f"up_axis must be one of {sorted(UP_AXES)}, got {up_axis!r}")
+        self.up_axis = up_axis
+        self.gravity = tuple(float(g) for g in (gravity if gravity is not None else UP_AXES[up_axis]))
+        if not math.isfinite(global_damping) or global_damping < 0.0:
+            raise ValueError(f"global_damping must be >= 0 [1/s], got {global_damping!r}")
+        self.global_damping = float(global_damping)
+        self.particle_positions = np.zeros((0, 3))
+        self.particle_velocities = np.zeros((0, 3))
+        self.particle_mass = np.zeros(0)
+        self.particle_pinned = np.zeros(0, np.int32)
+        self.particle_pin_stiffness = np.zeros(0)
+        self.springs = np.zeros((0, 2), np.int64)
+        self.spring_rest_length = np.zeros(0)
+        self.spring_stiffness = np.zeros(0)
+        self.spring_damping = np.zeros(0)
+        self.spring_law = np.zeros(0, np.int32)
+        self.spring_kind = np.zeros(0, np.int32)
+        self.triangles = np.zeros((0, 3), np.int64)
+        self.tri_drag = np.zeros(0)
+        self.tri_corner_weights = np.zeros((0, 3))
+        self.cloths: list[tuple[ClothRef, FabricMaterial, int]] = []
+        self.handles: list[Handle] = []
+
+    @property
+    def particle_count(self) -> int:
+        return len(self.particle_positions)
+
+    # -- low level -------------------------------------------------------------------------
+    def add_particle(self, position, velocity=(0.0, 0.0, 0.0), mass: float = 1.0, pinned: bool = False) -> int:
+        """Add one particle (mass [kg]); returns its index."""
+        p = np.asarray(position, float).reshape(1, 3)
+        if not np.all(np.isfinite(p)):
+            raise ValueError(f"particle position must be finite, got {position}")
+        if not (math.isfinite(mass) and mass > 0.0):
+            raise ValueError(f"particle mass must be positive [kg], got {mass!r}")
+        self.particle_positions = np.concatenate([self.particle_positions, p])
+        self.particle_velocities = np.concatenate([self.particle_velocities, np.asarray(velocity, float).reshape(1, 3)])
+        self.particle_mass = np.append(self.particle_mass, mass)
+        self.particle_pinned = np.append(self.particle_pinned, np.int32(pinned))
+        self.particle_pin_stiffness = np.append(self.particle_pin_stiffness, 0.0)
+        return self.particle_count - 1
+
+    def add_spring(
+        self,
+        i: int,
+        j: int,
+        stiffness: float,
+        damping: float = 0.0,
+        rest_length: float | None = None,
+        kind: SpringKind = SpringKind.STRUCTURAL,
+        law: SpringLaw = SpringLaw.LINEAR,
+    ) -> int:
+        """Add a spring between particles i and j (rest length defaults to their current distance).
+
+        stiffness is k [N/m] for the linear law and k_b [N m^2] for the buckling law; damping c [N s/m].
+        """
+        n = self.particle_count
+        if not (0 <= i < n and 0 <= j < n) or i == j:
+            raise IndexError(f"spring endpoints must be two different particles in [0, {n}), got ({i}, {j})")
+        if rest_length is None:
+            rest_length = float(np.linalg.norm(self.particle_positions[i] - self.particle_positions[j]))
+        if not (rest_length > 0.0 and math.isfinite(rest_length)):
+            raise ValueError(f"spring rest length must be positive [m], got {rest_length!r}")
+        if not (math.isfinite(stiffness) and stiffness >= 0.0) or not (math.isfinite(damping) and damping >= 0.0):
+            raise ValueError(f"spring stiffness and damping must be finite and >= 0, got {stiffness!r}, {damping!r}")
+        self._append_springs(
+            np.array([[i, j]]), np.array([rest_length]), np.array([stiffness]), np.array([damping]),
+            np.array([int(law)]), np.array([int(kind)]),
+        )
+        return len(self.springs) - 1
+
+    def _append_springs(self, springs, rest, k, c, law, kind):
+        self.springs = np.concatenate([self.springs, springs.astype(np.int64)])
+        self.spring_rest_length = np.concatenate([self.spring_rest_length, rest])
+        self.spring_stiffness = np.concatenate([self.spring_stiffness, k])
+        self.spring_damping = np.concatenate([self.spring_damping, c])
+        self.spring_law = np.concatenate([self.spring_law, law.astype(np.int32)])
+        self.spring_kind = np.concatenate([self.spring_kind, kind.astype(np.int32)])
+
+    # -- cloths ------------------------------------------------------------------------------
+    def add_cloth_grid(
+        self,
+        *,
+        resolution=(32, 32),
+        size=(1.0, 1.0),
+        position=(0.0, 0.0, 0.0),
+        rotation=None,
+        velocity=(0.0, 0.0, 0.0),
+        material: FabricMaterial | str = "cotton",
+        spring_model: SpringModel | str = SpringModel.CHOI_KO,
+        name: str | None = None,
+    ) -> ClothRef:
+        """Add a grid cloth of resolution (nx, ny) cells and size (sx, sy) [m].
+
+        The grid is built in its local xy-plane with corner (0, 0) at the origin, then rotated by
+        `rotation` (quaternion x, y, z, w or 3x3) and moved to `position` [m].
+        """
+        t = topo.grid_topology(resolution, size, SpringModel(spring_model))
+        return self._add_cloth(t, position, rotation, velocity, material, name or f"cloth{len(self.cloths)}")
+
+    def add_cloth_mesh(
+        self,
+        vertices,
+        triangles,
+        *,
+        uvs=None,
+        position=(0.0, 0.0, 0.0),
+        rotation=None,
+        scale: float = 1.0,
+        velocity=(0.0, 0.0, 0.0),
+        material: FabricMaterial | str = "cotton",
+        spring_model: SpringModel | str = SpringModel.CHOI_KO,
+        name: str | None = None,
+    ) -> ClothRef:
+        """Add a cloth from a triangle mesh (vertices [m] before `scale`); seams are welded.
+
+        Raises :class:`~cloth_warp.topology.MeshError` for empty meshes, non-finite coordinates and
+        out-of-range indices; degenerate/duplicate triangles are dropped and non-manifold edges kept,
+        each with a warning (rules in :func:`cloth_warp.topology.mesh_topology`).
+        """
+        v, tri = topo.validate_mesh(vertices, triangles)
+        if not (math.isfinite(scale) and scale > 0.0):
+            raise ValueError(f"mesh scale must be positive, got {scale!r}")
+        t = topo.mesh_topology(v * scale, tri, SpringModel(spring_model), uvs=uvs)
+        return self._add_cloth(t, position, rotation, velocity, material, name or f"cloth{len(self.cloths)}")
+
+    def add_cloth_mesh_file(self, path: str | os.PathLike, **kwargs) -> ClothRef:
+        """Add a cloth from a mesh file read with trimesh (OBJ, PLY, STL, GLB/GLTF, OFF).
+
+        All geometry in the file is concatenated with node transforms baked. UVs are kept when present
+        (as face-varying corner UVs after welding), so textures survive seams.
+        """
+        vertices, triangles, uvs = load_mesh_file(path)
+        kwargs.setdefault("name", os.path.splitext(os.path.basename(str(path)))[0])
+        return self.add_cloth_mesh(vertices, triangles, uvs=uvs, **kwargs)
+
+    def _add_cloth(self, t: ClothTopology, position, rotation, velocity, material, name) -> ClothRef:
+        if isinstance(material, str):
+            material = preset(material)
+        if any(ref.name == name for ref, _, _ in self.cloths):
+            raise ValueError(f"a cloth named {name!r} already exists")
+        r = rotation_matrix(rotation)
+        world = t.positions @ r.T + np.asarray(position, float)
+        start = self.particle_count
+        n = t.particle_count
+        area = t.particle_area.copy()
+        if np.any(area <= 0.0):
+            # Vertices on no triangle still need a mass: give them the mean.
+            area[area <= 0.0] = float(area[area > 0.0].mean())
+        self.particle_positions = np.concatenate([self.particle_positions, world])
+        self.particle_velocities = np.concatenate([self.particle_velocities, np.tile(np.asarray(velocity, float), (n, 1))])
+        self.particle_mass = np.concatenate([self.particle_mass, material.areal_density * area])
+        self.particle_pinned = np.concatenate([self.particle_pinned, np.zeros(n, np.int32)])
+        self.particle_pin_stiffness = np.concatenate([self.particle_pin_stiffness, np.zeros(n)])
+        k, c = spring_constants(t, material)
+        rest = np.linalg.norm(t.positions[t.springs[:, 0]] - t.positions[t.springs[:, 1]], axis=1)
+        self._append_springs(t.springs + start, rest, k, c, t.spring_law, t.spring_kind)
+        tri_start = len(self.triangles)
+        self.triangles = np.concatenate([self.triangles, t.triangles.astype(np.int64) + start])
+        self.tri_drag = np.concatenate([self.tri_drag, np.full(len(t.triangles), material.drag_coefficient)])
+        weights = t.corner_weights if t.corner_weights is not None else np.full((len(t.triangles), 3), 1.0 / 3.0)
+        self.tri_corner_weights = np.concatenate([self.tri_corner_weights, weights])
+        ref = ClothRef(self, name, start, t)
+        self.cloths.append((ref, material, tri_start))
+        return ref
+
+    # -- pins and handles --------------------------------------------------------------------
+    def pin(self, indices, stiffness: float | None = None):
+        """Pin particles: hard (stiffness None: they follow Control.pin_target exactly) or soft [N/m]."""
+        idx = self._check_indices(indices)
+        if stiffness is None:
+            self.particle_pinned[idx] = 1
+        else:
+            if not (math.isfinite(stiffness) and stiffness > 0.0):
+                raise ValueError(f"soft pin stiffness must be positive [N/m], got {stiffness!r}")
+            self.particle_pin_stiffness[idx] = stiffness
+        return idx
+
+    def add_handle(self, indices, keyframes, *, pivot=None, name: str | None = None) -> Handle:
+        """Hard-pin `indices` to a keyframed rigid transform (list of Keyframe or (t, translation[, quat])).
+
+        The transform acts about `pivot` (default: the particles' centroid); translation is relative to
+        the rest pose.
+        """
+        idx = self._check_indices(indices)
+        kfs = []
+        for k in keyframes:
+            if isinstance(k, Keyframe):
+                kfs.append(k)
+            else:
+                kfs.append(Keyframe(float(k[0]), tuple(map(float, k[1])), tuple(map(float, k[2])) if len(k) > 2 else (0.0, 0.0, 0.0, 1.0)))
+        if not kfs:
+            raise ValueError("a handle needs at least one keyframe")
+        times = [k.time for k in kfs]
+        if any(b <= a for a, b in zip(times, times[1:])):
+            raise ValueError(f"handle keyframe times must increase strictly, got {times}")
+        p = self.particle_positions[idx]
+        h = Handle(name or f"handle{len(self.handles)}", idx, kfs, np.asarray(pivot, float) if pivot is not None else p.mean(0))
+        self.particle_pinned[idx] = 1
+        self.handles.append(h)
+        return h
+
+    def _check_indices(self, indices) -> np.ndarray:
+        idx = np.unique(np.asarray(indices, np.int64).ravel())
+        if idx.size == 0:
+            raise ValueError("no particles selected")
+        if idx.min() < 0 or idx.max() >= self.particle_count:
+            raise IndexError(f"particle index out of range [0, {self.particle_count}): {idx.min()}..{idx.max()}")
+        return idx
+
+    # -- finalize ------------------------------------------------------------------------------
+    def finalize(self, device=None, requires_grad: bool = False) -> Model:
+        """Build the :class:`Model` on `device`; Model arrays get `requires_grad` here and only here."""
+        if self.particle_count == 0:
+            raise ValueError("the model has no particles")
+        device = wp.get_device(device)
+        m = Model()
+        m.device = device
+        m.requires_grad = requires_grad
+        m.gravity = self.gravity
+        m.up_axis = self.up_axis
+        m.global_damping = self.global_damping
+        n = self.particle_count
+        m.particle_count = n
+        m.spring_count = len(self.springs)
+        m.tri_count = len(self.triangles)
+        m.rest_positions = self.particle_positions.copy()
+
+        def arr(a, dtype, grad=False):
+            return wp.array(np.ascontiguousarray(a), dtype=dtype, device=device, requires_grad=grad and requires_grad)
+
+        m.particle_q = arr(self.particle_positions.astype(np.float32), wp.vec3, True)
+        m.particle_qd = arr(self.particle_velocities.astype(np.float32), wp.vec3, True)
+        m.particle_mass = arr(self.particle_mass.astype(np.float32), float, True)
+        m.particle_pinned = arr(self.particle_pinned.astype(np.int32), wp.int32)
+        m.particle_pin_stiffness = arr(self.particle_pin_stiffness.astype(np.float32), float)
+        springs = self.springs.astype(np.int32).reshape(-1, 2)
+        m.spring_indices = arr(springs, wp.int32)
+        m.spring_rest_length = arr(self.spring_rest_length.astype(np.float32), float, True)
+        m.spring_stiffness = arr(self.spring_stiffness.astype(np.float32), float, True)
+        m.spring_damping = arr(self.spring_damping.astype(np.float32), float, True)
+        m.spring_law = arr(self.spring_law, wp.int32)
+        m.spring_kind = arr(self.spring_kind, wp.int32)
+        tris = self.triangles.astype(np.int32).reshape(-1, 3)
+        m.tri_indices = arr(tris, wp.int32)
+        m.tri_drag = arr(self.tri_drag.astype(np.float32), float, True)
+        m.tri_corner_weights = arr(self.tri_corner_weights.astype(np.float32).reshape(-1, 3), wp.vec3)
+        so, sid, sother = topo.particle_springs(springs, n)
+        m.particle_spring_offsets = arr(so, wp.int32)
+        m.particle_spring_ids = arr(sid, wp.int32)
+        m.particle_spring_other = arr(sother, wp.int32)
+        to, tid = topo.particle_triangles(tris, n)
+        m.particle_tri_offsets = arr(to, wp.int32)
+        m.particle_tri_ids = arr(tid, wp.int32)
+        limited = np.isin(self.spring_kind, (SpringKind.STRUCTURAL, SpringKind.SHEAR)) & (self.spring_law == SpringLaw.LINEAR)
+        colors = topo.color_springs(springs, n, limited)
+        m.strain_limit_color_count = colors.shape[0]
+        m.strain_limit_colors = arr(colors if colors.size else np.full((1, n), -1, np.int32), wp.int32)
+        m.spring_limited = arr(limited.astype(np.int32), wp.int32)
+        for ref, material, tri_start in self.cloths:
+            m.cloths.append(ClothInfo(ref.name, ref.particle_start, ref.particle_count, tri_start, len(ref.topology.triangles), material, ref.topology))
+        m.handles = list(self.handles)
+        return m
+
+
+def spring_constants(t: ClothTopology, material: FabricMaterial) -> tuple[np.ndarray, np.ndarray]:
+    """Per-spring stiffness and damping from a topology's weights and a material (topology docstring)."""
+    k = np.zeros(t.spring_count)
+    kind, law, w = t.spring_kind, t.spring_law, t.spring_weight
+    k[kind == SpringKind.STRUCTURAL] = material.stretch_stiffness * w[kind == SpringKind.STRUCTURAL]
+    k[kind == SpringKind.SHEAR] = material.shear_stiffness * w[kind == SpringKind.SHEAR]
+    bend = kind == SpringKind.BEND
+    k[bend] = material.bend_stiffness * w[bend]
+    # Kelvin-Voigt damping c = tau k on linear springs; buckling springs carry no damping.
+    c = np.where(law == SpringLaw.LINEAR, material.damping * k, 0.0)
+    return k, c
+
+
+def load_mesh_file(path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Read a triangle mesh with trimesh; returns (vertices, triangles, uvs or None) without merging.
+
+    Vertices are kept as in the file (seam duplicates included) so that UVs stay correct; welding for
+    simulation happens in :func:`cloth_warp.topology.mesh_topology`.
+    """
+    import trimesh
+
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"mesh file not found: {path}")
+    try:
+        loaded = trimesh.load(path, process=False)
+    except Exception as exc:  # trimesh raises many types for unreadable files
+        raise MeshError(f"cannot read mesh {path}: {exc}") from exc
+    if isinstance(loaded, trimesh.Scene):
+        geoms = [g for g in loaded.dump() if isinstance(g, trimesh.Trimesh)] if loaded.geometry else []
+        if not geoms:
+            raise MeshError(f"mesh file {path} holds no triangle geometry")
+        verts, tris, uvs, off = [], [], [], 0
+        for g in geoms:
+            verts.append(np.asarray(g.vertices))
+            tris.append(np.asarray(g.faces) + off)
+            off += len(g.vertices)
+            uv = getattr(getattr(g, "visual", None), "uv", None)
+            uvs.append(None if uv is None or len(uv) != len(g.vertices) else np.asarray(uv))
+        uv_all = np.concatenate(uvs) if all(u is not None for u in uvs) else None
+        return np.concatenate(verts), np.concatenate(tris), uv_all
+    if not isinstance(loaded, trimesh.Trimesh):
+        raise MeshError(f"mesh file {path} is not a triangle mesh (trimesh returned {type(loaded).__name__})")
+    uv = getattr(getattr(loaded, "visual", None), "uv", None)
+    uv = None if uv is None or len(uv) != len(loaded.vertices) else np.asarray(uv)
+    return np.asarray(loaded.vertices), np.asarray(loaded.faces), uv

@@ -1,0 +1,40 @@
+"""Integrators behind one interface: ``solver.step(state_in, state_out, control, dt)``."""
+
+from .adaptive import AdaptiveStepper, SimulationDiverged, StepCheck
+from .base import SolverBase, StrainLimiter
+from .explicit import SolverExplicitEuler, SolverMidpoint, SolverRK4, SolverSymplecticEuler
+from .implicit import LinearSolver, SolverImplicitEuler
+
+SOLVERS = {
+    "explicit_euler": SolverExplicitEuler,
+    "symplectic_euler": SolverSymplecticEuler,
+    "midpoint": SolverMidpoint,
+    "rk4": SolverRK4,
+    "implicit_euler": SolverImplicitEuler,
+}
+
+
+def make_solver(name: str, model, **options) -> SolverBase:
+    """Create a solver by name (one of SOLVERS) with keyword options."""
+    try:
+        cls = SOLVERS[name]
+    except KeyError:
+        raise ValueError(f"unknown integrator {name!r}; allowed: {', '.join(SOLVERS)}") from None
+    return cls(model, **options)
+
+
+__all__ = [
+    "AdaptiveStepper",
+    "LinearSolver",
+    "SOLVERS",
+    "SimulationDiverged",
+    "SolverBase",
+    "SolverExplicitEuler",
+    "SolverImplicitEuler",
+    "SolverMidpoint",
+    "SolverRK4",
+    "SolverSymplecticEuler",
+    "StepCheck",
+    "StrainLimiter",
+    "make_solver",
+]

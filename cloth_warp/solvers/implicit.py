@@ -1,0 +1,231 @@
+"""Implicit Euler after Baraff & Witkin (1998), solved matrix-free by filtered PCG or block Jacobi."""
+
+from __future__ import annotations
+
+import enum
+import math
+
+import warp as wp
+
+from ..kernels import implicit as ki
+from ..model import Control, Model, State
+from .base import SolverBase
+
+
+class LinearSolver(enum.IntEnum):
+    """Linear solver of the implicit step."""
+
+    CG = 0
+    """Filtered conjugate gradients with a 3x3 block-diagonal (block Jacobi) preconditioner."""
+    JACOBI = 1
+    """Block Jacobi iteration (3x3 diagonal blocks inverted exactly)."""
+
+
+class SolverImplicitEuler(SolverBase):
+    """Linearly implicit (backward) Euler, one Newton step per time step (Baraff & Witkin 1998).
+
+    Solves ``(M + h D + h^2 K) dv = h (f0 - h K v0)``, then ``v1 = v0 + dv``, ``x1 = x0 + h v1``
+    (notation in :mod:`cloth_warp.kernels.implicit`). K = -df/dx keeps springs positive semi-definite:
+    linear springs drop their transverse term under compression, buckling springs keep only the
+    longitudinal term (physics.md 3(b), 3(d)); so A is SPD and CG applies. Hard pins enter as
+    constraints through the filter (velocity change prescribed, no Lagrange multipliers).
+
+    Per step the solver reports `last_iterations`, `last_residual` (the relative residual
+    |r_k| / |r_0| of the filtered system) and `converged` (residual <= tolerance).
+
+    Args:
+        model: the model.
+        linear_solver: :class:`LinearSolver` (CG default).
+        max_iterations: iteration cap per step.
+        tolerance: relative residual at which the solve stops.
+        check_every: iterations between convergence checks (each check reads one number on the host).
+        strain_limit, strain_limit_iterations: see :class:`~cloth_warp.solvers.base.SolverBase`.
+
+    Differentiation: the solve itself runs outside the tape; gradients of the implicit step come from an
+    adjoint solve of the transposed (here: the same, symmetric) system.
+    """
+
+    name = "implicit_euler"
+
+    def __init__(
+        self,
+        model: Model,
+        *,
+        linear_solver: LinearSolver | str = LinearSolver.CG,
+        max_iterations: int = 200,
+        tolerance: float = 1.0e-4,
+        check_every: int = 4,
+        strain_limit: float | None = 0.1,
+        strain_limit_iterations: int = 4,
+    ):
+        super().__init__(model, strain_limit=strain_limit, strain_limit_iterations=strain_limit_iterations)
+        if isinstance(linear_solver, str):
+            try:
+                linear_solver = LinearSolver[linear_solver.upper()]
+            except KeyError:
+                raise ValueError(f"unknown linear solver {linear_solver!r}; allowed: cg, jacobi") from None
+        self.linear_solver = LinearSolver(linear_solver)
+        if max_iterations < 1:
+            raise ValueError(f"max_iterations must be >= 1, got {max_iterations!r}")
+        if not (tolerance > 0.0 and math.isfinite(tolerance)):
+            raise ValueError(f"tolerance must be positive, got {tolerance!r}")
+        self.max_iterations = int(max_iterations)
+        self.tolerance = float(tolerance)
+        self.check_every = max(1, int(check_every))
+        n, s, t = model.particle_count, max(model.spring_count, 1), max(model.tri_count, 1)
+        dev = model.device
+        self.stiffness_block = wp.zeros(s, dtype=wp.mat33, device=dev)
+        self.system_block = wp.zeros(s, dtype=wp.mat33, device=dev)
+        self.drag_vector = wp.zeros(t, dtype=wp.vec3, device=dev)
+        self.rhs = wp.zeros(n, dtype=wp.vec3, device=dev)
+        self.precond = wp.zeros(n, dtype=wp.mat33, device=dev)
+        self.dv = wp.zeros(n, dtype=wp.vec3, device=dev)
+        self.dv_alt = wp.zeros(n, dtype=wp.vec3, device=dev)
+        self.residual = wp.zeros(n, dtype=wp.vec3, device=dev)
+        self.preconditioned = wp.zeros(n, dtype=wp.vec3, device=dev)
+        self.search = wp.zeros(n, dtype=wp.vec3, device=dev)
+        self.product = wp.zeros(n, dtype=wp.vec3, device=dev)
+        self.cg_scalars = wp.zeros((self.max_iterations + 2, 3), dtype=wp.float64, device=dev)
+        self.total_iterations = 0
+
+    # -- the linear system -------------------------------------------------------------------
+    def assemble(self, state_in: State, control: Control, dt: float):
+        """Evaluate blocks, right-hand side, preconditioner and the initial residual for one step."""
+        m = self.model
+        dev = m.device
+        if m.spring_count:
+            wp.launch(
+                ki.eval_spring_system_blocks,
+                dim=m.spring_count,
+                inputs=[m.spring_indices, m.spring_rest_length, m.spring_stiffness, m.spring_damping, m.spring_law, state_in.particle_q, dt],
+                outputs=[self.stiffness_block, self.system_block],
+                device=dev,
+            )
+        if m.tri_count:
+            wp.launch(
+                ki.eval_triangle_drag_vectors,
+                dim=m.tri_count,
+                inputs=[m.tri_indices, m.tri_drag, state_in.particle_q],
+                outputs=[self.drag_vector],
+                device=dev,
+            )
+        self.cg_scalars.zero_()
+        wp.launch(
+            ki.eval_implicit_system,
+            dim=m.particle_count,
+            inputs=[*m.force_args(), m.particle_pinned, self.stiffness_block, self.system_block, self.drag_vector,
+                    state_in.particle_q, state_in.particle_qd, control.pin_target, control.wind,
+                    wp.vec3(*m.gravity), m.global_damping, dt],
+            outputs=[self.rhs, self.precond, self.dv, self.residual, self.preconditioned, self.search, self.cg_scalars],
+            device=dev,
+        )
+
+    def _product_args(self):
+        m = self.model
+        return [m.particle_spring_offsets, m.particle_spring_ids, m.particle_spring_other, m.particle_tri_offsets,
+                m.particle_tri_ids, m.tri_indices, m.tri_corner_weights]
+
+    def solve_cg(self, dt: float) -> wp.array:
+        """Filtered PCG on the assembled system; returns the array holding dv."""
+        m = self.model
+        dev = m.device
+        scal = self.cg_scalars.numpy() if dev.is_cpu else None
+        rr0 = self._read(scal, 0)
+        iterations, rel = 0, 0.0
+        if rr0 > 1e-300:
+            common = self._product_args()
+            for k in range(self.max_iterations):
+                wp.launch(
+                    ki.cg_product,
+                    dim=m.particle_count,
+                    inputs=[*common, m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, self.system_block,
+                            self.drag_vector, self.search, m.global_damping, dt, k],
+                    outputs=[self.product, self.cg_scalars],
+                    device=dev,
+                )
+                wp.launch(
+                    ki.cg_update,
+                    dim=m.particle_count,
+                    inputs=[self.precond, self.search, self.product, k],
+                    outputs=[self.dv, self.residual, self.preconditioned, self.cg_scalars],
+                    device=dev,
+                )
+                iterations = k + 1
+                if iterations % self.check_every == 0 or iterations == self.max_iterations:
+                    rel = math.sqrt(max(self._read(scal, iterations), 0.0) / rr0)
+                    if rel <= self.tolerance or not math.isfinite(rel):
+                        break
+                wp.launch(ki.cg_direction, dim=m.particle_count, inputs=[self.preconditioned, self.cg_scalars, k], outputs=[self.search], device=dev)
+        self._report(iterations, rel)
+        return self.dv
+
+    def solve_jacobi(self, dt: float) -> wp.array:
+        """Block Jacobi on the assembled system; returns the array holding dv."""
+        m = self.model
+        dev = m.device
+        scal = self.cg_scalars.numpy() if dev.is_cpu else None
+        rr0 = self._read(scal, 0)
+        src, dst = self.dv, self.dv_alt
+        iterations, rel = 0, 0.0
+        if rr0 > 1e-300:
+            common = self._product_args()
+            for k in range(self.max_iterations):
+                wp.launch(
+                    ki.jacobi_iterate,
+                    dim=m.particle_count,
+                    inputs=[*common, m.particle_pinned, self.system_block, self.drag_vector, self.precond, self.rhs, src, dt],
+                    outputs=[dst],
+                    device=dev,
+                )
+                src, dst = dst, src
+                iterations = k + 1
+                if iterations % self.check_every == 0 or iterations == self.max_iterations:
+                    slot = 1  # row 0 keeps |r_0|^2
+                    self.cg_scalars[slot : slot + 1].zero_()
+                    wp.launch(
+                        ki.eval_system_residual,
+                        dim=m.particle_count,
+                        inputs=[*common, m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, self.system_block,
+                                self.drag_vector, self.rhs, src, m.global_damping, dt, slot],
+                        outputs=[self.cg_scalars],
+                        device=dev,
+                    )
+                    rel = math.sqrt(max(self._read(scal, slot), 0.0) / rr0)
+                    if rel <= self.tolerance or not math.isfinite(rel):
+                        break
+        self._report(iterations, rel)
+        return src
+
+    def _read(self, scal, row: int) -> float:
+        if scal is not None:  # CPU: a zero-copy view, no transfer
+            return float(scal[row, 2])
+        return float(self.cg_scalars[row : row + 1].numpy()[0, 2])
+
+    def _report(self, iterations: int, rel: float):
+        self.last_iterations = iterations
+        self.last_residual = rel
+        self.converged = bool(math.isfinite(rel) and rel <= self.tolerance)
+        self.total_iterations += iterations
+
+    # -- the step ----------------------------------------------------------------------------
+    def solve(self, state_in: State, control: Control, dt: float) -> wp.array:
+        """Assemble and solve the step's linear system; returns the array holding dv [m/s]."""
+        self.assemble(state_in, control, dt)
+        return self.solve_cg(dt) if self.linear_solver == LinearSolver.CG else self.solve_jacobi(dt)
+
+    def integrate(self, state_in: State, x_out, v_out, control: Control, dt: float):
+        if state_in.requires_grad:
+            raise NotImplementedError("taped implicit steps need the adjoint solve (gradients issue); use an explicit solver under wp.Tape for now")
+        m = self.model
+        dv = self.solve(state_in, control, dt)
+        wp.launch(
+            ki.integrate_implicit,
+            dim=m.particle_count,
+            inputs=[m.particle_pinned, state_in.particle_q, state_in.particle_qd, dv, control.pin_target, dt],
+            outputs=[x_out, v_out],
+            device=m.device,
+        )
+
+    def system_numpy(self):
+        """(rhs, precond, system blocks, drag vectors) of the last assembled system as numpy (for tests)."""
+        return self.rhs.numpy(), self.precond.numpy(), self.system_block.numpy(), self.drag_vector.numpy()

@@ -1,0 +1,531 @@
+"""Cloth topology in pure numpy: grids, triangle meshes, spring sets, welding, adjacency.
+
+Nothing here touches Warp, so every rule can be unit-tested on its own. The builder turns a
+:class:`ClothTopology` plus a :class:`~cloth_warp.materials.FabricMaterial` into spring constants
+by multiplying each spring's *weight* (geometry only) with the material value of its category:
+
+================  ==============================  ===============================================
+category          force law                       spring constant
+================  ==============================  ===============================================
+STRUCTURAL        linear spring                   k = stretch_stiffness [N/m] * weight [-]
+SHEAR             linear spring                   k = shear_stiffness [N/m] * weight [-]
+BEND (Choi-Ko)    immediate buckling, push only   k_b = bend_stiffness [N m] * weight [m]
+BEND (Provot)     linear span-2 "flexion" spring  k = bend_stiffness [N m] * weight [1/m^2]
+================  ==============================  ===============================================
+
+Weights make the material mean the same thing at every resolution (membrane stiffness in N/m,
+flexural rigidity per unit width in N m); the derivations are in the functions below.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+
+class SpringKind(enum.IntEnum):
+    """What a spring models; selects the material value that scales it."""
+
+    STRUCTURAL = 0
+    SHEAR = 1
+    BEND = 2
+
+
+class SpringLaw(enum.IntEnum):
+    """The force law a spring uses inside the kernels."""
+
+    LINEAR = 0
+    """f = -k (l - L) n in tension and compression."""
+    BUCKLING = 1
+    """Choi-Ko immediate buckling: pushes apart under compression only, no force in tension."""
+
+
+class SpringModel(enum.Enum):
+    """Which spring set a cloth is built with."""
+
+    PROVOT = "provot"
+    """Structural + shear + linear span-2 flexion springs (Provot 1995)."""
+    CHOI_KO = "choi_ko"
+    """Stiff structural + shear springs; span-2 buckling springs incl. span-2 diagonals (Choi & Ko 2002)."""
+
+
+# Choi-Ko's quartic fit of the buckling curve (physics.md 7.2, as in Blender's implicit.c):
+# f_b = (4 k_b / L^2) |P(l/L)|, P(s) = -11.541 s^4 + 34.193 s^3 - 39.083 s^2 + 23.116 s - 9.713.
+BUCKLING_POLY = (-11.541, 34.193, -39.083, 23.116, -9.713)
+# Onset force factor c0 = 4 |P(1)| (the exact curve gives 12): f_b(L^-) = c0 k_b / L^2.
+BUCKLING_ONSET = 4.0 * abs(sum(BUCKLING_POLY))
+
+# Share of a node's bending energy carried by its two span-2 diagonals (Choi-Ko set). 1/2 gives a
+# twisting rigidity equal to the bending rigidity, i.e. an isotropic plate with zero Poisson ratio
+# (derivation in grid_topology's docstring).
+DIAGONAL_BEND_SHARE = 0.5
+
+# Provot flexion springs are linear and store energy ~ theta^4; their stiffness is matched to the
+# buckling spring of the same bending rigidity at 10 % chord compression: (1/2) k (0.1 L)^2 = c0 k_b/L^2 * 0.1 L.
+PROVOT_MATCH_COMPRESSION = 0.1
+
+
+@dataclass
+class ClothTopology:
+    """The simulation mesh of one cloth and its springs (all arrays numpy).
+
+    Attributes:
+        positions: rest positions [m], shape (n, 3).
+        triangles: welded triangles, shape (t, 3), indices into positions.
+        springs: spring endpoints, shape (s, 2).
+        spring_kind: :class:`SpringKind` per spring, shape (s,).
+        spring_law: :class:`SpringLaw` per spring, shape (s,).
+        spring_weight: geometric weight per spring (module docstring), shape (s,).
+        particle_area: lumped (dual) area per particle [m^2], shape (n,).
+        render_to_particle: for meshes loaded with seams, original vertex -> particle, shape (n_render,).
+        corner_uv: per-triangle-corner texture coordinates, shape (t, 3, 2), or None.
+        grid_shape: (nx, ny) cell counts for grids, None for meshes.
+        corner_weights: per triangle corner, the share of the triangle's air drag that goes to that
+            corner, shape (t, 3); chosen so that sum over triangles of weight x area = particle_area
+            (drag per unit mass uniform on a flat sheet). None means 1/3 each.
+    """
+
+    positions: np.ndarray
+    triangles: np.ndarray
+    springs: np.ndarray
+    spring_kind: np.ndarray
+    spring_law: np.ndarray
+    spring_weight: np.ndarray
+    particle_area: np.ndarray
+    render_to_particle: np.ndarray | None = None
+    corner_uv: np.ndarray | None = None
+    grid_shape: tuple[int, int] | None = None
+    corner_weights: np.ndarray | None = None
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def particle_count(self) -> int:
+        return len(self.positions)
+
+    @property
+    def spring_count(self) -> int:
+        return len(self.springs)
+
+
+class _SpringList:
+    def __init__(self):
+        self.i, self.j, self.kind, self.law, self.weight = [], [], [], [], []
+
+    def add(self, i, j, kind, law, weight):
+        self.i.append(i)
+        self.j.append(j)
+        self.kind.append(int(kind))
+        self.law.append(int(law))
+        self.weight.append(float(weight))
+
+    def arrays(self):
+        springs = np.stack([np.asarray(self.i, np.int32), np.asarray(self.j, np.int32)], axis=1).reshape(-1, 2)
+        return (
+            springs,
+            np.asarray(self.kind, np.int32),
+            np.asarray(self.law, np.int32),
+            np.asarray(self.weight, np.float64),
+        )
+
+
+def buckling_weight(width: float, span: float, a1: float, a2: float) -> float:
+    """Weight [m] of a span-2 buckling spring so that k_b = B * weight reproduces rigidity B.
+
+    A span-2 spring over two segments a1, a2 (span L = a1 + a2) kinked by a small angle theta shortens
+    by delta = a1 a2 theta^2 / (2 L) and stores c0 k_b delta / L^2 (constant onset force). The continuum
+    strip of width w stores (1/2) B w theta^2 / (L/2) over the same hinge. Equating gives
+    k_b = 2 B w L^2 / (c0 a1 a2).
+    """
+    return 2.0 * width * span * span / (BUCKLING_ONSET * a1 * a2)
+
+
+def provot_weight_from_buckling(weight_b: float, span: float) -> float:
+    """Weight [1/m^2] of a linear flexion spring matched to a buckling spring (module constant)."""
+    c = PROVOT_MATCH_COMPRESSION
+    return 2.0 * BUCKLING_ONSET * weight_b / (c * span**3)
+
+
+def grid_topology(
+    resolution: tuple[int, int],
+    size: tuple[float, float],
+    spring_model: SpringModel = SpringModel.CHOI_KO,
+) -> ClothTopology:
+    """A rectangular grid of nx x ny cells in the local xy-plane, corner (0, 0), extent size [m].
+
+    Vertex (i, j) has index j * (nx + 1) + i. Spring weights (ax, ay: cell size; w_j: width of row j,
+    ay inside and ay/2 on the two boundary rows):
+
+    * structural x-spring in row j: weight w_j / ax. A strip of width W stretched by strain e along x
+      carries sum_j k ax e = E e W: tension per width E e at any resolution. Same along y.
+    * shear diagonals (both in every cell): weight d^2 / (2 ax ay), d the diagonal. Under simple shear
+      gamma the two diagonals of a cell store k gamma^2 ax^2 ay^2 / d^2 = (1/2) G gamma^2 ax ay.
+    * span-2 x/y springs centred on node (i, j) carry that node's bending energy for curvature along
+      their axis (weight from :func:`buckling_weight` with the node's dual width). With the Choi-Ko
+      set, interior nodes give a share DIAGONAL_BEND_SHARE to their two span-2 diagonals: under
+      curvature kappa along x a diagonal at angle phi sees normal curvature kappa cos^2 phi, which gives
+      the diagonal weight 4 s A_v / (c0 cos^4 phi d) (A_v = ax ay, d = diagonal segment length).
+    """
+    nx, ny = (int(resolution[0]), int(resolution[1]))
+    sx, sy = (float(size[0]), float(size[1]))
+    if nx < 1 or ny < 1:
+        raise ValueError(f"grid resolution must be at least 1 x 1 cells, got {resolution}")
+    if not (np.isfinite(sx) and np.isfinite(sy)) or sx <= 0.0 or sy <= 0.0:
+        raise ValueError(f"grid size must be positive and finite [m], got {size}")
+    ax, ay = sx / nx, sy / ny
+    xs, ys = np.meshgrid(np.linspace(0.0, sx, nx + 1), np.linspace(0.0, sy, ny + 1))
+    positions = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], axis=1)
+
+    def vid(i, j):
+        return j * (nx + 1) + i
+
+    def row_width(j, n, a):  # dual width of row j among n+1 rows spaced a
+        return 0.5 * a if (j == 0 or j == n) else a
+
+    sl = _SpringList()
+    for j in range(ny + 1):
+        for i in range(nx):
+            sl.add(vid(i, j), vid(i + 1, j), SpringKind.STRUCTURAL, SpringLaw.LINEAR, row_width(j, ny, ay) / ax)
+    for i in range(nx + 1):
+        for j in range(ny):
+            sl.add(vid(i, j), vid(i, j + 1), SpringKind.STRUCTURAL, SpringLaw.LINEAR, row_width(i, nx, ax) / ay)
+    d2 = ax * ax + ay * ay
+    for j in range(ny):
+        for i in range(nx):
+            w = d2 / (2.0 * ax * ay)
+            sl.add(vid(i, j), vid(i + 1, j + 1), SpringKind.SHEAR, SpringLaw.LINEAR, w)
+            sl.add(vid(i + 1, j), vid(i, j + 1), SpringKind.SHEAR, SpringLaw.LINEAR, w)
+
+    choi_ko = spring_model == SpringModel.CHOI_KO
+    d = np.sqrt(d2)
+    for j in range(ny + 1):
+        for i in range(nx + 1):
+            interior = 0 < i < nx and 0 < j < ny
+            share = DIAGONAL_BEND_SHARE if (choi_ko and interior) else 0.0
+            if 0 < i < nx:  # x-span-2 centred on (i, j)
+                wb = (1.0 - share) * buckling_weight(row_width(j, ny, ay), 2 * ax, ax, ax)
+                _add_bend(sl, vid(i - 1, j), vid(i + 1, j), wb, 2 * ax, choi_ko)
+            if 0 < j < ny:  # y-span-2
+                wb = (1.0 - share) * buckling_weight(row_width(i, nx, ax), 2 * ay, ay, ay)
+                _add_bend(sl, vid(i, j - 1), vid(i, j + 1), wb, 2 * ay, choi_ko)
+            if share > 0.0:
+                # Under curvature along x each diagonal sees kappa cos^2(phi); weight so that each of the
+                # two carries share/2 of the node's energy for x-bending (and, by symmetry, y-bending).
+                cos2 = ax * ax / d2
+                wd = 4.0 * share * (ax * ay) / (BUCKLING_ONSET * cos2 * cos2 * d)
+                sl.add(vid(i - 1, j - 1), vid(i + 1, j + 1), SpringKind.BEND, SpringLaw.BUCKLING, wd)
+                sl.add(vid(i + 1, j - 1), vid(i - 1, j + 1), SpringKind.BEND, SpringLaw.BUCKLING, wd)
+
+    tris = []
+    for j in range(ny):
+        for i in range(nx):
+            a, b, c, e = vid(i, j), vid(i + 1, j), vid(i + 1, j + 1), vid(i, j + 1)
+            tris.append((a, b, c))
+            tris.append((a, c, e))
+    triangles = np.asarray(tris, np.int32)
+    # Each cell gives a quarter of its area to each corner; the diagonal corners (a, c) share theirs between
+    # the cell's two triangles: drag shares (1/4, 1/2, 1/4) for (a, b, c) and (1/4, 1/4, 1/2) for (a, c, e).
+    corner_weights = np.tile([[0.25, 0.5, 0.25], [0.25, 0.25, 0.5]], (len(triangles) // 2, 1))
+    # Quad-based lumping keeps the masses symmetric (triangle lumping would depend on the diagonal).
+    wx = np.full(nx + 1, ax)
+    wx[[0, -1]] *= 0.5
+    wy = np.full(ny + 1, ay)
+    wy[[0, -1]] *= 0.5
+    particle_area = np.outer(wy, wx).ravel()
+    springs, kind, law, weight = sl.arrays()
+    return ClothTopology(positions, triangles, springs, kind, law, weight, particle_area, grid_shape=(nx, ny), corner_weights=corner_weights)
+
+
+def _add_bend(sl: _SpringList, i: int, j: int, weight_b: float, span: float, choi_ko: bool):
+    if choi_ko:
+        sl.add(i, j, SpringKind.BEND, SpringLaw.BUCKLING, weight_b)
+    else:
+        sl.add(i, j, SpringKind.BEND, SpringLaw.LINEAR, provot_weight_from_buckling(weight_b, span))
+
+
+# ----------------------------------------------------------------------------------------------
+# Triangle meshes
+
+
+class MeshError(ValueError):
+    """A mesh that cannot be simulated (the message names the problem)."""
+
+
+def validate_mesh(vertices, triangles) -> tuple[np.ndarray, np.ndarray]:
+    """Check shapes, finiteness and index ranges; return float64 vertices and int64 triangles."""
+    v = np.asarray(vertices, dtype=np.float64)
+    t = np.asarray(triangles)
+    if v.ndim != 2 or v.shape[1] != 3:
+        raise MeshError(f"mesh vertices must have shape (n, 3), got {v.shape}")
+    if t.ndim != 2 or t.shape[1] != 3:
+        raise MeshError(f"mesh triangles must have shape (t, 3), got {t.shape}")
+    if len(v) == 0 or len(t) == 0:
+        raise MeshError(f"mesh is empty ({len(v)} vertices, {len(t)} triangles)")
+    if not np.issubdtype(t.dtype, np.integer):
+        if not np.all(np.isfinite(t)) or np.any(t != np.round(t)):
+            raise MeshError("mesh triangle indices must be integers")
+        t = t.astype(np.int64)
+    bad = ~np.all(np.isfinite(v), axis=1)
+    if bad.any():
+        first = int(np.flatnonzero(bad)[0])
+        raise MeshError(f"mesh has {int(bad.sum())} vertices with non-finite coordinates (first: vertex {first} = {v[first].tolist()})")
+    lo, hi = int(t.min()), int(t.max())
+    if lo < 0 or hi >= len(v):
+        raise MeshError(f"mesh triangle index out of range: indices span [{lo}, {hi}] but there are {len(v)} vertices")
+    return v, t.astype(np.int64)
+
+
+def weld_vertices(vertices: np.ndarray, triangles: np.ndarray, tolerance: float | None = None):
+    """Merge vertices closer than `tolerance` (default 1e-6 of the bounding-box diagonal).
+
+    Returns (particles, welded_triangles, render_to_particle). OBJ/PLY/GLB meshes duplicate vertices at
+    UV seams; simulated as is, the cloth would tear along every seam.
+    """
+    diag = float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
+    tol = tolerance if tolerance is not None else 1e-6 * max(diag, 1e-12)
+    keys = np.round(vertices / tol).astype(np.int64)
+    _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    inverse = inverse.ravel()
+    # Order particles by first appearance so a mesh without seams keeps its vertex order.
+    order = np.argsort(first)
+    remap = np.empty_like(order)
+    remap[order] = np.arange(len(order))
+    render_to_particle = remap[inverse]
+    particles = vertices[first[order]]
+    return particles, render_to_particle[triangles], render_to_particle
+
+
+def clean_triangles(vertices: np.ndarray, triangles: np.ndarray, issues: list[str]) -> np.ndarray:
+    """Drop degenerate and duplicate triangles (recording a warning for each kind)."""
+    tri = triangles
+    repeated = (tri[:, 0] == tri[:, 1]) | (tri[:, 1] == tri[:, 2]) | (tri[:, 0] == tri[:, 2])
+    e1 = vertices[tri[:, 1]] - vertices[tri[:, 0]]
+    e2 = vertices[tri[:, 2]] - vertices[tri[:, 0]]
+    area = 0.5 * np.linalg.norm(np.cross(e1, e2), axis=1)
+    scale = float(np.median(np.linalg.norm(e1, axis=1))) if len(tri) else 1.0
+    degenerate = repeated | (area <= 1e-10 * max(scale, 1e-12) ** 2)
+    if degenerate.any():
+        issues.append(f"dropped {int(degenerate.sum())} degenerate triangle(s) (zero area or repeated vertex), first: triangle {int(np.flatnonzero(degenerate)[0])}")
+    keep = ~degenerate
+    sorted_t = np.sort(tri, axis=1)
+    _, first = np.unique(sorted_t, axis=0, return_index=True)
+    dup = np.ones(len(tri), bool)
+    dup[first] = False
+    dup &= keep
+    if dup.any():
+        issues.append(f"dropped {int(dup.sum())} duplicate triangle(s)")
+    keep &= ~dup
+    if not keep.any():
+        raise MeshError("mesh has no usable triangles (all degenerate)")
+    return tri[keep]
+
+
+def edge_triangles(triangles: np.ndarray):
+    """Unique undirected edges (e, 2) and, per edge, the list of triangles that use it."""
+    corners = np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]])
+    tri_of = np.concatenate([np.arange(len(triangles))] * 3)
+    sorted_c = np.sort(corners, axis=1)
+    edges, inverse = np.unique(sorted_c, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    order = np.argsort(inverse, kind="stable")
+    counts = np.bincount(inverse, minlength=len(edges))
+    splits = np.split(tri_of[order], np.cumsum(counts)[:-1])
+    return edges, splits
+
+
+# Bend springs on general meshes join two neighbours a, b of a vertex v when the angle a-v-b is at
+# least this (degrees): the discrete "straight line through v" of the two-ring.
+MESH_BEND_MIN_ANGLE_DEG = 150.0
+
+
+def mesh_topology(
+    vertices,
+    triangles,
+    spring_model: SpringModel = SpringModel.CHOI_KO,
+    uvs=None,
+    weld: bool = True,
+) -> ClothTopology:
+    """Springs for an arbitrary triangle mesh (after validation, seam welding and clean-up).
+
+    Rules (general meshes have no grid lines, so the two-ring stands in for them):
+
+    * stretch: every mesh edge; weight (A_1 + A_2) / L^2 over its (one or two) triangles. On a mesh of
+      equilateral triangles this gives an isotropic membrane with Young's modulus * thickness exactly
+      stretch_stiffness (Poisson ratio 1/3; the edge lattice also carries shear G = 3E/8).
+    * shear: for each interior manifold edge, a spring between the two vertices opposite it; weight
+      (A_1 + A_2) / (2 L^2). Approximate: it adds shear resistance on top of the edge lattice's.
+    * bend: for each vertex v and neighbour a, the neighbour b of v that makes the straightest line
+      a-v-b (angle >= MESH_BEND_MIN_ANGLE_DEG) gives a span-2 spring a-b (deduplicated). Its weight
+      gives each of the n_v bend springs at v a share 8/(3 n_v) of the vertex's bending energy (the
+      average of cos^4 over n_v evenly spread directions is 3/8), with :func:`buckling_weight`-style
+      kink geometry: k_b = 32 B A_v L / (3 n_v c0 a1 a2).
+    Non-manifold edges (three or more triangles) keep their stretch spring but get no shear spring and
+    are reported. Degenerate and duplicate triangles are dropped and reported.
+    """
+    v, t = validate_mesh(vertices, triangles)
+    issues: list[str] = []
+    corner_uv = None
+    if uvs is not None:
+        uv = np.asarray(uvs, np.float64)
+        if uv.shape != (len(v), 2):
+            raise MeshError(f"mesh uvs must have shape ({len(v)}, 2), got {uv.shape}")
+    render_to_particle = None
+    if weld:
+        particles, t_welded, render_to_particle = weld_vertices(v, t)
+        if len(particles) < len(v):
+            log.info("welded %d seam vertices into %d particles", len(v), len(particles))
+    else:
+        particles, t_welded = v, t
+    keep_tri = t_welded
+    t_clean = clean_triangles(particles, keep_tri, issues)
+    if uvs is not None:
+        # Face-varying UVs per corner of the surviving triangles (seams survive in the cache).
+        idx = _surviving_triangle_rows(keep_tri, t_clean)
+        corner_uv = uv[t[idx]]
+    used = np.zeros(len(particles), bool)
+    used[t_clean.ravel()] = True
+    if not used.all():
+        issues.append(f"{int((~used).sum())} vertex/vertices belong to no triangle and are simulated as free particles")
+
+    area = 0.5 * np.linalg.norm(
+        np.cross(particles[t_clean[:, 1]] - particles[t_clean[:, 0]], particles[t_clean[:, 2]] - particles[t_clean[:, 0]]),
+        axis=1,
+    )
+    particle_area = np.zeros(len(particles))
+    for c in range(3):
+        np.add.at(particle_area, t_clean[:, c], area / 3.0)
+
+    sl = _SpringList()
+    edges, edge_tris = edge_triangles(t_clean)
+    nonmanifold = 0
+    for (a, b), tris in zip(edges, edge_tris):
+        length2 = float(np.sum((particles[a] - particles[b]) ** 2))
+        sl.add(a, b, SpringKind.STRUCTURAL, SpringLaw.LINEAR, float(area[tris].sum()) / length2)
+        if len(tris) > 2:
+            nonmanifold += 1
+        elif len(tris) == 2:
+            o = [int(np.setdiff1d(t_clean[k], (a, b))[0]) for k in tris]
+            if o[0] != o[1]:
+                l2 = float(np.sum((particles[o[0]] - particles[o[1]]) ** 2))
+                sl.add(o[0], o[1], SpringKind.SHEAR, SpringLaw.LINEAR, float(area[tris].sum()) / (2.0 * l2))
+    if nonmanifold:
+        issues.append(f"{nonmanifold} non-manifold edge(s) (shared by 3+ triangles): kept as stretch springs, no shear/bend across them")
+
+    # Bend springs through each vertex along its straightest neighbour pairs.
+    neighbours = [set() for _ in range(len(particles))]
+    for a, b in edges:
+        neighbours[a].add(int(b))
+        neighbours[b].add(int(a))
+    cos_min = np.cos(np.radians(MESH_BEND_MIN_ANGLE_DEG))
+    pairs: dict[tuple[int, int], int] = {}
+    for vtx, nbrs in enumerate(neighbours):
+        nb = sorted(nbrs)
+        if len(nb) < 2:
+            continue
+        dirs = particles[nb] - particles[vtx]
+        dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+        cosines = dirs @ dirs.T
+        for ia in range(len(nb)):
+            ib = int(np.argmin(cosines[ia]))
+            if cosines[ia, ib] <= cos_min:
+                key = (min(nb[ia], nb[ib]), max(nb[ia], nb[ib]))
+                pairs.setdefault(key, vtx)
+    per_vertex = np.bincount(np.fromiter(pairs.values(), dtype=np.int64, count=len(pairs)), minlength=len(particles)) if pairs else np.zeros(len(particles), int)
+    choi_ko = spring_model == SpringModel.CHOI_KO
+    for (a, b), vtx in pairs.items():
+        a1 = float(np.linalg.norm(particles[a] - particles[vtx]))
+        a2 = float(np.linalg.norm(particles[b] - particles[vtx]))
+        span = a1 + a2
+        n_v = max(int(per_vertex[vtx]), 3)
+        wb = 32.0 * particle_area[vtx] * span / (3.0 * n_v * BUCKLING_ONSET * a1 * a2)
+        _add_bend(sl, a, b, wb, span, choi_ko)
+
+    springs, kind, law, weight = sl.arrays()
+    for msg in issues:
+        warnings.warn(f"cloth mesh: {msg}", stacklevel=3)
+    return ClothTopology(
+        particles,
+        t_clean.astype(np.int32),
+        springs,
+        kind,
+        law,
+        weight,
+        particle_area,
+        render_to_particle=render_to_particle,
+        corner_uv=corner_uv,
+        warnings=issues,
+    )
+
+
+def _surviving_triangle_rows(before: np.ndarray, after: np.ndarray) -> np.ndarray:
+    """Row indices of `after` within `before` (clean_triangles keeps order and rows)."""
+    idx = np.empty(len(after), np.int64)
+    k = 0
+    for r in range(len(before)):
+        if k < len(after) and np.array_equal(before[r], after[k]):
+            idx[k] = r
+            k += 1
+    return idx
+
+
+# ----------------------------------------------------------------------------------------------
+# Adjacency for gather kernels and colouring for Gauss-Seidel passes
+
+
+def csr(owner: np.ndarray, count: int, payload: np.ndarray):
+    """Compressed rows: offsets (count+1,) and payload sorted by owner."""
+    order = np.argsort(owner, kind="stable")
+    offsets = np.zeros(count + 1, np.int32)
+    np.cumsum(np.bincount(owner, minlength=count), out=offsets[1:])
+    return offsets, payload[order]
+
+
+def particle_springs(springs: np.ndarray, particle_count: int):
+    """Per particle: offsets, incident spring ids and the other endpoint (gather formulation)."""
+    s = len(springs)
+    owner = np.concatenate([springs[:, 0], springs[:, 1]])
+    payload = np.stack(
+        [np.concatenate([np.arange(s), np.arange(s)]), np.concatenate([springs[:, 1], springs[:, 0]])], axis=1
+    )
+    offsets, rows = csr(owner, particle_count, payload)
+    return offsets, rows[:, 0].astype(np.int32), rows[:, 1].astype(np.int32)
+
+
+def particle_triangles(triangles: np.ndarray, particle_count: int):
+    """Per particle: offsets and incident triangle ids."""
+    owner = triangles.ravel()
+    payload = np.repeat(np.arange(len(triangles)), 3)
+    offsets, rows = csr(owner, particle_count, payload)
+    return offsets, rows.astype(np.int32)
+
+
+def color_springs(springs: np.ndarray, particle_count: int, mask: np.ndarray | None = None) -> np.ndarray:
+    """Greedy edge colouring: no two springs of one colour share a particle.
+
+    Returns a table (colors, particle_count) holding, for each colour and particle, the spring id of that
+    colour incident to the particle, or -1. Used by the strain limiter's Gauss-Seidel passes, which
+    process one colour per launch without write conflicts.
+    """
+    ids = np.flatnonzero(mask) if mask is not None else np.arange(len(springs))
+    used: list[set] = [set() for _ in range(particle_count)]
+    color = np.full(len(springs), -1, np.int64)
+    for s in ids:
+        a, b = springs[s]
+        c = 0
+        while c in used[a] or c in used[b]:
+            c += 1
+        color[s] = c
+        used[a].add(c)
+        used[b].add(c)
+    n_colors = int(color.max()) + 1 if len(ids) else 0
+    table = np.full((n_colors, particle_count), -1, np.int32)
+    for s in ids:
+        a, b = springs[s]
+        table[color[s], a] = s
+        table[color[s], b] = s
+    return table

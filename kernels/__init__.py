@@ -1,0 +1,12 @@
+"""Warp kernels and functions of cloth_warp (installed as ``cloth_warp.kernels``).
+
+Modules are grouped by what launches together, because each module is one cold compile:
+
+* :mod:`.forces` - force functions shared by every integrator and the explicit/RK step kernels;
+* :mod:`.implicit` - Baraff-Witkin system blocks, matrix-free product, CG and Jacobi;
+* :mod:`.constraints` - Provot strain limiting and animated handle targets;
+* :mod:`.diagnostics` - per-step statistics (forward only, no backward code generated).
+
+Parameters that change between scenes are launch arguments; ``wp.constant`` is kept for true
+constants. Kernels never write an argument that does not end in ``_out`` (checked by a test).
+"""

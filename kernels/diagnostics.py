@@ -1,0 +1,48 @@
+"""Per-step statistics for divergence detection and reports (forward only)."""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+STAT_MAX_STRAIN = wp.constant(0)
+STAT_KINETIC_ENERGY = wp.constant(1)
+STAT_MAX_SPEED = wp.constant(2)
+STAT_NONFINITE = wp.constant(3)
+
+
+@wp.kernel
+def eval_step_statistics(
+    # Model
+    spring_offsets: wp.array(dtype=wp.int32),
+    spring_ids: wp.array(dtype=wp.int32),
+    spring_other: wp.array(dtype=wp.int32),
+    spring_rest_length: wp.array(dtype=float),
+    spring_limited: wp.array(dtype=wp.int32),
+    particle_mass: wp.array(dtype=float),
+    particle_pinned: wp.array(dtype=wp.int32),
+    # State
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    # outputs (zeroed by the caller)
+    stats_out: wp.array(dtype=float),
+):
+    """Max structural/shear strain, kinetic energy and max speed of free particles, non-finite count."""
+    i = wp.tid()
+    xi = x[i]
+    vi = v[i]
+    finite = wp.isfinite(xi) and wp.isfinite(vi)
+    if not finite:
+        wp.atomic_add(stats_out, STAT_NONFINITE, 1.0)
+        return
+    strain = float(0.0)
+    for k in range(spring_offsets[i], spring_offsets[i + 1]):
+        s = spring_ids[k]
+        if spring_limited[s] != 0:
+            j = spring_other[k]
+            if j > i:  # each spring once
+                strain = wp.max(strain, wp.length(xi - x[j]) / spring_rest_length[s] - 1.0)
+    wp.atomic_max(stats_out, STAT_MAX_STRAIN, strain)
+    if particle_pinned[i] == 0:
+        speed2 = wp.dot(vi, vi)
+        wp.atomic_add(stats_out, STAT_KINETIC_ENERGY, 0.5 * particle_mass[i] * speed2)
+        wp.atomic_max(stats_out, STAT_MAX_SPEED, wp.sqrt(speed2))

@@ -1,0 +1,365 @@
+"""Forces of the mass-spring cloth and the explicit / Runge-Kutta step kernels.
+
+Notation: x, v particle positions [m] and velocities [m/s]; for a spring (i, j): d = x_i - x_j,
+l = |d|, n = d / l, L its rest length; k its stiffness [N/m] (linear law) or k_b [N m^2] (buckling law),
+c its damping [N s/m].
+
+Forces are *gathered* per particle over compressed incidence lists (no atomics, one write per
+particle), so the same kernel is deterministic on CPU and CUDA and differentiable under wp.Tape.
+"""
+
+import warp as wp
+
+SPRING_LINEAR = wp.constant(0)
+SPRING_BUCKLING = wp.constant(1)
+
+# Choi & Ko's quartic fit of the immediate-buckling curve (physics.md 7.2).
+BUCKLING_P4 = wp.constant(-11.541)
+BUCKLING_P3 = wp.constant(34.193)
+BUCKLING_P2 = wp.constant(-39.083)
+BUCKLING_P1 = wp.constant(23.116)
+BUCKLING_P0 = wp.constant(-9.713)
+
+LENGTH_EPS = wp.constant(1.0e-9)
+
+
+@wp.func
+def buckling_force(length: float, rest_length: float, bend_stiffness: float):
+    """Push magnitude f_b = (4 k_b / L^2) |P(l / L)| [N] of a compressed buckling spring (0 in tension)."""
+    if length >= rest_length:
+        return 0.0
+    s = wp.max(length / rest_length, 0.0)
+    p = (((BUCKLING_P4 * s + BUCKLING_P3) * s + BUCKLING_P2) * s + BUCKLING_P1) * s + BUCKLING_P0
+    return -4.0 * bend_stiffness / (rest_length * rest_length) * p
+
+
+@wp.func
+def buckling_force_slope(length: float, rest_length: float, bend_stiffness: float):
+    """d f_b / d l = -(4 k_b / L^3) P'(l / L) [N/m] (< 0: the push weakens as the chord lengthens)."""
+    if length >= rest_length:
+        return 0.0
+    s = wp.max(length / rest_length, 0.0)
+    dp = ((4.0 * BUCKLING_P4 * s + 3.0 * BUCKLING_P3) * s + 2.0 * BUCKLING_P2) * s + BUCKLING_P1
+    return -4.0 * bend_stiffness / (rest_length * rest_length * rest_length) * dp
+
+
+@wp.func
+def spring_force(
+    xi: wp.vec3,
+    xj: wp.vec3,
+    vi: wp.vec3,
+    vj: wp.vec3,
+    rest_length: float,
+    stiffness: float,
+    damping: float,
+    law: int,
+):
+    """Force on particle i: linear -(k (l - L) + c (v_ij . n)) n, or the buckling push f_b n."""
+    d = xi - xj
+    length = wp.length(d)
+    if length < LENGTH_EPS:
+        return wp.vec3(0.0)
+    n = d / length
+    if law == SPRING_LINEAR:
+        return -(stiffness * (length - rest_length) + damping * wp.dot(vi - vj, n)) * n
+    return buckling_force(length, rest_length, stiffness) * n
+
+
+@wp.func
+def spring_stiffness_block(xi: wp.vec3, xj: wp.vec3, rest_length: float, stiffness: float, law: int):
+    """K_s = -df_i/dx_i, kept positive semi-definite (physics.md 3(b), 3(d)).
+
+    Linear: k [n n^T + max(0, 1 - L/l) (I - n n^T)] (transverse term dropped under compression).
+    Buckling: -f_b'(l) n n^T (longitudinal part only, as Choi & Ko).
+    """
+    d = xi - xj
+    length = wp.length(d)
+    if length < LENGTH_EPS:
+        return wp.mat33(0.0)
+    n = d / length
+    nn = wp.outer(n, n)
+    if law == SPRING_LINEAR:
+        t = wp.max(0.0, 1.0 - rest_length / length)
+        return stiffness * (nn + t * (wp.identity(n=3, dtype=float) - nn))
+    return -buckling_force_slope(length, rest_length, stiffness) * nn
+
+
+@wp.func
+def spring_damping_block(xi: wp.vec3, xj: wp.vec3, damping: float, law: int):
+    """D_s = -df_i/dv_i = c n n^T for linear springs (buckling springs are undamped)."""
+    d = xi - xj
+    length = wp.length(d)
+    if length < LENGTH_EPS or law != SPRING_LINEAR:
+        return wp.mat33(0.0)
+    n = d / length
+    return damping * wp.outer(n, n)
+
+
+@wp.func
+def triangle_drag_force(
+    xa: wp.vec3,
+    xb: wp.vec3,
+    xc: wp.vec3,
+    va: wp.vec3,
+    vb: wp.vec3,
+    vc: wp.vec3,
+    weights: wp.vec3,
+    drag_coefficient: float,
+    wind: wp.vec3,
+):
+    """Air drag on a triangle, f = -c_A A (n . v_rel) n, v_rel = corner-weighted mean velocity - wind.
+
+    The total force; corner c receives weights[c] of it (the same weights average the velocity, which
+    keeps the drag Jacobian symmetric).
+    """
+    cr = wp.cross(xb - xa, xc - xa)
+    twice_area = wp.length(cr)
+    if twice_area < LENGTH_EPS:
+        return wp.vec3(0.0)
+    v_rel = weights[0] * va + weights[1] * vb + weights[2] * vc - wind
+    # A n (n . v) = (cr/2) (cr . v) / |cr|
+    return -drag_coefficient * wp.dot(cr, v_rel) / (2.0 * twice_area) * cr
+
+
+@wp.func
+def corner_weight(i: int, a: int, b: int, weights: wp.vec3):
+    """The weight of particle i among the corners (a, b, c) of a triangle."""
+    if i == a:
+        return weights[0]
+    if i == b:
+        return weights[1]
+    return weights[2]
+
+
+@wp.func
+def particle_force(
+    i: int,
+    # Model
+    spring_offsets: wp.array(dtype=wp.int32),
+    spring_ids: wp.array(dtype=wp.int32),
+    spring_other: wp.array(dtype=wp.int32),
+    spring_rest_length: wp.array(dtype=float),
+    spring_stiffness: wp.array(dtype=float),
+    spring_damping: wp.array(dtype=float),
+    spring_law: wp.array(dtype=wp.int32),
+    tri_offsets: wp.array(dtype=wp.int32),
+    tri_ids: wp.array(dtype=wp.int32),
+    tri_indices: wp.array2d(dtype=wp.int32),
+    tri_drag: wp.array(dtype=float),
+    tri_corner_weights: wp.array(dtype=wp.vec3),
+    particle_mass: wp.array(dtype=float),
+    particle_pin_stiffness: wp.array(dtype=float),
+    # State
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    # Control
+    pin_target: wp.array(dtype=wp.vec3),
+    wind: wp.array(dtype=wp.vec3),
+    gravity: wp.vec3,
+    global_damping: float,
+):
+    """Total force on particle i [N]: springs, gravity, drag with wind, soft pin, global damping."""
+    xi = x[i]
+    vi = v[i]
+    m = particle_mass[i]
+    f = m * gravity - global_damping * m * vi
+    for k in range(spring_offsets[i], spring_offsets[i + 1]):
+        s = spring_ids[k]
+        j = spring_other[k]
+        f += spring_force(xi, x[j], vi, v[j], spring_rest_length[s], spring_stiffness[s], spring_damping[s], spring_law[s])
+    w = wind[0]
+    for k in range(tri_offsets[i], tri_offsets[i + 1]):
+        t = tri_ids[k]
+        a = tri_indices[t, 0]
+        b = tri_indices[t, 1]
+        c = tri_indices[t, 2]
+        wt = tri_corner_weights[t]
+        f += corner_weight(i, a, b, wt) * triangle_drag_force(x[a], x[b], x[c], v[a], v[b], v[c], wt, tri_drag[t], w)
+    kp = particle_pin_stiffness[i]
+    if kp > 0.0:
+        f -= kp * (xi - pin_target[i])
+    return f
+
+
+@wp.kernel
+def integrate_euler(
+    # Model
+    spring_offsets: wp.array(dtype=wp.int32),
+    spring_ids: wp.array(dtype=wp.int32),
+    spring_other: wp.array(dtype=wp.int32),
+    spring_rest_length: wp.array(dtype=float),
+    spring_stiffness: wp.array(dtype=float),
+    spring_damping: wp.array(dtype=float),
+    spring_law: wp.array(dtype=wp.int32),
+    tri_offsets: wp.array(dtype=wp.int32),
+    tri_ids: wp.array(dtype=wp.int32),
+    tri_indices: wp.array2d(dtype=wp.int32),
+    tri_drag: wp.array(dtype=float),
+    tri_corner_weights: wp.array(dtype=wp.vec3),
+    particle_mass: wp.array(dtype=float),
+    particle_pin_stiffness: wp.array(dtype=float),
+    particle_pinned: wp.array(dtype=wp.int32),
+    # State in
+    x_in: wp.array(dtype=wp.vec3),
+    v_in: wp.array(dtype=wp.vec3),
+    # Control
+    pin_target: wp.array(dtype=wp.vec3),
+    wind: wp.array(dtype=wp.vec3),
+    gravity: wp.vec3,
+    global_damping: float,
+    dt: float,
+    symplectic: int,
+    # outputs
+    x_out: wp.array(dtype=wp.vec3),
+    v_out: wp.array(dtype=wp.vec3),
+):
+    """One Euler step: explicit (x += h v; v += h a) or symplectic (v += h a; x += h v_new)."""
+    i = wp.tid()
+    x0 = x_in[i]
+    if particle_pinned[i] != 0:
+        target = pin_target[i]
+        x_out[i] = target
+        v_out[i] = (target - x0) / dt
+        return
+    f = particle_force(
+        i, spring_offsets, spring_ids, spring_other, spring_rest_length, spring_stiffness, spring_damping,
+        spring_law, tri_offsets, tri_ids, tri_indices, tri_drag, tri_corner_weights, particle_mass, particle_pin_stiffness,
+        x_in, v_in, pin_target, wind, gravity, global_damping,
+    )
+    v0 = v_in[i]
+    v1 = v0 + dt * f / particle_mass[i]
+    if symplectic != 0:
+        x_out[i] = x0 + dt * v1
+    else:
+        x_out[i] = x0 + dt * v0
+    v_out[i] = v1
+
+
+@wp.kernel
+def eval_rk_stage(
+    # Model
+    spring_offsets: wp.array(dtype=wp.int32),
+    spring_ids: wp.array(dtype=wp.int32),
+    spring_other: wp.array(dtype=wp.int32),
+    spring_rest_length: wp.array(dtype=float),
+    spring_stiffness: wp.array(dtype=float),
+    spring_damping: wp.array(dtype=float),
+    spring_law: wp.array(dtype=wp.int32),
+    tri_offsets: wp.array(dtype=wp.int32),
+    tri_ids: wp.array(dtype=wp.int32),
+    tri_indices: wp.array2d(dtype=wp.int32),
+    tri_drag: wp.array(dtype=float),
+    tri_corner_weights: wp.array(dtype=wp.vec3),
+    particle_mass: wp.array(dtype=float),
+    particle_pin_stiffness: wp.array(dtype=float),
+    particle_pinned: wp.array(dtype=wp.int32),
+    # State: step start and the stage's evaluation point
+    x0: wp.array(dtype=wp.vec3),
+    v0: wp.array(dtype=wp.vec3),
+    x_eval: wp.array(dtype=wp.vec3),
+    v_eval: wp.array(dtype=wp.vec3),
+    # Control
+    pin_target: wp.array(dtype=wp.vec3),
+    wind: wp.array(dtype=wp.vec3),
+    gravity: wp.vec3,
+    global_damping: float,
+    dt: float,
+    next_coeff: float,
+    # outputs
+    dxdt_out: wp.array(dtype=wp.vec3),
+    dvdt_out: wp.array(dtype=wp.vec3),
+    x_next_out: wp.array(dtype=wp.vec3),
+    v_next_out: wp.array(dtype=wp.vec3),
+):
+    """Runge-Kutta stage: k = (v, a)(y_eval); next evaluation point y0 + next_coeff * k."""
+    i = wp.tid()
+    if particle_pinned[i] != 0:
+        # Pinned particles move with the constant velocity that lands them on their target.
+        vp = (pin_target[i] - x0[i]) / dt
+        dxdt_out[i] = vp
+        dvdt_out[i] = wp.vec3(0.0)
+        x_next_out[i] = x0[i] + next_coeff * vp
+        v_next_out[i] = vp
+        return
+    f = particle_force(
+        i, spring_offsets, spring_ids, spring_other, spring_rest_length, spring_stiffness, spring_damping,
+        spring_law, tri_offsets, tri_ids, tri_indices, tri_drag, tri_corner_weights, particle_mass, particle_pin_stiffness,
+        x_eval, v_eval, pin_target, wind, gravity, global_damping,
+    )
+    a = f / particle_mass[i]
+    ve = v_eval[i]
+    dxdt_out[i] = ve
+    dvdt_out[i] = a
+    x_next_out[i] = x0[i] + next_coeff * ve
+    v_next_out[i] = v0[i] + next_coeff * a
+
+
+@wp.kernel
+def combine_rk_stages(
+    particle_pinned: wp.array(dtype=wp.int32),
+    x0: wp.array(dtype=wp.vec3),
+    v0: wp.array(dtype=wp.vec3),
+    dx1: wp.array(dtype=wp.vec3),
+    dv1: wp.array(dtype=wp.vec3),
+    dx2: wp.array(dtype=wp.vec3),
+    dv2: wp.array(dtype=wp.vec3),
+    dx3: wp.array(dtype=wp.vec3),
+    dv3: wp.array(dtype=wp.vec3),
+    dx4: wp.array(dtype=wp.vec3),
+    dv4: wp.array(dtype=wp.vec3),
+    pin_target: wp.array(dtype=wp.vec3),
+    w1: float,
+    w2: float,
+    w3: float,
+    w4: float,
+    dt: float,
+    # outputs
+    x_out: wp.array(dtype=wp.vec3),
+    v_out: wp.array(dtype=wp.vec3),
+):
+    """y1 = y0 + h (w1 k1 + w2 k2 + w3 k3 + w4 k4); pinned particles land exactly on their target."""
+    i = wp.tid()
+    if particle_pinned[i] != 0:
+        target = pin_target[i]
+        x_out[i] = target
+        v_out[i] = (target - x0[i]) / dt
+        return
+    x_out[i] = x0[i] + dt * (w1 * dx1[i] + w2 * dx2[i] + w3 * dx3[i] + w4 * dx4[i])
+    v_out[i] = v0[i] + dt * (w1 * dv1[i] + w2 * dv2[i] + w3 * dv3[i] + w4 * dv4[i])
+
+
+@wp.kernel
+def eval_particle_forces(
+    # Model
+    spring_offsets: wp.array(dtype=wp.int32),
+    spring_ids: wp.array(dtype=wp.int32),
+    spring_other: wp.array(dtype=wp.int32),
+    spring_rest_length: wp.array(dtype=float),
+    spring_stiffness: wp.array(dtype=float),
+    spring_damping: wp.array(dtype=float),
+    spring_law: wp.array(dtype=wp.int32),
+    tri_offsets: wp.array(dtype=wp.int32),
+    tri_ids: wp.array(dtype=wp.int32),
+    tri_indices: wp.array2d(dtype=wp.int32),
+    tri_drag: wp.array(dtype=float),
+    tri_corner_weights: wp.array(dtype=wp.vec3),
+    particle_mass: wp.array(dtype=float),
+    particle_pin_stiffness: wp.array(dtype=float),
+    # State
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    # Control
+    pin_target: wp.array(dtype=wp.vec3),
+    wind: wp.array(dtype=wp.vec3),
+    gravity: wp.vec3,
+    global_damping: float,
+    # outputs
+    force_out: wp.array(dtype=wp.vec3),
+):
+    """Total force on every particle (for tests, the numpy cross-check and diagnostics)."""
+    i = wp.tid()
+    force_out[i] = particle_force(
+        i, spring_offsets, spring_ids, spring_other, spring_rest_length, spring_stiffness, spring_damping,
+        spring_law, tri_offsets, tri_ids, tri_indices, tri_drag, tri_corner_weights, particle_mass, particle_pin_stiffness,
+        x, v, pin_target, wind, gravity, global_damping,
+    )

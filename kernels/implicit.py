@@ -1,0 +1,383 @@
+"""Baraff-Witkin implicit Euler: system blocks, matrix-free product, filtered PCG and block Jacobi.
+
+One linearised backward-Euler step (physics.md 3(c)) solves for the velocity change dv
+
+    A dv = b,   A = M' + h D + h^2 K,   b = h (f0 - h K v0),
+
+with M' = M (1 + h gamma) + h^2 k_pin (global damping gamma, soft pins), K = -df/dx from
+`spring_stiffness_block` (kept PSD), D = -df/dv from spring damping and air drag. Per spring the
+system block is B_s = h D_s + h^2 K_s, so matrix-free
+
+    (A p)_i = M'_i p_i + sum_s B_s (p_i - p_j) + h sum_t w_ti g_t (g_t . sum_c w_tc p_c),
+
+with g_t = sqrt(c_A A_t) n_t and the corner weights w_tc of the drag (exact for linear drag).
+Hard pins are constraints through the filter S_i = 0 (Baraff & Witkin's modified PCG, solved in its
+projected form): dv_i = z_i = (target_i - x0_i) / h - v0_i there.
+
+Reductions (dot products) accumulate in float64 through atomics into `cg_scalars`, one row per
+iteration, so no host round trip is needed inside an iteration: column 0 holds r.s (s = P r), column 1
+c.Ac, column 2 r.r.
+"""
+
+import warp as wp
+
+from .forces import corner_weight, particle_force, spring_damping_block, spring_stiffness_block
+
+LENGTH_EPS = wp.constant(1.0e-9)
+CG_RS = wp.constant(0)
+CG_CAC = wp.constant(1)
+CG_RR = wp.constant(2)
+
+
+@wp.kernel
+def eval_spring_system_blocks(
+    # Model
+    spring_indices: wp.array2d(dtype=wp.int32),
+    spring_rest_length: wp.array(dtype=float),
+    spring_stiffness: wp.array(dtype=float),
+    spring_damping: wp.array(dtype=float),
+    spring_law: wp.array(dtype=wp.int32),
+    # State in
+    x: wp.array(dtype=wp.vec3),
+    dt: float,
+    # outputs
+    stiffness_block_out: wp.array(dtype=wp.mat33),
+    system_block_out: wp.array(dtype=wp.mat33),
+):
+    """K_s = -df_i/dx_i and B_s = h D_s + h^2 K_s for every spring."""
+    s = wp.tid()
+    xi = x[spring_indices[s, 0]]
+    xj = x[spring_indices[s, 1]]
+    k_block = spring_stiffness_block(xi, xj, spring_rest_length[s], spring_stiffness[s], spring_law[s])
+    d_block = spring_damping_block(xi, xj, spring_damping[s], spring_law[s])
+    stiffness_block_out[s] = k_block
+    system_block_out[s] = dt * d_block + dt * dt * k_block
+
+
+@wp.kernel
+def eval_triangle_drag_vectors(
+    tri_indices: wp.array2d(dtype=wp.int32),
+    tri_drag: wp.array(dtype=float),
+    x: wp.array(dtype=wp.vec3),
+    # outputs
+    drag_vector_out: wp.array(dtype=wp.vec3),
+):
+    """g_t = sqrt(c_A A_t) n_t, so that -df_a/dv_b = w_a w_b g_t g_t^T for corners a, b of t."""
+    t = wp.tid()
+    xa = x[tri_indices[t, 0]]
+    cr = wp.cross(x[tri_indices[t, 1]] - xa, x[tri_indices[t, 2]] - xa)
+    twice_area = wp.length(cr)
+    if twice_area < LENGTH_EPS:
+        drag_vector_out[t] = wp.vec3(0.0)
+        return
+    drag_vector_out[t] = wp.sqrt(tri_drag[t] * 0.5 * twice_area) * (cr / twice_area)
+
+
+@wp.func
+def effective_mass(i: int, particle_mass: wp.array(dtype=float), particle_pin_stiffness: wp.array(dtype=float), global_damping: float, dt: float):
+    """M'_i = m_i (1 + h gamma) + h^2 k_pin."""
+    return particle_mass[i] * (1.0 + dt * global_damping) + dt * dt * particle_pin_stiffness[i]
+
+
+@wp.func
+def pinned_velocity_change(i: int, particle_pinned: wp.array(dtype=wp.int32), pin_target: wp.array(dtype=wp.vec3), x0: wp.array(dtype=wp.vec3), v0: wp.array(dtype=wp.vec3), dt: float):
+    """z_i: the velocity change that lands a hard-pinned particle on its target (0 for free ones)."""
+    if particle_pinned[i] == 0:
+        return wp.vec3(0.0)
+    return (pin_target[i] - x0[i]) / dt - v0[i]
+
+
+@wp.func
+def system_product(
+    i: int,
+    spring_offsets: wp.array(dtype=wp.int32),
+    spring_ids: wp.array(dtype=wp.int32),
+    spring_other: wp.array(dtype=wp.int32),
+    tri_offsets: wp.array(dtype=wp.int32),
+    tri_ids: wp.array(dtype=wp.int32),
+    tri_indices: wp.array2d(dtype=wp.int32),
+    tri_corner_weights: wp.array(dtype=wp.vec3),
+    system_block: wp.array(dtype=wp.mat33),
+    drag_vector: wp.array(dtype=wp.vec3),
+    mass_eff: float,
+    p: wp.array(dtype=wp.vec3),
+    dt: float,
+):
+    """(A p)_i, matrix-free."""
+    pi = p[i]
+    q = mass_eff * pi
+    for k in range(spring_offsets[i], spring_offsets[i + 1]):
+        q += system_block[spring_ids[k]] * (pi - p[spring_other[k]])
+    for k in range(tri_offsets[i], tri_offsets[i + 1]):
+        t = tri_ids[k]
+        a = tri_indices[t, 0]
+        b = tri_indices[t, 1]
+        w = tri_corner_weights[t]
+        g = drag_vector[t]
+        p_mean = w[0] * p[a] + w[1] * p[b] + w[2] * p[tri_indices[t, 2]]
+        q += dt * corner_weight(i, a, b, w) * wp.dot(g, p_mean) * g
+    return q
+
+
+@wp.kernel
+def eval_implicit_system(
+    # Model
+    spring_offsets: wp.array(dtype=wp.int32),
+    spring_ids: wp.array(dtype=wp.int32),
+    spring_other: wp.array(dtype=wp.int32),
+    spring_rest_length: wp.array(dtype=float),
+    spring_stiffness: wp.array(dtype=float),
+    spring_damping: wp.array(dtype=float),
+    spring_law: wp.array(dtype=wp.int32),
+    tri_offsets: wp.array(dtype=wp.int32),
+    tri_ids: wp.array(dtype=wp.int32),
+    tri_indices: wp.array2d(dtype=wp.int32),
+    tri_drag: wp.array(dtype=float),
+    tri_corner_weights: wp.array(dtype=wp.vec3),
+    particle_mass: wp.array(dtype=float),
+    particle_pin_stiffness: wp.array(dtype=float),
+    particle_pinned: wp.array(dtype=wp.int32),
+    # per-step blocks
+    stiffness_block: wp.array(dtype=wp.mat33),
+    system_block: wp.array(dtype=wp.mat33),
+    drag_vector: wp.array(dtype=wp.vec3),
+    # State in
+    x0: wp.array(dtype=wp.vec3),
+    v0: wp.array(dtype=wp.vec3),
+    # Control
+    pin_target: wp.array(dtype=wp.vec3),
+    wind: wp.array(dtype=wp.vec3),
+    gravity: wp.vec3,
+    global_damping: float,
+    dt: float,
+    # outputs
+    rhs_out: wp.array(dtype=wp.vec3),
+    precond_out: wp.array(dtype=wp.mat33),
+    dv_out: wp.array(dtype=wp.vec3),
+    residual_out: wp.array(dtype=wp.vec3),
+    preconditioned_out: wp.array(dtype=wp.vec3),
+    search_out: wp.array(dtype=wp.vec3),
+    cg_scalars_out: wp.array2d(dtype=wp.float64),
+):
+    """b = h (f0 - h K v0), P = A_ii^-1 (filtered), dv = z, r0 = S (b - A z), s0 = c0 = P r0."""
+    i = wp.tid()
+    f0 = particle_force(
+        i, spring_offsets, spring_ids, spring_other, spring_rest_length, spring_stiffness, spring_damping,
+        spring_law, tri_offsets, tri_ids, tri_indices, tri_drag, tri_corner_weights, particle_mass, particle_pin_stiffness,
+        x0, v0, pin_target, wind, gravity, global_damping,
+    )
+    vi = v0[i]
+    m_eff = effective_mass(i, particle_mass, particle_pin_stiffness, global_damping, dt)
+    k_v = particle_pin_stiffness[i] * vi
+    diag = m_eff * wp.identity(n=3, dtype=float)
+    a_z = wp.vec3(0.0)
+    for k in range(spring_offsets[i], spring_offsets[i + 1]):
+        s = spring_ids[k]
+        j = spring_other[k]
+        k_v += stiffness_block[s] * (vi - v0[j])
+        diag += system_block[s]
+        a_z -= system_block[s] * pinned_velocity_change(j, particle_pinned, pin_target, x0, v0, dt)
+    for k in range(tri_offsets[i], tri_offsets[i + 1]):
+        t = tri_ids[k]
+        g = drag_vector[t]
+        w = tri_corner_weights[t]
+        wi = corner_weight(i, tri_indices[t, 0], tri_indices[t, 1], w)
+        diag += dt * wi * wi * wp.outer(g, g)
+        z_mean = wp.vec3(0.0)
+        for c in range(3):
+            z_mean += w[c] * pinned_velocity_change(tri_indices[t, c], particle_pinned, pin_target, x0, v0, dt)
+        a_z += dt * wi * wp.dot(g, z_mean) * g
+    b = dt * (f0 - dt * k_v)
+    rhs_out[i] = b
+    if particle_pinned[i] != 0:
+        precond_out[i] = wp.mat33(0.0)
+        dv_out[i] = pinned_velocity_change(i, particle_pinned, pin_target, x0, v0, dt)
+        residual_out[i] = wp.vec3(0.0)
+        preconditioned_out[i] = wp.vec3(0.0)
+        search_out[i] = wp.vec3(0.0)
+        return
+    p_inv = wp.inverse(diag)
+    r = b - a_z
+    s0 = p_inv * r
+    precond_out[i] = p_inv
+    dv_out[i] = wp.vec3(0.0)
+    residual_out[i] = r
+    preconditioned_out[i] = s0
+    search_out[i] = s0
+    wp.atomic_add(cg_scalars_out, 0, CG_RS, wp.float64(wp.dot(r, s0)))
+    wp.atomic_add(cg_scalars_out, 0, CG_RR, wp.float64(wp.dot(r, r)))
+
+
+@wp.kernel
+def cg_product(
+    # Model
+    spring_offsets: wp.array(dtype=wp.int32),
+    spring_ids: wp.array(dtype=wp.int32),
+    spring_other: wp.array(dtype=wp.int32),
+    tri_offsets: wp.array(dtype=wp.int32),
+    tri_ids: wp.array(dtype=wp.int32),
+    tri_indices: wp.array2d(dtype=wp.int32),
+    tri_corner_weights: wp.array(dtype=wp.vec3),
+    particle_mass: wp.array(dtype=float),
+    particle_pin_stiffness: wp.array(dtype=float),
+    particle_pinned: wp.array(dtype=wp.int32),
+    system_block: wp.array(dtype=wp.mat33),
+    drag_vector: wp.array(dtype=wp.vec3),
+    search: wp.array(dtype=wp.vec3),
+    global_damping: float,
+    dt: float,
+    iteration: int,
+    # outputs
+    product_out: wp.array(dtype=wp.vec3),
+    cg_scalars_out: wp.array2d(dtype=wp.float64),
+):
+    """q = S A c and c . q (filtered matrix-free product of the CG search direction)."""
+    i = wp.tid()
+    if particle_pinned[i] != 0:
+        product_out[i] = wp.vec3(0.0)
+        return
+    m_eff = effective_mass(i, particle_mass, particle_pin_stiffness, global_damping, dt)
+    q = system_product(i, spring_offsets, spring_ids, spring_other, tri_offsets, tri_ids, tri_indices, tri_corner_weights, system_block, drag_vector, m_eff, search, dt)
+    product_out[i] = q
+    wp.atomic_add(cg_scalars_out, iteration, CG_CAC, wp.float64(wp.dot(search[i], q)))
+
+
+@wp.kernel
+def cg_update(
+    precond: wp.array(dtype=wp.mat33),
+    search: wp.array(dtype=wp.vec3),
+    product: wp.array(dtype=wp.vec3),
+    iteration: int,
+    # outputs (updated in place: forward-only solve, its gradient comes from an adjoint solve)
+    dv_out: wp.array(dtype=wp.vec3),
+    residual_out: wp.array(dtype=wp.vec3),
+    preconditioned_out: wp.array(dtype=wp.vec3),
+    cg_scalars_out: wp.array2d(dtype=wp.float64),
+):
+    """alpha = r.s / c.Ac; dv += alpha c; r -= alpha q; s = P r; accumulate r.s and r.r."""
+    i = wp.tid()
+    cac = cg_scalars_out[iteration, CG_CAC]
+    alpha = float(0.0)
+    if cac > wp.float64(0.0):
+        alpha = float(cg_scalars_out[iteration, CG_RS] / cac)
+    dv_out[i] = dv_out[i] + alpha * search[i]
+    r = residual_out[i] - alpha * product[i]
+    residual_out[i] = r
+    s = precond[i] * r
+    preconditioned_out[i] = s
+    wp.atomic_add(cg_scalars_out, iteration + 1, CG_RS, wp.float64(wp.dot(r, s)))
+    wp.atomic_add(cg_scalars_out, iteration + 1, CG_RR, wp.float64(wp.dot(r, r)))
+
+
+@wp.kernel
+def cg_direction(
+    preconditioned: wp.array(dtype=wp.vec3),
+    cg_scalars: wp.array2d(dtype=wp.float64),
+    iteration: int,
+    # outputs
+    search_out: wp.array(dtype=wp.vec3),
+):
+    """c = s + beta c, beta = r_new.s_new / r.s."""
+    i = wp.tid()
+    rs = cg_scalars[iteration, CG_RS]
+    beta = float(0.0)
+    if rs > wp.float64(0.0):
+        beta = float(cg_scalars[iteration + 1, CG_RS] / rs)
+    search_out[i] = preconditioned[i] + beta * search_out[i]
+
+
+@wp.kernel
+def jacobi_iterate(
+    # Model
+    spring_offsets: wp.array(dtype=wp.int32),
+    spring_ids: wp.array(dtype=wp.int32),
+    spring_other: wp.array(dtype=wp.int32),
+    tri_offsets: wp.array(dtype=wp.int32),
+    tri_ids: wp.array(dtype=wp.int32),
+    tri_indices: wp.array2d(dtype=wp.int32),
+    tri_corner_weights: wp.array(dtype=wp.vec3),
+    particle_pinned: wp.array(dtype=wp.int32),
+    system_block: wp.array(dtype=wp.mat33),
+    drag_vector: wp.array(dtype=wp.vec3),
+    precond: wp.array(dtype=wp.mat33),
+    rhs: wp.array(dtype=wp.vec3),
+    dv_in: wp.array(dtype=wp.vec3),
+    dt: float,
+    # outputs
+    dv_out: wp.array(dtype=wp.vec3),
+):
+    """Block Jacobi: dv_i <- A_ii^-1 (b_i - sum_{j != i} A_ij dv_j); pinned rows keep z_i."""
+    i = wp.tid()
+    if particle_pinned[i] != 0:
+        dv_out[i] = dv_in[i]
+        return
+    acc = rhs[i]
+    for k in range(spring_offsets[i], spring_offsets[i + 1]):
+        acc += system_block[spring_ids[k]] * dv_in[spring_other[k]]
+    di = dv_in[i]
+    for k in range(tri_offsets[i], tri_offsets[i + 1]):
+        t = tri_ids[k]
+        a = tri_indices[t, 0]
+        b = tri_indices[t, 1]
+        w = tri_corner_weights[t]
+        g = drag_vector[t]
+        wi = corner_weight(i, a, b, w)
+        others = w[0] * dv_in[a] + w[1] * dv_in[b] + w[2] * dv_in[tri_indices[t, 2]] - wi * di
+        acc -= dt * wi * wp.dot(g, others) * g
+    dv_out[i] = precond[i] * acc
+
+
+@wp.kernel
+def eval_system_residual(
+    # Model
+    spring_offsets: wp.array(dtype=wp.int32),
+    spring_ids: wp.array(dtype=wp.int32),
+    spring_other: wp.array(dtype=wp.int32),
+    tri_offsets: wp.array(dtype=wp.int32),
+    tri_ids: wp.array(dtype=wp.int32),
+    tri_indices: wp.array2d(dtype=wp.int32),
+    tri_corner_weights: wp.array(dtype=wp.vec3),
+    particle_mass: wp.array(dtype=float),
+    particle_pin_stiffness: wp.array(dtype=float),
+    particle_pinned: wp.array(dtype=wp.int32),
+    system_block: wp.array(dtype=wp.mat33),
+    drag_vector: wp.array(dtype=wp.vec3),
+    rhs: wp.array(dtype=wp.vec3),
+    dv: wp.array(dtype=wp.vec3),
+    global_damping: float,
+    dt: float,
+    slot: int,
+    # outputs
+    cg_scalars_out: wp.array2d(dtype=wp.float64),
+):
+    """|S (b - A dv)|^2 into cg_scalars_out[slot, CG_RR]."""
+    i = wp.tid()
+    if particle_pinned[i] != 0:
+        return
+    m_eff = effective_mass(i, particle_mass, particle_pin_stiffness, global_damping, dt)
+    r = rhs[i] - system_product(i, spring_offsets, spring_ids, spring_other, tri_offsets, tri_ids, tri_indices, tri_corner_weights, system_block, drag_vector, m_eff, dv, dt)
+    wp.atomic_add(cg_scalars_out, slot, CG_RR, wp.float64(wp.dot(r, r)))
+
+
+@wp.kernel
+def integrate_implicit(
+    particle_pinned: wp.array(dtype=wp.int32),
+    x0: wp.array(dtype=wp.vec3),
+    v0: wp.array(dtype=wp.vec3),
+    dv: wp.array(dtype=wp.vec3),
+    pin_target: wp.array(dtype=wp.vec3),
+    dt: float,
+    # outputs
+    x_out: wp.array(dtype=wp.vec3),
+    v_out: wp.array(dtype=wp.vec3),
+):
+    """v1 = v0 + dv, x1 = x0 + h v1 (pinned particles land exactly on their targets)."""
+    i = wp.tid()
+    if particle_pinned[i] != 0:
+        target = pin_target[i]
+        x_out[i] = target
+        v_out[i] = (target - x0[i]) / dt
+        return
+    v1 = v0[i] + dv[i]
+    v_out[i] = v1
+    x_out[i] = x0[i] + dt * v1
