@@ -17,10 +17,16 @@ def apply_strain_limit_color(
     x_in: wp.array(dtype=wp.vec3),
     color: int,
     max_strain: float,
+    relaxation: float,
+
     # outputs
     x_out: wp.array(dtype=wp.vec3),
 ):
-    """Shorten the colour's over-stretched springs to (1 + max_strain) L, split by inverse mass (Provot 1995)."""
+    """Shorten the colour's over-stretched springs to (1 + max_strain) L, split by inverse mass (Provot 1995).
+
+    With relaxation > 1 the excess is over-corrected (successive over-relaxation, never below the rest
+    length), which speeds up the propagation of corrections along long chains of active constraints.
+    """
     i = wp.tid()
     xi = x_in[i]
     s = strain_limit_colors[color, i]
@@ -40,7 +46,8 @@ def apply_strain_limit_color(
     wj = 0.0
     if particle_pinned[j] == 0:
         wj = 1.0 / particle_mass[j]
-    x_out[i] = xi - (wi / (wi + wj)) * (length - limit) / length * d
+    excess = wp.min(relaxation * (length - limit), length - spring_rest_length[s])
+    x_out[i] = xi - (wi / (wi + wj)) * excess / length * d
 
 
 @wp.kernel
@@ -55,3 +62,35 @@ def correct_velocity(
     """v_out = v_in + (x_after - x_before) / h: keep velocities consistent with the corrected positions."""
     i = wp.tid()
     v_out[i] = v_in[i] + (x_after[i] - x_before[i]) / dt
+
+
+@wp.kernel
+def apply_attachment_limit(
+    # Strain limiter data
+    attachment_particle: wp.array2d(dtype=wp.int32),
+    attachment_rest_distance: wp.array2d(dtype=float),
+    particle_pinned: wp.array(dtype=wp.int32),
+    # State in
+    x_in: wp.array(dtype=wp.vec3),
+    max_strain: float,
+    # outputs
+    x_out: wp.array(dtype=wp.vec3),
+):
+    """Long-range attachments (Kim et al. 2012): |x_i - x_p| <= (1 + max_strain) g_ip for pinned p.
+
+    g_ip is the shortest rest length along limited springs from i to p, so any state whose springs all
+    satisfy the strain limit satisfies these too; projecting onto them removes in one pass the global
+    stretch that local passes would need O(n^2) sweeps for.
+    """
+    i = wp.tid()
+    xi = x_in[i]
+    if particle_pinned[i] == 0:
+        for a in range(attachment_particle.shape[1]):
+            p = attachment_particle[i, a]
+            if p >= 0:
+                d = xi - x_in[p]
+                length = wp.length(d)
+                limit = (1.0 + max_strain) * attachment_rest_distance[i, a]
+                if length > limit:
+                    xi = x_in[p] + (limit / length) * d
+    x_out[i] = xi

@@ -2,25 +2,36 @@
 
 from __future__ import annotations
 
+import heapq
+
+import numpy as np
 import warp as wp
 
 from ..kernels import constraints as kc
+from ..kernels import diagnostics as kd
 from ..model import Control, Model, State
 
 
 class StrainLimiter:
     """Provot (1995) deformation constraints: no structural/shear spring longer than (1 + max_strain) L.
 
-    Each pass visits the springs colour by colour (no two springs of a colour share a particle), moving
-    the endpoints of over-stretched springs toward each other by the excess, split by inverse mass
-    (all of it to the free end when the other is pinned). Velocities are then corrected by the position
+    Each sweep visits the springs colour by colour (no two springs of a colour share a particle), moving
+    the endpoints of over-stretched springs toward each other by `relaxation` times the excess (never
+    below the rest length), split by inverse mass (all of it to the free end when the other is pinned). Velocities are then corrected by the position
     change over dt (Provot's "inverse dynamics"), so the limiter adds no momentum: the centre of mass
     of a free sheet moves as without it.
+
+    Each sweep starts with long-range attachments (Kim, Chentanez & Mueller 2012) keep every particle
+    within (1 + max_strain) times its shortest rest path along limited springs from the nearest
+    `attachments` groups of hard-pinned particles. That bound holds in any state that satisfies the
+    spring limits, and it removes the global stretch of a cloth hanging from a few points, which local
+    Gauss-Seidel passes alone would need O(n^2) sweeps to remove.
 
     Gradients flow through the active (clamped) constraints only: the clamp is piecewise.
     """
 
-    def __init__(self, model: Model, max_strain: float = 0.1, iterations: int = 4):
+    def __init__(self, model: Model, max_strain: float = 0.1, iterations: int = 4, attachments: int = 4,
+                 tolerance: float | None = 1.0e-3, max_iterations: int = 128, relaxation: float = 1.5):
         if not (max_strain > 0.0):
             raise ValueError(f"max_strain must be positive (0.1 = 10 %), got {max_strain!r}")
         if iterations < 1:
@@ -28,28 +39,57 @@ class StrainLimiter:
         self.model = model
         self.max_strain = float(max_strain)
         self.iterations = int(iterations)
+        self.tolerance = tolerance
+        self.max_iterations = max(int(max_iterations), self.iterations)
+        self.excess = wp.zeros(1, dtype=float, device=model.device)
+        if not (1.0 <= relaxation < 2.0):
+            raise ValueError(f"strain-limit relaxation must be in [1, 2), got {relaxation!r}")
+        self.relaxation = float(relaxation)
+        self.last_iterations = 0
+        ids, dist = attachment_table(model, attachments)
+        self.attachment_count = ids.shape[1]
+
+        if self.attachment_count:
+            self.attachment_particle = wp.array(ids, dtype=wp.int32, device=model.device)
+            self.attachment_rest_distance = wp.array(dist.astype(np.float32), dtype=float, device=model.device)
 
     @property
     def active(self) -> bool:
         return self.model.strain_limit_color_count > 0
 
     def apply(self, solver: SolverBase, x_in: wp.array, v_in: wp.array, state_out: State, dt: float):
-        """Limit x_in into state_out.particle_q and correct v_in into state_out.particle_qd."""
+        """Limit x_in into state_out.particle_q and correct v_in into state_out.particle_qd.
+
+        Runs `iterations` sweeps over all colours; then, when a tolerance is set and the run is neither
+        taped nor being captured into a graph, more sweeps (up to `max_iterations`) until no limited
+        spring exceeds the limit by more than `tolerance` (strain).
+        """
         m = self.model
-        colors = m.strain_limit_color_count
-        passes = self.iterations * colors
         rg = x_in.requires_grad
+        # One sweep: the long-range attachments, then every colour of springs.
+        passes = ([self._attach] if self.attachment_count else []) + [
+            (lambda src, dst, c=c: self._sweep_color(src, c, dst)) for c in range(m.strain_limit_color_count)
+        ]
+        checked = self.tolerance is not None and not rg and not m.device.is_capturing
         prev = x_in
-        for k in range(passes):
-            dst = state_out.particle_q if k == passes - 1 else solver.scratch(f"strain_limit{k % 2}", wp.vec3, rg)
-            wp.launch(
-                kc.apply_strain_limit_color,
-                dim=m.particle_count,
-                inputs=[m.strain_limit_colors, m.spring_indices, m.spring_rest_length, m.particle_mass, m.particle_pinned, prev, k % colors, self.max_strain],
-                outputs=[dst],
-                device=m.device,
-            )
-            prev = dst
+        sweeps = 0
+        k = 0
+        while True:
+            for p, apply_pass in enumerate(passes):
+                last = p == len(passes) - 1 and sweeps + 1 >= self.iterations and not checked
+                dst = state_out.particle_q if last else solver.scratch(f"strain_limit{k % 2}", wp.vec3, rg)
+                apply_pass(prev, dst)
+                prev = dst
+                k += 1
+            sweeps += 1
+            if sweeps < self.iterations:
+                continue
+            if not checked:
+                break
+            if sweeps >= self.max_iterations or self._excess(prev) <= self.tolerance:
+                wp.copy(state_out.particle_q, prev)
+                break
+        self.last_iterations = sweeps
         wp.launch(
             kc.correct_velocity,
             dim=m.particle_count,
@@ -57,6 +97,94 @@ class StrainLimiter:
             outputs=[state_out.particle_qd],
             device=m.device,
         )
+    def _attach(self, x_src, x_dst):
+        m = self.model
+        wp.launch(
+            kc.apply_attachment_limit,
+            dim=m.particle_count,
+            inputs=[self.attachment_particle, self.attachment_rest_distance, m.particle_pinned, x_src, self.max_strain],
+            outputs=[x_dst],
+            device=m.device,
+        )
+
+    def _sweep_color(self, x_src, color, x_dst):
+        m = self.model
+        wp.launch(
+            kc.apply_strain_limit_color,
+            dim=m.particle_count,
+            inputs=[m.strain_limit_colors, m.spring_indices, m.spring_rest_length, m.particle_mass, m.particle_pinned,
+                    x_src, color, self.max_strain, self.relaxation],
+            outputs=[x_dst],
+            device=m.device,
+        )
+
+    def _excess(self, x) -> float:
+        m = self.model
+        self.excess.fill_(-1.0)
+        wp.launch(kd.eval_strain_excess, dim=m.spring_count, inputs=[m.spring_indices, m.spring_rest_length, m.spring_limited, x, self.max_strain],
+                  outputs=[self.excess], device=m.device)
+        return float(self.excess.numpy()[0])
+
+
+
+
+def attachment_table(model: Model, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per particle, the nearest pinned particle of up to `count` pinned groups and the rest path length.
+
+    Groups are connected components of pinned particles (a pinned edge is one group, each pinned corner
+    another). Shortest paths run along the limited (structural/shear) springs with their rest lengths
+    (Dijkstra from each group). Returns (ids, distances) of shape (particle_count, k), -1 / 0 padded.
+    """
+    n = model.particle_count
+    pinned = model.particle_pinned.numpy() != 0
+    if count <= 0 or not pinned.any():
+        return np.zeros((n, 0), np.int32), np.zeros((n, 0))
+    springs = model.spring_indices.numpy().reshape(-1, 2)
+    limited = model.spring_limited.numpy() != 0
+    rest = model.spring_rest_length.numpy().astype(np.float64)
+    adj: list[list[tuple[int, float]]] = [[] for _ in range(n)]
+    for (a, b), r, use in zip(springs.tolist(), rest.tolist(), limited.tolist()):
+        if use:
+            adj[a].append((b, r))
+            adj[b].append((a, r))
+    # Pinned groups: connected components of pinned particles through limited springs.
+    group = np.full(n, -1)
+    groups = []
+    for p in np.flatnonzero(pinned):
+        if group[p] >= 0:
+            continue
+        stack, members = [p], []
+        group[p] = len(groups)
+        while stack:
+            q = stack.pop()
+            members.append(q)
+            for r, _ in adj[q]:
+                if pinned[r] and group[r] < 0:
+                    group[r] = len(groups)
+                    stack.append(r)
+        groups.append(members)
+    dist = np.full((len(groups), n), np.inf)
+    source = np.full((len(groups), n), -1, np.int64)
+    for g, members in enumerate(groups):
+        heap = [(0.0, int(p), int(p)) for p in members]
+        heapq.heapify(heap)
+        d_g, s_g = dist[g], source[g]
+        while heap:
+            d, q, src = heapq.heappop(heap)
+            if d >= d_g[q]:
+                continue
+            d_g[q], s_g[q] = d, src
+            for r, w in adj[q]:
+                if d + w < d_g[r]:
+                    heapq.heappush(heap, (d + w, r, src))
+    k = min(count, len(groups))
+    order = np.argsort(dist, axis=0)[:k]  # nearest groups per particle
+    cols = np.arange(n)
+    ids = source[order, cols].T.astype(np.int32)
+    dd = dist[order, cols].T
+    ids[~np.isfinite(dd)] = -1
+    dd[~np.isfinite(dd)] = 0.0
+    return ids, dd
 
 
 class SolverBase:
@@ -69,14 +197,19 @@ class SolverBase:
     Args:
         model: the model to simulate.
         strain_limit: Provot's maximum strain of structural/shear springs (0.1 = 10 %), None to disable.
-        strain_limit_iterations: Gauss-Seidel passes over all colours per step.
+        strain_limit_iterations: Gauss-Seidel sweeps over all colours per step (the minimum).
+        strain_limit_tolerance: keep sweeping (up to 128) until the limit holds to this strain; None for
+            a fixed number of sweeps. Not applied inside graph capture or under the tape.
     """
 
     name = "base"
 
-    def __init__(self, model: Model, *, strain_limit: float | None = 0.1, strain_limit_iterations: int = 4):
+    def __init__(self, model: Model, *, strain_limit: float | None = 0.1, strain_limit_iterations: int = 4,
+                 strain_limit_tolerance: float | None = 1.0e-3):
         self.model = model
-        self.strain_limiter = StrainLimiter(model, strain_limit, strain_limit_iterations) if strain_limit else None
+        self.strain_limiter = (
+            StrainLimiter(model, strain_limit, strain_limit_iterations, tolerance=strain_limit_tolerance) if strain_limit else None
+        )
         self._scratch: dict = {}
         # Per-step solver report (iterative solvers fill these).
         self.last_iterations = 0

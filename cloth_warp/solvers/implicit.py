@@ -57,8 +57,10 @@ class SolverImplicitEuler(SolverBase):
         check_every: int = 4,
         strain_limit: float | None = 0.1,
         strain_limit_iterations: int = 4,
+        strain_limit_tolerance: float | None = 1.0e-3,
     ):
-        super().__init__(model, strain_limit=strain_limit, strain_limit_iterations=strain_limit_iterations)
+        super().__init__(model, strain_limit=strain_limit, strain_limit_iterations=strain_limit_iterations,
+                         strain_limit_tolerance=strain_limit_tolerance)
         if isinstance(linear_solver, str):
             try:
                 linear_solver = LinearSolver[linear_solver.upper()]
