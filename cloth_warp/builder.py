@@ -148,6 +148,7 @@ class ModelBuilder:
         self.spring_damping = np.zeros(0)
         self.spring_law = np.zeros(0, np.int32)
         self.spring_kind = np.zeros(0, np.int32)
+        self.spring_middle = np.zeros(0, np.int64)
         self.triangles = np.zeros((0, 3), np.int64)
         self.tri_drag = np.zeros(0)
         self.tri_corner_weights = np.zeros((0, 3))
@@ -194,21 +195,24 @@ class ModelBuilder:
             rest_length = float(np.linalg.norm(self.particle_positions[i] - self.particle_positions[j]))
         if not (rest_length > 0.0 and math.isfinite(rest_length)):
             raise ValueError(f"spring rest length must be positive [m], got {rest_length!r}")
+        if law == SpringLaw.BUCKLING:
+            raise ValueError("buckling (Choi-Ko bend) springs need a middle particle; add them through a cloth")
         if not (math.isfinite(stiffness) and stiffness >= 0.0) or not (math.isfinite(damping) and damping >= 0.0):
             raise ValueError(f"spring stiffness and damping must be finite and >= 0, got {stiffness!r}, {damping!r}")
         self._append_springs(
             np.array([[i, j]]), np.array([rest_length]), np.array([stiffness]), np.array([damping]),
-            np.array([int(law)]), np.array([int(kind)]),
+            np.array([int(law)]), np.array([int(kind)]), np.array([-1]),
         )
         return len(self.springs) - 1
 
-    def _append_springs(self, springs, rest, k, c, law, kind):
+    def _append_springs(self, springs, rest, k, c, law, kind, middle):
         self.springs = np.concatenate([self.springs, springs.astype(np.int64)])
         self.spring_rest_length = np.concatenate([self.spring_rest_length, rest])
         self.spring_stiffness = np.concatenate([self.spring_stiffness, k])
         self.spring_damping = np.concatenate([self.spring_damping, c])
         self.spring_law = np.concatenate([self.spring_law, law.astype(np.int32)])
         self.spring_kind = np.concatenate([self.spring_kind, kind.astype(np.int32)])
+        self.spring_middle = np.concatenate([self.spring_middle, middle.astype(np.int64)])
 
     # -- cloths ------------------------------------------------------------------------------
     def add_cloth_grid(
@@ -287,7 +291,8 @@ class ModelBuilder:
         self.particle_pin_stiffness = np.concatenate([self.particle_pin_stiffness, np.zeros(n)])
         k, c = spring_constants(t, material)
         rest = np.linalg.norm(t.positions[t.springs[:, 0]] - t.positions[t.springs[:, 1]], axis=1)
-        self._append_springs(t.springs + start, rest, k, c, t.spring_law, t.spring_kind)
+        middle = np.where(t.spring_middle >= 0, t.spring_middle + start, -1)
+        self._append_springs(t.springs + start, rest, k, c, t.spring_law, t.spring_kind, middle)
         tri_start = len(self.triangles)
         self.triangles = np.concatenate([self.triangles, t.triangles.astype(np.int64) + start])
         self.tri_drag = np.concatenate([self.tri_drag, np.full(len(t.triangles), material.drag_coefficient)])
@@ -368,20 +373,22 @@ class ModelBuilder:
         m.particle_pinned = arr(self.particle_pinned.astype(np.int32), wp.int32)
         m.particle_pin_stiffness = arr(self.particle_pin_stiffness.astype(np.float32), float)
         springs = self.springs.astype(np.int32).reshape(-1, 2)
+        stiffness = clamp_boundary_bending(self.spring_stiffness, springs, self.spring_middle, self.spring_law, self.particle_pinned)
         m.spring_indices = arr(springs, wp.int32)
         m.spring_rest_length = arr(self.spring_rest_length.astype(np.float32), float, True)
-        m.spring_stiffness = arr(self.spring_stiffness.astype(np.float32), float, True)
+        m.spring_stiffness = arr(stiffness.astype(np.float32), float, True)
         m.spring_damping = arr(self.spring_damping.astype(np.float32), float, True)
         m.spring_law = arr(self.spring_law, wp.int32)
         m.spring_kind = arr(self.spring_kind, wp.int32)
+        m.spring_middle = arr(self.spring_middle.astype(np.int32), wp.int32)
         tris = self.triangles.astype(np.int32).reshape(-1, 3)
         m.tri_indices = arr(tris, wp.int32)
         m.tri_drag = arr(self.tri_drag.astype(np.float32), float, True)
         m.tri_corner_weights = arr(self.tri_corner_weights.astype(np.float32).reshape(-1, 3), wp.vec3)
-        so, sid, sother = topo.particle_springs(springs, n)
+        so, sid, srole = topo.particle_springs(springs, self.spring_middle, n)
         m.particle_spring_offsets = arr(so, wp.int32)
         m.particle_spring_ids = arr(sid, wp.int32)
-        m.particle_spring_other = arr(sother, wp.int32)
+        m.particle_spring_role = arr(srole, wp.int32)
         to, tid = topo.particle_triangles(tris, n)
         m.particle_tri_offsets = arr(to, wp.int32)
         m.particle_tri_ids = arr(tid, wp.int32)
@@ -394,6 +401,23 @@ class ModelBuilder:
             m.cloths.append(ClothInfo(ref.name, ref.particle_start, ref.particle_count, tri_start, len(ref.topology.triangles), material, ref.topology))
         m.handles = list(self.handles)
         return m
+
+
+def clamp_boundary_bending(stiffness, springs, middle, law, pinned) -> np.ndarray:
+    """Double the bend triples at the edge of a clamped region (middle and exactly one end hard-pinned).
+
+    A hinge's energy (1/2) B theta^2 / a assumes the node's dual length a of free cloth; where the cloth
+    is clamped (two adjacent pinned rows), only a/2 of it bends, so the hinge is twice as stiff. Without
+    this a cantilever's root counts the moment over a whole cell and the tip deflects 2a/L too far.
+    """
+    k = np.asarray(stiffness, np.float64).copy()
+    tri = (np.asarray(law) == SpringLaw.BUCKLING) & (np.asarray(middle) >= 0)
+    if tri.any():
+        p = np.asarray(pinned) != 0
+        ends = p[springs[tri, 0]].astype(int) + p[springs[tri, 1]].astype(int)
+        edge = p[np.asarray(middle)[tri]] & (ends == 1)
+        k[np.flatnonzero(tri)[edge]] *= 2.0
+    return k
 
 
 def spring_constants(t: ClothTopology, material: FabricMaterial) -> tuple[np.ndarray, np.ndarray]:

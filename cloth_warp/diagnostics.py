@@ -45,7 +45,7 @@ class Diagnostics:
         wp.launch(
             kd.eval_step_statistics,
             dim=m.particle_count,
-            inputs=[m.particle_spring_offsets, m.particle_spring_ids, m.particle_spring_other, m.spring_rest_length,
+            inputs=[m.particle_spring_offsets, m.particle_spring_ids, m.particle_spring_role, m.spring_indices, m.spring_rest_length,
                     m.spring_limited, m.particle_mass, m.particle_pinned, state.particle_q, state.particle_qd],
             outputs=[self.stats],
             device=m.device,

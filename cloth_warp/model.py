@@ -149,10 +149,12 @@ class Model:
         particle_pin_stiffness: soft-pin stiffness toward Control.pin_target [N/m] (0 = none).
         spring_indices: endpoints (spring_count, 2) int32; spring_rest_length [m];
         spring_stiffness: k [N/m] (linear law) or k_b [N m^2] (buckling law);
-        spring_damping: c [N s/m]; spring_law / spring_kind: int32 enums (topology.SpringLaw / SpringKind).
+        spring_damping: c [N s/m]; spring_law / spring_kind: int32 enums (topology.SpringLaw / SpringKind);
+        spring_middle: middle particle of span-2 bend triples, -1 otherwise.
         tri_indices: (tri_count, 3) int32; tri_drag: c_A per triangle [N s/m^3];
         tri_corner_weights: share of each triangle's drag per corner (vec3, sums to 1).
-        particle_spring_offsets / _ids / _other, particle_tri_offsets / _ids: incidence lists (gather).
+        particle_spring_offsets / _ids / _role, particle_tri_offsets / _ids: incidence lists (gather); the
+            role is 0 / 1 for a spring's first / second endpoint and 2 for a bend triple's middle.
         strain_limit_colors: (colors, particle_count) int32: per colour, the structural/shear spring at
             each particle or -1 (Gauss-Seidel strain-limit passes).
         gravity: (3,) [m/s^2]; global_damping: mass-proportional damping rate [1/s].
@@ -206,7 +208,9 @@ class Model:
         return [
             self.particle_spring_offsets,
             self.particle_spring_ids,
-            self.particle_spring_other,
+            self.particle_spring_role,
+            self.spring_indices,
+            self.spring_middle,
             self.spring_rest_length,
             self.spring_stiffness,
             self.spring_damping,

@@ -12,7 +12,7 @@ import numpy as np
 from .topology import BUCKLING_POLY, SpringLaw
 
 _P = np.asarray(BUCKLING_POLY)  # highest power first
-_DP = np.polyder(_P)
+_Q = np.polyint(_P)
 
 
 class NumpyCloth:
@@ -24,6 +24,7 @@ class NumpyCloth:
         self.k = model.spring_stiffness.numpy().astype(np.float64)
         self.c = model.spring_damping.numpy().astype(np.float64)
         self.law = model.spring_law.numpy()
+        self.middle = model.spring_middle.numpy().astype(np.int64)
         self.tris = model.tri_indices.numpy().astype(np.int64).reshape(-1, 3)
         self.tri_drag = model.tri_drag.numpy().astype(np.float64)
         self.tri_w = model.tri_corner_weights.numpy().astype(np.float64).reshape(-1, 3)
@@ -47,12 +48,13 @@ class NumpyCloth:
         lin = self.law == SpringLaw.LINEAR
         mag = np.zeros(len(length))
         mag[lin] = -(self.k[lin] * (length[lin] - self.rest[lin]) + self.c[lin] * np.sum((v[i] - v[j])[lin] * n[lin], axis=1))
-        bk = ~lin & (length < self.rest)
-        s = length[bk] / self.rest[bk]
-        mag[bk] = -4.0 * self.k[bk] / self.rest[bk] ** 2 * np.polyval(_P, s)
         fs = mag[:, None] * n
-        np.add.at(f, i, fs)
-        np.add.at(f, j, -fs)
+        np.add.at(f, i[lin], fs[lin])
+        np.add.at(f, j[lin], -fs[lin])
+        bk = ~lin
+        if bk.any():
+            for idx, force in zip((i[bk], self.middle[bk], j[bk]), self.bending_forces(x, bk)):
+                np.add.at(f, idx, force)
         if len(self.tris):
             a, b, c = self.tris.T
             cr = np.cross(x[b] - x[a], x[c] - x[a])
@@ -63,6 +65,37 @@ class NumpyCloth:
             for col, corner in enumerate((a, b, c)):
                 np.add.at(f, corner, w[:, col : col + 1] * ft)
         f -= self.pin_k[:, None] * (x - pin_target)
+        return f
+
+    def bending_energy(self, x, mask=None):
+        """Energies of the bend triples, E = (4 k_b / l) int_s^1 |P| (s = chord / arc)."""
+        mask = self.law != SpringLaw.LINEAR if mask is None else mask
+        a, m, b = self.springs[mask, 0], self.middle[mask], self.springs[mask, 1]
+        arc = np.linalg.norm(x[m] - x[a], axis=1) + np.linalg.norm(x[b] - x[m], axis=1)
+        s = np.minimum(np.linalg.norm(x[b] - x[a], axis=1) / arc, 1.0)
+        return 4.0 * self.k[mask] / arc * (np.polyval(_Q, s) - np.polyval(_Q, 1.0))
+
+    def bending_forces(self, x, mask):
+        """Forces on (a, m, b) of the masked triples, f = f_b (grad|c| - s grad l) + (E/l) grad l."""
+        a, m, b = self.springs[mask, 0], self.middle[mask], self.springs[mask, 1]
+        e1, e2, c = x[m] - x[a], x[b] - x[m], x[b] - x[a]
+        l1, l2, lc = (np.linalg.norm(v, axis=1) for v in (e1, e2, c))
+        arc = l1 + l2
+        s = np.minimum(lc / arc, 1.0)
+        fb = -4.0 * self.k[mask] / arc**2 * np.polyval(_P, s)
+        g = fb * s - self.bending_energy(x, mask) / arc
+        u1, u2, uc = e1 / l1[:, None], e2 / l2[:, None], c / lc[:, None]
+        return g[:, None] * u1 - fb[:, None] * uc, g[:, None] * (u2 - u1), fb[:, None] * uc - g[:, None] * u2
+
+    def bending_forces_fd(self, x, eps=1e-7):
+        """-dE/dx of all bend triples by central differences of the energy (an independent check)."""
+        f = np.zeros_like(x)
+        for p in np.unique(np.concatenate([self.springs[self.law != SpringLaw.LINEAR].ravel(), self.middle[self.middle >= 0]])):
+            for d in range(3):
+                xp, xm = x.copy(), x.copy()
+                xp[p, d] += eps
+                xm[p, d] -= eps
+                f[p, d] = -(self.bending_energy(xp).sum() - self.bending_energy(xm).sum()) / (2 * eps)
         return f
 
     def spring_blocks(self, x):
@@ -77,11 +110,21 @@ class NumpyCloth:
         K = np.zeros((len(length), 3, 3))
         t = np.maximum(0.0, 1.0 - self.rest / length)
         K[lin] = self.k[lin, None, None] * (nn[lin] + t[lin, None, None] * (eye - nn[lin]))
-        bk = ~lin & (length < self.rest)
-        slope = -4.0 * self.k[bk] / self.rest[bk] ** 3 * np.polyval(_DP, length[bk] / self.rest[bk])
-        K[bk] = -slope[:, None, None] * nn[bk]
         D = np.where(lin[:, None, None], self.c[:, None, None] * nn, 0.0)
         return K, D
+
+    def bending_weights(self, x):
+        """sqrt(C) (1/a1, -(1/a1 + 1/a2), 1/a2) per bend triple (quadratic bending Jacobian), zeros else."""
+        g = np.zeros((len(self.springs), 3))
+        for s in np.flatnonzero(self.law != SpringLaw.LINEAR):
+            a, b, m = self.springs[s, 0], self.springs[s, 1], self.middle[s]
+            a1 = np.linalg.norm(x[m] - x[a])
+            a2 = np.linalg.norm(x[b] - x[m])
+            arc = a1 + a2
+            chord = min(np.linalg.norm(x[b] - x[a]), arc * 0.999999)
+            fb = -4.0 * self.k[s] / arc**2 * np.polyval(_P, chord / arc)
+            g[s] = np.sqrt(fb * a1 * a2 / arc) * np.array([1.0 / a1, -(1.0 / a1 + 1.0 / a2), 1.0 / a2])
+        return g
 
     # -- dense implicit system ----------------------------------------------------------------
     def implicit_system(self, x, v, pin_target, wind, dt):
@@ -98,6 +141,12 @@ class NumpyCloth:
                 G[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] += blk
                 G[3 * i : 3 * i + 3, 3 * j : 3 * j + 3] -= blk
                 G[3 * j : 3 * j + 3, 3 * i : 3 * i + 3] -= blk
+        g = self.bending_weights(x)
+        for s in np.flatnonzero(self.law != SpringLaw.LINEAR):
+            trip = (self.springs[s, 0], self.middle[s], self.springs[s, 1])
+            for r, p in enumerate(trip):
+                for r2, q in enumerate(trip):
+                    Kg[3 * p : 3 * p + 3, 3 * q : 3 * q + 3] += g[s, r] * g[s, r2] * np.eye(3)
         for p in range(n):
             Kg[3 * p : 3 * p + 3, 3 * p : 3 * p + 3] += self.pin_k[p] * np.eye(3)
             Dg[3 * p : 3 * p + 3, 3 * p : 3 * p + 3] += self.global_damping * self.mass[p] * np.eye(3)

@@ -43,7 +43,7 @@ class SpringLaw(enum.IntEnum):
     LINEAR = 0
     """f = -k (l - L) n in tension and compression."""
     BUCKLING = 1
-    """Choi-Ko immediate buckling: pushes apart under compression only, no force in tension."""
+    """Choi-Ko immediate buckling on a span-2 triple (end, middle, end); see kernels.forces.bending_force."""
 
 
 class SpringModel(enum.Enum):
@@ -61,10 +61,13 @@ BUCKLING_POLY = (-11.541, 34.193, -39.083, 23.116, -9.713)
 # Onset force factor c0 = 4 |P(1)| (the exact curve gives 12): f_b(L^-) = c0 k_b / L^2.
 BUCKLING_ONSET = 4.0 * abs(sum(BUCKLING_POLY))
 
-# Share of a node's bending energy carried by its two span-2 diagonals (Choi-Ko set). 1/2 gives a
-# twisting rigidity equal to the bending rigidity, i.e. an isotropic plate with zero Poisson ratio
-# (derivation in grid_topology's docstring).
-DIAGONAL_BEND_SHARE = 0.5
+# Share s of a node's bending energy carried by its two span-2 diagonals (Choi-Ko set). The node then
+# stores (1/2) D [kx^2 + ky^2 + 2 s kx ky + 4 s kxy^2]: an isotropic plate needs 2 (1 - nu) = 4 s with
+# nu = s, so s = 1/3 (Poisson ratio 1/3).
+DIAGONAL_BEND_SHARE = 1.0 / 3.0
+# bend_stiffness B is the rigidity of a free strip (what the cantilever test measures): a strip bends
+# anticlastically, so the plate modulus of nodes with diagonals is D = B / (1 - nu^2).
+PLATE_FROM_STRIP = 1.0 / (1.0 - DIAGONAL_BEND_SHARE**2)
 
 # Provot flexion springs are linear and store energy ~ theta^4; their stiffness is matched to the
 # buckling spring of the same bending rigidity at 10 % chord compression: (1/2) k (0.1 L)^2 = c0 k_b/L^2 * 0.1 L.
@@ -82,6 +85,7 @@ class ClothTopology:
         spring_kind: :class:`SpringKind` per spring, shape (s,).
         spring_law: :class:`SpringLaw` per spring, shape (s,).
         spring_weight: geometric weight per spring (module docstring), shape (s,).
+        spring_middle: for span-2 bend springs the particle between the two ends, else -1, shape (s,).
         particle_area: lumped (dual) area per particle [m^2], shape (n,).
         render_to_particle: for meshes loaded with seams, original vertex -> particle, shape (n_render,).
         corner_uv: per-triangle-corner texture coordinates, shape (t, 3, 2), or None.
@@ -97,6 +101,7 @@ class ClothTopology:
     spring_kind: np.ndarray
     spring_law: np.ndarray
     spring_weight: np.ndarray
+    spring_middle: np.ndarray
     particle_area: np.ndarray
     render_to_particle: np.ndarray | None = None
     corner_uv: np.ndarray | None = None
@@ -115,11 +120,12 @@ class ClothTopology:
 
 class _SpringList:
     def __init__(self):
-        self.i, self.j, self.kind, self.law, self.weight = [], [], [], [], []
+        self.i, self.j, self.kind, self.law, self.weight, self.middle = [], [], [], [], [], []
 
-    def add(self, i, j, kind, law, weight):
+    def add(self, i, j, kind, law, weight, middle=-1):
         self.i.append(i)
         self.j.append(j)
+        self.middle.append(int(middle))
         self.kind.append(int(kind))
         self.law.append(int(law))
         self.weight.append(float(weight))
@@ -131,6 +137,7 @@ class _SpringList:
             np.asarray(self.kind, np.int32),
             np.asarray(self.law, np.int32),
             np.asarray(self.weight, np.float64),
+            np.asarray(self.middle, np.int32),
         )
 
 
@@ -167,9 +174,10 @@ def grid_topology(
       gamma the two diagonals of a cell store k gamma^2 ax^2 ay^2 / d^2 = (1/2) G gamma^2 ax ay.
     * span-2 x/y springs centred on node (i, j) carry that node's bending energy for curvature along
       their axis (weight from :func:`buckling_weight` with the node's dual width). With the Choi-Ko
-      set, interior nodes give a share DIAGONAL_BEND_SHARE to their two span-2 diagonals: under
+      set, interior nodes give a share s = DIAGONAL_BEND_SHARE to their two span-2 diagonals: under
       curvature kappa along x a diagonal at angle phi sees normal curvature kappa cos^2 phi, which gives
-      the diagonal weight 4 s A_v / (c0 cos^4 phi d) (A_v = ax ay, d = diagonal segment length).
+      the diagonal weight 4 s A_v / (c0 cos^4 phi d) (A_v = ax ay, d = diagonal segment length); those
+      nodes use the plate modulus B / (1 - s^2) (see PLATE_FROM_STRIP).
     """
     nx, ny = (int(resolution[0]), int(resolution[1]))
     sx, sy = (float(size[0]), float(size[1]))
@@ -207,19 +215,20 @@ def grid_topology(
         for i in range(nx + 1):
             interior = 0 < i < nx and 0 < j < ny
             share = DIAGONAL_BEND_SHARE if (choi_ko and interior) else 0.0
+            plate = PLATE_FROM_STRIP if share > 0.0 else 1.0
             if 0 < i < nx:  # x-span-2 centred on (i, j)
-                wb = (1.0 - share) * buckling_weight(row_width(j, ny, ay), 2 * ax, ax, ax)
-                _add_bend(sl, vid(i - 1, j), vid(i + 1, j), wb, 2 * ax, choi_ko)
+                wb = plate * (1.0 - share) * buckling_weight(row_width(j, ny, ay), 2 * ax, ax, ax)
+                _add_bend(sl, vid(i - 1, j), vid(i + 1, j), vid(i, j), wb, 2 * ax, choi_ko)
             if 0 < j < ny:  # y-span-2
-                wb = (1.0 - share) * buckling_weight(row_width(i, nx, ax), 2 * ay, ay, ay)
-                _add_bend(sl, vid(i, j - 1), vid(i, j + 1), wb, 2 * ay, choi_ko)
+                wb = plate * (1.0 - share) * buckling_weight(row_width(i, nx, ax), 2 * ay, ay, ay)
+                _add_bend(sl, vid(i, j - 1), vid(i, j + 1), vid(i, j), wb, 2 * ay, choi_ko)
             if share > 0.0:
                 # Under curvature along x each diagonal sees kappa cos^2(phi); weight so that each of the
                 # two carries share/2 of the node's energy for x-bending (and, by symmetry, y-bending).
                 cos2 = ax * ax / d2
-                wd = 4.0 * share * (ax * ay) / (BUCKLING_ONSET * cos2 * cos2 * d)
-                sl.add(vid(i - 1, j - 1), vid(i + 1, j + 1), SpringKind.BEND, SpringLaw.BUCKLING, wd)
-                sl.add(vid(i + 1, j - 1), vid(i - 1, j + 1), SpringKind.BEND, SpringLaw.BUCKLING, wd)
+                wd = plate * 4.0 * share * (ax * ay) / (BUCKLING_ONSET * cos2 * cos2 * d)
+                sl.add(vid(i - 1, j - 1), vid(i + 1, j + 1), SpringKind.BEND, SpringLaw.BUCKLING, wd, vid(i, j))
+                sl.add(vid(i + 1, j - 1), vid(i - 1, j + 1), SpringKind.BEND, SpringLaw.BUCKLING, wd, vid(i, j))
 
     tris = []
     for j in range(ny):
@@ -237,13 +246,13 @@ def grid_topology(
     wy = np.full(ny + 1, ay)
     wy[[0, -1]] *= 0.5
     particle_area = np.outer(wy, wx).ravel()
-    springs, kind, law, weight = sl.arrays()
-    return ClothTopology(positions, triangles, springs, kind, law, weight, particle_area, grid_shape=(nx, ny), corner_weights=corner_weights)
+    springs, kind, law, weight, middle = sl.arrays()
+    return ClothTopology(positions, triangles, springs, kind, law, weight, middle, particle_area, grid_shape=(nx, ny), corner_weights=corner_weights)
 
 
-def _add_bend(sl: _SpringList, i: int, j: int, weight_b: float, span: float, choi_ko: bool):
+def _add_bend(sl: _SpringList, i: int, j: int, middle: int, weight_b: float, span: float, choi_ko: bool):
     if choi_ko:
-        sl.add(i, j, SpringKind.BEND, SpringLaw.BUCKLING, weight_b)
+        sl.add(i, j, SpringKind.BEND, SpringLaw.BUCKLING, weight_b, middle)
     else:
         sl.add(i, j, SpringKind.BEND, SpringLaw.LINEAR, provot_weight_from_buckling(weight_b, span))
 
@@ -443,9 +452,9 @@ def mesh_topology(
         span = a1 + a2
         n_v = max(int(per_vertex[vtx]), 3)
         wb = 32.0 * particle_area[vtx] * span / (3.0 * n_v * BUCKLING_ONSET * a1 * a2)
-        _add_bend(sl, a, b, wb, span, choi_ko)
+        _add_bend(sl, a, b, vtx, wb, span, choi_ko)
 
-    springs, kind, law, weight = sl.arrays()
+    springs, kind, law, weight, middle = sl.arrays()
     for msg in issues:
         warnings.warn(f"cloth mesh: {msg}", stacklevel=3)
     return ClothTopology(
@@ -455,6 +464,7 @@ def mesh_topology(
         kind,
         law,
         weight,
+        middle,
         particle_area,
         render_to_particle=render_to_particle,
         corner_uv=corner_uv,
@@ -485,12 +495,21 @@ def csr(owner: np.ndarray, count: int, payload: np.ndarray):
     return offsets, payload[order]
 
 
-def particle_springs(springs: np.ndarray, particle_count: int):
-    """Per particle: offsets, incident spring ids and the other endpoint (gather formulation)."""
+def particle_springs(springs: np.ndarray, middle: np.ndarray, particle_count: int):
+    """Per particle: offsets, incident spring ids and the particle's role in each (gather formulation).
+
+    Role 0 / 1: first / second endpoint; role 2: middle particle of a span-2 bend triple.
+    """
     s = len(springs)
-    owner = np.concatenate([springs[:, 0], springs[:, 1]])
+    ids = np.arange(s)
+    has_mid = middle >= 0
+    owner = np.concatenate([springs[:, 0], springs[:, 1], middle[has_mid]])
     payload = np.stack(
-        [np.concatenate([np.arange(s), np.arange(s)]), np.concatenate([springs[:, 1], springs[:, 0]])], axis=1
+        [
+            np.concatenate([ids, ids, ids[has_mid]]),
+            np.concatenate([np.zeros(s, np.int64), np.ones(s, np.int64), np.full(int(has_mid.sum()), 2)]),
+        ],
+        axis=1,
     )
     offsets, rows = csr(owner, particle_count, payload)
     return offsets, rows[:, 0].astype(np.int32), rows[:, 1].astype(np.int32)

@@ -15,7 +15,8 @@ def eval_step_statistics(
     # Model
     spring_offsets: wp.array(dtype=wp.int32),
     spring_ids: wp.array(dtype=wp.int32),
-    spring_other: wp.array(dtype=wp.int32),
+    spring_role: wp.array(dtype=wp.int32),
+    spring_indices: wp.array2d(dtype=wp.int32),
     spring_rest_length: wp.array(dtype=float),
     spring_limited: wp.array(dtype=wp.int32),
     particle_mass: wp.array(dtype=float),
@@ -37,10 +38,9 @@ def eval_step_statistics(
     strain = float(0.0)
     for k in range(spring_offsets[i], spring_offsets[i + 1]):
         s = spring_ids[k]
-        if spring_limited[s] != 0:
-            j = spring_other[k]
-            if j > i:  # each spring once
-                strain = wp.max(strain, wp.length(xi - x[j]) / spring_rest_length[s] - 1.0)
+        role = spring_role[k]
+        if spring_limited[s] != 0 and role == 0:  # each spring once, from its first endpoint
+            strain = wp.max(strain, wp.length(xi - x[spring_indices[s, 1]]) / spring_rest_length[s] - 1.0)
     wp.atomic_max(stats_out, STAT_MAX_STRAIN, strain)
     if particle_pinned[i] == 0:
         speed2 = wp.dot(vi, vi)

@@ -23,24 +23,86 @@ BUCKLING_P0 = wp.constant(-9.713)
 LENGTH_EPS = wp.constant(1.0e-9)
 
 
+# P(1 - t) = R0 + R1 t + R2 t^2 + R3 t^3 + R4 t^4 (Taylor coefficients of the fit about s = 1), used to
+# integrate the energy int_s^1 |P| without cancellation near the onset.
+BUCKLING_R0 = wp.constant(-11.541 + 34.193 - 39.083 + 23.116 - 9.713)
+BUCKLING_R1 = wp.constant(-(4.0 * -11.541 + 3.0 * 34.193 + 2.0 * -39.083 + 23.116))
+BUCKLING_R2 = wp.constant(6.0 * -11.541 + 3.0 * 34.193 + -39.083)
+BUCKLING_R3 = wp.constant(-(4.0 * -11.541 + 34.193))
+BUCKLING_R4 = wp.constant(-11.541)
+
+
 @wp.func
-def buckling_force(length: float, rest_length: float, bend_stiffness: float):
-    """Push magnitude f_b = (4 k_b / L^2) |P(l / L)| [N] of a compressed buckling spring (0 in tension)."""
-    if length >= rest_length:
+def buckling_force(chord: float, arc: float, bend_stiffness: float):
+    """Choi-Ko push f_b = (4 k_b / l_arc^2) |P(chord / l_arc)| [N] (0 when the triple is straight)."""
+    if chord >= arc:
         return 0.0
-    s = wp.max(length / rest_length, 0.0)
+    s = wp.max(chord / arc, 0.0)
     p = (((BUCKLING_P4 * s + BUCKLING_P3) * s + BUCKLING_P2) * s + BUCKLING_P1) * s + BUCKLING_P0
-    return -4.0 * bend_stiffness / (rest_length * rest_length) * p
+    return -4.0 * bend_stiffness / (arc * arc) * p
 
 
 @wp.func
-def buckling_force_slope(length: float, rest_length: float, bend_stiffness: float):
-    """d f_b / d l = -(4 k_b / L^3) P'(l / L) [N/m] (< 0: the push weakens as the chord lengthens)."""
-    if length >= rest_length:
-        return 0.0
-    s = wp.max(length / rest_length, 0.0)
-    dp = ((4.0 * BUCKLING_P4 * s + 3.0 * BUCKLING_P3) * s + 2.0 * BUCKLING_P2) * s + BUCKLING_P1
-    return -4.0 * bend_stiffness / (rest_length * rest_length * rest_length) * dp
+def buckling_energy(chord: float, arc: float, bend_stiffness: float):
+    """E = (4 k_b / l_arc) int_s^1 |P| [J], s = chord / l_arc: the work of the push from straight to s."""
+    t = wp.clamp(1.0 - chord / arc, 0.0, 1.0)
+    integral = t * (BUCKLING_R0 + t * (BUCKLING_R1 / 2.0 + t * (BUCKLING_R2 / 3.0 + t * (BUCKLING_R3 / 4.0 + t * BUCKLING_R4 / 5.0))))
+    return -4.0 * bend_stiffness / arc * integral
+
+
+@wp.func
+def bending_force(xa: wp.vec3, xm: wp.vec3, xb: wp.vec3, bend_stiffness: float, role: int):
+    """Force [N] on one particle (role 0: end a, 1: end b, 2: middle) of a Choi-Ko span-2 bend triple.
+
+    Immediate buckling (Choi & Ko 2002) measured against the *current* arc length l = |e1| + |e2| of the
+    two segments e1 = xm - xa, e2 = xb - xm: with chord c = xb - xa and s = |c| / l the energy is
+    E(s, l) = (4 k_b / l) int_s^1 |P|, which for inextensible segments is Choi & Ko's bending energy
+    (1/2) k_b l kappa^2 of the arc (polynomial fit P of their buckling curve). Its exact gradient:
+
+        f = f_b (grad|c| - s grad l) + (E / l) grad l,   f_b = (4 k_b / l^2) |P(s)|.
+
+    Measuring against the current arc (not the rest length) decouples bending from stretching: the
+    forces vanish continuously as the triple straightens, and a small kink theta stores
+    c0 k_b a1 a2 theta^2 / (2 l^3) (quadratic, so small deflections are linear).
+    """
+    e1 = xm - xa
+    e2 = xb - xm
+    c = xb - xa
+    l1 = wp.length(e1)
+    l2 = wp.length(e2)
+    chord = wp.length(c)
+    if l1 < LENGTH_EPS or l2 < LENGTH_EPS or chord < LENGTH_EPS:
+        return wp.vec3(0.0)
+    arc = l1 + l2
+    u1 = e1 / l1
+    u2 = e2 / l2
+    uc = c / chord
+    fb = buckling_force(chord, arc, bend_stiffness)
+    g = fb * (chord / arc) - buckling_energy(chord, arc, bend_stiffness) / arc
+    if role == 0:
+        return g * u1 - fb * uc
+    if role == 1:
+        return fb * uc - g * u2
+    return g * (u2 - u1)
+
+
+@wp.func
+def bending_stiffness_weights(xa: wp.vec3, xm: wp.vec3, xb: wp.vec3, bend_stiffness: float):
+    """sqrt(C) (1/a1, -(1/a1 + 1/a2), 1/a2) of the quadratic bending model used as the Jacobian.
+
+    Near straight the triple's energy is (C/2) |u|^2 with u = (xa - xm)/a1 + (xb - xm)/a2 (|u| ~ theta),
+    C = f_b a1 a2 / l; its Hessian C w w^T (x) I is PSD and constant (Bergou et al. 2006), which keeps
+    the implicit system SPD while carrying the bending stiffness.
+    """
+    a1 = wp.length(xm - xa)
+    a2 = wp.length(xb - xm)
+    chord = wp.length(xb - xa)
+    if a1 < LENGTH_EPS or a2 < LENGTH_EPS:
+        return wp.vec3(0.0)
+    arc = a1 + a2
+    fb = buckling_force(wp.min(chord, arc * 0.999999), arc, bend_stiffness)
+    root = wp.sqrt(fb * a1 * a2 / arc)
+    return root * wp.vec3(1.0 / a1, -(1.0 / a1 + 1.0 / a2), 1.0 / a2)
 
 
 @wp.func
@@ -54,24 +116,20 @@ def spring_force(
     damping: float,
     law: int,
 ):
-    """Force on particle i: linear -(k (l - L) + c (v_ij . n)) n, or the buckling push f_b n."""
+    """Force on particle i of a linear spring: -(k (l - L) + c (v_ij . n)) n."""
     d = xi - xj
     length = wp.length(d)
     if length < LENGTH_EPS:
         return wp.vec3(0.0)
     n = d / length
-    if law == SPRING_LINEAR:
-        return -(stiffness * (length - rest_length) + damping * wp.dot(vi - vj, n)) * n
-    return buckling_force(length, rest_length, stiffness) * n
+    return -(stiffness * (length - rest_length) + damping * wp.dot(vi - vj, n)) * n
 
 
 @wp.func
 def spring_stiffness_block(xi: wp.vec3, xj: wp.vec3, rest_length: float, stiffness: float, law: int):
-    """K_s = -df_i/dx_i, kept positive semi-definite (physics.md 3(b), 3(d)).
-
-    Linear: k [n n^T + max(0, 1 - L/l) (I - n n^T)] (transverse term dropped under compression).
-    Buckling: -f_b'(l) n n^T (longitudinal part only, as Choi & Ko).
-    """
+    """K_s = -df_i/dx_i of a linear spring, kept positive semi-definite (physics.md 3(b)):
+    k [n n^T + max(0, 1 - L/l) (I - n n^T)] (transverse term dropped under compression). Zero for bend
+    triples, whose Jacobian is `bending_stiffness_weights`."""
     d = xi - xj
     length = wp.length(d)
     if length < LENGTH_EPS:
@@ -81,7 +139,7 @@ def spring_stiffness_block(xi: wp.vec3, xj: wp.vec3, rest_length: float, stiffne
     if law == SPRING_LINEAR:
         t = wp.max(0.0, 1.0 - rest_length / length)
         return stiffness * (nn + t * (wp.identity(n=3, dtype=float) - nn))
-    return -buckling_force_slope(length, rest_length, stiffness) * nn
+    return wp.mat33(0.0)
 
 
 @wp.func
@@ -137,7 +195,9 @@ def particle_force(
     # Model
     spring_offsets: wp.array(dtype=wp.int32),
     spring_ids: wp.array(dtype=wp.int32),
-    spring_other: wp.array(dtype=wp.int32),
+    spring_role: wp.array(dtype=wp.int32),
+    spring_indices: wp.array2d(dtype=wp.int32),
+    spring_middle: wp.array(dtype=wp.int32),
     spring_rest_length: wp.array(dtype=float),
     spring_stiffness: wp.array(dtype=float),
     spring_damping: wp.array(dtype=float),
@@ -165,8 +225,12 @@ def particle_force(
     f = m * gravity - global_damping * m * vi
     for k in range(spring_offsets[i], spring_offsets[i + 1]):
         s = spring_ids[k]
-        j = spring_other[k]
-        f += spring_force(xi, x[j], vi, v[j], spring_rest_length[s], spring_stiffness[s], spring_damping[s], spring_law[s])
+        role = spring_role[k]
+        if spring_law[s] == SPRING_LINEAR:
+            j = spring_indices[s, 1 - role]
+            f += spring_force(xi, x[j], vi, v[j], spring_rest_length[s], spring_stiffness[s], spring_damping[s], spring_law[s])
+        else:
+            f += bending_force(x[spring_indices[s, 0]], x[spring_middle[s]], x[spring_indices[s, 1]], spring_stiffness[s], role)
     w = wind[0]
     for k in range(tri_offsets[i], tri_offsets[i + 1]):
         t = tri_ids[k]
@@ -186,7 +250,9 @@ def integrate_euler(
     # Model
     spring_offsets: wp.array(dtype=wp.int32),
     spring_ids: wp.array(dtype=wp.int32),
-    spring_other: wp.array(dtype=wp.int32),
+    spring_role: wp.array(dtype=wp.int32),
+    spring_indices: wp.array2d(dtype=wp.int32),
+    spring_middle: wp.array(dtype=wp.int32),
     spring_rest_length: wp.array(dtype=float),
     spring_stiffness: wp.array(dtype=float),
     spring_damping: wp.array(dtype=float),
@@ -222,7 +288,7 @@ def integrate_euler(
         v_out[i] = (target - x0) / dt
         return
     f = particle_force(
-        i, spring_offsets, spring_ids, spring_other, spring_rest_length, spring_stiffness, spring_damping,
+        i, spring_offsets, spring_ids, spring_role, spring_indices, spring_middle, spring_rest_length, spring_stiffness, spring_damping,
         spring_law, tri_offsets, tri_ids, tri_indices, tri_drag, tri_corner_weights, particle_mass, particle_pin_stiffness,
         x_in, v_in, pin_target, wind, gravity, global_damping,
     )
@@ -240,7 +306,9 @@ def eval_rk_stage(
     # Model
     spring_offsets: wp.array(dtype=wp.int32),
     spring_ids: wp.array(dtype=wp.int32),
-    spring_other: wp.array(dtype=wp.int32),
+    spring_role: wp.array(dtype=wp.int32),
+    spring_indices: wp.array2d(dtype=wp.int32),
+    spring_middle: wp.array(dtype=wp.int32),
     spring_rest_length: wp.array(dtype=float),
     spring_stiffness: wp.array(dtype=float),
     spring_damping: wp.array(dtype=float),
@@ -282,7 +350,7 @@ def eval_rk_stage(
         v_next_out[i] = vp
         return
     f = particle_force(
-        i, spring_offsets, spring_ids, spring_other, spring_rest_length, spring_stiffness, spring_damping,
+        i, spring_offsets, spring_ids, spring_role, spring_indices, spring_middle, spring_rest_length, spring_stiffness, spring_damping,
         spring_law, tri_offsets, tri_ids, tri_indices, tri_drag, tri_corner_weights, particle_mass, particle_pin_stiffness,
         x_eval, v_eval, pin_target, wind, gravity, global_damping,
     )
@@ -333,7 +401,9 @@ def eval_particle_forces(
     # Model
     spring_offsets: wp.array(dtype=wp.int32),
     spring_ids: wp.array(dtype=wp.int32),
-    spring_other: wp.array(dtype=wp.int32),
+    spring_role: wp.array(dtype=wp.int32),
+    spring_indices: wp.array2d(dtype=wp.int32),
+    spring_middle: wp.array(dtype=wp.int32),
     spring_rest_length: wp.array(dtype=float),
     spring_stiffness: wp.array(dtype=float),
     spring_damping: wp.array(dtype=float),
@@ -359,7 +429,7 @@ def eval_particle_forces(
     """Total force on every particle (for tests, the numpy cross-check and diagnostics)."""
     i = wp.tid()
     force_out[i] = particle_force(
-        i, spring_offsets, spring_ids, spring_other, spring_rest_length, spring_stiffness, spring_damping,
+        i, spring_offsets, spring_ids, spring_role, spring_indices, spring_middle, spring_rest_length, spring_stiffness, spring_damping,
         spring_law, tri_offsets, tri_ids, tri_indices, tri_drag, tri_corner_weights, particle_mass, particle_pin_stiffness,
         x, v, pin_target, wind, gravity, global_damping,
     )

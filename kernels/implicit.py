@@ -10,7 +10,9 @@ system block is B_s = h D_s + h^2 K_s, so matrix-free
 
     (A p)_i = M'_i p_i + sum_s B_s (p_i - p_j) + h sum_t w_ti g_t (g_t . sum_c w_tc p_c),
 
-with g_t = sqrt(c_A A_t) n_t and the corner weights w_tc of the drag (exact for linear drag).
+with g_t = sqrt(c_A A_t) n_t and the corner weights w_tc of the drag (exact for linear drag), plus for
+each Choi-Ko bend triple (a, m, b) the quadratic-bending term h^2 g_r (g . (p_a, p_m, p_b)) with
+g = `bending_stiffness_weights` and g_r its entry for the particle's role.
 Hard pins are constraints through the filter S_i = 0 (Baraff & Witkin's modified PCG, solved in its
 projected form): dv_i = z_i = (target_i - x0_i) / h - v0_i there.
 
@@ -21,7 +23,13 @@ c.Ac, column 2 r.r.
 
 import warp as wp
 
-from .forces import corner_weight, particle_force, spring_damping_block, spring_stiffness_block
+from .forces import (
+    bending_stiffness_weights,
+    corner_weight,
+    particle_force,
+    spring_damping_block,
+    spring_stiffness_block,
+)
 
 LENGTH_EPS = wp.constant(1.0e-9)
 CG_RS = wp.constant(0)
@@ -37,21 +45,46 @@ def eval_spring_system_blocks(
     spring_stiffness: wp.array(dtype=float),
     spring_damping: wp.array(dtype=float),
     spring_law: wp.array(dtype=wp.int32),
+    spring_middle: wp.array(dtype=wp.int32),
     # State in
     x: wp.array(dtype=wp.vec3),
     dt: float,
     # outputs
     stiffness_block_out: wp.array(dtype=wp.mat33),
     system_block_out: wp.array(dtype=wp.mat33),
+    bend_vector_out: wp.array(dtype=wp.vec3),
 ):
-    """K_s = -df_i/dx_i and B_s = h D_s + h^2 K_s for every spring."""
+    """K_s = -df_i/dx_i and B_s = h D_s + h^2 K_s for linear springs; g for bend triples."""
     s = wp.tid()
     xi = x[spring_indices[s, 0]]
     xj = x[spring_indices[s, 1]]
+    m = spring_middle[s]
+    if m >= 0:
+        stiffness_block_out[s] = wp.mat33(0.0)
+        system_block_out[s] = wp.mat33(0.0)
+        bend_vector_out[s] = bending_stiffness_weights(xi, x[m], xj, spring_stiffness[s])
+        return
     k_block = spring_stiffness_block(xi, xj, spring_rest_length[s], spring_stiffness[s], spring_law[s])
     d_block = spring_damping_block(xi, xj, spring_damping[s], spring_law[s])
     stiffness_block_out[s] = k_block
     system_block_out[s] = dt * d_block + dt * dt * k_block
+    bend_vector_out[s] = wp.vec3(0.0)
+
+
+@wp.func
+def role_weight(g: wp.vec3, role: int):
+    """Entry of a triple's (a, m, b)-ordered vector for a particle of `role` (0: a, 1: b, 2: m)."""
+    if role == 0:
+        return g[0]
+    if role == 1:
+        return g[2]
+    return g[1]
+
+
+@wp.func
+def triple_dot(g: wp.vec3, p: wp.array(dtype=wp.vec3), a: int, m: int, b: int):
+    """sum over the triple's particles of g_r p_r."""
+    return g[0] * p[a] + g[1] * p[m] + g[2] * p[b]
 
 
 @wp.kernel
@@ -92,12 +125,15 @@ def system_product(
     i: int,
     spring_offsets: wp.array(dtype=wp.int32),
     spring_ids: wp.array(dtype=wp.int32),
-    spring_other: wp.array(dtype=wp.int32),
+    spring_role: wp.array(dtype=wp.int32),
+    spring_indices: wp.array2d(dtype=wp.int32),
+    spring_middle: wp.array(dtype=wp.int32),
     tri_offsets: wp.array(dtype=wp.int32),
     tri_ids: wp.array(dtype=wp.int32),
     tri_indices: wp.array2d(dtype=wp.int32),
     tri_corner_weights: wp.array(dtype=wp.vec3),
     system_block: wp.array(dtype=wp.mat33),
+    bend_vector: wp.array(dtype=wp.vec3),
     drag_vector: wp.array(dtype=wp.vec3),
     mass_eff: float,
     p: wp.array(dtype=wp.vec3),
@@ -107,7 +143,14 @@ def system_product(
     pi = p[i]
     q = mass_eff * pi
     for k in range(spring_offsets[i], spring_offsets[i + 1]):
-        q += system_block[spring_ids[k]] * (pi - p[spring_other[k]])
+        s = spring_ids[k]
+        role = spring_role[k]
+        m = spring_middle[s]
+        if m < 0:
+            q += system_block[s] * (pi - p[spring_indices[s, 1 - role]])
+        else:
+            g = bend_vector[s]
+            q += dt * dt * role_weight(g, role) * triple_dot(g, p, spring_indices[s, 0], m, spring_indices[s, 1])
     for k in range(tri_offsets[i], tri_offsets[i + 1]):
         t = tri_ids[k]
         a = tri_indices[t, 0]
@@ -124,7 +167,9 @@ def eval_implicit_system(
     # Model
     spring_offsets: wp.array(dtype=wp.int32),
     spring_ids: wp.array(dtype=wp.int32),
-    spring_other: wp.array(dtype=wp.int32),
+    spring_role: wp.array(dtype=wp.int32),
+    spring_indices: wp.array2d(dtype=wp.int32),
+    spring_middle: wp.array(dtype=wp.int32),
     spring_rest_length: wp.array(dtype=float),
     spring_stiffness: wp.array(dtype=float),
     spring_damping: wp.array(dtype=float),
@@ -140,6 +185,7 @@ def eval_implicit_system(
     # per-step blocks
     stiffness_block: wp.array(dtype=wp.mat33),
     system_block: wp.array(dtype=wp.mat33),
+    bend_vector: wp.array(dtype=wp.vec3),
     drag_vector: wp.array(dtype=wp.vec3),
     # State in
     x0: wp.array(dtype=wp.vec3),
@@ -162,7 +208,7 @@ def eval_implicit_system(
     """b = h (f0 - h K v0), P = A_ii^-1 (filtered), dv = z, r0 = S (b - A z), s0 = c0 = P r0."""
     i = wp.tid()
     f0 = particle_force(
-        i, spring_offsets, spring_ids, spring_other, spring_rest_length, spring_stiffness, spring_damping,
+        i, spring_offsets, spring_ids, spring_role, spring_indices, spring_middle, spring_rest_length, spring_stiffness, spring_damping,
         spring_law, tri_offsets, tri_ids, tri_indices, tri_drag, tri_corner_weights, particle_mass, particle_pin_stiffness,
         x0, v0, pin_target, wind, gravity, global_damping,
     )
@@ -173,10 +219,24 @@ def eval_implicit_system(
     a_z = wp.vec3(0.0)
     for k in range(spring_offsets[i], spring_offsets[i + 1]):
         s = spring_ids[k]
-        j = spring_other[k]
-        k_v += stiffness_block[s] * (vi - v0[j])
-        diag += system_block[s]
-        a_z -= system_block[s] * pinned_velocity_change(j, particle_pinned, pin_target, x0, v0, dt)
+        role = spring_role[k]
+        m = spring_middle[s]
+        if m < 0:
+            j = spring_indices[s, 1 - role]
+            k_v += stiffness_block[s] * (vi - v0[j])
+            diag += system_block[s]
+            a_z -= system_block[s] * pinned_velocity_change(j, particle_pinned, pin_target, x0, v0, dt)
+        else:
+            g = bend_vector[s]
+            gi = role_weight(g, role)
+            end_a = spring_indices[s, 0]
+            end_b = spring_indices[s, 1]
+            k_v += gi * triple_dot(g, v0, end_a, m, end_b)
+            diag += dt * dt * gi * gi * wp.identity(n=3, dtype=float)
+            z_sum = g[0] * pinned_velocity_change(end_a, particle_pinned, pin_target, x0, v0, dt)
+            z_sum += g[1] * pinned_velocity_change(m, particle_pinned, pin_target, x0, v0, dt)
+            z_sum += g[2] * pinned_velocity_change(end_b, particle_pinned, pin_target, x0, v0, dt)
+            a_z += dt * dt * gi * z_sum
     for k in range(tri_offsets[i], tri_offsets[i + 1]):
         t = tri_ids[k]
         g = drag_vector[t]
@@ -213,7 +273,9 @@ def cg_product(
     # Model
     spring_offsets: wp.array(dtype=wp.int32),
     spring_ids: wp.array(dtype=wp.int32),
-    spring_other: wp.array(dtype=wp.int32),
+    spring_role: wp.array(dtype=wp.int32),
+    spring_indices: wp.array2d(dtype=wp.int32),
+    spring_middle: wp.array(dtype=wp.int32),
     tri_offsets: wp.array(dtype=wp.int32),
     tri_ids: wp.array(dtype=wp.int32),
     tri_indices: wp.array2d(dtype=wp.int32),
@@ -222,6 +284,7 @@ def cg_product(
     particle_pin_stiffness: wp.array(dtype=float),
     particle_pinned: wp.array(dtype=wp.int32),
     system_block: wp.array(dtype=wp.mat33),
+    bend_vector: wp.array(dtype=wp.vec3),
     drag_vector: wp.array(dtype=wp.vec3),
     search: wp.array(dtype=wp.vec3),
     global_damping: float,
@@ -237,7 +300,7 @@ def cg_product(
         product_out[i] = wp.vec3(0.0)
         return
     m_eff = effective_mass(i, particle_mass, particle_pin_stiffness, global_damping, dt)
-    q = system_product(i, spring_offsets, spring_ids, spring_other, tri_offsets, tri_ids, tri_indices, tri_corner_weights, system_block, drag_vector, m_eff, search, dt)
+    q = system_product(i, spring_offsets, spring_ids, spring_role, spring_indices, spring_middle, tri_offsets, tri_ids, tri_indices, tri_corner_weights, system_block, bend_vector, drag_vector, m_eff, search, dt)
     product_out[i] = q
     wp.atomic_add(cg_scalars_out, iteration, CG_CAC, wp.float64(wp.dot(search[i], q)))
 
@@ -291,13 +354,16 @@ def jacobi_iterate(
     # Model
     spring_offsets: wp.array(dtype=wp.int32),
     spring_ids: wp.array(dtype=wp.int32),
-    spring_other: wp.array(dtype=wp.int32),
+    spring_role: wp.array(dtype=wp.int32),
+    spring_indices: wp.array2d(dtype=wp.int32),
+    spring_middle: wp.array(dtype=wp.int32),
     tri_offsets: wp.array(dtype=wp.int32),
     tri_ids: wp.array(dtype=wp.int32),
     tri_indices: wp.array2d(dtype=wp.int32),
     tri_corner_weights: wp.array(dtype=wp.vec3),
     particle_pinned: wp.array(dtype=wp.int32),
     system_block: wp.array(dtype=wp.mat33),
+    bend_vector: wp.array(dtype=wp.vec3),
     drag_vector: wp.array(dtype=wp.vec3),
     precond: wp.array(dtype=wp.mat33),
     rhs: wp.array(dtype=wp.vec3),
@@ -312,9 +378,17 @@ def jacobi_iterate(
         dv_out[i] = dv_in[i]
         return
     acc = rhs[i]
-    for k in range(spring_offsets[i], spring_offsets[i + 1]):
-        acc += system_block[spring_ids[k]] * dv_in[spring_other[k]]
     di = dv_in[i]
+    for k in range(spring_offsets[i], spring_offsets[i + 1]):
+        s = spring_ids[k]
+        role = spring_role[k]
+        m = spring_middle[s]
+        if m < 0:
+            acc += system_block[s] * dv_in[spring_indices[s, 1 - role]]
+        else:
+            g = bend_vector[s]
+            gi = role_weight(g, role)
+            acc -= dt * dt * gi * (triple_dot(g, dv_in, spring_indices[s, 0], m, spring_indices[s, 1]) - gi * di)
     for k in range(tri_offsets[i], tri_offsets[i + 1]):
         t = tri_ids[k]
         a = tri_indices[t, 0]
@@ -332,7 +406,9 @@ def eval_system_residual(
     # Model
     spring_offsets: wp.array(dtype=wp.int32),
     spring_ids: wp.array(dtype=wp.int32),
-    spring_other: wp.array(dtype=wp.int32),
+    spring_role: wp.array(dtype=wp.int32),
+    spring_indices: wp.array2d(dtype=wp.int32),
+    spring_middle: wp.array(dtype=wp.int32),
     tri_offsets: wp.array(dtype=wp.int32),
     tri_ids: wp.array(dtype=wp.int32),
     tri_indices: wp.array2d(dtype=wp.int32),
@@ -341,6 +417,7 @@ def eval_system_residual(
     particle_pin_stiffness: wp.array(dtype=float),
     particle_pinned: wp.array(dtype=wp.int32),
     system_block: wp.array(dtype=wp.mat33),
+    bend_vector: wp.array(dtype=wp.vec3),
     drag_vector: wp.array(dtype=wp.vec3),
     rhs: wp.array(dtype=wp.vec3),
     dv: wp.array(dtype=wp.vec3),
@@ -355,7 +432,7 @@ def eval_system_residual(
     if particle_pinned[i] != 0:
         return
     m_eff = effective_mass(i, particle_mass, particle_pin_stiffness, global_damping, dt)
-    r = rhs[i] - system_product(i, spring_offsets, spring_ids, spring_other, tri_offsets, tri_ids, tri_indices, tri_corner_weights, system_block, drag_vector, m_eff, dv, dt)
+    r = rhs[i] - system_product(i, spring_offsets, spring_ids, spring_role, spring_indices, spring_middle, tri_offsets, tri_ids, tri_indices, tri_corner_weights, system_block, bend_vector, drag_vector, m_eff, dv, dt)
     wp.atomic_add(cg_scalars_out, slot, CG_RR, wp.float64(wp.dot(r, r)))
 
 

@@ -78,6 +78,7 @@ class SolverImplicitEuler(SolverBase):
         dev = model.device
         self.stiffness_block = wp.zeros(s, dtype=wp.mat33, device=dev)
         self.system_block = wp.zeros(s, dtype=wp.mat33, device=dev)
+        self.bend_vector = wp.zeros(s, dtype=wp.vec3, device=dev)
         self.drag_vector = wp.zeros(t, dtype=wp.vec3, device=dev)
         self.rhs = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.precond = wp.zeros(n, dtype=wp.mat33, device=dev)
@@ -99,8 +100,9 @@ class SolverImplicitEuler(SolverBase):
             wp.launch(
                 ki.eval_spring_system_blocks,
                 dim=m.spring_count,
-                inputs=[m.spring_indices, m.spring_rest_length, m.spring_stiffness, m.spring_damping, m.spring_law, state_in.particle_q, dt],
-                outputs=[self.stiffness_block, self.system_block],
+                inputs=[m.spring_indices, m.spring_rest_length, m.spring_stiffness, m.spring_damping, m.spring_law, m.spring_middle,
+                        state_in.particle_q, dt],
+                outputs=[self.stiffness_block, self.system_block, self.bend_vector],
                 device=dev,
             )
         if m.tri_count:
@@ -115,7 +117,7 @@ class SolverImplicitEuler(SolverBase):
         wp.launch(
             ki.eval_implicit_system,
             dim=m.particle_count,
-            inputs=[*m.force_args(), m.particle_pinned, self.stiffness_block, self.system_block, self.drag_vector,
+            inputs=[*m.force_args(), m.particle_pinned, self.stiffness_block, self.system_block, self.bend_vector, self.drag_vector,
                     state_in.particle_q, state_in.particle_qd, control.pin_target, control.wind,
                     wp.vec3(*m.gravity), m.global_damping, dt],
             outputs=[self.rhs, self.precond, self.dv, self.residual, self.preconditioned, self.search, self.cg_scalars],
@@ -124,8 +126,8 @@ class SolverImplicitEuler(SolverBase):
 
     def _product_args(self):
         m = self.model
-        return [m.particle_spring_offsets, m.particle_spring_ids, m.particle_spring_other, m.particle_tri_offsets,
-                m.particle_tri_ids, m.tri_indices, m.tri_corner_weights]
+        return [m.particle_spring_offsets, m.particle_spring_ids, m.particle_spring_role, m.spring_indices, m.spring_middle,
+                m.particle_tri_offsets, m.particle_tri_ids, m.tri_indices, m.tri_corner_weights]
 
     def solve_cg(self, dt: float) -> wp.array:
         """Filtered PCG on the assembled system; returns the array holding dv."""
@@ -141,7 +143,7 @@ class SolverImplicitEuler(SolverBase):
                     ki.cg_product,
                     dim=m.particle_count,
                     inputs=[*common, m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, self.system_block,
-                            self.drag_vector, self.search, m.global_damping, dt, k],
+                            self.bend_vector, self.drag_vector, self.search, m.global_damping, dt, k],
                     outputs=[self.product, self.cg_scalars],
                     device=dev,
                 )
@@ -175,7 +177,7 @@ class SolverImplicitEuler(SolverBase):
                 wp.launch(
                     ki.jacobi_iterate,
                     dim=m.particle_count,
-                    inputs=[*common, m.particle_pinned, self.system_block, self.drag_vector, self.precond, self.rhs, src, dt],
+                    inputs=[*common, m.particle_pinned, self.system_block, self.bend_vector, self.drag_vector, self.precond, self.rhs, src, dt],
                     outputs=[dst],
                     device=dev,
                 )
@@ -188,7 +190,7 @@ class SolverImplicitEuler(SolverBase):
                         ki.eval_system_residual,
                         dim=m.particle_count,
                         inputs=[*common, m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, self.system_block,
-                                self.drag_vector, self.rhs, src, m.global_damping, dt, slot],
+                                self.bend_vector, self.drag_vector, self.rhs, src, m.global_damping, dt, slot],
                         outputs=[self.cg_scalars],
                         device=dev,
                     )
