@@ -20,9 +20,10 @@ class StepCheck:
     Attributes:
         max_speed: any free particle faster than this [m/s].
         max_strain: any structural/shear spring stretched beyond this (1.0 = twice its rest length).
-        max_strain_jump: max strain rising by more than this within one step.
+        max_strain_jump: max strain rising by more than this within one step, or the integrator's raw
+            output (before strain limiting) exceeding the strain limit by more than this.
         energy_growth: kinetic energy above energy_growth * (previous + what gravity alone can add).
-        require_convergence: an iterative linear solve that missed its tolerance.
+        require_convergence: an iterative linear solve, or the strain limiter, missing its tolerance.
     """
 
     max_speed: float = 100.0
@@ -99,6 +100,12 @@ class AdaptiveStepper:
             return f"strain {new.max_strain:.3g} above {c.max_strain:g}"
         if c.require_convergence and not getattr(self.solver, "converged", True):
             return f"linear solver did not converge (residual {self.solver.last_residual:.2e} after {self.solver.last_iterations} iterations)"
+        limiter = self.solver.strain_limiter
+        if limiter is not None and limiter.active:
+            if limiter.last_initial_excess > c.max_strain_jump:
+                return f"strain {limiter.last_initial_excess + limiter.max_strain:.3g} before strain limiting (limit {limiter.max_strain:g})"
+            if c.require_convergence and not limiter.converged:
+                return f"strain limiting did not converge in {limiter.last_iterations} sweeps"
         if old is not None:
             if new.max_strain - old.max_strain > c.max_strain_jump:
                 return f"strain jumped from {old.max_strain:.3g} to {new.max_strain:.3g} in one step"

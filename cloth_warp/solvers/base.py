@@ -42,6 +42,10 @@ class StrainLimiter:
         self.tolerance = tolerance
         self.max_iterations = max(int(max_iterations), self.iterations)
         self.excess = wp.zeros(1, dtype=float, device=model.device)
+        # Report of the last apply() (measured only on checked, i.e. forward and uncaptured, runs):
+        # how far the integrator's output exceeded the limit, and whether the sweeps met the tolerance.
+        self.last_initial_excess = 0.0
+        self.converged = True
         if not (1.0 <= relaxation < 2.0):
             raise ValueError(f"strain-limit relaxation must be in [1, 2), got {relaxation!r}")
         self.relaxation = float(relaxation)
@@ -71,6 +75,8 @@ class StrainLimiter:
             (lambda src, dst, c=c: self._sweep_color(src, c, dst)) for c in range(m.strain_limit_color_count)
         ]
         checked = self.tolerance is not None and not rg and not m.device.is_capturing
+        if checked:
+            self.last_initial_excess = self._excess(x_in)
         prev = x_in
         sweeps = 0
         k = 0
@@ -86,7 +92,9 @@ class StrainLimiter:
                 continue
             if not checked:
                 break
-            if sweeps >= self.max_iterations or self._excess(prev) <= self.tolerance:
+            excess = self._excess(prev)
+            if sweeps >= self.max_iterations or excess <= self.tolerance:
+                self.converged = excess <= self.tolerance
                 wp.copy(state_out.particle_q, prev)
                 break
         self.last_iterations = sweeps
