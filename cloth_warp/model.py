@@ -203,22 +203,30 @@ class Model:
         control.pin_target.assign(targets.astype(np.float32))
 
     # -- launch argument bundles ----------------------------------------------------------------
-    def force_args(self) -> list:
-        """Model arrays of `particle_force` in kernel order."""
+    def element_args(self) -> list:
+        """Model arrays of `eval_element_forces` in kernel order (before the state)."""
         return [
-            self.particle_spring_offsets,
-            self.particle_spring_ids,
-            self.particle_spring_role,
             self.spring_indices,
             self.spring_middle,
             self.spring_rest_length,
             self.spring_stiffness,
             self.spring_damping,
             self.spring_law,
+            self.tri_indices,
+            self.tri_drag,
+            self.tri_corner_weights,
+            self.spring_count,
+        ]
+
+    def gather_args(self) -> list:
+        """Model arrays of `particle_force` (the per-particle gather) in kernel order."""
+        return [
+            self.particle_spring_offsets,
+            self.particle_spring_ids,
+            self.particle_spring_role,
             self.particle_tri_offsets,
             self.particle_tri_ids,
             self.tri_indices,
-            self.tri_drag,
             self.tri_corner_weights,
             self.particle_mass,
             self.particle_pin_stiffness,

@@ -95,5 +95,8 @@ class Simulator:
         return stats
 
     def positions(self):
-        """Current particle positions as a numpy array [m]."""
-        return self.state.particle_q.numpy()
+        """A copy of the current particle positions [m], shape (particle_count, 3).
+
+        (On the CPU, ``wp.array.numpy()`` is a view that the next frame overwrites.)
+        """
+        return self.state.particle_q.numpy().copy()

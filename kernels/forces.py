@@ -51,8 +51,8 @@ def buckling_energy(chord: float, arc: float, bend_stiffness: float):
 
 
 @wp.func
-def bending_force(xa: wp.vec3, xm: wp.vec3, xb: wp.vec3, bend_stiffness: float, role: int):
-    """Force [N] on one particle (role 0: end a, 1: end b, 2: middle) of a Choi-Ko span-2 bend triple.
+def bending_forces(xa: wp.vec3, xm: wp.vec3, xb: wp.vec3, bend_stiffness: float):
+    """Forces [N] on (end a, end b, middle) of a Choi-Ko span-2 bend triple.
 
     Immediate buckling (Choi & Ko 2002) measured against the *current* arc length l = |e1| + |e2| of the
     two segments e1 = xm - xa, e2 = xb - xm: with chord c = xb - xa and s = |c| / l the energy is
@@ -72,18 +72,14 @@ def bending_force(xa: wp.vec3, xm: wp.vec3, xb: wp.vec3, bend_stiffness: float, 
     l2 = wp.length(e2)
     chord = wp.length(c)
     if l1 < LENGTH_EPS or l2 < LENGTH_EPS or chord < LENGTH_EPS:
-        return wp.vec3(0.0)
+        return wp.vec3(0.0), wp.vec3(0.0), wp.vec3(0.0)
     arc = l1 + l2
     u1 = e1 / l1
     u2 = e2 / l2
     uc = c / chord
     fb = buckling_force(chord, arc, bend_stiffness)
     g = fb * (chord / arc) - buckling_energy(chord, arc, bend_stiffness) / arc
-    if role == 0:
-        return g * u1 - fb * uc
-    if role == 1:
-        return fb * uc - g * u2
-    return g * (u2 - u1)
+    return g * u1 - fb * uc, fb * uc - g * u2, g * (u2 - u1)
 
 
 @wp.func
@@ -189,6 +185,56 @@ def corner_weight(i: int, a: int, b: int, weights: wp.vec3):
     return weights[2]
 
 
+@wp.kernel
+def eval_element_forces(
+    # Model
+    spring_indices: wp.array2d(dtype=wp.int32),
+    spring_middle: wp.array(dtype=wp.int32),
+    spring_rest_length: wp.array(dtype=float),
+    spring_stiffness: wp.array(dtype=float),
+    spring_damping: wp.array(dtype=float),
+    spring_law: wp.array(dtype=wp.int32),
+    tri_indices: wp.array2d(dtype=wp.int32),
+    tri_drag: wp.array(dtype=float),
+    tri_corner_weights: wp.array(dtype=wp.vec3),
+    spring_count: int,
+    # State
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    # Control
+    wind: wp.array(dtype=wp.vec3),
+    # outputs
+    spring_force_out: wp.array(dtype=wp.vec3),
+    tri_force_out: wp.array(dtype=wp.vec3),
+):
+    """Each spring's, bend triple's and triangle's force, once (threads [0, S) springs, [S, S + T) triangles).
+
+    spring_force_out[3 s + role] is the force on the spring's particle of that role (0: first end,
+    1: second end, 2: middle of a bend triple), so the per-particle gather needs no branches.
+    """
+    tid = wp.tid()
+    if tid < spring_count:
+        s = tid
+        a = spring_indices[s, 0]
+        b = spring_indices[s, 1]
+        if spring_law[s] == SPRING_LINEAR:
+            f = spring_force(x[a], x[b], v[a], v[b], spring_rest_length[s], spring_stiffness[s], spring_damping[s], SPRING_LINEAR)
+            spring_force_out[3 * s] = f
+            spring_force_out[3 * s + 1] = -f
+            spring_force_out[3 * s + 2] = wp.vec3(0.0)
+        else:
+            fa, fb, fm = bending_forces(x[a], x[spring_middle[s]], x[b], spring_stiffness[s])
+            spring_force_out[3 * s] = fa
+            spring_force_out[3 * s + 1] = fb
+            spring_force_out[3 * s + 2] = fm
+        return
+    t = tid - spring_count
+    ta = tri_indices[t, 0]
+    tb = tri_indices[t, 1]
+    tc = tri_indices[t, 2]
+    tri_force_out[t] = triangle_drag_force(x[ta], x[tb], x[tc], v[ta], v[tb], v[tc], tri_corner_weights[t], tri_drag[t], wind[0])
+
+
 @wp.func
 def particle_force(
     i: int,
@@ -196,52 +242,34 @@ def particle_force(
     spring_offsets: wp.array(dtype=wp.int32),
     spring_ids: wp.array(dtype=wp.int32),
     spring_role: wp.array(dtype=wp.int32),
-    spring_indices: wp.array2d(dtype=wp.int32),
-    spring_middle: wp.array(dtype=wp.int32),
-    spring_rest_length: wp.array(dtype=float),
-    spring_stiffness: wp.array(dtype=float),
-    spring_damping: wp.array(dtype=float),
-    spring_law: wp.array(dtype=wp.int32),
     tri_offsets: wp.array(dtype=wp.int32),
     tri_ids: wp.array(dtype=wp.int32),
     tri_indices: wp.array2d(dtype=wp.int32),
-    tri_drag: wp.array(dtype=float),
     tri_corner_weights: wp.array(dtype=wp.vec3),
     particle_mass: wp.array(dtype=float),
     particle_pin_stiffness: wp.array(dtype=float),
+    # element forces of this state
+    spring_force: wp.array(dtype=wp.vec3),
+    tri_force: wp.array(dtype=wp.vec3),
     # State
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     # Control
     pin_target: wp.array(dtype=wp.vec3),
-    wind: wp.array(dtype=wp.vec3),
     gravity: wp.vec3,
     global_damping: float,
 ):
-    """Total force on particle i [N]: springs, gravity, drag with wind, soft pin, global damping."""
-    xi = x[i]
-    vi = v[i]
+    """Total force on particle i [N]: element forces gathered, gravity, soft pin, global damping."""
     m = particle_mass[i]
-    f = m * gravity - global_damping * m * vi
+    f = m * gravity - global_damping * m * v[i]
     for k in range(spring_offsets[i], spring_offsets[i + 1]):
-        s = spring_ids[k]
-        role = spring_role[k]
-        if spring_law[s] == SPRING_LINEAR:
-            j = spring_indices[s, 1 - role]
-            f += spring_force(xi, x[j], vi, v[j], spring_rest_length[s], spring_stiffness[s], spring_damping[s], spring_law[s])
-        else:
-            f += bending_force(x[spring_indices[s, 0]], x[spring_middle[s]], x[spring_indices[s, 1]], spring_stiffness[s], role)
-    w = wind[0]
+        f += spring_force[3 * spring_ids[k] + spring_role[k]]
     for k in range(tri_offsets[i], tri_offsets[i + 1]):
         t = tri_ids[k]
-        a = tri_indices[t, 0]
-        b = tri_indices[t, 1]
-        c = tri_indices[t, 2]
-        wt = tri_corner_weights[t]
-        f += corner_weight(i, a, b, wt) * triangle_drag_force(x[a], x[b], x[c], v[a], v[b], v[c], wt, tri_drag[t], w)
+        f += corner_weight(i, tri_indices[t, 0], tri_indices[t, 1], tri_corner_weights[t]) * tri_force[t]
     kp = particle_pin_stiffness[i]
     if kp > 0.0:
-        f -= kp * (xi - pin_target[i])
+        f -= kp * (x[i] - pin_target[i])
     return f
 
 
@@ -251,26 +279,20 @@ def integrate_euler(
     spring_offsets: wp.array(dtype=wp.int32),
     spring_ids: wp.array(dtype=wp.int32),
     spring_role: wp.array(dtype=wp.int32),
-    spring_indices: wp.array2d(dtype=wp.int32),
-    spring_middle: wp.array(dtype=wp.int32),
-    spring_rest_length: wp.array(dtype=float),
-    spring_stiffness: wp.array(dtype=float),
-    spring_damping: wp.array(dtype=float),
-    spring_law: wp.array(dtype=wp.int32),
     tri_offsets: wp.array(dtype=wp.int32),
     tri_ids: wp.array(dtype=wp.int32),
     tri_indices: wp.array2d(dtype=wp.int32),
-    tri_drag: wp.array(dtype=float),
     tri_corner_weights: wp.array(dtype=wp.vec3),
     particle_mass: wp.array(dtype=float),
     particle_pin_stiffness: wp.array(dtype=float),
     particle_pinned: wp.array(dtype=wp.int32),
+    spring_force: wp.array(dtype=wp.vec3),
+    tri_force: wp.array(dtype=wp.vec3),
     # State in
     x_in: wp.array(dtype=wp.vec3),
     v_in: wp.array(dtype=wp.vec3),
     # Control
     pin_target: wp.array(dtype=wp.vec3),
-    wind: wp.array(dtype=wp.vec3),
     gravity: wp.vec3,
     global_damping: float,
     dt: float,
@@ -288,9 +310,8 @@ def integrate_euler(
         v_out[i] = (target - x0) / dt
         return
     f = particle_force(
-        i, spring_offsets, spring_ids, spring_role, spring_indices, spring_middle, spring_rest_length, spring_stiffness, spring_damping,
-        spring_law, tri_offsets, tri_ids, tri_indices, tri_drag, tri_corner_weights, particle_mass, particle_pin_stiffness,
-        x_in, v_in, pin_target, wind, gravity, global_damping,
+        i, spring_offsets, spring_ids, spring_role, tri_offsets, tri_ids, tri_indices, tri_corner_weights,
+        particle_mass, particle_pin_stiffness, spring_force, tri_force, x_in, v_in, pin_target, gravity, global_damping,
     )
     v0 = v_in[i]
     v1 = v0 + dt * f / particle_mass[i]
@@ -307,20 +328,15 @@ def eval_rk_stage(
     spring_offsets: wp.array(dtype=wp.int32),
     spring_ids: wp.array(dtype=wp.int32),
     spring_role: wp.array(dtype=wp.int32),
-    spring_indices: wp.array2d(dtype=wp.int32),
-    spring_middle: wp.array(dtype=wp.int32),
-    spring_rest_length: wp.array(dtype=float),
-    spring_stiffness: wp.array(dtype=float),
-    spring_damping: wp.array(dtype=float),
-    spring_law: wp.array(dtype=wp.int32),
     tri_offsets: wp.array(dtype=wp.int32),
     tri_ids: wp.array(dtype=wp.int32),
     tri_indices: wp.array2d(dtype=wp.int32),
-    tri_drag: wp.array(dtype=float),
     tri_corner_weights: wp.array(dtype=wp.vec3),
     particle_mass: wp.array(dtype=float),
     particle_pin_stiffness: wp.array(dtype=float),
     particle_pinned: wp.array(dtype=wp.int32),
+    spring_force: wp.array(dtype=wp.vec3),
+    tri_force: wp.array(dtype=wp.vec3),
     # State: step start and the stage's evaluation point
     x0: wp.array(dtype=wp.vec3),
     v0: wp.array(dtype=wp.vec3),
@@ -328,7 +344,6 @@ def eval_rk_stage(
     v_eval: wp.array(dtype=wp.vec3),
     # Control
     pin_target: wp.array(dtype=wp.vec3),
-    wind: wp.array(dtype=wp.vec3),
     gravity: wp.vec3,
     global_damping: float,
     dt: float,
@@ -350,9 +365,8 @@ def eval_rk_stage(
         v_next_out[i] = vp
         return
     f = particle_force(
-        i, spring_offsets, spring_ids, spring_role, spring_indices, spring_middle, spring_rest_length, spring_stiffness, spring_damping,
-        spring_law, tri_offsets, tri_ids, tri_indices, tri_drag, tri_corner_weights, particle_mass, particle_pin_stiffness,
-        x_eval, v_eval, pin_target, wind, gravity, global_damping,
+        i, spring_offsets, spring_ids, spring_role, tri_offsets, tri_ids, tri_indices, tri_corner_weights,
+        particle_mass, particle_pin_stiffness, spring_force, tri_force, x_eval, v_eval, pin_target, gravity, global_damping,
     )
     a = f / particle_mass[i]
     ve = v_eval[i]
@@ -402,25 +416,19 @@ def eval_particle_forces(
     spring_offsets: wp.array(dtype=wp.int32),
     spring_ids: wp.array(dtype=wp.int32),
     spring_role: wp.array(dtype=wp.int32),
-    spring_indices: wp.array2d(dtype=wp.int32),
-    spring_middle: wp.array(dtype=wp.int32),
-    spring_rest_length: wp.array(dtype=float),
-    spring_stiffness: wp.array(dtype=float),
-    spring_damping: wp.array(dtype=float),
-    spring_law: wp.array(dtype=wp.int32),
     tri_offsets: wp.array(dtype=wp.int32),
     tri_ids: wp.array(dtype=wp.int32),
     tri_indices: wp.array2d(dtype=wp.int32),
-    tri_drag: wp.array(dtype=float),
     tri_corner_weights: wp.array(dtype=wp.vec3),
     particle_mass: wp.array(dtype=float),
     particle_pin_stiffness: wp.array(dtype=float),
+    spring_force: wp.array(dtype=wp.vec3),
+    tri_force: wp.array(dtype=wp.vec3),
     # State
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     # Control
     pin_target: wp.array(dtype=wp.vec3),
-    wind: wp.array(dtype=wp.vec3),
     gravity: wp.vec3,
     global_damping: float,
     # outputs
@@ -429,7 +437,6 @@ def eval_particle_forces(
     """Total force on every particle (for tests, the numpy cross-check and diagnostics)."""
     i = wp.tid()
     force_out[i] = particle_force(
-        i, spring_offsets, spring_ids, spring_role, spring_indices, spring_middle, spring_rest_length, spring_stiffness, spring_damping,
-        spring_law, tri_offsets, tri_ids, tri_indices, tri_drag, tri_corner_weights, particle_mass, particle_pin_stiffness,
-        x, v, pin_target, wind, gravity, global_damping,
+        i, spring_offsets, spring_ids, spring_role, tri_offsets, tri_ids, tri_indices, tri_corner_weights,
+        particle_mass, particle_pin_stiffness, spring_force, tri_force, x, v, pin_target, gravity, global_damping,
     )

@@ -168,21 +168,18 @@ def eval_implicit_system(
     spring_offsets: wp.array(dtype=wp.int32),
     spring_ids: wp.array(dtype=wp.int32),
     spring_role: wp.array(dtype=wp.int32),
-    spring_indices: wp.array2d(dtype=wp.int32),
-    spring_middle: wp.array(dtype=wp.int32),
-    spring_rest_length: wp.array(dtype=float),
-    spring_stiffness: wp.array(dtype=float),
-    spring_damping: wp.array(dtype=float),
-    spring_law: wp.array(dtype=wp.int32),
     tri_offsets: wp.array(dtype=wp.int32),
     tri_ids: wp.array(dtype=wp.int32),
     tri_indices: wp.array2d(dtype=wp.int32),
-    tri_drag: wp.array(dtype=float),
     tri_corner_weights: wp.array(dtype=wp.vec3),
     particle_mass: wp.array(dtype=float),
     particle_pin_stiffness: wp.array(dtype=float),
+    spring_indices: wp.array2d(dtype=wp.int32),
+    spring_middle: wp.array(dtype=wp.int32),
     particle_pinned: wp.array(dtype=wp.int32),
-    # per-step blocks
+    # per-step element forces and blocks
+    spring_force: wp.array(dtype=wp.vec3),
+    tri_force: wp.array(dtype=wp.vec3),
     stiffness_block: wp.array(dtype=wp.mat33),
     system_block: wp.array(dtype=wp.mat33),
     bend_vector: wp.array(dtype=wp.vec3),
@@ -192,7 +189,6 @@ def eval_implicit_system(
     v0: wp.array(dtype=wp.vec3),
     # Control
     pin_target: wp.array(dtype=wp.vec3),
-    wind: wp.array(dtype=wp.vec3),
     gravity: wp.vec3,
     global_damping: float,
     dt: float,
@@ -208,9 +204,8 @@ def eval_implicit_system(
     """b = h (f0 - h K v0), P = A_ii^-1 (filtered), dv = z, r0 = S (b - A z), s0 = c0 = P r0."""
     i = wp.tid()
     f0 = particle_force(
-        i, spring_offsets, spring_ids, spring_role, spring_indices, spring_middle, spring_rest_length, spring_stiffness, spring_damping,
-        spring_law, tri_offsets, tri_ids, tri_indices, tri_drag, tri_corner_weights, particle_mass, particle_pin_stiffness,
-        x0, v0, pin_target, wind, gravity, global_damping,
+        i, spring_offsets, spring_ids, spring_role, tri_offsets, tri_ids, tri_indices, tri_corner_weights,
+        particle_mass, particle_pin_stiffness, spring_force, tri_force, x0, v0, pin_target, gravity, global_damping,
     )
     vi = v0[i]
     m_eff = effective_mass(i, particle_mass, particle_pin_stiffness, global_damping, dt)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-wp.config.quiet = True
+wp.config.log_level = wp.LOG_WARNING
 wp.init()
 
 DEVICES = ["cpu"] + (["cuda:0"] if wp.is_cuda_available() else [])

@@ -9,6 +9,7 @@ import warp as wp
 
 from ..kernels import constraints as kc
 from ..kernels import diagnostics as kd
+from ..kernels import forces as kf
 from ..model import Control, Model, State
 
 
@@ -234,6 +235,22 @@ class SolverBase:
             buf = wp.zeros(shape, dtype=dtype, device=self.model.device)
             self._scratch[key] = buf
         return buf
+
+    def element_forces(self, x: wp.array, v: wp.array, control: Control, key: str = "") -> tuple[wp.array, wp.array]:
+        """Evaluate every spring's, bend triple's and triangle's force once; returns (spring, triangle) forces."""
+        m = self.model
+        rg = x.requires_grad
+        spring_force = self.scratch("spring_force" + key, wp.vec3, rg, shape=max(3 * m.spring_count, 1))
+        tri_force = self.scratch("tri_force" + key, wp.vec3, rg, shape=max(m.tri_count, 1))
+        if m.spring_count + m.tri_count:
+            wp.launch(
+                kf.eval_element_forces,
+                dim=m.spring_count + m.tri_count,
+                inputs=[*m.element_args(), x, v, control.wind],
+                outputs=[spring_force, tri_force],
+                device=m.device,
+            )
+        return spring_force, tri_force
 
     def step(self, state_in: State, state_out: State, control: Control, dt: float):
         """Advance state_in by dt [s] into state_out under control (pins' targets at the step's end)."""

@@ -115,12 +115,13 @@ class SolverImplicitEuler(SolverBase):
                 device=dev,
             )
         self.cg_scalars.zero_()
+        forces = self.element_forces(state_in.particle_q, state_in.particle_qd, control)
         wp.launch(
             ki.eval_implicit_system,
             dim=m.particle_count,
-            inputs=[*m.force_args(), m.particle_pinned, self.stiffness_block, self.system_block, self.bend_vector, self.drag_vector,
-                    state_in.particle_q, state_in.particle_qd, control.pin_target, control.wind,
-                    wp.vec3(*m.gravity), m.global_damping, dt],
+            inputs=[*m.gather_args(), m.spring_indices, m.spring_middle, m.particle_pinned, *forces, self.stiffness_block,
+                    self.system_block, self.bend_vector, self.drag_vector, state_in.particle_q, state_in.particle_qd,
+                    control.pin_target, wp.vec3(*m.gravity), m.global_damping, dt],
             outputs=[self.rhs, self.precond, self.dv, self.residual, self.preconditioned, self.search, self.cg_scalars],
             device=dev,
         )
