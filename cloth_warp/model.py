@@ -150,7 +150,8 @@ class Model:
         spring_indices: endpoints (spring_count, 2) int32; spring_rest_length [m];
         spring_stiffness: k [N/m] (linear law) or k_b [N m^2] (buckling law);
         spring_damping: c [N s/m]; spring_law / spring_kind: int32 enums (topology.SpringLaw / SpringKind);
-        spring_middle: middle particle of span-2 bend triples, -1 otherwise.
+        spring_middle: middle particle of span-2 bend triples, -1 otherwise. Springs are ordered linear
+            first (`linear_spring_count` of them), bend triples after.
         tri_indices: (tri_count, 3) int32; tri_drag: c_A per triangle [N s/m^3];
         tri_corner_weights: share of each triangle's drag per corner (vec3, sums to 1).
         particle_spring_offsets / _ids / _role, particle_tri_offsets / _ids: incidence lists (gather); the
@@ -203,35 +204,6 @@ class Model:
         control.pin_target.assign(targets.astype(np.float32))
 
     # -- launch argument bundles ----------------------------------------------------------------
-    def element_args(self) -> list:
-        """Model arrays of `eval_element_forces` in kernel order (before the state)."""
-        return [
-            self.spring_indices,
-            self.spring_middle,
-            self.spring_rest_length,
-            self.spring_stiffness,
-            self.spring_damping,
-            self.spring_law,
-            self.tri_indices,
-            self.tri_drag,
-            self.tri_corner_weights,
-            self.spring_count,
-        ]
-
-    def gather_args(self) -> list:
-        """Model arrays of `particle_force` (the per-particle gather) in kernel order."""
-        return [
-            self.particle_spring_offsets,
-            self.particle_spring_ids,
-            self.particle_spring_role,
-            self.particle_tri_offsets,
-            self.particle_tri_ids,
-            self.tri_indices,
-            self.tri_corner_weights,
-            self.particle_mass,
-            self.particle_pin_stiffness,
-        ]
-
     def cloth(self, name: str) -> ClothInfo:
         for c in self.cloths:
             if c.name == name:

@@ -4,8 +4,9 @@ Notation: x, v particle positions [m] and velocities [m/s]; for a spring (i, j):
 l = |d|, n = d / l, L its rest length; k its stiffness [N/m] (linear law) or k_b [N m^2] (buckling law),
 c its damping [N s/m].
 
-Forces are *gathered* per particle over compressed incidence lists (no atomics, one write per
-particle), so the same kernel is deterministic on CPU and CUDA and differentiable under wp.Tape.
+Each spring, bend triple and triangle is evaluated once and scattered into a per-particle force array
+with atomics (plain adds on the CPU backend, where this is the fastest formulation; differentiable
+under wp.Tape). The integrators then read one force per particle.
 """
 
 import warp as wp
@@ -186,87 +187,91 @@ def corner_weight(i: int, a: int, b: int, weights: wp.vec3):
 
 
 @wp.kernel
-def eval_element_forces(
+def eval_spring_forces(
     # Model
     spring_indices: wp.array2d(dtype=wp.int32),
-    spring_middle: wp.array(dtype=wp.int32),
     spring_rest_length: wp.array(dtype=float),
     spring_stiffness: wp.array(dtype=float),
     spring_damping: wp.array(dtype=float),
-    spring_law: wp.array(dtype=wp.int32),
+    # State
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    # outputs (zeroed by the caller)
+    force_out: wp.array(dtype=wp.vec3),
+):
+    """Linear springs (the first `linear_spring_count` springs): scatter +-f to both ends."""
+    s = wp.tid()
+    a = spring_indices[s, 0]
+    b = spring_indices[s, 1]
+    f = spring_force(x[a], x[b], v[a], v[b], spring_rest_length[s], spring_stiffness[s], spring_damping[s], SPRING_LINEAR)
+    wp.atomic_add(force_out, a, f)
+    wp.atomic_sub(force_out, b, f)
+
+
+@wp.kernel
+def eval_bending_forces(
+    # Model
+    spring_indices: wp.array2d(dtype=wp.int32),
+    spring_middle: wp.array(dtype=wp.int32),
+    spring_stiffness: wp.array(dtype=float),
+    first: int,
+    # State
+    x: wp.array(dtype=wp.vec3),
+    # outputs (zeroed by the caller)
+    force_out: wp.array(dtype=wp.vec3),
+):
+    """Choi-Ko bend triples (springs `first` onwards): scatter the three forces."""
+    s = wp.tid() + first
+    a = spring_indices[s, 0]
+    b = spring_indices[s, 1]
+    m = spring_middle[s]
+    fa, fb, fm = bending_forces(x[a], x[m], x[b], spring_stiffness[s])
+    wp.atomic_add(force_out, a, fa)
+    wp.atomic_add(force_out, b, fb)
+    wp.atomic_add(force_out, m, fm)
+
+
+@wp.kernel
+def eval_drag_forces(
+    # Model
     tri_indices: wp.array2d(dtype=wp.int32),
     tri_drag: wp.array(dtype=float),
     tri_corner_weights: wp.array(dtype=wp.vec3),
-    spring_count: int,
     # State
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     # Control
     wind: wp.array(dtype=wp.vec3),
-    # outputs
-    spring_force_out: wp.array(dtype=wp.vec3),
-    tri_force_out: wp.array(dtype=wp.vec3),
+    # outputs (zeroed by the caller)
+    force_out: wp.array(dtype=wp.vec3),
 ):
-    """Each spring's, bend triple's and triangle's force, once (threads [0, S) springs, [S, S + T) triangles).
-
-    spring_force_out[3 s + role] is the force on the spring's particle of that role (0: first end,
-    1: second end, 2: middle of a bend triple), so the per-particle gather needs no branches.
-    """
-    tid = wp.tid()
-    if tid < spring_count:
-        s = tid
-        a = spring_indices[s, 0]
-        b = spring_indices[s, 1]
-        if spring_law[s] == SPRING_LINEAR:
-            f = spring_force(x[a], x[b], v[a], v[b], spring_rest_length[s], spring_stiffness[s], spring_damping[s], SPRING_LINEAR)
-            spring_force_out[3 * s] = f
-            spring_force_out[3 * s + 1] = -f
-            spring_force_out[3 * s + 2] = wp.vec3(0.0)
-        else:
-            fa, fb, fm = bending_forces(x[a], x[spring_middle[s]], x[b], spring_stiffness[s])
-            spring_force_out[3 * s] = fa
-            spring_force_out[3 * s + 1] = fb
-            spring_force_out[3 * s + 2] = fm
-        return
-    t = tid - spring_count
-    ta = tri_indices[t, 0]
-    tb = tri_indices[t, 1]
-    tc = tri_indices[t, 2]
-    tri_force_out[t] = triangle_drag_force(x[ta], x[tb], x[tc], v[ta], v[tb], v[tc], tri_corner_weights[t], tri_drag[t], wind[0])
+    """Air drag with wind per triangle, split over its corners by the drag weights."""
+    t = wp.tid()
+    a = tri_indices[t, 0]
+    b = tri_indices[t, 1]
+    c = tri_indices[t, 2]
+    w = tri_corner_weights[t]
+    f = triangle_drag_force(x[a], x[b], x[c], v[a], v[b], v[c], w, tri_drag[t], wind[0])
+    wp.atomic_add(force_out, a, w[0] * f)
+    wp.atomic_add(force_out, b, w[1] * f)
+    wp.atomic_add(force_out, c, w[2] * f)
 
 
 @wp.func
-def particle_force(
+def total_force(
     i: int,
-    # Model
-    spring_offsets: wp.array(dtype=wp.int32),
-    spring_ids: wp.array(dtype=wp.int32),
-    spring_role: wp.array(dtype=wp.int32),
-    tri_offsets: wp.array(dtype=wp.int32),
-    tri_ids: wp.array(dtype=wp.int32),
-    tri_indices: wp.array2d(dtype=wp.int32),
-    tri_corner_weights: wp.array(dtype=wp.vec3),
     particle_mass: wp.array(dtype=float),
     particle_pin_stiffness: wp.array(dtype=float),
-    # element forces of this state
-    spring_force: wp.array(dtype=wp.vec3),
-    tri_force: wp.array(dtype=wp.vec3),
-    # State
+    element_force: wp.array(dtype=wp.vec3),
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
-    # Control
     pin_target: wp.array(dtype=wp.vec3),
     gravity: wp.vec3,
     global_damping: float,
 ):
-    """Total force on particle i [N]: element forces gathered, gravity, soft pin, global damping."""
+    """Total force on particle i [N]: springs, bending and drag (scattered), gravity, soft pin, global damping."""
     m = particle_mass[i]
-    f = m * gravity - global_damping * m * v[i]
-    for k in range(spring_offsets[i], spring_offsets[i + 1]):
-        f += spring_force[3 * spring_ids[k] + spring_role[k]]
-    for k in range(tri_offsets[i], tri_offsets[i + 1]):
-        t = tri_ids[k]
-        f += corner_weight(i, tri_indices[t, 0], tri_indices[t, 1], tri_corner_weights[t]) * tri_force[t]
+    f = element_force[i] + m * gravity - global_damping * m * v[i]
     kp = particle_pin_stiffness[i]
     if kp > 0.0:
         f -= kp * (x[i] - pin_target[i])
@@ -276,18 +281,10 @@ def particle_force(
 @wp.kernel
 def integrate_euler(
     # Model
-    spring_offsets: wp.array(dtype=wp.int32),
-    spring_ids: wp.array(dtype=wp.int32),
-    spring_role: wp.array(dtype=wp.int32),
-    tri_offsets: wp.array(dtype=wp.int32),
-    tri_ids: wp.array(dtype=wp.int32),
-    tri_indices: wp.array2d(dtype=wp.int32),
-    tri_corner_weights: wp.array(dtype=wp.vec3),
     particle_mass: wp.array(dtype=float),
     particle_pin_stiffness: wp.array(dtype=float),
     particle_pinned: wp.array(dtype=wp.int32),
-    spring_force: wp.array(dtype=wp.vec3),
-    tri_force: wp.array(dtype=wp.vec3),
+    element_force: wp.array(dtype=wp.vec3),
     # State in
     x_in: wp.array(dtype=wp.vec3),
     v_in: wp.array(dtype=wp.vec3),
@@ -309,10 +306,7 @@ def integrate_euler(
         x_out[i] = target
         v_out[i] = (target - x0) / dt
         return
-    f = particle_force(
-        i, spring_offsets, spring_ids, spring_role, tri_offsets, tri_ids, tri_indices, tri_corner_weights,
-        particle_mass, particle_pin_stiffness, spring_force, tri_force, x_in, v_in, pin_target, gravity, global_damping,
-    )
+    f = total_force(i, particle_mass, particle_pin_stiffness, element_force, x_in, v_in, pin_target, gravity, global_damping)
     v0 = v_in[i]
     v1 = v0 + dt * f / particle_mass[i]
     if symplectic != 0:
@@ -325,18 +319,10 @@ def integrate_euler(
 @wp.kernel
 def eval_rk_stage(
     # Model
-    spring_offsets: wp.array(dtype=wp.int32),
-    spring_ids: wp.array(dtype=wp.int32),
-    spring_role: wp.array(dtype=wp.int32),
-    tri_offsets: wp.array(dtype=wp.int32),
-    tri_ids: wp.array(dtype=wp.int32),
-    tri_indices: wp.array2d(dtype=wp.int32),
-    tri_corner_weights: wp.array(dtype=wp.vec3),
     particle_mass: wp.array(dtype=float),
     particle_pin_stiffness: wp.array(dtype=float),
     particle_pinned: wp.array(dtype=wp.int32),
-    spring_force: wp.array(dtype=wp.vec3),
-    tri_force: wp.array(dtype=wp.vec3),
+    element_force: wp.array(dtype=wp.vec3),
     # State: step start and the stage's evaluation point
     x0: wp.array(dtype=wp.vec3),
     v0: wp.array(dtype=wp.vec3),
@@ -364,10 +350,7 @@ def eval_rk_stage(
         x_next_out[i] = x0[i] + next_coeff * vp
         v_next_out[i] = vp
         return
-    f = particle_force(
-        i, spring_offsets, spring_ids, spring_role, tri_offsets, tri_ids, tri_indices, tri_corner_weights,
-        particle_mass, particle_pin_stiffness, spring_force, tri_force, x_eval, v_eval, pin_target, gravity, global_damping,
-    )
+    f = total_force(i, particle_mass, particle_pin_stiffness, element_force, x_eval, v_eval, pin_target, gravity, global_damping)
     a = f / particle_mass[i]
     ve = v_eval[i]
     dxdt_out[i] = ve
@@ -412,22 +395,11 @@ def combine_rk_stages(
 
 @wp.kernel
 def eval_particle_forces(
-    # Model
-    spring_offsets: wp.array(dtype=wp.int32),
-    spring_ids: wp.array(dtype=wp.int32),
-    spring_role: wp.array(dtype=wp.int32),
-    tri_offsets: wp.array(dtype=wp.int32),
-    tri_ids: wp.array(dtype=wp.int32),
-    tri_indices: wp.array2d(dtype=wp.int32),
-    tri_corner_weights: wp.array(dtype=wp.vec3),
     particle_mass: wp.array(dtype=float),
     particle_pin_stiffness: wp.array(dtype=float),
-    spring_force: wp.array(dtype=wp.vec3),
-    tri_force: wp.array(dtype=wp.vec3),
-    # State
+    element_force: wp.array(dtype=wp.vec3),
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
-    # Control
     pin_target: wp.array(dtype=wp.vec3),
     gravity: wp.vec3,
     global_damping: float,
@@ -436,7 +408,4 @@ def eval_particle_forces(
 ):
     """Total force on every particle (for tests, the numpy cross-check and diagnostics)."""
     i = wp.tid()
-    force_out[i] = particle_force(
-        i, spring_offsets, spring_ids, spring_role, tri_offsets, tri_ids, tri_indices, tri_corner_weights,
-        particle_mass, particle_pin_stiffness, spring_force, tri_force, x, v, pin_target, gravity, global_damping,
-    )
+    force_out[i] = total_force(i, particle_mass, particle_pin_stiffness, element_force, x, v, pin_target, gravity, global_damping)

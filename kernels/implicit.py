@@ -26,9 +26,9 @@ import warp as wp
 from .forces import (
     bending_stiffness_weights,
     corner_weight,
-    particle_force,
     spring_damping_block,
     spring_stiffness_block,
+    total_force,
 )
 
 LENGTH_EPS = wp.constant(1.0e-9)
@@ -168,18 +168,17 @@ def eval_implicit_system(
     spring_offsets: wp.array(dtype=wp.int32),
     spring_ids: wp.array(dtype=wp.int32),
     spring_role: wp.array(dtype=wp.int32),
+    spring_indices: wp.array2d(dtype=wp.int32),
+    spring_middle: wp.array(dtype=wp.int32),
     tri_offsets: wp.array(dtype=wp.int32),
     tri_ids: wp.array(dtype=wp.int32),
     tri_indices: wp.array2d(dtype=wp.int32),
     tri_corner_weights: wp.array(dtype=wp.vec3),
     particle_mass: wp.array(dtype=float),
     particle_pin_stiffness: wp.array(dtype=float),
-    spring_indices: wp.array2d(dtype=wp.int32),
-    spring_middle: wp.array(dtype=wp.int32),
     particle_pinned: wp.array(dtype=wp.int32),
     # per-step element forces and blocks
-    spring_force: wp.array(dtype=wp.vec3),
-    tri_force: wp.array(dtype=wp.vec3),
+    element_force: wp.array(dtype=wp.vec3),
     stiffness_block: wp.array(dtype=wp.mat33),
     system_block: wp.array(dtype=wp.mat33),
     bend_vector: wp.array(dtype=wp.vec3),
@@ -203,10 +202,7 @@ def eval_implicit_system(
 ):
     """b = h (f0 - h K v0), P = A_ii^-1 (filtered), dv = z, r0 = S (b - A z), s0 = c0 = P r0."""
     i = wp.tid()
-    f0 = particle_force(
-        i, spring_offsets, spring_ids, spring_role, tri_offsets, tri_ids, tri_indices, tri_corner_weights,
-        particle_mass, particle_pin_stiffness, spring_force, tri_force, x0, v0, pin_target, gravity, global_damping,
-    )
+    f0 = total_force(i, particle_mass, particle_pin_stiffness, element_force, x0, v0, pin_target, gravity, global_damping)
     vi = v0[i]
     m_eff = effective_mass(i, particle_mass, particle_pin_stiffness, global_damping, dt)
     k_v = particle_pin_stiffness[i] * vi

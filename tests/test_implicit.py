@@ -56,8 +56,8 @@ def test_forces_match_numpy(device, rng):
 
     elements = cw.SolverSymplecticEuler(model).element_forces(state.particle_q, state.particle_qd, control)
     wp.launch(kf.eval_particle_forces, dim=model.particle_count,
-              inputs=[*model.gather_args(), *elements, state.particle_q, state.particle_qd, control.pin_target,
-                      wp.vec3(*model.gravity), model.global_damping], outputs=[f], device=device)
+              inputs=[model.particle_mass, model.particle_pin_stiffness, elements, state.particle_q, state.particle_qd,
+                      control.pin_target, wp.vec3(*model.gravity), model.global_damping], outputs=[f], device=device)
     ref = NumpyCloth(model).forces(state.particle_q.numpy(), state.particle_qd.numpy(), control.pin_target.numpy(), control.wind.numpy()[0])
     np.testing.assert_allclose(f.numpy(), ref, rtol=1e-4, atol=1e-5 * np.abs(ref).max())
 

@@ -236,21 +236,24 @@ class SolverBase:
             self._scratch[key] = buf
         return buf
 
-    def element_forces(self, x: wp.array, v: wp.array, control: Control, key: str = "") -> tuple[wp.array, wp.array]:
-        """Evaluate every spring's, bend triple's and triangle's force once; returns (spring, triangle) forces."""
+    def element_forces(self, x: wp.array, v: wp.array, control: Control, key: str = "") -> wp.array:
+        """Scatter every spring's, bend triple's and triangle's force into a per-particle array [N]."""
         m = self.model
-        rg = x.requires_grad
-        spring_force = self.scratch("spring_force" + key, wp.vec3, rg, shape=max(3 * m.spring_count, 1))
-        tri_force = self.scratch("tri_force" + key, wp.vec3, rg, shape=max(m.tri_count, 1))
-        if m.spring_count + m.tri_count:
-            wp.launch(
-                kf.eval_element_forces,
-                dim=m.spring_count + m.tri_count,
-                inputs=[*m.element_args(), x, v, control.wind],
-                outputs=[spring_force, tri_force],
-                device=m.device,
-            )
-        return spring_force, tri_force
+        force = self.scratch("element_force" + key, wp.vec3, x.requires_grad)
+        force.zero_()
+        dev = m.device
+        if m.linear_spring_count:
+            wp.launch(kf.eval_spring_forces, dim=m.linear_spring_count,
+                      inputs=[m.spring_indices, m.spring_rest_length, m.spring_stiffness, m.spring_damping, x, v],
+                      outputs=[force], device=dev)
+        if m.spring_count > m.linear_spring_count:
+            wp.launch(kf.eval_bending_forces, dim=m.spring_count - m.linear_spring_count,
+                      inputs=[m.spring_indices, m.spring_middle, m.spring_stiffness, m.linear_spring_count, x],
+                      outputs=[force], device=dev)
+        if m.tri_count:
+            wp.launch(kf.eval_drag_forces, dim=m.tri_count,
+                      inputs=[m.tri_indices, m.tri_drag, m.tri_corner_weights, x, v, control.wind], outputs=[force], device=dev)
+        return force
 
     def step(self, state_in: State, state_out: State, control: Control, dt: float):
         """Advance state_in by dt [s] into state_out under control (pins' targets at the step's end)."""

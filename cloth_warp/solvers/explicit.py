@@ -23,11 +23,11 @@ class _EulerBase(SolverBase):
 
     def integrate(self, state_in: State, x_out, v_out, control: Control, dt: float):
         m = self.model
-        forces = self.element_forces(state_in.particle_q, state_in.particle_qd, control)
+        force = self.element_forces(state_in.particle_q, state_in.particle_qd, control)
         wp.launch(
             kf.integrate_euler,
             dim=m.particle_count,
-            inputs=[*m.gather_args(), m.particle_pinned, *forces, state_in.particle_q, state_in.particle_qd,
+            inputs=[m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, force, state_in.particle_q, state_in.particle_qd,
                     control.pin_target, wp.vec3(*m.gravity), m.global_damping, dt, self.symplectic],
             outputs=[x_out, v_out],
             device=m.device,
@@ -61,7 +61,7 @@ class _RungeKutta(SolverBase):
         ks = []
         common = [control.pin_target, wp.vec3(*m.gravity), m.global_damping, dt]
         for s, c in enumerate(self.stage_coeffs):
-            forces = self.element_forces(xe, ve, control, key=str(s))
+            force = self.element_forces(xe, ve, control, key=str(s))
             kx = self.scratch(f"rk_kx{s}", wp.vec3, rg)
             kv = self.scratch(f"rk_kv{s}", wp.vec3, rg)
             xn = self.scratch(f"rk_x{s}", wp.vec3, rg)
@@ -69,7 +69,7 @@ class _RungeKutta(SolverBase):
             wp.launch(
                 kf.eval_rk_stage,
                 dim=m.particle_count,
-                inputs=[*m.gather_args(), m.particle_pinned, *forces, x0, v0, xe, ve, *common, c * dt],
+                inputs=[m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, force, x0, v0, xe, ve, *common, c * dt],
                 outputs=[kx, kv, xn, vn],
                 device=m.device,
             )

@@ -115,11 +115,11 @@ class SolverImplicitEuler(SolverBase):
                 device=dev,
             )
         self.cg_scalars.zero_()
-        forces = self.element_forces(state_in.particle_q, state_in.particle_qd, control)
+        force = self.element_forces(state_in.particle_q, state_in.particle_qd, control)
         wp.launch(
             ki.eval_implicit_system,
             dim=m.particle_count,
-            inputs=[*m.gather_args(), m.spring_indices, m.spring_middle, m.particle_pinned, *forces, self.stiffness_block,
+            inputs=[*self._product_args(), m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, force, self.stiffness_block,
                     self.system_block, self.bend_vector, self.drag_vector, state_in.particle_q, state_in.particle_qd,
                     control.pin_target, wp.vec3(*m.gravity), m.global_damping, dt],
             outputs=[self.rhs, self.precond, self.dv, self.residual, self.preconditioned, self.search, self.cg_scalars],
