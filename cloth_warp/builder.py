@@ -401,6 +401,15 @@ class ModelBuilder:
         limited = np.isin(self.spring_kind[order], (SpringKind.STRUCTURAL, SpringKind.SHEAR)) & (law == SpringLaw.LINEAR)
         colors = topo.color_springs(springs, n, limited)
         m.strain_limit_color_count = colors.shape[0]
+        # The same colouring as spring lists (one launch per colour over its springs, forward path).
+        color_of = np.full(len(springs), -1)
+        for c in range(colors.shape[0]):
+            ids = colors[c][colors[c] >= 0]
+            color_of[ids] = c
+        by_color = np.argsort(color_of, kind="stable")
+        by_color = by_color[color_of[by_color] >= 0]
+        m.strain_limit_color_offsets = np.concatenate([[0], np.cumsum(np.bincount(color_of[by_color], minlength=colors.shape[0]))]).astype(int)
+        m.strain_limit_color_springs = arr(by_color.astype(np.int32) if len(by_color) else np.zeros(1, np.int32), wp.int32)
         m.strain_limit_colors = arr(colors if colors.size else np.full((1, n), -1, np.int32), wp.int32)
         m.spring_limited = arr(limited.astype(np.int32), wp.int32)
         for ref, material, tri_start in self.cloths:

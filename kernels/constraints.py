@@ -94,3 +94,40 @@ def apply_attachment_limit(
                 if length > limit:
                     xi = x_in[p] + (limit / length) * d
     x_out[i] = xi
+
+
+@wp.kernel(enable_backward=False)
+def apply_strain_limit_springs(
+    # Model
+    color_springs: wp.array(dtype=wp.int32),
+    first: int,
+    spring_indices: wp.array2d(dtype=wp.int32),
+    spring_rest_length: wp.array(dtype=float),
+    particle_mass: wp.array(dtype=float),
+    particle_pinned: wp.array(dtype=wp.int32),
+    max_strain: float,
+    relaxation: float,
+    # updated in place (forward only: no two springs of a colour share a particle, so no races)
+    x_out: wp.array(dtype=wp.vec3),
+):
+    """The same projection as apply_strain_limit_color, one thread per spring of the colour, in place."""
+    s = color_springs[first + wp.tid()]
+    a = spring_indices[s, 0]
+    b = spring_indices[s, 1]
+    wa = 0.0
+    wb = 0.0
+    if particle_pinned[a] == 0:
+        wa = 1.0 / particle_mass[a]
+    if particle_pinned[b] == 0:
+        wb = 1.0 / particle_mass[b]
+    if wa + wb == 0.0:
+        return
+    d = x_out[a] - x_out[b]
+    length = wp.length(d)
+    limit = (1.0 + max_strain) * spring_rest_length[s]
+    if length <= limit or length < LENGTH_EPS:
+        return
+    excess = wp.min(relaxation * (length - limit), length - spring_rest_length[s])
+    corr = (excess / ((wa + wb) * length)) * d
+    x_out[a] = x_out[a] - wa * corr
+    x_out[b] = x_out[b] + wb * corr

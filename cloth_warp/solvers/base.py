@@ -67,38 +67,28 @@ class StrainLimiter:
 
         Runs `iterations` sweeps over all colours; then, when a tolerance is set and the run is neither
         taped nor being captured into a graph, more sweeps (up to `max_iterations`) until no limited
-        spring exceeds the limit by more than `tolerance` (strain).
+        spring exceeds the limit by more than `tolerance` (strain). Forward runs sweep in place, one thread
+        per spring of a colour; taped runs write every pass to a fresh array (one thread per particle).
         """
         m = self.model
         rg = x_in.requires_grad
-        # One sweep: the long-range attachments, then every colour of springs.
-        passes = ([self._attach] if self.attachment_count else []) + [
-            (lambda src, dst, c=c: self._sweep_color(src, c, dst)) for c in range(m.strain_limit_color_count)
-        ]
         checked = self.tolerance is not None and not rg and not m.device.is_capturing
         if checked:
             self.last_initial_excess = self._excess(x_in)
+        if not rg:
+            self._apply_in_place(x_in, v_in, state_out, dt, checked)
+            return
+        # Taped: every pass writes a fresh array (one sweep: attachments, then every colour).
+        passes = ([self._attach] if self.attachment_count else []) + [
+            (lambda src, dst, c=c: self._sweep_color(src, c, dst)) for c in range(m.strain_limit_color_count)
+        ]
         prev = x_in
-        sweeps = 0
-        k = 0
-        while True:
-            for p, apply_pass in enumerate(passes):
-                last = p == len(passes) - 1 and sweeps + 1 >= self.iterations and not checked
-                dst = state_out.particle_q if last else solver.scratch(f"strain_limit{k % 2}", wp.vec3, rg)
-                apply_pass(prev, dst)
-                prev = dst
-                k += 1
-            sweeps += 1
-            if sweeps < self.iterations:
-                continue
-            if not checked:
-                break
-            excess = self._excess(prev)
-            if sweeps >= self.max_iterations or excess <= self.tolerance:
-                self.converged = excess <= self.tolerance
-                wp.copy(state_out.particle_q, prev)
-                break
-        self.last_iterations = sweeps
+        for k in range(self.iterations * len(passes)):
+            last = k == self.iterations * len(passes) - 1
+            dst = state_out.particle_q if last else solver.scratch(f"strain_limit{k % 2}", wp.vec3, True)
+            passes[k % len(passes)](prev, dst)
+            prev = dst
+        self.last_iterations = self.iterations
         wp.launch(
             kc.correct_velocity,
             dim=m.particle_count,
@@ -106,6 +96,38 @@ class StrainLimiter:
             outputs=[state_out.particle_qd],
             device=m.device,
         )
+
+    def _apply_in_place(self, x_in, v_in, state_out: State, dt: float, checked: bool):
+        """Forward-only path: sweeps in place on state_out, one thread per spring of a colour."""
+        m = self.model
+        x = state_out.particle_q
+        wp.copy(x, x_in)
+        offsets = m.strain_limit_color_offsets
+        sweeps = 0
+        while True:
+            if self.attachment_count:
+                self._attach(x, x)  # reads only pinned neighbours, writes its own particle: safe in place
+            for c in range(m.strain_limit_color_count):
+                wp.launch(
+                    kc.apply_strain_limit_springs,
+                    dim=int(offsets[c + 1] - offsets[c]),
+                    inputs=[m.strain_limit_color_springs, int(offsets[c]), m.spring_indices, m.spring_rest_length,
+                            m.particle_mass, m.particle_pinned, self.max_strain, self.relaxation],
+                    outputs=[x],
+                    device=m.device,
+                )
+            sweeps += 1
+            if sweeps < self.iterations:
+                continue
+            if not checked:
+                break
+            excess = self._excess(x)
+            if sweeps >= self.max_iterations or excess <= self.tolerance:
+                self.converged = excess <= self.tolerance
+                break
+        self.last_iterations = sweeps
+        wp.launch(kc.correct_velocity, dim=m.particle_count, inputs=[x_in, x, v_in, dt], outputs=[state_out.particle_qd], device=m.device)
+
     def _attach(self, x_src, x_dst):
         m = self.model
         wp.launch(
