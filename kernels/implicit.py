@@ -449,3 +449,68 @@ def integrate_implicit(
     v1 = v0[i] + dv[i]
     v_out[i] = v1
     x_out[i] = x0[i] + dt * v1
+
+
+@wp.kernel
+def cg_warm_start(
+    # Model
+    spring_offsets: wp.array(dtype=wp.int32),
+    spring_ids: wp.array(dtype=wp.int32),
+    spring_role: wp.array(dtype=wp.int32),
+    spring_indices: wp.array2d(dtype=wp.int32),
+    spring_middle: wp.array(dtype=wp.int32),
+    tri_offsets: wp.array(dtype=wp.int32),
+    tri_ids: wp.array(dtype=wp.int32),
+    tri_indices: wp.array2d(dtype=wp.int32),
+    tri_corner_weights: wp.array(dtype=wp.vec3),
+    particle_mass: wp.array(dtype=float),
+    particle_pin_stiffness: wp.array(dtype=float),
+    particle_pinned: wp.array(dtype=wp.int32),
+    system_block: wp.array(dtype=wp.mat33),
+    bend_vector: wp.array(dtype=wp.vec3),
+    drag_vector: wp.array(dtype=wp.vec3),
+    precond: wp.array(dtype=wp.mat33),
+    rhs: wp.array(dtype=wp.vec3),
+    guess: wp.array(dtype=wp.vec3),
+    global_damping: float,
+    dt: float,
+    # outputs
+    dv_out: wp.array(dtype=wp.vec3),
+    residual_out: wp.array(dtype=wp.vec3),
+    preconditioned_out: wp.array(dtype=wp.vec3),
+    search_out: wp.array(dtype=wp.vec3),
+    cg_scalars_out: wp.array2d(dtype=wp.float64),
+):
+    """Restart CG from `guess` (last step's dv on free particles, z on pinned): r0 = S (b - A guess)."""
+    i = wp.tid()
+    g = guess[i]
+    dv_out[i] = g
+    if particle_pinned[i] != 0:
+        residual_out[i] = wp.vec3(0.0)
+        preconditioned_out[i] = wp.vec3(0.0)
+        search_out[i] = wp.vec3(0.0)
+        return
+    m_eff = effective_mass(i, particle_mass, particle_pin_stiffness, global_damping, dt)
+    r = rhs[i] - system_product(i, spring_offsets, spring_ids, spring_role, spring_indices, spring_middle, tri_offsets, tri_ids, tri_indices, tri_corner_weights, system_block, bend_vector, drag_vector, m_eff, guess, dt)
+    s = precond[i] * r
+    residual_out[i] = r
+    preconditioned_out[i] = s
+    search_out[i] = s
+    wp.atomic_add(cg_scalars_out, 0, CG_RS, wp.float64(wp.dot(r, s)))
+    wp.atomic_add(cg_scalars_out, 0, CG_RR, wp.float64(wp.dot(r, r)))
+
+
+@wp.kernel
+def compose_warm_start(
+    particle_pinned: wp.array(dtype=wp.int32),
+    dv_previous: wp.array(dtype=wp.vec3),
+    dv_pinned: wp.array(dtype=wp.vec3),
+    # outputs
+    guess_out: wp.array(dtype=wp.vec3),
+):
+    """guess = previous step's dv on free particles, this step's prescribed z on pinned ones."""
+    i = wp.tid()
+    if particle_pinned[i] != 0:
+        guess_out[i] = dv_pinned[i]
+    else:
+        guess_out[i] = dv_previous[i]
