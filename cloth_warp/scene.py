@@ -198,12 +198,8 @@ def _check_values(scene: Scene):
 
 
 def _rotation(scene: Scene, key: str):
-    from .builder import quat_from_axis_angle
-
     rot = scene.get(key)
-    if rot is None:
-        return None
-    return quat_from_axis_angle(rot.get("axis", [0, 0, 1]), float(rot.get("angle", 0.0)))
+    return None if rot is None else _rotation_q(rot)
 
 
 def _selection(cloth, spec: dict, where: str):

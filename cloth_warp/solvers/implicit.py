@@ -261,7 +261,3 @@ class SolverImplicitEuler(SolverBase):
             outputs=[x_out, v_out],
             device=m.device,
         )
-
-    def system_numpy(self):
-        """(rhs, precond, system blocks, drag vectors) of the last assembled system as numpy (for tests)."""
-        return self.rhs.numpy(), self.precond.numpy(), self.system_block.numpy(), self.drag_vector.numpy()
