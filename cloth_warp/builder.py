@@ -372,8 +372,10 @@ class ModelBuilder:
         m.particle_mass = arr(self.particle_mass.astype(np.float32), float, True)
         m.particle_pinned = arr(self.particle_pinned.astype(np.int32), wp.int32)
         m.particle_pin_stiffness = arr(self.particle_pin_stiffness.astype(np.float32), float)
-        # Linear springs first, bend triples after: each family is one kernel launch over a range.
-        order = np.argsort(self.spring_law, kind="stable")
+        # Linear springs first, bend triples after: each family is one kernel launch over a range. Within a
+        # family, order by the first particle touched so consecutive springs touch nearby memory.
+        low = np.minimum(self.springs[:, 0], self.springs[:, 1]) if len(self.springs) else np.zeros(0, np.int64)
+        order = np.lexsort((low, self.spring_law))
         springs = self.springs[order].astype(np.int32).reshape(-1, 2)
         middle = self.spring_middle[order]
         law = self.spring_law[order]
