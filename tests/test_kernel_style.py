@@ -35,7 +35,7 @@ def written_names(fn):
 
 @pytest.mark.parametrize("path", KERNEL_FILES, ids=lambda p: p.name)
 def test_kernels_write_only_out_parameters(path):
-    """Check every @wp.kernel/@wp.func stores only into parameters whose name ends in _out."""
+    """Check every Warp kernel and function stores only into parameters whose name ends in _out."""
     tree = ast.parse(path.read_text())
     bad = []
     for fn in tree.body:
