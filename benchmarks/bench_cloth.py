@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import ctypes
 import json
-import math
 import os
 import pathlib
 import platform
@@ -202,9 +201,7 @@ def newton_results(sizes, frames):
 def main():
     args = parse_args()
     compile_times, cache = measure_compile_time(args.device)
-    import warp as wp
 
-    import cloth_warp as cw
 
     rows = []
     refs = {}

@@ -4,7 +4,6 @@ import math
 
 import numpy as np
 import pytest
-import warp as wp
 
 import cloth_warp as cw
 from conftest import run_steps
