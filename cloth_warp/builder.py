@@ -380,7 +380,6 @@ class ModelBuilder:
         middle = self.spring_middle[order]
         law = self.spring_law[order]
         stiffness = clamp_boundary_bending(self.spring_stiffness[order], springs, middle, law, self.particle_pinned)
-        m.spring_order = order  # builder spring i is model spring position of i in `order`
         m.linear_spring_count = int(np.sum(law == SpringLaw.LINEAR))
         m.spring_indices = arr(springs, wp.int32)
         m.spring_rest_length = arr(self.spring_rest_length[order].astype(np.float32), float, True)

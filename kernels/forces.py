@@ -12,7 +12,6 @@ under wp.Tape). The integrators then read one force per particle.
 import warp as wp
 
 SPRING_LINEAR = wp.constant(0)
-SPRING_BUCKLING = wp.constant(1)
 
 # Choi & Ko's quartic fit of the immediate-buckling curve (physics.md 7.2).
 BUCKLING_P4 = wp.constant(-11.541)
@@ -111,7 +110,6 @@ def spring_force(
     rest_length: float,
     stiffness: float,
     damping: float,
-    law: int,
 ):
     """Force on particle i of a linear spring: -(k (l - L) + c (v_ij . n)) n."""
     d = xi - xj
@@ -123,28 +121,26 @@ def spring_force(
 
 
 @wp.func
-def spring_stiffness_block(xi: wp.vec3, xj: wp.vec3, rest_length: float, stiffness: float, law: int):
+def spring_stiffness_block(xi: wp.vec3, xj: wp.vec3, rest_length: float, stiffness: float):
     """K_s = -df_i/dx_i of a linear spring, kept positive semi-definite (physics.md 3(b)):
-    k [n n^T + max(0, 1 - L/l) (I - n n^T)] (transverse term dropped under compression). Zero for bend
-    triples, whose Jacobian is `bending_stiffness_weights`."""
+    k [n n^T + max(0, 1 - L/l) (I - n n^T)] (transverse term dropped under compression). Bend triples
+    use `bending_stiffness_weights` instead."""
     d = xi - xj
     length = wp.length(d)
     if length < LENGTH_EPS:
         return wp.mat33(0.0)
     n = d / length
     nn = wp.outer(n, n)
-    if law == SPRING_LINEAR:
-        t = wp.max(0.0, 1.0 - rest_length / length)
-        return stiffness * (nn + t * (wp.identity(n=3, dtype=float) - nn))
-    return wp.mat33(0.0)
+    t = wp.max(0.0, 1.0 - rest_length / length)
+    return stiffness * (nn + t * (wp.identity(n=3, dtype=float) - nn))
 
 
 @wp.func
-def spring_damping_block(xi: wp.vec3, xj: wp.vec3, damping: float, law: int):
-    """D_s = -df_i/dv_i = c n n^T for linear springs (buckling springs are undamped)."""
+def spring_damping_block(xi: wp.vec3, xj: wp.vec3, damping: float):
+    """D_s = -df_i/dv_i = c n n^T of a linear spring (bend triples are undamped)."""
     d = xi - xj
     length = wp.length(d)
-    if length < LENGTH_EPS or law != SPRING_LINEAR:
+    if length < LENGTH_EPS:
         return wp.mat33(0.0)
     n = d / length
     return damping * wp.outer(n, n)
@@ -203,7 +199,7 @@ def eval_spring_forces(
     s = wp.tid()
     a = spring_indices[s, 0]
     b = spring_indices[s, 1]
-    f = spring_force(x[a], x[b], v[a], v[b], spring_rest_length[s], spring_stiffness[s], spring_damping[s], SPRING_LINEAR)
+    f = spring_force(x[a], x[b], v[a], v[b], spring_rest_length[s], spring_stiffness[s], spring_damping[s])
     wp.atomic_add(force_out, a, f)
     wp.atomic_sub(force_out, b, f)
 

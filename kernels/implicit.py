@@ -44,7 +44,6 @@ def eval_spring_system_blocks(
     spring_rest_length: wp.array(dtype=float),
     spring_stiffness: wp.array(dtype=float),
     spring_damping: wp.array(dtype=float),
-    spring_law: wp.array(dtype=wp.int32),
     spring_middle: wp.array(dtype=wp.int32),
     # State in
     x: wp.array(dtype=wp.vec3),
@@ -64,8 +63,8 @@ def eval_spring_system_blocks(
         system_block_out[s] = wp.mat33(0.0)
         bend_vector_out[s] = bending_stiffness_weights(xi, x[m], xj, spring_stiffness[s])
         return
-    k_block = spring_stiffness_block(xi, xj, spring_rest_length[s], spring_stiffness[s], spring_law[s])
-    d_block = spring_damping_block(xi, xj, spring_damping[s], spring_law[s])
+    k_block = spring_stiffness_block(xi, xj, spring_rest_length[s], spring_stiffness[s])
+    d_block = spring_damping_block(xi, xj, spring_damping[s])
     stiffness_block_out[s] = k_block
     system_block_out[s] = dt * d_block + dt * dt * k_block
     bend_vector_out[s] = wp.vec3(0.0)

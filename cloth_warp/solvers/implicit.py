@@ -97,7 +97,6 @@ class SolverImplicitEuler(SolverBase):
         self.search = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.product = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.cg_scalars = wp.zeros((self.max_iterations + 2, 3), dtype=wp.float64, device=dev)
-        self.total_iterations = 0
 
     # -- the linear system -------------------------------------------------------------------
     def assemble(self, state_in: State, control: Control, dt: float):
@@ -108,7 +107,7 @@ class SolverImplicitEuler(SolverBase):
             wp.launch(
                 ki.eval_spring_system_blocks,
                 dim=m.spring_count,
-                inputs=[m.spring_indices, m.spring_rest_length, m.spring_stiffness, m.spring_damping, m.spring_law, m.spring_middle,
+                inputs=[m.spring_indices, m.spring_rest_length, m.spring_stiffness, m.spring_damping, m.spring_middle,
                         state_in.particle_q, dt],
                 outputs=[self.stiffness_block, self.system_block, self.bend_vector],
                 device=dev,
@@ -220,7 +219,6 @@ class SolverImplicitEuler(SolverBase):
         self.last_iterations = iterations
         self.last_residual = rel
         self.converged = bool(math.isfinite(rel) and rel <= self.tolerance)
-        self.total_iterations += iterations
 
     # -- the step ----------------------------------------------------------------------------
     def solve(self, state_in: State, control: Control, dt: float) -> wp.array:
