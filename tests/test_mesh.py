@@ -163,3 +163,16 @@ def test_bad_step_arguments(device):
         cw.SolverImplicitEuler(model, linear_solver="lu")
     with pytest.raises(ValueError, match="max_strain"):
         cw.SolverSymplecticEuler(model, strain_limit=-0.1)
+
+
+def test_pins_from_a_mesh_vertex_attribute(tmp_path):
+    """Check a per-vertex mask on the original (seam-split) mesh selects the welded particles it covers."""
+    b = cw.ModelBuilder()
+    cloth = b.add_cloth_mesh_file(write_sleeve_obj(tmp_path / "sleeve.obj"))
+    verts, _, _ = cw.load_mesh_file(tmp_path / "sleeve.obj")
+    mask = (verts[:, 1] > 0.31).astype(float)  # the upper rim, including its seam duplicate
+    selected = cloth.select_mask(mask)
+    assert len(selected) == NU  # 33 render vertices on the rim, 32 particles after welding
+    np.testing.assert_allclose(cloth.topology.positions[selected - cloth.particle_start, 1], 0.02 * NV)
+    with pytest.raises(ValueError, match="vertex mask has 3 entries"):
+        cloth.select_mask([1.0, 0.0, 1.0])
