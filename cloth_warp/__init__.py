@@ -15,11 +15,16 @@ Typical use::
 
 __version__ = "0.1.0"
 
+import logging as _logging
+
 from . import materials, topology
 from .builder import ClothRef, ModelBuilder, load_mesh_file, quat_from_axis_angle
+from .cache import CacheReader, UsdCacheWriter, open_cache
 from .diagnostics import Diagnostics, StepStats
 from .materials import FabricMaterial
 from .model import Control, Handle, Keyframe, Model, State
+from .runner import run_scene
+from .scene import SceneError, load_scene
 from .simulator import Simulator
 from .solvers import (
     AdaptiveStepper,
@@ -35,9 +40,20 @@ from .solvers import (
     make_solver,
 )
 from .topology import MeshError, SpringKind, SpringLaw, SpringModel
+from .wind import GustyWind
+
+# A library logs, it never prints: the application (or cloth-warp's CLI) configures handlers.
+_logging.getLogger(__name__).addHandler(_logging.NullHandler())
 
 __all__ = [
     "AdaptiveStepper",
+    "CacheReader",
+    "GustyWind",
+    "SceneError",
+    "UsdCacheWriter",
+    "load_scene",
+    "open_cache",
+    "run_scene",
     "ClothRef",
     "Control",
     "Diagnostics",

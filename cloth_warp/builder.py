@@ -261,13 +261,17 @@ class ModelBuilder:
         t = topo.mesh_topology(v * scale, tri, SpringModel(spring_model), uvs=uvs)
         return self._add_cloth(t, position, rotation, velocity, material, name or f"cloth{len(self.cloths)}")
 
-    def add_cloth_mesh_file(self, path: str | os.PathLike, **kwargs) -> ClothRef:
-        """Add a cloth from a mesh file read with trimesh (OBJ, PLY, STL, GLB/GLTF, OFF).
+    def add_cloth_mesh_file(self, path: str | os.PathLike, *, prim_path: str | None = None, **kwargs) -> ClothRef:
+        """Add a cloth from a mesh file: OBJ, PLY, STL, GLB/GLTF, OFF (trimesh) or USD (.usd/.usda/.usdc).
 
-        All geometry in the file is concatenated with node transforms baked. UVs are kept when present
-        (as face-varying corner UVs after welding), so textures survive seams.
+        All geometry in a trimesh file is concatenated with node transforms baked; from a USD file the
+        Mesh at `prim_path` (default: the first one) is read (see :func:`read_usd_mesh`). UVs are kept
+        when present (as face-varying corner UVs after welding), so textures survive seams.
         """
-        vertices, triangles, uvs = load_mesh_file(path)
+        if os.fspath(path).lower().endswith((".usd", ".usda", ".usdc")):
+            vertices, triangles, uvs = read_usd_mesh(path, prim_path)
+        else:
+            vertices, triangles, uvs = load_mesh_file(path)
         kwargs.setdefault("name", os.path.splitext(os.path.basename(str(path)))[0])
         return self.add_cloth_mesh(vertices, triangles, uvs=uvs, **kwargs)
 
@@ -482,3 +486,66 @@ def load_mesh_file(path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     uv = getattr(getattr(loaded, "visual", None), "uv", None)
     uv = None if uv is None or len(uv) != len(loaded.vertices) else np.asarray(uv)
     return np.asarray(loaded.vertices), np.asarray(loaded.faces), uv
+
+
+def read_usd_mesh(path, prim_path: str | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Read a UsdGeom.Mesh as (vertices [m], triangles, per-vertex uvs or None), like :func:`load_mesh_file`.
+
+    Points are taken at the default time (else the earliest sample), moved to world space with the prim's
+    transform and scaled by the stage's metersPerUnit; polygons are fan-triangulated and a leftHanded
+    mesh is re-wound. A face-varying ``st`` primvar gives every corner its own vertex (welded again by
+    position, so seams survive); vertex-interpolated ``st`` is used as is. Points are not rotated for
+    the stage's up axis: place the cloth with the builder's rotation.
+    """
+    from pxr import Usd, UsdGeom
+
+    from .cache import fan_triangulate
+
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"mesh file not found: {path}")
+    stage = Usd.Stage.Open(path)
+    if stage is None:
+        raise MeshError(f"cannot open {path} as USD")
+    if prim_path is not None:
+        prim = stage.GetPrimAtPath(prim_path)
+        if not prim or not prim.IsA(UsdGeom.Mesh):
+            meshes = [str(p.GetPath()) for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)]
+            raise MeshError(f"{path}: no Mesh at {prim_path!r}; meshes: {', '.join(meshes) or 'none'}")
+    else:
+        prim = next((p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)), None)
+        if prim is None:
+            raise MeshError(f"{path} holds no UsdGeom.Mesh")
+    mesh = UsdGeom.Mesh(prim)
+    time = Usd.TimeCode.Default()
+    points = mesh.GetPointsAttr().Get(time)
+    if points is None:
+        time = Usd.TimeCode.EarliestTime()
+        points = mesh.GetPointsAttr().Get(time)
+    if points is None or len(points) == 0:
+        raise MeshError(f"{path}: mesh {prim.GetPath()} has no points")
+    p = np.asarray(points, np.float64)
+    xform = np.asarray(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(time), np.float64)  # row vectors
+    p = p @ xform[:3, :3] + xform[3, :3]
+    p *= UsdGeom.GetStageMetersPerUnit(stage)
+    counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get(time) or [], np.int64)
+    indices = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(time) or [], np.int64)
+    if counts.sum() != len(indices):
+        raise MeshError(f"{path}: faceVertexCounts sum {counts.sum()} != {len(indices)} faceVertexIndices")
+    # Triangulate corner numbers (positions in faceVertexIndices) so face-varying data can follow.
+    corner_tris = fan_triangulate(counts, np.arange(len(indices)))
+    if mesh.GetOrientationAttr().Get() == UsdGeom.Tokens.leftHanded:
+        corner_tris = corner_tris[:, ::-1]
+    st = UsdGeom.PrimvarsAPI(prim).GetPrimvar("st")
+    uv_values = st.ComputeFlattened(time) if st and st.HasValue() else None
+    interp = st.GetInterpolation() if uv_values is not None else None
+    if uv_values is not None and interp == UsdGeom.Tokens.faceVarying and len(uv_values) == len(indices):
+        # One vertex per triangle corner; mesh_topology welds them by position and keeps per-corner UVs.
+        corners = corner_tris.reshape(-1)
+        return p[indices[corners]], np.arange(len(corners), dtype=np.int64).reshape(-1, 3), np.asarray(uv_values, np.float64)[corners]
+    uvs = None
+    if uv_values is not None and interp in (UsdGeom.Tokens.vertex, UsdGeom.Tokens.varying) and len(uv_values) == len(p):
+        uvs = np.asarray(uv_values, np.float64)
+    elif uv_values is not None:
+        log.warning("%s: st primvar with %s interpolation and %d values is not used", path, interp, len(uv_values))
+    return p, indices[corner_tris], uvs

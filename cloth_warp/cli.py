@@ -1,11 +1,24 @@
-"""The cloth-warp command line: run a scene, with progress on a terminal and a summary at the end."""
+"""The cloth-warp command line (also ``python -m cloth_warp``).
+
+    cloth-warp run SCENE [-o OUT] [--frames N] [--fps F] [--start-frame K] [--device cpu|cuda]
+                         [--set key.path=value ...] [--stats FILE.json] [--quiet] [-v]
+    cloth-warp validate SCENE [--set ...]       check a scene without running it
+    cloth-warp info CACHE [--json]              what a cache holds
+    cloth-warp scenes                           the shipped scenes
+    cloth-warp preview CACHE -o OUT.png|OUT.gif [--frame K] [--size W H] [--every N]
+
+Exit codes: 0 done, 2 bad input (scene key, mesh, missing file, unwritable output), 3 diverged (the cache
+keeps every good frame), 130 interrupted by Ctrl-C or SIGTERM (the cache of the frames done is valid).
+"""
 
 from __future__ import annotations
 
 import argparse
 import json
 import logging
+import signal
 import sys
+import time
 import tomllib
 
 from . import __version__
@@ -13,77 +26,259 @@ from . import __version__
 EXIT_OK, EXIT_BAD_INPUT, EXIT_DIVERGED, EXIT_INTERRUPTED = 0, 2, 3, 130
 
 
-def _parse_set(items):
+class BadInput(Exception):
+    """A command-line value that cannot be used (exit code 2)."""
+
+
+def parse_set(items) -> dict:
+    """``key.path=value`` strings to a dict; values are TOML (``8``, ``[1, 0, 0]``, ``true``) or bare strings."""
     out = {}
     for item in items or []:
         key, sep, value = item.partition("=")
+        key = key.strip()
         if not sep or not key:
-            raise ValueError(f"--set expects key.path=value, got {item!r}")
+            raise BadInput(f"--set expects key.path=value, got {item!r}")
         try:
             out[key] = tomllib.loads(f"v = {value}")["v"]
         except tomllib.TOMLDecodeError:
-            out[key] = value  # a bare string
+            out[key] = value.strip()  # a bare string such as --set material.preset=silk
     return out
 
 
-def _progress(quiet: bool):
-    tty = sys.stderr.isatty()
+def _fmt_time(seconds: float) -> str:
+    if seconds < 60:
+        return f"{seconds:.1f} s"
+    m, s = divmod(int(seconds + 0.5), 60)
+    return f"{m}:{s:02d} min" if m < 60 else f"{m // 60}:{m % 60:02d}:{s:02d} h"
 
-    def show(frame, total, stats, elapsed):
-        if quiet:
+
+class Progress:
+    """A progress bar on a terminal (frames, ms/frame, ETA); plain lines every 10 % or 10 s otherwise."""
+
+    def __init__(self, stream=None, quiet: bool = False):
+        self.stream = stream or sys.stderr
+        self.quiet = quiet
+        self.tty = self.stream.isatty()
+        self.last_line = time.monotonic()
+
+    def __call__(self, frame: int, total: int, summary: dict):
+        if self.quiet:
             return
+        elapsed = summary.get("wall_s", 0.0)
         ms = 1e3 * elapsed / frame
         eta = ms * (total - frame) / 1e3
-        line = f"frame {frame}/{total}  {ms:.1f} ms/frame  ETA {eta:.1f} s  max strain {stats.max_strain:.3f}"
-        if tty:
-            sys.stderr.write("\r" + line + ("\n" if frame == total else ""))
-        elif frame == total or frame % max(1, total // 10) == 0:
-            sys.stderr.write(line + "\n")
-        sys.stderr.flush()
+        text = f"{frame}/{total} frames  {ms:.1f} ms/frame  ETA {_fmt_time(eta)}"
+        now = time.monotonic()
+        if self.tty:
+            width = 24
+            filled = int(width * frame / total)
+            self.stream.write(f"\r[{'#' * filled}{'.' * (width - filled)}] {text} ")
+            if frame == total:
+                self.stream.write("\n")
+        elif frame == total or frame % max(1, total // 10) == 0 or now - self.last_line > 10.0:
+            self.stream.write(f"cloth-warp: {text}\n")
+            self.last_line = now
+        self.stream.flush()
 
-    return show
+    def finish(self):
+        if self.tty and not self.quiet:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+def format_summary(s: dict) -> str:
+    """The end-of-run summary a person reads."""
+    lines = [f"{s['status']}: {s['frames']}/{s['frames_requested']} frames of {s['particles']} particles "
+             f"({s['integrator']}, {s['substeps']} substep{'s' if s['substeps'] != 1 else ''}/frame, {s['device']})"]
+    if s["frames"]:
+        lines.append(f"  time        {s['wall_s']:.2f} s simulating, {s['ms_per_frame']:.1f} ms/frame; "
+                     f"kernels loaded in {s['compile_s']:.2f} s; {s['total_s']:.2f} s in all")
+        lines.append(f"  max strain  {s['max_strain']:.4f}")
+        dt = f"{s['dt_min']:.3g} s" if s["dt_min"] == s["dt_max"] else f"{s['dt_min']:.3g} .. {s['dt_max']:.3g} s"
+        extra = f" ({s['rejected_steps']} rejected steps)" if s.get("rejected_steps") else ""
+        lines.append(f"  dt          {dt}{extra}")
+        if s.get("solver_iterations") and s["solver_iterations"]["max"]:
+            lines.append(f"  solver      {s['solver_iterations']['mean']:.0f} iterations/frame on average, "
+                         f"{s['solver_iterations']['max']} at most")
+    lines.append(f"  cache       {s['output']} (frames {s['start_frame']}..{s['end_frame']}, "
+                 f"{s.get('output_bytes', 0) / 1e6:.1f} MB)")
+    lo, hi = s["bounds_m"]
+    lines.append("  cloth size  " + " x ".join(f"{b - a:.3g}" for a, b in zip(lo, hi)) + " m at rest")
+    if s["status"] == "diverged":
+        lines.append(f"  diverged    {s.get('message', '')}")
+    return "\n".join(lines)
+
+
+def _write_stats(path, summary):
+    if path:
+        from .cache import atomic_write_text
+
+        atomic_write_text(path, json.dumps(summary, indent=1, default=str) + "\n")
+
+
+def _on_sigterm(signum, frame):
+    raise KeyboardInterrupt
+
+
+def cmd_run(args) -> int:
+    from .runner import run_scene
+
+    overrides = parse_set(args.set)
+    progress = Progress(quiet=args.quiet)
+    previous = signal.signal(signal.SIGTERM, _on_sigterm)
+    try:
+        summary = run_scene(args.scene, overrides, output=args.output, frames=args.frames, fps=args.fps,
+                            device=args.device, start_frame=args.start_frame, progress=progress, argv=sys.argv)
+    except KeyboardInterrupt as exc:
+        summary = getattr(exc, "summary", None)
+        progress.finish()
+        if summary is None:
+            print("cloth-warp: interrupted before the first frame; nothing written", file=sys.stderr)
+            return EXIT_INTERRUPTED
+        _write_stats(args.stats, summary)
+        print(format_summary(summary), file=sys.stderr)
+        print(f"cloth-warp: interrupted; the cache holds the {summary['frames']} frames done", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    _write_stats(args.stats, summary)
+    if not args.quiet or summary["status"] != "complete":
+        print(format_summary(summary), file=sys.stdout if summary["status"] == "complete" else sys.stderr)
+    if summary["status"] == "diverged":
+        print(f"cloth-warp: error: {summary['message']}", file=sys.stderr)
+        return EXIT_DIVERGED
+    return EXIT_OK
+
+
+def cmd_validate(args) -> int:
+    from .runner import default_output, find_scene
+    from .scene import build_model, load_scene
+
+    scene = load_scene(find_scene(args.scene), parse_set(args.set))
+    model = build_model(scene, "cpu")
+    fps, substeps = float(scene.get("output.fps")), int(scene.get("solver.substeps"))
+    print(f"{scene.path}: valid")
+    print(f"  cloth       {model.particle_count} particles, {model.spring_count} springs, {model.tri_count} triangles, "
+          f"material {model.cloths[0].material.name}")
+    print(f"  solver      {scene.get('solver.integrator')}, dt = {1.0 / (fps * substeps):.4g} s ({substeps} per frame)")
+    print(f"  output      {scene.get('output.frames')} frames at {fps:g} fps -> {default_output(scene)}")
+    return EXIT_OK
+
+
+def cmd_info(args) -> int:
+    from .cache import CacheReader
+
+    info = CacheReader(args.cache).summary()
+    if args.json:
+        print(json.dumps(info, indent=1, default=str))
+        return EXIT_OK
+    meta = info["metadata"]
+    print(f"{info['path']}")
+    print(f"  frames      {info['frames']} ({info['start_frame']}..{info['end_frame']}) at {info['fps']:g} fps, "
+          f"up axis {info['up_axis']}")
+    print(f"  status      {meta.get('status', 'unknown')}")
+    for m in info["meshes"]:
+        print(f"  mesh        {m['path']}: {m['points']} points, {m['triangles']} triangles, "
+              f"{m['time_samples']} samples{', uv' if m['uv'] else ''}")
+    for k, v in info["diagnostics"].items():
+        print(f"  {k:<11} min {v['min']:.4g}  mean {v['mean']:.4g}  max {v['max']:.4g}")
+    if meta.get("scene_path"):
+        print(f"  scene       {meta['scene_path']} (sha256 {str(meta.get('scene_sha256', ''))[:12]})")
+    if meta.get("overrides") not in (None, "{}"):
+        print(f"  overrides   {meta['overrides']}")
+    if meta.get("integrator"):
+        print(f"  solver      {meta['integrator']}, {meta.get('substeps')} substeps/frame on {meta.get('device')}")
+    versions = meta.get("versions")
+    if isinstance(versions, dict):
+        print("  versions    " + ", ".join(f"{k} {v}" for k, v in versions.items()))
+    return EXIT_OK
+
+
+def cmd_scenes(args) -> int:
+    from .runner import shipped_scenes
+    from .scene import load_scene
+
+    for name, path in shipped_scenes().items():
+        try:
+            desc = load_scene(path).get("scene.description")
+        except Exception as exc:  # a broken shipped scene should still be listed
+            desc = f"(invalid: {exc})"
+        print(f"{name:<16} {desc}")
+    return EXIT_OK
+
+
+def cmd_preview(args) -> int:
+    from .preview import render_cache
+
+    path = render_cache(args.cache, args.output, frame=args.frame, size=tuple(args.size), every=args.every,
+                        device=args.device)
+    print(f"wrote {path}")
+    return EXIT_OK
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="cloth-warp", description="Differentiable cloth simulation in NVIDIA Warp.",
+                                     epilog="Exit codes: 0 done, 2 bad input, 3 diverged, 130 interrupted.")
+    parser.add_argument("--version", action="version", version=f"cloth-warp {__version__}")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="log more (-v info, -vv debug)")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    run = sub.add_parser("run", help="simulate a scene and write its cache")
+    run.add_argument("scene", help="scene file (.toml) or the name of a shipped scene (see `cloth-warp scenes`)")
+    run.add_argument("-o", "--output", help="cache file (.usdc, .usda, .usd, .npz); default from the scene")
+    run.add_argument("--frames", type=int, help="frames to simulate")
+    run.add_argument("--fps", type=float, help="frames per second")
+    run.add_argument("--start-frame", type=int, help="time code of the initial state (default 1)")
+    run.add_argument("--device", help="Warp device: cpu, cuda, cuda:0 (default: Warp's)")
+    run.add_argument("--set", action="append", metavar="KEY.PATH=VALUE", help="override a scene key (TOML value); repeatable")
+    run.add_argument("--stats", metavar="FILE.json", help="write the summary as JSON")
+    run.add_argument("-q", "--quiet", action="store_true", help="no progress and no summary (errors still print)")
+    run.set_defaults(func=cmd_run)
+
+    val = sub.add_parser("validate", help="check a scene without running it")
+    val.add_argument("scene")
+    val.add_argument("--set", action="append", metavar="KEY.PATH=VALUE")
+    val.set_defaults(func=cmd_validate)
+
+    info = sub.add_parser("info", help="what a cache holds")
+    info.add_argument("cache")
+    info.add_argument("--json", action="store_true", help="print JSON")
+    info.set_defaults(func=cmd_info)
+
+    scenes = sub.add_parser("scenes", help="list the shipped scenes")
+    scenes.set_defaults(func=cmd_scenes)
+
+    prev = sub.add_parser("preview", help="render a cache to a PNG still or an animated GIF")
+    prev.add_argument("cache")
+    prev.add_argument("-o", "--output", required=True, help="out.png (one frame) or out.gif (animation)")
+    prev.add_argument("--frame", type=int, help="frame of a still (default: the last)")
+    prev.add_argument("--size", type=int, nargs=2, default=[512, 512], metavar=("W", "H"))
+    prev.add_argument("--every", type=int, default=1, help="GIF: use every N-th frame")
+    prev.add_argument("--device", help="Warp device for the ray caster")
+    prev.set_defaults(func=cmd_preview)
+    return parser
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="cloth-warp", description="Differentiable cloth simulation in NVIDIA Warp.")
-    parser.add_argument("--version", action="version", version=f"cloth-warp {__version__}")
-    sub = parser.add_subparsers(dest="command", required=True)
-    run = sub.add_parser("run", help="simulate a scene file and write its frames")
-    run.add_argument("scene")
-    run.add_argument("-o", "--output", help="output file (.npz); default from the scene")
-    run.add_argument("--frames", type=int)
-    run.add_argument("--fps", type=float)
-    run.add_argument("--device", help="cpu or cuda")
-    run.add_argument("--set", action="append", metavar="KEY.PATH=VALUE", help="override a scene key (TOML value)")
-    run.add_argument("--stats", help="write the summary as JSON to this file")
-    run.add_argument("--quiet", action="store_true")
+    parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    level = logging.WARNING if args.verbose == 0 else logging.INFO if args.verbose == 1 else logging.DEBUG
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
 
     import warp as wp
 
-    wp.config.log_level = wp.LOG_WARNING
-    from .scene import SceneError, run_scene
+    wp.config.log_level = wp.LOG_WARNING if args.verbose < 2 else wp.LOG_INFO
+    from .scene import SceneError
     from .topology import MeshError
 
     try:
-        summary = run_scene(args.scene, _parse_set(args.set), output=args.output, frames=args.frames, fps=args.fps,
-                            device=args.device, progress=_progress(args.quiet))
-    except (SceneError, MeshError, ValueError, KeyError, FileNotFoundError) as exc:
+        return args.func(args)
+    except (SceneError, MeshError, BadInput, FileNotFoundError, IsADirectoryError, PermissionError) as exc:
         print(f"cloth-warp: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    if args.stats:
-        with open(args.stats, "w") as fh:
-            json.dump(summary, fh, indent=1)
-    print(f"{summary['status']}: {summary['frames']} frames of {summary['particles']} particles ({summary['integrator']}), "
-          f"{summary['wall_s']:.2f} s wall, {summary['ms_per_frame']:.1f} ms/frame, max strain {summary['max_strain']:.3f}, "
-          f"solver iterations/step {summary['mean_solver_iterations']:.0f} -> {summary['output']}")
-    if summary["status"] == "diverged":
-        print(summary.get("message", ""), file=sys.stderr)
-        return EXIT_DIVERGED
-    if summary["status"] == "interrupted":
+    except KeyboardInterrupt:
+        print("cloth-warp: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
-    return EXIT_OK
 
 
 if __name__ == "__main__":

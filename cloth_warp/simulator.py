@@ -32,10 +32,15 @@ class Simulator:
         adaptive: check steps and back off on divergence (raises SimulationDiverged when dt < dt_min).
         dt_min: the adaptive floor [s].
         capture: force graph capture on/off (default: when possible).
+        wind: a :class:`~cloth_warp.wind.GustyWind` (or anything with ``at(time) -> vec3`` [m/s]); set on
+            the control once per frame, at the frame's midpoint (a steady wind once).
+
+    After each frame, :attr:`frame_info` holds the smallest and largest step used [s] and the solver
+    iterations of its steps (summed) (with graph capture: the iterations are not read back, 0).
     """
 
     def __init__(self, model: Model, solver: SolverBase, *, fps: float = 60.0, substeps: int = 1, adaptive: bool = False,
-                 dt_min: float = 1.0e-6, check: StepCheck | None = None, capture: bool | None = None):
+                 dt_min: float = 1.0e-6, check: StepCheck | None = None, capture: bool | None = None, wind=None):
         if not (fps > 0.0):
             raise ValueError(f"fps must be positive, got {fps!r}")
         if int(substeps) < 1:
@@ -58,27 +63,42 @@ class Simulator:
         self._graph = None
         self.last_stats: StepStats | None = None
         self.wall_time = 0.0
+        self.wind = wind
+        if wind is not None and getattr(wind, "steady", False):
+            self.control.set_wind(wind.at(0.0))
+        self.frame_info = {"dt_min": self.dt, "dt_max": self.dt, "iterations": 0, "residual": 0.0}
 
     def _substeps(self):
+        iterations = 0
         for k in range(self.substeps):
             src, dst = (self.state, self._other) if k % 2 == 0 else (self._other, self.state)
             if self.model.handles:
                 self.model.update_control(self.control, self.time + (k + 1) * self.dt)
             self.solver.step(src, dst, self.control, self.dt)
+            iterations += getattr(self.solver, "last_iterations", 0)
+        self.frame_info = {"dt_min": self.dt, "dt_max": self.dt, "iterations": iterations,
+                           "residual": float(getattr(self.solver, "last_residual", 0.0))}
         if self.substeps % 2 == 1:
             self.state.assign(self._other)
 
     def step_frame(self) -> StepStats:
         """Advance one frame; returns the statistics of the new state."""
         t0 = _time.perf_counter()
+        if self.wind is not None and not getattr(self.wind, "steady", False):
+            self.control.set_wind(self.wind.at(self.time + 0.5 * self.frame_dt))
         if self.stepper is not None:
+            self.stepper.reset_report()
             self.stepper.advance(self.state, self.control, self.time, self.frame_dt)
+            r = self.stepper.report
+            self.frame_info = {"dt_min": r.dt_min, "dt_max": r.dt_max, "iterations": r.iterations,
+                               "residual": float(getattr(self.solver, "last_residual", 0.0)), "rejected": r.rejected}
         elif self.capture:
             if self._graph is None:
                 with wp.ScopedCapture(device=self.model.device) as cap:
                     self._substeps()
                 self._graph = cap.graph
             wp.capture_launch(self._graph)
+            self.frame_info = {"dt_min": self.dt, "dt_max": self.dt, "iterations": 0, "residual": 0.0}
         else:
             self._substeps()
         self.frame += 1

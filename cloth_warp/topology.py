@@ -247,7 +247,10 @@ def grid_topology(
     wy[[0, -1]] *= 0.5
     particle_area = np.outer(wy, wx).ravel()
     springs, kind, law, weight, middle = sl.arrays()
-    return ClothTopology(positions, triangles, springs, kind, law, weight, middle, particle_area, grid_shape=(nx, ny), corner_weights=corner_weights)
+    # Texture coordinates span [0, 1]^2 over the grid (u along x, v along y), per triangle corner.
+    corner_uv = (positions[:, :2] / np.array([sx, sy]))[triangles]
+    return ClothTopology(positions, triangles, springs, kind, law, weight, middle, particle_area, grid_shape=(nx, ny),
+                         corner_uv=corner_uv, corner_weights=corner_weights)
 
 
 def _add_bend(sl: _SpringList, i: int, j: int, middle: int, weight_b: float, span: float, choi_ko: bool):

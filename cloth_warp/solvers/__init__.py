@@ -2,7 +2,12 @@
 
 from .adaptive import AdaptiveStepper, SimulationDiverged, StepCheck
 from .base import SolverBase, StrainLimiter
-from .explicit import SolverExplicitEuler, SolverMidpoint, SolverRK4, SolverSymplecticEuler
+from .explicit import (
+    SolverExplicitEuler,
+    SolverMidpoint,
+    SolverRK4,
+    SolverSymplecticEuler,
+)
 from .implicit import LinearSolver, SolverImplicitEuler
 
 SOLVERS = {

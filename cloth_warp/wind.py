@@ -1,0 +1,51 @@
+"""Wind: a mean velocity with optional gusts (seeded, smooth, deterministic)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+class GustyWind:
+    """Wind velocity w(t) [m/s]: the mean wind scaled by 1 + strength g(t) and turned about the up axis by
+    turn h(t) degrees, where g and h are smooth random signals of unit RMS with time scale `period`.
+
+    g and h are sums of four sinusoids with seeded frequencies in [0.5, 2] / period and random phases, so
+    a run is reproducible and the wind is a smooth function of time (no jumps between frames).
+
+    Args:
+        mean: mean wind velocity [m/s].
+        strength: gust amplitude, a fraction of the mean speed (0 = steady wind).
+        period: typical time between gusts [s].
+        turn: amplitude of the direction change [deg].
+        up: the up direction the wind turns about.
+        seed: random seed.
+    """
+
+    def __init__(self, mean=(0.0, 0.0, 0.0), *, strength: float = 0.0, period: float = 1.0, turn: float = 0.0,
+                 up=(0.0, 1.0, 0.0), seed: int = 0):
+        self.mean = np.asarray(mean, np.float64).reshape(3)
+        self.strength, self.period, self.turn = float(strength), float(period), float(turn)
+        if self.period <= 0.0:
+            raise ValueError(f"gust period must be positive [s], got {period!r}")
+        self.up = np.asarray(up, np.float64) / np.linalg.norm(up)
+        rng = np.random.default_rng(seed)
+        self._freq = rng.uniform(0.5, 2.0, size=(2, 4)) / self.period
+        self._phase = rng.uniform(0.0, 2.0 * np.pi, size=(2, 4))
+
+    @property
+    def steady(self) -> bool:
+        return self.strength == 0.0 and self.turn == 0.0
+
+    def _signal(self, row: int, time: float) -> float:
+        # Four unit-amplitude sinusoids, scaled by sqrt(2/4) so that the RMS is 1.
+        return float(np.sqrt(0.5) * np.sin(2.0 * np.pi * self._freq[row] * time + self._phase[row]).sum())
+
+    def at(self, time: float) -> np.ndarray:
+        """Wind velocity [m/s] at `time` [s]."""
+        if self.steady:
+            return self.mean.copy()
+        w = self.mean * (1.0 + self.strength * self._signal(0, time))
+        angle = np.radians(self.turn * self._signal(1, time))
+        k = self.up
+        # Rodrigues rotation of w about the up axis.
+        return w * np.cos(angle) + np.cross(k, w) * np.sin(angle) + k * np.dot(k, w) * (1.0 - np.cos(angle))
