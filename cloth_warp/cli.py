@@ -168,7 +168,10 @@ def cmd_validate(args) -> int:
 def cmd_info(args) -> int:
     from .cache import CacheReader
 
-    info = CacheReader(args.cache).summary()
+    try:
+        info = CacheReader(args.cache).summary()
+    except ValueError as exc:
+        raise BadInput(str(exc)) from exc
     if args.json:
         print(json.dumps(info, indent=1, default=str))
         return EXIT_OK
@@ -210,8 +213,11 @@ def cmd_scenes(args) -> int:
 def cmd_preview(args) -> int:
     from .preview import render_cache
 
-    path = render_cache(args.cache, args.output, frame=args.frame, size=tuple(args.size), every=args.every,
-                        device=args.device)
+    try:
+        path = render_cache(args.cache, args.output, frame=args.frame, size=tuple(args.size), every=args.every,
+                            device=args.device)
+    except ValueError as exc:
+        raise BadInput(str(exc)) from exc
     print(f"wrote {path}")
     return EXIT_OK
 
