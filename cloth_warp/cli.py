@@ -103,7 +103,7 @@ def format_summary(s: dict) -> str:
     lines.append(f"  cache       {s['output']} (frames {s['start_frame']}..{s['end_frame']}, "
                  f"{s.get('output_bytes', 0) / 1e6:.1f} MB)")
     lo, hi = s["bounds_m"]
-    lines.append("  cloth size  " + " x ".join(f"{b - a:.3g}" for a, b in zip(lo, hi)) + " m at rest")
+    lines.append("  cloth size  " + " x ".join(f"{round(b - a, 6):.4g}" for a, b in zip(lo, hi)) + " m at rest")
     if s["status"] == "diverged":
         lines.append(f"  diverged    {s.get('message', '')}")
     return "\n".join(lines)

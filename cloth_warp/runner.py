@@ -104,6 +104,11 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
     if out.suffix.lower() not in CACHE_SUFFIXES:
         raise SceneError(f"output: {out} has an unknown extension; allowed: {', '.join(CACHE_SUFFIXES)}")
 
+    if device is not None:
+        try:
+            device = wp.get_device(device)
+        except (ValueError, RuntimeError) as exc:
+            raise SceneError(f"device: {exc} (available: {', '.join(str(d) for d in wp.get_devices())})") from exc
     t_start = time.perf_counter()
     model = build_model(scene, device)
     solver = build_solver(scene, model)

@@ -463,12 +463,6 @@ def build_solver(scene: Scene, model):
     return make_solver(scene.get("solver.integrator"), model, **opts)
 
 
-def build(scene: Scene, device=None):
-    """Model and solver from a scene."""
-    model = build_model(scene, device)
-    return model, build_solver(scene, model)
-
-
 def build_wind(scene: Scene):
     """The wind (a :class:`~cloth_warp.wind.GustyWind`) a scene's [forces] table describes."""
     from .wind import GustyWind

@@ -65,6 +65,7 @@ def test_bad_input_exits_2(tmp_path, capsys):
         (["--set", "solver.substeps=0"], "solver.substeps: must be >= 1"),
         (["--set", "nonsense"], "--set expects key.path=value"),
         (["-o", str(tmp_path / "x.abc")], "unknown extension"),
+        (["--device", "tpu"], "device: Invalid device identifier"),
     ):
         assert main(["run", HANG, "--frames", "1", *args]) == 2
         assert message in capsys.readouterr().err
