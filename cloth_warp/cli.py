@@ -125,7 +125,8 @@ def cmd_run(args) -> int:
 
     overrides = parse_set(args.set)
     progress = Progress(quiet=args.quiet)
-    previous = signal.signal(signal.SIGTERM, _on_sigterm)
+    # Ctrl-C stops the run with a valid cache, also where SIGINT was ignored at start (background jobs).
+    previous = signal.signal(signal.SIGTERM, _on_sigterm), signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         summary = run_scene(args.scene, overrides, output=args.output, frames=args.frames, fps=args.fps,
                             device=args.device, start_frame=args.start_frame, progress=progress, argv=sys.argv)
@@ -140,7 +141,8 @@ def cmd_run(args) -> int:
         print(f"cloth-warp: interrupted; the cache holds the {summary['frames']} frames done", file=sys.stderr)
         return EXIT_INTERRUPTED
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        signal.signal(signal.SIGTERM, previous[0])
+        signal.signal(signal.SIGINT, previous[1])
     _write_stats(args.stats, summary)
     if not args.quiet or summary["status"] != "complete":
         print(format_summary(summary), file=sys.stdout if summary["status"] == "complete" else sys.stderr)

@@ -85,6 +85,8 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
     in the exception's ``summary`` attribute. Bad input raises :class:`SceneError` before anything runs.
     """
 
+    import warp as wp
+
     from .cache import open_cache
     from .simulator import Simulator
     from .solvers import SimulationDiverged

@@ -137,12 +137,15 @@ def test_ctrl_c_leaves_a_valid_cache(tmp_path):
     proc = subprocess.Popen([sys.executable, "-m", "cloth_warp", "run", HANG, "-o", str(out), "--frames", "100000",
                              "--set", "cloth.grid.resolution=[16, 16]", "--set", "output.save_every=5"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
-    deadline = time.monotonic() + 120
-    while not partial_path(out).exists() and time.monotonic() < deadline:
-        time.sleep(0.2)
-    time.sleep(2.0)  # let it simulate some frames
-    proc.send_signal(signal.SIGINT)
-    stdout, stderr = proc.communicate(timeout=120)
+    try:
+        deadline = time.monotonic() + 120
+        while not partial_path(out).exists() and time.monotonic() < deadline:
+            time.sleep(0.2)
+        time.sleep(2.0)  # let it simulate some frames
+        proc.send_signal(signal.SIGINT)
+        stdout, stderr = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
     assert proc.returncode == 130, stderr
     assert "interrupted" in stderr
     reader = CacheReader(out)
