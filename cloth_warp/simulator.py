@@ -87,9 +87,8 @@ class Simulator:
         if self.wind is not None and not getattr(self.wind, "steady", False):
             self.control.set_wind(self.wind.at(self.time + 0.5 * self.frame_dt))
         if self.stepper is not None:
-            self.stepper.reset_report()
             self.stepper.advance(self.state, self.control, self.time, self.frame_dt)
-            r = self.stepper.report
+            r = self.stepper.interval
             self.frame_info = {"dt_min": r.dt_min, "dt_max": r.dt_max, "iterations": r.iterations,
                                "residual": float(getattr(self.solver, "last_residual", 0.0)), "rejected": r.rejected}
         elif self.capture:

@@ -224,3 +224,15 @@ def test_garment_scene_drapes(tmp_path):
     radius = np.hypot(x[:, hem, 0], x[:, hem, 2]).mean(axis=1)
     assert radius[-1] < radius[0] - 0.005  # 0.2 s in, the hem has swung inward by more than 5 mm
     assert summary["max_strain"] <= 0.101
+
+
+def test_adaptive_run_reports_its_dt_range(tmp_path):
+    """Check an adaptive explicit run through a scene backs off, records the smallest dt per frame in the cache
+    and reports the dt range and rejected steps in the summary."""
+    out = tmp_path / "adaptive.usdc"
+    summary = run_scene(HANG, {"cloth.grid.resolution": [16, 16], "solver.integrator": "symplectic_euler",
+                               "solver.adaptive": True, "material.preset": "denim"}, output=out, frames=3)
+    assert summary["status"] == "complete" and summary["rejected_steps"] > 0
+    assert summary["dt_min"] < summary["dt_max"] <= 1.0 / 60.0
+    tc, dts = CacheReader(out).diagnostics()["dt"]
+    assert list(tc) == [2, 3, 4] and min(dts) == pytest.approx(summary["dt_min"], rel=1e-6)

@@ -84,6 +84,7 @@ class AdaptiveStepper:
         self.diagnostics = Diagnostics(self.model)
         self.trial = self.model.state(requires_grad=False)
         self.report = StepperReport()
+        self.interval = StepperReport()
         self._stats: StepStats | None = None
         self._good = 0
 
@@ -123,6 +124,7 @@ class AdaptiveStepper:
         dt_cap = self.nominal_dt
         eps = 1e-9 * max(duration, 1e-12)
         r = self.report
+        interval = self.interval = StepperReport()  # this call's steps alone
         while t < end - eps:
             h = min(self.dt, end - t)
             self.model.update_control(control, t + h)
@@ -131,6 +133,7 @@ class AdaptiveStepper:
             reason = self._rejection(stats, self._stats, h)
             if reason is not None:
                 r.rejected += 1
+                interval.rejected += 1
                 r.reasons[reason.split(" ")[0]] = r.reasons.get(reason.split(" ")[0], 0) + 1
                 dt_cap = min(dt_cap, h / 2.0)
                 self.dt = h / 2.0
@@ -150,11 +153,12 @@ class AdaptiveStepper:
             state.assign(self.trial)
             self._stats = stats
             t += h
-            r.steps += 1
-            r.dt_min = min(r.dt_min, h)
-            r.dt_max = max(r.dt_max, h)
-            r.max_strain = max(r.max_strain, stats.max_strain)
-            r.iterations += getattr(self.solver, "last_iterations", 0)
+            for rep in (r, interval):
+                rep.steps += 1
+                rep.dt_min = min(rep.dt_min, h)
+                rep.dt_max = max(rep.dt_max, h)
+                rep.max_strain = max(rep.max_strain, stats.max_strain)
+                rep.iterations += getattr(self.solver, "last_iterations", 0)
             self._good += 1
             if self._good >= self.grow_after and self.dt < self.nominal_dt:
                 self.dt = min(2.0 * self.dt, self.nominal_dt, max(dt_cap, self.dt))
