@@ -172,7 +172,9 @@ def test_z_up_is_stamped_not_rotated(tmp_path):
     stage = Usd.Stage.Open(str(path))
     assert UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.z
     x = CacheReader(path).points(1)
-    assert x[:, 2].min() < 1e-3 and np.allclose(x[:, 1], model.rest_positions[:, 1], atol=1e-3)  # fell along -z only
+    # One 1/30 s frame of fall along -z (g t^2 / 2 = 5.4 mm for free particles); y untouched beyond the cloth's pull.
+    assert -x[:, 2].max() > -1e-6 and -x[:, 2].min() > 0.8 * 0.5 * 9.81 / 30**2
+    assert np.allclose(x[:, 1], model.rest_positions[:, 1], atol=1e-3)
 
 
 def test_file_appears_atomically_and_saves_periodically(tmp_path):
