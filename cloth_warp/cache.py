@@ -24,6 +24,7 @@ complete, valid cache of the frames done. A hard kill (SIGKILL, power loss) leav
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -76,13 +77,24 @@ def package_versions() -> dict:
     return versions
 
 
-def atomic_write_text(path, text: str):
-    """Write a text file under a temporary name in the same folder, then rename it into place."""
+@contextlib.contextmanager
+def atomic_path(path):
+    """Yield a temporary name next to `path` to write to; rename it to `path` when the block succeeds
+    (and remove it when it fails), so a file under the final name is always complete."""
     path = pathlib.Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def atomic_write_text(path, text: str):
+    """Write a text file atomically (see :func:`atomic_path`)."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
 
 
 def partial_path(path: pathlib.Path) -> pathlib.Path:
@@ -333,14 +345,12 @@ class NpzCacheWriter(CacheWriter):
         self.closed = True
         self.meta.update(info or {})
         self.meta.update(status=status, frames_written=self.frames_written)
-        tmp = self.path.with_name(f"{self.path.stem}.partial{self.path.suffix}")
         n = len(self.triangles)
-        with open(tmp, "wb") as fh:
+        with atomic_path(self.path) as tmp, open(tmp, "wb") as fh:
             np.savez_compressed(fh, positions=np.array(self.q).reshape(-1, *(self.q[0].shape if self.q else (0, 3))),
                                 velocities=np.array(self.qd).reshape(-1, *(self.qd[0].shape if self.qd else (0, 3))),
                                 triangles=self.triangles.reshape(n, 3), fps=self.fps, start_frame=self.start_frame,
                                 metadata=json.dumps(self.meta), **{k: np.array(v, np.float64) for k, v in self.diag.items()})
-        os.replace(tmp, self.path)
         return self.path
 
 

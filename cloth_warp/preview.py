@@ -7,13 +7,12 @@ cache's up axis); a key light casts shadows on the cloth and on a checkered grou
 from __future__ import annotations
 
 import logging
-import os
 import pathlib
 
 import numpy as np
 import warp as wp
 
-from .cache import CacheReader, vertex_normals
+from .cache import CacheReader, atomic_path, vertex_normals
 from .kernels import render as kr
 
 log = logging.getLogger(__name__)
@@ -58,7 +57,8 @@ class Renderer:
     """Renders frames of one triangle mesh whose points change (BVH refit per frame)."""
 
     def __init__(self, points: np.ndarray, triangles: np.ndarray, *, size=(512, 512), up_axis: str = "Y",
-                 camera: Camera | None = None, ground_height: float | None = None, device=None):
+                 bounds=None, device=None):
+        """`bounds` (lower, upper) [m] frames the camera, ground and checker size (default: `points`')."""
         self.device = wp.get_device(device)
         self.width, self.height = int(size[0]), int(size[1])
         if self.width < 8 or self.height < 8:
@@ -70,11 +70,11 @@ class Renderer:
         self.mesh = wp.Mesh(points=self.points, indices=self.indices)
         self.pixels = wp.zeros(self.width * self.height, dtype=wp.vec3, device=self.device)
         self.up, _, depth = _axes(up_axis)
-        lo, hi = np.min(points, 0), np.max(points, 0)
-        self.camera = camera or Camera.framing(lo, hi, up_axis)
-        radius = 0.5 * float(np.linalg.norm(hi - lo))
-        low = float(np.dot(lo, self.up))
-        self.ground_height = ground_height if ground_height is not None else min(0.0, low - 0.05 * radius)
+        lo, hi = bounds if bounds is not None else (np.min(points, 0), np.max(points, 0))
+        self.camera = Camera.framing(lo, hi, up_axis)
+        radius = 0.5 * float(np.linalg.norm(np.asarray(hi) - np.asarray(lo)))
+        # The ground: at the scene's zero level, or just below the cloth's lowest point if that is lower.
+        self.ground_height = min(0.0, float(np.dot(lo, self.up)) - 0.05 * radius)
         light = 1.0 * self.up - 0.3 * _axes(up_axis)[1] + 0.35 * depth
         self.light_dir = light / np.linalg.norm(light)
         self.checker = float(10.0 ** np.round(np.log10(max(radius, 1e-3) / 4.0)))
@@ -126,19 +126,14 @@ def render_cache(cache, output, *, frame: int | None = None, size=(512, 512), ev
         frames = list(range(first, last + 1, max(1, int(every))))
     clouds = [_combined(reader, f) for f in frames]
     allpts = np.concatenate(clouds)
-    camera = Camera.framing(allpts.min(0), allpts.max(0), reader.up_axis)
-    renderer = Renderer(clouds[0], triangles, size=size, up_axis=reader.up_axis, camera=camera, device=device)
-    low = min(float(np.dot(c.min(0), renderer.up)) for c in clouds)
-    radius = 0.5 * float(np.linalg.norm(allpts.max(0) - allpts.min(0)))
-    renderer.ground_height = min(0.0, low - 0.05 * radius)
+    renderer = Renderer(clouds[0], triangles, size=size, up_axis=reader.up_axis, bounds=(allpts.min(0), allpts.max(0)),
+                        device=device)
     images = [Image.fromarray(renderer.render(c)) for c in clouds]
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
-    if suffix == ".png":
-        images[0].save(tmp, format="PNG")
-    else:
-        duration = max(20, int(round(1000.0 * max(1, int(every)) / reader.fps)))
-        images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=duration, loop=0)
-    os.replace(tmp, out)
+    with atomic_path(out) as tmp:
+        if suffix == ".png":
+            images[0].save(tmp, format="PNG")
+        else:
+            duration = max(20, int(round(1000.0 * max(1, int(every)) / reader.fps)))
+            images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=duration, loop=0)
     log.info("rendered %d frame(s) of %s to %s", len(images), cache, out)
     return out
