@@ -1,4 +1,4 @@
-"""ModelBuilder: cloths from grids or triangle meshes, raw particles and springs, pins, handles."""
+"""ModelBuilder: cloths from grids or triangle meshes, raw particles and springs, pins, handles, colliders."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ import numpy as np
 import warp as wp
 
 from . import topology as topo
+from .colliders import Collider, rotation_to_axis
 from .materials import FabricMaterial, preset
 from .model import ClothInfo, Handle, Keyframe, Model
 from .topology import ClothTopology, MeshError, SpringKind, SpringLaw, SpringModel
@@ -105,9 +106,9 @@ def rotation_matrix(rotation) -> np.ndarray:
     if r.shape == (3, 3):
         return r
     if r.shape == (4,):
-        from .model import _quat_to_matrix
+        from .model import quat_to_matrix
 
-        return _quat_to_matrix(r)
+        return quat_to_matrix(r)
     raise ValueError(f"rotation must be a quaternion (x, y, z, w) or a 3x3 matrix, got shape {r.shape}")
 
 
@@ -154,6 +155,13 @@ class ModelBuilder:
         self.tri_corner_weights = np.zeros((0, 3))
         self.cloths: list[tuple[ClothRef, FabricMaterial, int]] = []
         self.handles: list[Handle] = []
+        self.colliders: list[Collider] = []
+        self.self_collision = False
+        self.cloth_thickness = 0.0
+
+    @property
+    def up_vector(self) -> tuple[float, float, float]:
+        return (0.0, 0.0, 1.0) if self.up_axis == "Z" else (0.0, 1.0, 0.0)
 
     @property
     def particle_count(self) -> int:
@@ -342,6 +350,100 @@ class ModelBuilder:
         self.handles.append(h)
         return h
 
+    # -- colliders and self-collision ---------------------------------------------------------
+    def add_collider(self, collider: Collider) -> Collider:
+        """Add a :class:`~cloth_warp.colliders.Collider` (the ``add_<shape>`` methods build one)."""
+        names = {c.name for c in self.colliders}
+        if collider.name in names:
+            raise ValueError(f"a collider named {collider.name!r} exists already")
+        self.colliders.append(collider)
+        return collider
+
+    def _collider(self, shape: str, name, position, rotation, thickness, friction, static_friction, kinetic_friction,
+                  keyframes, **geometry) -> Collider:
+        mu_s = friction if static_friction is None else static_friction
+        mu_k = min(friction, mu_s) if kinetic_friction is None else kinetic_friction
+        q = (0.0, 0.0, 0.0, 1.0) if rotation is None else tuple(np.asarray(rotation, float).tolist())
+        kfs = [k if isinstance(k, Keyframe) else
+               Keyframe(float(k[0]), tuple(map(float, k[1])), tuple(map(float, k[2])) if len(k) > 2 else (0.0, 0.0, 0.0, 1.0))
+               for k in (keyframes or [])]
+        col = Collider(name or f"{shape}{len(self.colliders)}", shape, position=tuple(position), rotation=q,
+                       thickness=float(thickness), static_friction=float(mu_s), kinetic_friction=float(mu_k), keyframes=kfs,
+                       **geometry)
+        return self.add_collider(col)
+
+    def add_ground(self, height: float = 0.0, **common) -> Collider:
+        """The plane `height` [m] along the up axis, solid below (keyword options as :meth:`add_plane`)."""
+        return self.add_plane(normal=self.up_vector, point=tuple(height * u for u in self.up_vector), **common)
+
+    def add_plane(self, normal=None, point=(0.0, 0.0, 0.0), *, name=None, thickness=0.004, friction=0.3, static_friction=None,
+                  kinetic_friction=None, keyframes=None) -> Collider:
+        """An infinite plane through `point` [m]; `normal` (default: up) points out of the solid half-space.
+
+        Common options of every ``add_<shape>``: `thickness` [m] (contact offset), `friction` (Coulomb
+        coefficient, both static and kinetic) or `static_friction` / `kinetic_friction`, `keyframes`
+        (rigid animation: (time, translation[, quaternion]) or Keyframe), `name`.
+        """
+        q = rotation_to_axis(self.up_vector if normal is None else normal)
+        return self._collider("plane", name, point, q, thickness, friction, static_friction, kinetic_friction, keyframes)
+
+    def add_sphere(self, center, radius: float, *, name=None, thickness=0.004, friction=0.3, static_friction=None,
+                   kinetic_friction=None, keyframes=None) -> Collider:
+        """A solid sphere of `radius` [m] about `center` [m]."""
+        return self._collider("sphere", name, center, None, thickness, friction, static_friction, kinetic_friction, keyframes,
+                              radius=float(radius))
+
+    def add_capsule(self, center, radius: float, height: float, axis=None, *, name=None, thickness=0.004, friction=0.3,
+                    static_friction=None, kinetic_friction=None, keyframes=None) -> Collider:
+        """A capsule: the points within `radius` [m] of a segment of length `height` [m] along `axis`
+        (default: up) through `center` (height excludes the caps, as UsdGeom.Capsule)."""
+        q = rotation_to_axis(self.up_vector if axis is None else axis)
+        return self._collider("capsule", name, center, q, thickness, friction, static_friction, kinetic_friction, keyframes,
+                              radius=float(radius), height=float(height))
+
+    def add_box(self, center, size, rotation=None, *, name=None, thickness=0.004, friction=0.3, static_friction=None,
+                kinetic_friction=None, keyframes=None) -> Collider:
+        """A solid box with edge lengths `size` [m] centred at `center`, turned by `rotation` (x, y, z, w)."""
+        return self._collider("box", name, center, rotation, thickness, friction, static_friction, kinetic_friction, keyframes,
+                              size=tuple(map(float, size)))
+
+    def add_cylinder(self, center, radius: float, height: float, axis=None, *, name=None, thickness=0.004, friction=0.3,
+                     static_friction=None, kinetic_friction=None, keyframes=None) -> Collider:
+        """A solid cylinder (flat caps; a disc when short) of `radius` and full `height` [m] along `axis`
+        (default: up) centred at `center`."""
+        q = rotation_to_axis(self.up_vector if axis is None else axis)
+        return self._collider("cylinder", name, center, q, thickness, friction, static_friction, kinetic_friction, keyframes,
+                              radius=float(radius), height=float(height))
+
+    def add_collider_mesh(self, vertices, triangles, position=(0.0, 0.0, 0.0), rotation=None, scale: float = 1.0, *, name=None,
+                          thickness=0.004, friction=0.3, static_friction=None, kinetic_friction=None, keyframes=None) -> Collider:
+        """A rigid triangle-mesh collider (vertices [m] x `scale` in its local frame, then rotated and placed).
+        A watertight mesh is solid; an open one is solid behind its triangles (right-hand winding)."""
+        v = np.asarray(vertices, float) * float(scale)
+        return self._collider("mesh", name, position, rotation, thickness, friction, static_friction, kinetic_friction, keyframes,
+                              vertices=v, triangles=np.asarray(triangles))
+
+    def add_collider_mesh_file(self, path, *, prim_path: str | None = None, **kwargs) -> Collider:
+        """A mesh collider read with trimesh (OBJ, PLY, STL, GLB, OFF) or from a USD Mesh (options as
+        :meth:`add_collider_mesh`); duplicate vertices are merged."""
+        suffix = os.path.splitext(os.fspath(path))[1].lower()
+        if suffix in (".usd", ".usda", ".usdc"):
+            v, t, _ = read_usd_mesh(path, prim_path)
+        else:
+            v, t, _ = load_mesh_file(path)
+        v, inverse = np.unique(np.round(np.asarray(v, float), 9), axis=0, return_inverse=True)
+        t = inverse.reshape(-1)[np.asarray(t)]
+        keep = (t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 0] != t[:, 2])
+        kwargs.setdefault("name", os.path.splitext(os.path.basename(os.fspath(path)))[0])
+        return self.add_collider_mesh(v, t[keep], **kwargs)
+
+    def enable_self_collision(self, thickness: float = 0.004):
+        """Keep non-adjacent parts of the cloth(s) at least `thickness` [m] apart (cloth-cloth contact)."""
+        if not (math.isfinite(thickness) and thickness > 0.0):
+            raise ValueError(f"self-collision thickness must be positive [m], got {thickness!r}")
+        self.self_collision = True
+        self.cloth_thickness = float(thickness)
+
     def _check_indices(self, indices) -> np.ndarray:
         idx = np.unique(np.asarray(indices, np.int64).ravel())
         if idx.size == 0:
@@ -420,7 +522,44 @@ class ModelBuilder:
         for ref, material, tri_start in self.cloths:
             m.cloths.append(ClothInfo(ref.name, ref.particle_start, ref.particle_count, tri_start, len(ref.topology.triangles), material, ref.topology))
         m.handles = list(self.handles)
+        self._finalize_colliders(m, arr)
+        m.self_collision = self.self_collision
+        m.cloth_thickness = self.cloth_thickness
         return m
+
+    def _finalize_colliders(self, m: Model, arr):
+        from .colliders import SHAPE_IDS
+
+        cols = list(self.colliders)
+        m.colliders = cols
+        m.collider_count = len(cols)
+        n = max(len(cols), 1)
+        shape = np.zeros(n, np.int32)
+        size = np.zeros((n, 3), np.float32)
+        thickness = np.zeros(n, np.float32)
+        mu_s = np.zeros(n, np.float32)
+        mu_k = np.zeros(n, np.float32)
+        ids = np.zeros(n, np.uint64)
+        m.collider_meshes = []  # keeps the wp.Mesh objects (and their BVHs) alive
+        for k, c in enumerate(cols):
+            shape[k] = SHAPE_IDS[c.shape]
+            size[k] = c.local_size
+            thickness[k], mu_s[k], mu_k[k] = c.thickness, c.static_friction, c.kinetic_friction
+            if c.shape == "mesh":
+                mesh = wp.Mesh(points=wp.array(c.vertices.astype(np.float32), dtype=wp.vec3, device=m.device),
+                               indices=wp.array(c.triangles.reshape(-1).astype(np.int32), dtype=wp.int32, device=m.device))
+                m.collider_meshes.append(mesh)
+                ids[k] = mesh.id
+        m.collider_shape = arr(shape, wp.int32)
+        m.collider_size = arr(size, wp.vec3)
+        m.collider_thickness = arr(thickness, float)
+        m.collider_static_friction = arr(mu_s, float, True)
+        m.collider_kinetic_friction = arr(mu_k, float, True)
+        m.collider_mesh = arr(ids, wp.uint64)
+        extent = [np.ptp(c.vertices, axis=0).max() for c in cols if c.shape == "mesh"]
+        lo, hi = self.particle_positions.min(0), self.particle_positions.max(0)
+        # Mesh distance queries look this far: beyond it a vertex is "far" (its exact distance is not needed).
+        m.collider_mesh_max_distance = float(10.0 * (max(extent, default=1.0) + np.linalg.norm(hi - lo) + 1.0))
 
 
 def clamp_boundary_bending(stiffness, springs, middle, law, pinned) -> np.ndarray:

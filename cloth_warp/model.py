@@ -56,16 +56,8 @@ class Handle:
 
     def transform_at(self, time: float) -> tuple[np.ndarray, np.ndarray]:
         """(translation, rotation matrix 3x3) at `time` [s]."""
-        kf = self.keyframes
-        if time <= kf[0].time:
-            return np.asarray(kf[0].translation, float), _quat_to_matrix(kf[0].rotation)
-        if time >= kf[-1].time:
-            return np.asarray(kf[-1].translation, float), _quat_to_matrix(kf[-1].rotation)
-        k = int(np.searchsorted([f.time for f in kf], time, side="right")) - 1
-        a, b = kf[k], kf[k + 1]
-        s = (time - a.time) / (b.time - a.time)
-        t = (1.0 - s) * np.asarray(a.translation, float) + s * np.asarray(b.translation, float)
-        return t, _quat_to_matrix(_slerp(np.asarray(a.rotation, float), np.asarray(b.rotation, float), s))
+        t, q = interpolate_keyframes(self.keyframes, time)
+        return t, quat_to_matrix(q)
 
     def targets(self, rest_positions: np.ndarray, time: float) -> np.ndarray:
         """Target positions [m] of the handle's particles at `time`."""
@@ -73,7 +65,35 @@ class Handle:
         return (rest_positions - self.pivot) @ r.T + self.pivot + t
 
 
-def _quat_to_matrix(q) -> np.ndarray:
+def interpolate_keyframes(keyframes: list[Keyframe], time: float) -> tuple[np.ndarray, np.ndarray]:
+    """(translation [m], quaternion (x, y, z, w)) at `time` [s]: linear / slerp between keyframes, held
+    before the first and after the last."""
+    kf = keyframes
+    if time <= kf[0].time:
+        return np.asarray(kf[0].translation, float), np.asarray(kf[0].rotation, float)
+    if time >= kf[-1].time:
+        return np.asarray(kf[-1].translation, float), np.asarray(kf[-1].rotation, float)
+    k = int(np.searchsorted([f.time for f in kf], time, side="right")) - 1
+    a, b = kf[k], kf[k + 1]
+    s = (time - a.time) / (b.time - a.time)
+    t = (1.0 - s) * np.asarray(a.translation, float) + s * np.asarray(b.translation, float)
+    return t, _slerp(np.asarray(a.rotation, float), np.asarray(b.rotation, float), s)
+
+
+def quat_multiply(a, b) -> np.ndarray:
+    """Hamilton product a * b of quaternions (x, y, z, w): rotate by b, then by a."""
+    ax, ay, az, aw = np.asarray(a, float)
+    bx, by, bz, bw = np.asarray(b, float)
+    return np.array([
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+        aw * bw - ax * bx - ay * by - az * bz,
+    ])
+
+
+def quat_to_matrix(q) -> np.ndarray:
+    """3x3 rotation matrix of a quaternion (x, y, z, w) (normalised first)."""
     x, y, z, w = np.asarray(q, float) / np.linalg.norm(q)
     return np.array(
         [
@@ -126,12 +146,17 @@ class Control:
         pin_target: where hard-pinned particles must be at the end of the step and where soft pins
             pull [m], shape (particle_count,), vec3 (ignored for free particles).
         wind: uniform wind velocity [m/s], shape (1,), vec3 (an array so gradients can reach it).
+        collider_transform_start, collider_transform_end: each collider's pose (world <- local) at the
+            start and at the end of the step, shape (max(collider_count, 1),), wp.transform.
         time: simulated time at the end of the step the control was last updated for [s].
     """
 
-    def __init__(self, pin_target: wp.array, wind: wp.array):
+    def __init__(self, pin_target: wp.array, wind: wp.array, collider_transform_start: wp.array | None = None,
+                 collider_transform_end: wp.array | None = None):
         self.pin_target = pin_target
         self.wind = wind
+        self.collider_transform_start = collider_transform_start
+        self.collider_transform_end = collider_transform_end
         self.time = 0.0
 
     def set_wind(self, wind):
@@ -159,6 +184,12 @@ class Model:
         strain_limit_colors: (colors, particle_count) int32: per colour, the structural/shear spring at
             each particle or -1 (Gauss-Seidel strain-limit passes).
         gravity: (3,) [m/s^2]; global_damping: mass-proportional damping rate [1/s].
+        colliders: the :class:`~cloth_warp.colliders.Collider` descriptions; per collider the arrays
+            collider_shape (int32, SHAPES index), collider_size (vec3, kernel convention),
+            collider_mesh (uint64 wp.Mesh id, 0 for analytic shapes), collider_thickness [m],
+            collider_static_friction, collider_kinetic_friction (Coulomb coefficients).
+        self_collision: cloth-cloth contact on (see :class:`~cloth_warp.collision.CollisionHandler`);
+            cloth_thickness: the distance [m] kept between non-adjacent cloth elements.
     """
 
     def __init__(self):
@@ -173,6 +204,15 @@ class Model:
         self.cloths: list[ClothInfo] = []
         self.handles: list[Handle] = []
         self.rest_positions = np.zeros((0, 3))
+        self.colliders: list = []
+        self.collider_count = 0
+        self.self_collision = False
+        self.cloth_thickness = 0.0
+
+    @property
+    def animated(self) -> bool:
+        """True when the control changes during a run (animated handles or colliders)."""
+        return bool(self.handles) or any(c.animated for c in self.colliders)
 
     # -- factories (the only other places requires_grad is decided) ---------------------------
     def state(self, requires_grad: bool | None = None) -> State:
@@ -186,16 +226,32 @@ class Model:
     def control(self, requires_grad: bool | None = None) -> Control:
         """A control with pins at their rest targets and no wind."""
         rg = self.requires_grad if requires_grad is None else requires_grad
+        n = max(self.collider_count, 1)
         c = Control(
             wp.clone(self.particle_q, requires_grad=False),
             wp.zeros(1, dtype=wp.vec3, device=self.device, requires_grad=rg),
+            wp.zeros(n, dtype=wp.transform, device=self.device),
+            wp.zeros(n, dtype=wp.transform, device=self.device),
         )
-        self.update_control(c, 0.0)
+        self.update_control(c, 0.0, force=True)
         return c
 
-    def update_control(self, control: Control, time: float):
-        """Move the animated handles' pin targets to where they are at `time` [s]."""
+    def collider_transforms(self, time: float) -> np.ndarray:
+        """Every collider's pose at `time` [s] as rows (px, py, pz, qx, qy, qz, qw), shape (max(count, 1), 7)."""
+        out = np.zeros((max(self.collider_count, 1), 7), np.float32)
+        out[:, 6] = 1.0
+        for k, col in enumerate(self.colliders):
+            p, q = col.pose_at(time)
+            out[k, :3], out[k, 3:] = p, q
+        return out
+
+    def update_control(self, control: Control, time: float, dt: float = 0.0, force: bool = False):
+        """Set the control for the step that ends at `time` [s] and lasts `dt` [s]: animated handles'
+        pin targets at `time`, colliders' poses at `time - dt` and `time` (static ones only when `force`)."""
         control.time = time
+        if self.colliders and (force or any(c.animated for c in self.colliders)):
+            control.collider_transform_start.assign(self.collider_transforms(time - dt))
+            control.collider_transform_end.assign(self.collider_transforms(time))
         if not self.handles:
             return
         targets = control.pin_target.numpy()

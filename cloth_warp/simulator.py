@@ -22,7 +22,7 @@ class Simulator:
     With fixed substeps the substep loop of a frame is captured once as a Warp graph (CPU or CUDA) and
     replayed, so per-launch overhead is paid once; with ``adaptive=True`` every step is checked and
     bad steps are retried with half the step (see :class:`AdaptiveStepper`). Capture is skipped for
-    animated handles (their targets are updated on the host each substep) and for the implicit solver
+    animated handles and colliders (their targets and poses are updated on the host each substep) and for the implicit solver
     (its iterative solve checks convergence on the host).
 
     Args:
@@ -58,7 +58,7 @@ class Simulator:
         self.time = 0.0
         self.stepper = AdaptiveStepper(solver, self.dt, dt_min=dt_min, check=check) if adaptive else None
         self.diagnostics = self.stepper.diagnostics if adaptive else Diagnostics(model)
-        possible = not adaptive and not model.handles and not isinstance(solver, SolverImplicitEuler)
+        possible = not adaptive and not model.animated and not isinstance(solver, SolverImplicitEuler)
         self.capture = possible if capture is None else (capture and possible)
         self._graph = None
         self.last_stats: StepStats | None = None
@@ -72,8 +72,8 @@ class Simulator:
         iterations = 0
         for k in range(self.substeps):
             src, dst = (self.state, self._other) if k % 2 == 0 else (self._other, self.state)
-            if self.model.handles:
-                self.model.update_control(self.control, self.time + (k + 1) * self.dt)
+            if self.model.animated:
+                self.model.update_control(self.control, self.time + (k + 1) * self.dt, self.dt)
             self.solver.step(src, dst, self.control, self.dt)
             iterations += getattr(self.solver, "last_iterations", 0)
         self.frame_info = {"dt_min": self.dt, "dt_max": self.dt, "iterations": iterations,

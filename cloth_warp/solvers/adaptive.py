@@ -127,7 +127,7 @@ class AdaptiveStepper:
         interval = self.interval = StepperReport()  # this call's steps alone
         while t < end - eps:
             h = min(self.dt, end - t)
-            self.model.update_control(control, t + h)
+            self.model.update_control(control, t + h, h)
             self.solver.step(state, self.trial, control, h)
             stats = self.diagnostics.measure(self.trial)
             reason = self._rejection(stats, self._stats, h)

@@ -225,22 +225,31 @@ class SolverBase:
     one State per step. Scratch arrays are reused only when nothing is taped (``state_in.requires_grad``
     is False); otherwise every intermediate gets a fresh array so no taped kernel's input is overwritten.
 
+    A step runs three stages: the integrator proper (:meth:`integrate`), Provot strain limiting, then
+    collision handling (:class:`~cloth_warp.collision.CollisionHandler`, when the model has colliders or
+    self-collision), so the state a step returns is always the collision-resolved one.
+
     Args:
         model: the model to simulate.
         strain_limit: Provot's maximum strain of structural/shear springs (0.1 = 10 %), None to disable.
         strain_limit_iterations: Gauss-Seidel sweeps over all colours per step (the minimum).
         strain_limit_tolerance: keep sweeping (up to 128) until the limit holds to this strain; None for
             a fixed number of sweeps. Not applied inside graph capture or under the tape.
+        collisions: handle the model's colliders and self-collision (default True).
     """
 
     name = "base"
 
     def __init__(self, model: Model, *, strain_limit: float | None = 0.1, strain_limit_iterations: int = 4,
-                 strain_limit_tolerance: float | None = 1.0e-3):
+                 strain_limit_tolerance: float | None = 1.0e-3, collisions: bool = True):
+        from ..collision import CollisionHandler
+
         self.model = model
         self.strain_limiter = (
             StrainLimiter(model, strain_limit, strain_limit_iterations, tolerance=strain_limit_tolerance) if strain_limit else None
         )
+        handler = CollisionHandler(model) if collisions else None
+        self.collisions = handler if handler is not None and handler.active else None
         self._scratch: dict = {}
         # Per-step solver report (iterative solvers fill these).
         self.last_iterations = 0
@@ -281,15 +290,21 @@ class SolverBase:
         """Advance state_in by dt [s] into state_out under control (pins' targets at the step's end)."""
         if not (dt > 0.0):
             raise ValueError(f"time step must be positive, got {dt!r}")
-        limiter = self.strain_limiter
-        if limiter is None or not limiter.active:
+        limiter = self.strain_limiter if self.strain_limiter is not None and self.strain_limiter.active else None
+        collide = self.collisions
+        if limiter is None and collide is None:
             self.integrate(state_in, state_out.particle_q, state_out.particle_qd, control, dt)
             return
         rg = state_in.requires_grad
-        x_free = self.scratch("x_unlimited", wp.vec3, rg)
-        v_free = self.scratch("v_unlimited", wp.vec3, rg)
-        self.integrate(state_in, x_free, v_free, control, dt)
-        limiter.apply(self, x_free, v_free, state_out, dt)
+        x = self.scratch("x_unlimited", wp.vec3, rg)
+        v = self.scratch("v_unlimited", wp.vec3, rg)
+        self.integrate(state_in, x, v, control, dt)
+        if limiter is not None:
+            limited = state_out if collide is None else State(self.scratch("x_limited", wp.vec3, rg), self.scratch("v_limited", wp.vec3, rg))
+            limiter.apply(self, x, v, limited, dt)
+            x, v = limited.particle_q, limited.particle_qd
+        if collide is not None:
+            collide.apply(state_in.particle_q, x, v, control, dt, state_out.particle_q, state_out.particle_qd)
 
     def integrate(self, state_in: State, x_out: wp.array, v_out: wp.array, control: Control, dt: float):
         """The integrator proper (no strain limiting)."""

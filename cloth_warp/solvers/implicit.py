@@ -42,7 +42,7 @@ class SolverImplicitEuler(SolverBase):
         check_every: iterations between convergence checks (each check reads one number on the host).
         warm_start: start each solve from the previous step's dv (forward runs). The tolerance stays
             relative to the zero-guess residual |S (b - A z)|, so a good start saves iterations.
-        strain_limit, strain_limit_iterations: see :class:`~cloth_warp.solvers.base.SolverBase`.
+        strain_limit, strain_limit_iterations, collisions: see :class:`~cloth_warp.solvers.base.SolverBase`.
 
     Differentiation: the solve itself runs outside the tape; gradients of the implicit step come from an
     adjoint solve of the transposed (here: the same, symmetric) system.
@@ -62,9 +62,10 @@ class SolverImplicitEuler(SolverBase):
         strain_limit: float | None = 0.1,
         strain_limit_iterations: int = 4,
         strain_limit_tolerance: float | None = 1.0e-3,
+        collisions: bool = True,
     ):
         super().__init__(model, strain_limit=strain_limit, strain_limit_iterations=strain_limit_iterations,
-                         strain_limit_tolerance=strain_limit_tolerance)
+                         strain_limit_tolerance=strain_limit_tolerance, collisions=collisions)
         if isinstance(linear_solver, str):
             try:
                 linear_solver = LinearSolver[linear_solver.upper()]

@@ -1,0 +1,223 @@
+"""Collider descriptions: rigid shapes the cloth rests on, slides over and is pushed by.
+
+A :class:`Collider` is a plane, sphere, capsule, box, cylinder or triangle mesh with a pose, a
+thickness (the contact offset: no cloth vertex comes closer to the surface than this) and Coulomb
+friction coefficients. An optional list of keyframes animates it as a rigid body: at time t its pose
+is the keyframe transform (translation [m] from the initial position, rotation about its own origin)
+applied after the initial pose, interpolated linearly / by slerp and held outside the keyframes.
+
+Shapes in their own frame (as the kernels in ``cloth_warp.kernels.collide`` see them): a plane is
+z = 0 with +z out of the solid; capsules and cylinders lie along local z (as USD's default axis);
+boxes are centred. The builder's ``add_*`` methods place them from friendlier arguments (a normal, an
+axis, a centre).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .model import Keyframe, interpolate_keyframes, quat_multiply
+
+SHAPES = ("plane", "sphere", "capsule", "box", "cylinder", "mesh")
+SHAPE_IDS = {name: i for i, name in enumerate(SHAPES)}  # the kernels' SHAPE_* constants
+
+
+@dataclass
+class Collider:
+    """One rigid collider.
+
+    Attributes:
+        name: prim name in caches.
+        shape: one of :data:`SHAPES`.
+        radius: sphere / capsule / cylinder radius [m].
+        height: capsule: length of the cylindrical part (caps excluded, as UsdGeom.Capsule);
+            cylinder: full height [m].
+        size: box edge lengths along its local x, y, z [m].
+        vertices, triangles: mesh collider geometry in its local frame [m] (already scaled).
+        position: initial position of the local origin [m]; rotation: initial orientation (x, y, z, w).
+        thickness: contact offset [m]: cloth vertices are kept at least this far from the surface.
+        static_friction, kinetic_friction: Coulomb coefficients mu_s >= mu_k >= 0.
+        keyframes: rigid animation (:class:`~cloth_warp.model.Keyframe`), empty for a static collider.
+    """
+
+    name: str
+    shape: str
+    radius: float = 0.0
+    height: float = 0.0
+    size: tuple = (0.0, 0.0, 0.0)
+    vertices: np.ndarray | None = None
+    triangles: np.ndarray | None = None
+    position: tuple = (0.0, 0.0, 0.0)
+    rotation: tuple = (0.0, 0.0, 0.0, 1.0)
+    thickness: float = 0.004
+    static_friction: float = 0.3
+    kinetic_friction: float = 0.3
+    keyframes: list[Keyframe] = field(default_factory=list)
+
+    def __post_init__(self):
+        if self.shape not in SHAPES:
+            raise ValueError(f"collider {self.name!r}: unknown shape {self.shape!r}; allowed: {', '.join(SHAPES)}")
+        where = f"collider {self.name!r}"
+        for key in ("radius", "height", "thickness", "static_friction", "kinetic_friction"):
+            v = getattr(self, key)
+            if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0.0):
+                raise ValueError(f"{where}: {key} must be a finite number >= 0, got {v!r}")
+        if self.shape in ("sphere", "capsule", "cylinder") and not self.radius > 0.0:
+            raise ValueError(f"{where}: a {self.shape} needs radius > 0 [m], got {self.radius!r}")
+        if self.shape == "cylinder" and not self.height > 0.0:
+            raise ValueError(f"{where}: a cylinder needs height > 0 [m], got {self.height!r}")
+        if self.shape == "box":
+            s = np.asarray(self.size, float)
+            if s.shape != (3,) or not np.all(np.isfinite(s)) or np.any(s <= 0.0):
+                raise ValueError(f"{where}: a box needs three positive edge lengths [m], got {self.size!r}")
+        if self.shape == "mesh":
+            self._check_mesh(where)
+        if self.kinetic_friction > self.static_friction:
+            raise ValueError(f"{where}: kinetic_friction {self.kinetic_friction} exceeds static_friction {self.static_friction}")
+        q = np.asarray(self.rotation, float)
+        if q.shape != (4,) or not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-12:
+            raise ValueError(f"{where}: rotation must be a quaternion (x, y, z, w), got {self.rotation!r}")
+        self.rotation = tuple((q / np.linalg.norm(q)).tolist())
+        p = np.asarray(self.position, float)
+        if p.shape != (3,) or not np.all(np.isfinite(p)):
+            raise ValueError(f"{where}: position must be 3 finite numbers [m], got {self.position!r}")
+        self.position = tuple(p.tolist())
+        times = [k.time for k in self.keyframes]
+        if any(b <= a for a, b in zip(times, times[1:])):
+            raise ValueError(f"{where}: keyframe times must increase strictly, got {times}")
+
+    def _check_mesh(self, where: str):
+        if self.vertices is None or self.triangles is None:
+            raise ValueError(f"{where}: a mesh collider needs vertices and triangles")
+        v = np.asarray(self.vertices, np.float64)
+        t = np.asarray(self.triangles)
+        if v.ndim != 2 or v.shape[1] != 3 or len(v) < 3:
+            raise ValueError(f"{where}: vertices must be an (n >= 3, 3) array, got shape {v.shape}")
+        if not np.all(np.isfinite(v)):
+            raise ValueError(f"{where}: {int((~np.isfinite(v)).any(1).sum())} vertices have non-finite coordinates")
+        if t.ndim != 2 or t.shape[1] != 3 or len(t) == 0 or not np.issubdtype(t.dtype, np.integer):
+            raise ValueError(f"{where}: triangles must be a non-empty (m, 3) integer array, got shape {t.shape}")
+        if t.min() < 0 or t.max() >= len(v):
+            raise ValueError(f"{where}: triangle index out of range [0, {len(v)}): {t.min()}..{t.max()}")
+        self.vertices = v
+        self.triangles = t.astype(np.int32)
+
+    @property
+    def animated(self) -> bool:
+        return len(self.keyframes) > 0
+
+    @property
+    def local_size(self) -> tuple[float, float, float]:
+        """The kernels' size vector: radius / half height / half extents (see the kernels' docstring)."""
+        if self.shape == "sphere":
+            return (self.radius, 0.0, 0.0)
+        if self.shape in ("capsule", "cylinder"):
+            return (self.radius, 0.5 * self.height, 0.0)
+        if self.shape == "box":
+            return tuple(0.5 * float(s) for s in self.size)
+        return (0.0, 0.0, 0.0)
+
+    def pose_at(self, time: float) -> tuple[np.ndarray, np.ndarray]:
+        """(position [m], quaternion (x, y, z, w)) of the collider's frame at `time` [s]."""
+        p0 = np.asarray(self.position, float)
+        q0 = np.asarray(self.rotation, float)
+        if not self.keyframes:
+            return p0, q0
+        t, q = interpolate_keyframes(self.keyframes, time)
+        return p0 + t, quat_multiply(q, q0)
+
+    def velocity_at(self, time: float, dt: float = 1e-4) -> np.ndarray:
+        """Linear velocity of the collider's origin [m/s] (central difference of the keyframed path)."""
+        return (self.pose_at(time + dt)[0] - self.pose_at(time - dt)[0]) / (2.0 * dt)
+
+    def distance(self, points) -> np.ndarray:
+        """Signed distance [m] of world points to the surface at the initial pose (numpy; for tests and
+        tools: meshes are measured by trimesh)."""
+        from .model import quat_to_matrix
+
+        x = np.atleast_2d(np.asarray(points, float))
+        r = quat_to_matrix(self.rotation)
+        p = (x - np.asarray(self.position)) @ r  # world -> local (row vectors)
+        s = self.local_size
+        if self.shape == "plane":
+            return p[:, 2]
+        if self.shape == "sphere":
+            return np.linalg.norm(p, axis=1) - s[0]
+        if self.shape == "capsule":
+            q = p.copy()
+            q[:, 2] -= np.clip(p[:, 2], -s[1], s[1])
+            return np.linalg.norm(q, axis=1) - s[0]
+        if self.shape == "box":
+            q = np.abs(p) - np.asarray(s)
+            return np.linalg.norm(np.maximum(q, 0.0), axis=1) + np.minimum(q.max(1), 0.0)
+        if self.shape == "cylinder":
+            d = np.stack([np.linalg.norm(p[:, :2], axis=1) - s[0], np.abs(p[:, 2]) - s[1]], 1)
+            return np.linalg.norm(np.maximum(d, 0.0), axis=1) + np.minimum(d.max(1), 0.0)
+        return mesh_signed_distance(self.vertices, self.triangles, p)
+
+    def surface_mesh(self, segments: int = 32) -> tuple[np.ndarray, np.ndarray]:
+        """A triangle mesh of the surface in the local frame (for previews): (vertices, triangles).
+        A plane becomes a square of 20 m."""
+        import trimesh
+
+        s = self.local_size
+        if self.shape == "mesh":
+            return np.asarray(self.vertices), np.asarray(self.triangles)
+        if self.shape == "plane":
+            v = np.array([[-10, -10, 0], [10, -10, 0], [10, 10, 0], [-10, 10, 0]], float)
+            return v, np.array([[0, 1, 2], [0, 2, 3]])
+        if self.shape == "sphere":
+            m = trimesh.creation.uv_sphere(radius=s[0], count=[segments, segments])
+        elif self.shape == "capsule":
+            m = trimesh.creation.capsule(height=2 * s[1], radius=s[0], count=[segments, segments])
+            m.apply_translation((0.0, 0.0, -0.5 * (m.bounds[0][2] + m.bounds[1][2])))
+        elif self.shape == "box":
+            m = trimesh.creation.box(extents=[2 * s[0], 2 * s[1], 2 * s[2]])
+        else:
+            m = trimesh.creation.cylinder(radius=s[0], height=2 * s[1], sections=segments)
+        return np.asarray(m.vertices), np.asarray(m.faces)
+
+
+def rotation_to_axis(axis) -> tuple[float, float, float, float]:
+    """Quaternion (x, y, z, w) of the shortest rotation taking local +z onto `axis`."""
+    a = np.asarray(axis, float)
+    n = np.linalg.norm(a)
+    if a.shape != (3,) or not np.isfinite(n) or n < 1e-12:
+        raise ValueError(f"axis must be a non-zero 3-vector, got {axis!r}")
+    a = a / n
+    z = np.array([0.0, 0.0, 1.0])
+    c = float(np.dot(z, a))
+    if c < -1.0 + 1e-9:
+        return (1.0, 0.0, 0.0, 0.0)  # half turn about x
+    v = np.cross(z, a)
+    q = np.array([v[0], v[1], v[2], 1.0 + c])
+    return tuple((q / np.linalg.norm(q)).tolist())
+
+
+def mesh_signed_distance(vertices, triangles, points, chunk: int = 200_000) -> np.ndarray:
+    """Brute-force signed distance [m] of points to a triangle mesh (negative inside): the nearest point
+    over all triangles (trimesh's per-pair closest point) and the sign of the generalised winding number
+    (van Oosterom-Strackee solid angles). O(points x triangles): for tests and small meshes."""
+    from trimesh.triangles import closest_point
+
+    v = np.asarray(vertices, float)
+    tri = v[np.asarray(triangles)]
+    p = np.atleast_2d(np.asarray(points, float))
+    per = max(1, chunk // len(tri))
+    dist = np.empty(len(p))
+    for s in range(0, len(p), per):
+        q = p[s : s + per]
+        pairs = np.repeat(q, len(tri), axis=0)
+        cp = closest_point(np.tile(tri, (len(q), 1, 1)), pairs)
+        dist[s : s + per] = np.linalg.norm(cp - pairs, axis=1).reshape(len(q), len(tri)).min(1)
+    a = tri[None, :, 0, :] - p[:, None, :]
+    b = tri[None, :, 1, :] - p[:, None, :]
+    c = tri[None, :, 2, :] - p[:, None, :]
+    la, lb, lc = (np.linalg.norm(x, axis=2) for x in (a, b, c))
+    num = np.einsum("ijk,ijk->ij", a, np.cross(b, c))
+    den = la * lb * lc + np.einsum("ijk,ijk->ij", a, b) * lc + np.einsum("ijk,ijk->ij", b, c) * la + np.einsum("ijk,ijk->ij", c, a) * lb
+    winding = np.arctan2(num, den).sum(1) / (2.0 * np.pi)
+    return np.where(winding > 0.5, -dist, dist)

@@ -1,0 +1,264 @@
+"""Cloth-collider contact: signed distances of the collider shapes, continuous detection along the
+step's relative trajectory, and the inelastic response with Coulomb friction (Bridson et al. 2002).
+
+Every shape is described in its own frame (``wp.transform`` world <- local):
+
+* plane: the half-space z <= 0 (outward normal +z);
+* sphere: radius ``size[0]`` about the origin;
+* capsule: radius ``size[0]`` around the segment z in [-size[1], size[1]];
+* box: half extents ``size``;
+* cylinder: radius ``size[0]``, z in [-size[1], size[1]] (flat caps);
+* mesh: a ``wp.Mesh`` in local coordinates (signed by the angle-weighted pseudo normal: watertight
+  meshes are solid; an open mesh is solid behind its triangles' winding).
+
+A particle is in contact with a collider when its distance to the surface is below the collider's
+`thickness`. The response acts on the step's average velocity vbar = (x_end - x_start) / h and on the
+end velocity (physics.md 3(f)): the normal part of vbar relative to the collider gains what puts the
+end point back at the thickness; the end velocity keeps no approaching normal component (inelastic,
+dv_N = the approach speed removed); both tangential parts get Coulomb friction, ``v_T <- 0`` if
+``|v_T| <= mu_s dv_N`` else ``(1 - mu_k dv_N / |v_T|) v_T``. Nothing adds energy: relative normal
+speeds only shrink, tangential speeds only shrink.
+"""
+
+import warp as wp
+
+SHAPE_PLANE = wp.constant(0)
+SHAPE_SPHERE = wp.constant(1)
+SHAPE_CAPSULE = wp.constant(2)
+SHAPE_BOX = wp.constant(3)
+SHAPE_CYLINDER = wp.constant(4)
+SHAPE_MESH = wp.constant(5)
+
+TRACE_STEPS = wp.constant(48)
+DISTANCE_EPS = wp.constant(1.0e-9)
+
+# Indices into the counters array of a collision pass.
+COUNT_COLLIDER_CONTACTS = wp.constant(0)
+COUNT_COLLIDER_CCD = wp.constant(1)
+
+
+@wp.func
+def shape_distance(shape: int, size: wp.vec3, mesh: wp.uint64, max_distance: float, p: wp.vec3):
+    """Signed distance [m] from the local point p to the shape's surface (negative inside) and the
+    outward unit normal of the nearest surface point."""
+    up = wp.vec3(0.0, 0.0, 1.0)
+    if shape == SHAPE_PLANE:
+        return p[2], up
+    if shape == SHAPE_SPHERE:
+        r = wp.length(p)
+        if r < DISTANCE_EPS:
+            return -size[0], up
+        return r - size[0], p / r
+    if shape == SHAPE_CAPSULE:
+        d = p - wp.vec3(0.0, 0.0, wp.clamp(p[2], -size[1], size[1]))
+        r = wp.length(d)
+        if r < DISTANCE_EPS:
+            return -size[0], wp.vec3(1.0, 0.0, 0.0)
+        return r - size[0], d / r
+    if shape == SHAPE_BOX:
+        q = wp.vec3(wp.abs(p[0]) - size[0], wp.abs(p[1]) - size[1], wp.abs(p[2]) - size[2])
+        s = wp.vec3(wp.sign(p[0]), wp.sign(p[1]), wp.sign(p[2]))
+        outside = wp.vec3(wp.max(q[0], 0.0), wp.max(q[1], 0.0), wp.max(q[2], 0.0))
+        lo = wp.length(outside)
+        if lo > 0.0:
+            return lo, wp.cw_mul(s, outside) / lo
+        # inside: the nearest face
+        if q[0] >= q[1] and q[0] >= q[2]:
+            return q[0], wp.vec3(s[0], 0.0, 0.0)
+        if q[1] >= q[2]:
+            return q[1], wp.vec3(0.0, s[1], 0.0)
+        return q[2], wp.vec3(0.0, 0.0, s[2])
+    if shape == SHAPE_CYLINDER:
+        rho = wp.sqrt(p[0] * p[0] + p[1] * p[1])
+        radial = wp.vec3(1.0, 0.0, 0.0)
+        if rho > DISTANCE_EPS:
+            radial = wp.vec3(p[0] / rho, p[1] / rho, 0.0)
+        axial = wp.vec3(0.0, 0.0, wp.sign(p[2]))
+        dr = rho - size[0]
+        dz = wp.abs(p[2]) - size[1]
+        if dr > 0.0 or dz > 0.0:
+            a = wp.max(dr, 0.0)
+            b = wp.max(dz, 0.0)
+            dist = wp.sqrt(a * a + b * b)
+            return dist, (a * radial + b * axial) / dist
+        if dr > dz:
+            return dr, radial
+        return dz, axial
+    # SHAPE_MESH
+    query = wp.mesh_query_point_sign_normal(mesh, p, max_distance, 1.0e-3)
+    if not query.result:
+        return max_distance, up
+    closest = wp.mesh_eval_position(mesh, query.face, query.u, query.v)
+    d = p - closest
+    r = wp.length(d)
+    if r < 1.0e-7:
+        return 0.0, wp.mesh_eval_face_normal(mesh, query.face)
+    return query.sign * r, query.sign * d / r
+
+
+@wp.func
+def first_contact(shape: int, size: wp.vec3, mesh: wp.uint64, max_distance: float, p_start: wp.vec3, p_end: wp.vec3,
+                  thickness: float, tolerance: float):
+    """Earliest fraction t in [0, 1] of the segment p_start -> p_end whose distance to the shape is
+    within `thickness` (+ `tolerance`), by sphere tracing (exact for these distance functions: a step never
+    jumps over the surface). Returns (1, t) on a hit, (0, 1) when the segment stays clear (or the trace
+    has not reached the end after TRACE_STEPS; the end point is still checked by the caller)."""
+    seg = p_end - p_start
+    seg_len = wp.length(seg)
+    t = float(0.0)
+    hit = int(0)
+    k = int(0)
+    while k < TRACE_STEPS:
+        dist, n = shape_distance(shape, size, mesh, max_distance, p_start + t * seg)
+        gap = dist - thickness
+        if gap <= tolerance:
+            hit = 1
+            k = TRACE_STEPS
+        elif seg_len < DISTANCE_EPS:
+            k = TRACE_STEPS
+        else:
+            t = t + gap / seg_len
+            if t > 1.0:
+                t = 1.0
+                k = TRACE_STEPS
+        k += 1
+    if hit == 0:
+        t = 1.0
+    return hit, t
+
+
+@wp.func
+def friction_factor(tangential_speed: float, normal_speed_change: float, static_friction: float, kinetic_friction: float):
+    """Velocity-level Coulomb friction as a factor on the tangential velocity: 0 (stick) when
+    |v_T| <= mu_s dv_N, else 1 - mu_k dv_N / |v_T| (Bridson et al. 2002, physics.md 3(f))."""
+    if tangential_speed <= static_friction * normal_speed_change:
+        return 0.0
+    return 1.0 - kinetic_friction * normal_speed_change / tangential_speed
+
+
+@wp.func
+def contact_response(vbar: wp.vec3, v_end: wp.vec3, surface_velocity: wp.vec3, n: wp.vec3, push: float,
+                     static_friction: float, kinetic_friction: float):
+    """New (average velocity, end velocity) after a contact with unit normal n.
+
+    push >= 0 [m/s] is the normal average velocity (relative to the surface) the end point needs to get
+    back to the thickness. The friction's dv_N is the approach speed the contact removes from the end
+    velocity, -min(v_N, 0): taken from velocities, not from position differences, so that it is exact
+    in float32 at small steps (a resting particle's per-step penetration is only g h^2). The same
+    stick / slide factor scales the tangential parts of both velocities.
+    """
+    er = v_end - surface_velocity
+    en = wp.dot(er, n)
+    et = er - en * n
+    dvn = wp.max(-en, 0.0)
+    factor = friction_factor(wp.length(et), dvn, static_friction, kinetic_friction)
+    rel = vbar - surface_velocity
+    rn = wp.dot(rel, n)
+    vbar_new = surface_velocity + (rn + push) * n + factor * (rel - rn * n)
+    v_new = surface_velocity + wp.max(en, 0.0) * n + factor * et
+    return vbar_new, v_new
+
+
+@wp.kernel
+def collide_colliders(
+    # Model
+    particle_pinned: wp.array(dtype=wp.int32),
+    collider_count: int,
+    collider_shape: wp.array(dtype=wp.int32),
+    collider_size: wp.array(dtype=wp.vec3),
+    collider_mesh: wp.array(dtype=wp.uint64),
+    collider_thickness: wp.array(dtype=float),
+    collider_static_friction: wp.array(dtype=float),
+    collider_kinetic_friction: wp.array(dtype=float),
+    mesh_max_distance: float,
+    # Control: collider poses at the start and the end of the step
+    collider_transform_start: wp.array(dtype=wp.transform),
+    collider_transform_end: wp.array(dtype=wp.transform),
+    # State: start of step, candidate end of step
+    x_start: wp.array(dtype=wp.vec3),
+    x_end: wp.array(dtype=wp.vec3),
+    v_end: wp.array(dtype=wp.vec3),
+    dt: float,
+    # outputs
+    x_out: wp.array(dtype=wp.vec3),
+    v_out: wp.array(dtype=wp.vec3),
+    counts_out: wp.array(dtype=wp.int32),
+):
+    """Resolve every free particle against every collider, colliders in order (see the module docstring).
+
+    Per collider: trace the particle's path relative to the collider (start point in the start pose, end
+    point in the end pose); at the first point within the thickness, take the tangent plane there and
+    push the end point onto it (offset by the thickness) with friction; then, if the end point is still
+    within the thickness (curved or concave surfaces), push it out along the surface normal.
+    """
+    i = wp.tid()
+    xs = x_start[i]
+    xe = x_end[i]
+    ve = v_end[i]
+    if particle_pinned[i] != 0:
+        x_out[i] = xe
+        v_out[i] = ve
+        return
+    inv_dt = 1.0 / dt
+    for c in range(collider_count):
+        shape = collider_shape[c]
+        size = collider_size[c]
+        mesh = collider_mesh[c]
+        thickness = collider_thickness[c]
+        mu_s = collider_static_friction[c]
+        mu_k = collider_kinetic_friction[c]
+        t_start = collider_transform_start[c]
+        t_end = collider_transform_end[c]
+        ps = wp.transform_point(wp.transform_inverse(t_start), xs)
+        pe = wp.transform_point(wp.transform_inverse(t_end), xe)
+        tolerance = 1.0e-3 * thickness + 1.0e-7
+        end_dist0, end_n0 = shape_distance(shape, size, mesh, mesh_max_distance, pe)
+        hit, t = first_contact(shape, size, mesh, mesh_max_distance, ps, pe, thickness, tolerance)
+        touched = int(0)
+        if hit != 0:
+            pc = ps + t * (pe - ps)
+            dist, nl = shape_distance(shape, size, mesh, mesh_max_distance, pc)
+            gap = dist - thickness + wp.dot(pe - pc, nl)
+            if gap < 0.0:
+                n = wp.transform_vector(t_end, nl)
+                u = (wp.transform_point(t_end, pc) - wp.transform_point(t_start, pc)) * inv_dt
+                vbar, ve = contact_response((xe - xs) * inv_dt, ve, u, n, -gap * inv_dt, mu_s, mu_k)
+                xe = xs + dt * vbar
+                pe = wp.transform_point(wp.transform_inverse(t_end), xe)
+                touched = 1
+                if end_dist0 >= thickness:
+                    # the end point alone would not have seen this contact: a continuous (CCD) catch
+                    wp.atomic_add(counts_out, COUNT_COLLIDER_CCD, 1)
+        dist_end, n_end = shape_distance(shape, size, mesh, mesh_max_distance, pe)
+        if dist_end < thickness:
+            n = wp.transform_vector(t_end, n_end)
+            u = (wp.transform_point(t_end, pe) - wp.transform_point(t_start, pe)) * inv_dt
+            vbar, ve = contact_response((xe - xs) * inv_dt, ve, u, n, (thickness - dist_end) * inv_dt, mu_s, mu_k)
+            xe = xs + dt * vbar
+            touched = 1
+        if touched != 0:
+            wp.atomic_add(counts_out, COUNT_COLLIDER_CONTACTS, 1)
+    x_out[i] = xe
+    v_out[i] = ve
+
+
+@wp.kernel
+def eval_collider_distance(
+    collider: int,
+    collider_shape: wp.array(dtype=wp.int32),
+    collider_size: wp.array(dtype=wp.vec3),
+    collider_mesh: wp.array(dtype=wp.uint64),
+    mesh_max_distance: float,
+    collider_transform: wp.array(dtype=wp.transform),
+    x: wp.array(dtype=wp.vec3),
+    # outputs
+    distance_out: wp.array(dtype=float),
+    normal_out: wp.array(dtype=wp.vec3),
+):
+    """Signed distance [m] of world points to one collider's surface and the outward normal (world)."""
+    i = wp.tid()
+    xf = collider_transform[collider]
+    p = wp.transform_point(wp.transform_inverse(xf), x[i])
+    d, n = shape_distance(collider_shape[collider], collider_size[collider], collider_mesh[collider], mesh_max_distance, p)
+    distance_out[i] = d
+    normal_out[i] = wp.transform_vector(xf, n)

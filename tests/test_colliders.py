@@ -1,0 +1,237 @@
+"""Colliders: distance functions against numpy/trimesh, Coulomb friction on an incline against the exact
+discrete answer (physics.md 1(g)), continuous detection of a fast particle, moving colliders, bad input."""
+
+import math
+
+import numpy as np
+import pytest
+import trimesh
+import warp as wp
+
+import cloth_warp as cw
+from cloth_warp.collision import collider_distance, penetration_depths
+from cloth_warp.model import quat_multiply
+
+G = 9.81
+
+
+def shapes_model():
+    b = cw.ModelBuilder()
+    b.add_particle((0.0, 5.0, 0.0))
+    q = cw.quat_from_axis_angle((1.0, 2.0, 0.5), 35.0)
+    b.add_plane(normal=(0.3, 1.0, -0.2), point=(0.1, -0.2, 0.3))
+    b.add_sphere((0.2, 0.1, -0.1), 0.4)
+    b.add_capsule((0.0, 0.2, 0.1), 0.25, 0.6, axis=(1.0, 1.0, 0.0))
+    b.add_box((0.1, 0.0, 0.2), (0.8, 0.5, 0.3), rotation=q)
+    b.add_cylinder((-0.1, 0.1, 0.0), 0.35, 0.2, axis=(0.2, 1.0, 0.4))
+    box = trimesh.creation.box(extents=(0.6, 0.4, 0.5))
+    b.add_collider_mesh(box.vertices, box.faces, position=(0.05, 0.1, -0.05), rotation=q)
+    return b.finalize("cpu")
+
+
+def test_shape_distances_match_numpy():
+    """Check each shape's kernel distance and normal against an independent numpy (trimesh for meshes) evaluation."""
+    m = shapes_model()
+    rng = np.random.default_rng(3)
+    pts = rng.uniform(-0.9, 0.9, size=(400, 3))
+    for k, col in enumerate(m.colliders):
+        d, n = collider_distance(m, k, pts)
+        ref = col.distance(pts)
+        assert np.allclose(d, ref, atol=2e-5), (col.shape, np.abs(d - ref).max())
+        # normal = gradient of the distance (central differences), away from the medial axis / edges
+        eps = 1e-4
+        grad = np.stack([(col.distance(pts + eps * e) - col.distance(pts - eps * e)) / (2 * eps) for e in np.eye(3)], 1)
+        smooth = np.abs(np.linalg.norm(grad, axis=1) - 1.0) < 1e-3
+        assert smooth.sum() > 100, col.shape
+        assert np.allclose(n[smooth], grad[smooth], atol=2e-3), (col.shape, np.abs(n[smooth] - grad[smooth]).max())
+        assert np.allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-4)
+
+
+def incline_model(theta_deg, mu_s, mu_k, *, mesh=False, cloth=False, thickness=0.004):
+    """A plane (or a two-triangle mesh) through the origin tilted by theta about z; a particle (or a flat
+    8x8 cloth) resting on it at the contact thickness."""
+    th = math.radians(theta_deg)
+    normal = np.array([-math.sin(th), math.cos(th), 0.0])
+    downhill = np.array([-math.cos(th), -math.sin(th), 0.0])
+    b = cw.ModelBuilder()
+    common = dict(thickness=thickness, static_friction=mu_s, kinetic_friction=mu_k)
+    if mesh:
+        quad = np.array([[-3, 0, -3], [3, 0, -3], [3, 0, 3], [-3, 0, 3]], float)
+        b.add_collider_mesh(quad, [[0, 2, 1], [0, 3, 2]], rotation=cw.quat_from_axis_angle((0, 0, 1), theta_deg), **common)
+    else:
+        b.add_plane(normal=normal, **common)
+    lift = normal * thickness
+    if cloth:
+        # the grid's local xy-plane laid flat (-90 deg about x), then tilted with the incline
+        flat_then_tilt = quat_multiply(cw.quat_from_axis_angle((0, 0, 1), theta_deg), cw.quat_from_axis_angle((1, 0, 0), -90.0))
+        # no air drag: implicit drag would damp the per-step normal approach velocity g cos h and so the friction
+        b.add_cloth_grid(resolution=(8, 8), size=(0.4, 0.4), material=cw.materials.COTTON.replace(drag_coefficient=0.0), position=tuple(lift), rotation=tuple(flat_then_tilt))
+    else:
+        b.add_particle(tuple(lift), mass=0.01)
+    return b.finalize("cpu"), normal, downhill
+
+
+def discrete_slide(theta_deg, mu_s, mu_k, h, steps):
+    """Exact velocity-level friction with symplectic Euler from rest (physics.md 1(g)): (distance, speed)."""
+    th = math.radians(theta_deg)
+    v = s = 0.0
+    for _ in range(steps):
+        vt = v + G * math.sin(th) * h
+        dvn = G * math.cos(th) * h
+        v = 0.0 if vt <= mu_s * dvn else vt - mu_k * dvn
+        s += h * v
+    return s, v
+
+
+@pytest.mark.parametrize("theta,mu_s,mu_k", [(10.0, 0.3, 0.3), (16.0, 0.3, 0.3), (17.5, 0.3, 0.3), (30.0, 0.3, 0.3),
+                                              (20.0, 0.5, 0.3), (30.0, 0.5, 0.3)])
+def test_incline_particle(theta, mu_s, mu_k):
+    """Check a particle on an incline sticks iff tan(theta) <= mu_s and otherwise slides with
+    a = g (sin - mu_k cos), matching the discrete closed form at h = 1 ms over 1 s (float32 round-off)."""
+    m, normal, downhill = incline_model(theta, mu_s, mu_k)
+    sim = cw.Simulator(m, cw.SolverSymplecticEuler(m, strain_limit=None), fps=100, substeps=10)
+    x0 = sim.positions()[0]
+    for _ in range(100):
+        sim.step_frame()
+    x = sim.positions()[0]
+    v = sim.state.particle_qd.numpy()[0]
+    s_ref, v_ref = discrete_slide(theta, mu_s, mu_k, 1e-3, 1000)
+    s = float(np.dot(x - x0, downhill))
+    sticks = math.tan(math.radians(theta)) <= mu_s
+    if sticks:
+        assert abs(s) < 1e-6 and np.linalg.norm(v) < 1e-6
+    else:
+        a = G * (math.sin(math.radians(theta)) - mu_k * math.cos(math.radians(theta)))
+        assert s_ref == pytest.approx(a * 1.0**2 / 2 + a * 1e-3 * 1.0 / 2, rel=1e-9)  # x_n = a t^2/2 + a h t/2
+        assert s == pytest.approx(s_ref, rel=2e-4)
+        assert float(np.dot(v, downhill)) == pytest.approx(v_ref, rel=2e-4)
+    # stays on the surface at the thickness, never below it, no normal velocity
+    assert float(np.dot(x, normal)) == pytest.approx(0.004, abs=2e-6)
+    assert abs(float(np.dot(v, normal))) < 1e-5
+
+
+@pytest.mark.parametrize("mesh", [False, True], ids=["plane", "mesh"])
+def test_incline_cloth(mesh):
+    """Check a flat cloth on an incline (plane and tilted triangle-mesh collider) slides rigidly with the
+    particle's closed form above the threshold and sticks below it (implicit Euler: for a rigid translation
+    its step is the symplectic one, and cotton at h = 1 ms is beyond the explicit stability limit)."""
+    for theta, sticks in ((14.0, True), (30.0, False)):
+        m, normal, downhill = incline_model(theta, 0.3, 0.3, mesh=mesh, cloth=True)
+        sim = cw.Simulator(m, cw.SolverImplicitEuler(m), fps=100, substeps=10)
+        x0 = sim.positions()
+        for _ in range(50):
+            sim.step_frame()
+        d = (sim.positions() - x0) @ downhill
+        s_ref, _ = discrete_slide(theta, 0.3, 0.3, 1e-3, 500)
+        if sticks:
+            assert np.abs(d).max() < 1e-6
+        else:
+            assert np.allclose(d, s_ref, rtol=1e-3), (d.min(), d.max(), s_ref)
+        heights = sim.positions() @ normal
+        assert heights.min() > 0.004 - 1e-5 and heights.max() < 0.004 + 1e-5
+
+
+def test_fast_particle_does_not_tunnel():
+    """Check continuous detection: a particle at 100 m/s over a 2 mm plate with h = 0.1 s (it would end 9 m
+    below the plate) stops on the plate at the thickness with no normal velocity, counted as a CCD catch."""
+    b = cw.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_particle((0.25, 1.0, 0.25), velocity=(0.0, -100.0, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (2.0, 0.002, 2.0), thickness=0.003, friction=0.0)
+    m = b.finalize("cpu")
+    solver = cw.SolverSymplecticEuler(m, strain_limit=None)
+    sim = cw.Simulator(m, solver, fps=10, substeps=1)
+    solver.collisions.reset_counts()
+    sim.step_frame()
+    x = sim.positions()[0]
+    v = sim.state.particle_qd.numpy()[0]
+    assert x[1] == pytest.approx(0.001 + 0.003, abs=1e-6)
+    assert np.allclose(x[[0, 2]], 0.25, atol=1e-6)
+    assert abs(v[1]) < 1e-6
+    assert solver.collisions.read_counts() == {"collider_contacts": 1, "collider_ccd": 1}
+
+
+def test_moving_collider_carries_particle():
+    """Check a box rising at 1 m/s picks up a particle resting on it (no gravity): afterwards the particle
+    rides at the thickness above the lid with the box's velocity."""
+    b = cw.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_particle((0.0, 0.3, 0.0))
+    b.add_box((0.0, 0.0, 0.0), (1.0, 0.2, 1.0), thickness=0.01, friction=0.5, keyframes=[(0.0, (0, 0, 0)), (2.0, (0, 2.0, 0))])
+    m = b.finalize("cpu")
+    sim = cw.Simulator(m, cw.SolverSymplecticEuler(m, strain_limit=None), fps=60, substeps=4)
+    for _ in range(60):
+        sim.step_frame()
+    x = sim.positions()[0]
+    v = sim.state.particle_qd.numpy()[0]
+    lid = 0.1 + 1.0  # top of the box after 1 s
+    assert x[1] == pytest.approx(lid + 0.01, abs=1e-5)
+    assert v == pytest.approx([0.0, 1.0, 0.0], abs=1e-4)
+
+
+def test_sphere_shot_through_hanging_cloth():
+    """Check a 5 cm sphere at 20 m/s (33 cm per 1/60 s step) does not pass through a hanging cloth: the cloth
+    is carried along, every free vertex stays outside the sphere by its thickness, and CCD catches are
+    counted."""
+    b = cw.ModelBuilder()
+    cloth = b.add_cloth_grid(resolution=(24, 24), size=(0.6, 0.6), material="cotton", position=(-0.3, 0.2, 0.0))
+    b.pin(cloth.select("edge:top"))
+    b.add_sphere((0.0, 0.5, -0.5), 0.05, thickness=0.004, keyframes=[(0.0, (0, 0, 0)), (1.0, (0, 0, 20.0))])
+    m = b.finalize("cpu")
+    solver = cw.SolverImplicitEuler(m)
+    sim = cw.Simulator(m, solver, fps=60, substeps=1)
+    for f in range(4):
+        sim.step_frame()
+        t = sim.time
+        assert penetration_depths(m, sim.positions(), t)[0] < 1e-5, f
+    centre = m.colliders[0].pose_at(sim.time)[0]
+    assert centre[2] > 0.7  # the sphere is well past the cloth's plane
+    x = sim.positions()
+    assert x[:, 2].max() > 0.6  # and the cloth went with it
+    assert solver.collisions.read_counts()["collider_ccd"] > 0
+
+
+def test_taped_steps_with_colliders_have_finite_gradients():
+    """Check a taped symplectic rollout through sphere and ground contact gives finite, non-zero gradients
+    with respect to the initial velocity and the collider friction."""
+    b = cw.ModelBuilder()
+    b.add_cloth_grid(resolution=(6, 6), size=(0.4, 0.4), material="silk", rotation=cw.quat_from_axis_angle((1, 0, 0), -90.0),
+                     position=(-0.2, 0.256, 0.2), velocity=(1.0, -0.5, 0.0))  # lands sliding: kinetic friction acts
+    b.add_sphere((0.0, 0.1, 0.0), 0.15, friction=0.4)
+    b.add_ground(friction=0.4)
+    m = b.finalize("cpu", requires_grad=True)
+    solver = cw.SolverSymplecticEuler(m, strain_limit=0.1)
+    control = m.control()
+    states = [m.state() for _ in range(21)]
+    tape = wp.Tape()
+    with tape:
+        for k in range(20):
+            m.update_control(control, (k + 1) * 2e-3, 2e-3)
+            solver.step(states[k], states[k + 1], control, 2e-3)
+    seed = np.zeros((m.particle_count, 3), np.float32)
+    seed[:, 0] = 1.0  # d(sum of x)/d(...): sliding over the sphere is what friction changes
+    seed[:, 1] = 1.0
+    tape.backward(grads={states[-1].particle_q: wp.array(seed, dtype=wp.vec3)})
+    g_v = states[0].particle_qd.grad.numpy()
+    g_mu = m.collider_kinetic_friction.grad.numpy()
+    assert np.all(np.isfinite(g_v)) and np.abs(g_v).max() > 0
+    assert np.all(np.isfinite(g_mu)) and np.abs(g_mu).max() > 0
+    assert solver.collisions.read_counts()["collider_contacts"] > 0
+
+
+def test_bad_collider_input():
+    """Check bad collider arguments raise errors that name the collider and the problem."""
+    b = cw.ModelBuilder()
+    with pytest.raises(ValueError, match="radius > 0"):
+        b.add_sphere((0, 0, 0), 0.0)
+    with pytest.raises(ValueError, match="kinetic_friction 0.5 exceeds static_friction 0.2"):
+        b.add_box((0, 0, 0), (1, 1, 1), static_friction=0.2, kinetic_friction=0.5)
+    with pytest.raises(ValueError, match="three positive edge lengths"):
+        b.add_box((0, 0, 0), (1, -1, 1))
+    with pytest.raises(ValueError, match="non-finite"):
+        b.add_collider_mesh([[0, 0, 0], [1, 0, 0], [0, float("nan"), 0]], [[0, 1, 2]])
+    with pytest.raises(ValueError, match="out of range"):
+        b.add_collider_mesh([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 3]])
+    with pytest.raises(ValueError, match="keyframe times must increase"):
+        b.add_sphere((0, 0, 0), 1.0, keyframes=[(1.0, (0, 0, 0)), (0.5, (0, 1, 0))])
+    b.add_sphere((0, 0, 0), 1.0, name="ball")
+    with pytest.raises(ValueError, match="named 'ball' exists"):
+        b.add_sphere((0, 0, 0), 1.0, name="ball")
