@@ -10,7 +10,11 @@ A USD cache is what DCC tools (usdview, Houdini, Blender, Maya, Omniverse) play:
   face-varying ``primvars:st`` (per corner, so UV seams of a welded mesh survive); ``points`` time-sampled
   plus a default value (the rest pose), ``extent``, vertex ``normals`` and ``velocities`` [m/s] per frame;
 * per-frame diagnostics as custom attributes on each cloth prim (``clothWarp:maxStrain``,
-  ``clothWarp:dt`` [s], ``clothWarp:solverIterations``, ``clothWarp:solverResidual``);
+  ``clothWarp:dt`` [s], ``clothWarp:solverIterations``, ``clothWarp:solverResidual``,
+  ``clothWarp:colliderContacts``, ``clothWarp:colliderCcd``);
+* colliders under ``/World/colliders`` as UsdGeom Sphere / Capsule / Cylinder (axis Z) / Cube (scaled) /
+  Plane / Mesh prims with a translate and an orient op (time-sampled per frame when animated), grey
+  ``displayColor``, and their shape, thickness and friction in the prim's customData;
 * provenance in the layer's ``customLayerData["cloth_warp"]``: versions, scene, resolved settings,
   status (``running`` / ``complete`` / ``interrupted`` / ``diverged`` / ``failed``), frames written.
 
@@ -42,7 +46,10 @@ DIAGNOSTICS = {  # per-frame custom attributes: name -> (USD type name, descript
     "dt": ("float", "smallest step used in the frame [s]"),
     "solverIterations": ("int", "linear-solver iterations of the frame's steps (summed; 0 for explicit integrators)"),
     "solverResidual": ("float", "relative residual of the last linear solve in the frame (0 if none)"),
+    "colliderContacts": ("int", "particle-collider contacts resolved in the frame's steps (summed)"),
+    "colliderCcd": ("int", "of those, contacts only the continuous (swept) test found (summed)"),
 }
+COLLIDER_SCOPE = "colliders"  # colliders are written under /World/colliders
 
 
 def vertex_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
@@ -128,6 +135,94 @@ def _indexed_corner_uvs(corner_uv: np.ndarray):
     flat = np.asarray(corner_uv, np.float32).reshape(-1, 2)
     values, indices = np.unique(flat, axis=0, return_inverse=True)
     return values.astype(np.float32), indices.reshape(-1).astype(np.int32)
+
+
+def _define_colliders(stage, model) -> list:
+    """Collider prims under /World/colliders (UsdGeom shapes, meshes for mesh colliders) with a translate and
+    an orient op; returns (collider, translate op, orient op) per collider."""
+    from pxr import Gf, UsdGeom, Vt
+
+    if not getattr(model, "colliders", None):
+        return []
+    UsdGeom.Scope.Define(stage, f"/World/{COLLIDER_SCOPE}")
+    out = []
+    for col in model.colliders:
+        path = f"/World/{COLLIDER_SCOPE}/{_prim_name(col.name)}"
+        half = col.local_size
+        if col.shape == "sphere":
+            geom = UsdGeom.Sphere.Define(stage, path)
+            geom.CreateRadiusAttr(col.radius)
+            extent = [(-half[0],) * 3, (half[0],) * 3]
+        elif col.shape in ("capsule", "cylinder"):
+            geom = (UsdGeom.Capsule if col.shape == "capsule" else UsdGeom.Cylinder).Define(stage, path)
+            geom.CreateRadiusAttr(col.radius)
+            geom.CreateHeightAttr(col.height)
+            geom.CreateAxisAttr(UsdGeom.Tokens.z)
+            top = half[1] + (half[0] if col.shape == "capsule" else 0.0)
+            extent = [(-half[0], -half[0], -top), (half[0], half[0], top)]
+        elif col.shape == "box":
+            geom = UsdGeom.Cube.Define(stage, path)
+            geom.CreateSizeAttr(1.0)
+            extent = [(-0.5,) * 3, (0.5,) * 3]
+        elif col.shape == "plane":
+            geom = UsdGeom.Plane.Define(stage, path)
+            geom.CreateAxisAttr(UsdGeom.Tokens.z)
+            geom.CreateWidthAttr(20.0)
+            geom.CreateLengthAttr(20.0)
+            geom.CreateDoubleSidedAttr(False)
+            extent = [(-10.0, -10.0, 0.0), (10.0, 10.0, 0.0)]
+        else:
+            geom = UsdGeom.Mesh.Define(stage, path)
+            geom.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+            tris = np.asarray(col.triangles, np.int32)
+            pts = np.asarray(col.vertices, np.float32)
+            geom.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(pts))
+            geom.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(tris), 3, np.int32)))
+            geom.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(np.ascontiguousarray(tris.reshape(-1))))
+            extent = [tuple(pts.min(0)), tuple(pts.max(0))]
+        geom.CreateExtentAttr([Gf.Vec3f(*map(float, e)) for e in extent])
+        geom.CreateDisplayColorAttr(Vt.Vec3fArray.FromNumpy(np.array([[0.55, 0.57, 0.60]], np.float32)))
+        prim = geom.GetPrim()
+        prim.SetCustomDataByKey("clothWarp:collider", {"shape": col.shape, "thickness": float(col.thickness),
+                                                        "staticFriction": float(col.static_friction),
+                                                        "kineticFriction": float(col.kinetic_friction)})
+        translate = geom.AddTranslateOp()
+        orient = geom.AddOrientOp()
+        if col.shape == "box":
+            geom.AddScaleOp().Set(Gf.Vec3f(*map(float, col.size)))
+        out.append((col, translate, orient))
+    return out
+
+
+def collider_surface(prim, time) -> tuple[np.ndarray, np.ndarray]:
+    """World-space (vertices [m], triangles) of a collider prim written by the cache at `time` (for previews)."""
+    import trimesh
+    from pxr import UsdGeom
+
+    if prim.IsA(UsdGeom.Mesh):
+        mesh = UsdGeom.Mesh(prim)
+        v = np.asarray(mesh.GetPointsAttr().Get(time), np.float64)
+        t = fan_triangulate(np.asarray(mesh.GetFaceVertexCountsAttr().Get()), np.asarray(mesh.GetFaceVertexIndicesAttr().Get()))
+    else:
+        if prim.IsA(UsdGeom.Sphere):
+            m = trimesh.creation.uv_sphere(radius=UsdGeom.Sphere(prim).GetRadiusAttr().Get(), count=[24, 24])
+        elif prim.IsA(UsdGeom.Capsule):
+            g = UsdGeom.Capsule(prim)
+            m = trimesh.creation.capsule(height=g.GetHeightAttr().Get(), radius=g.GetRadiusAttr().Get(), count=[24, 24])
+            m.apply_translation(-0.5 * (m.bounds[0] + m.bounds[1]))
+        elif prim.IsA(UsdGeom.Cylinder):
+            g = UsdGeom.Cylinder(prim)
+            m = trimesh.creation.cylinder(radius=g.GetRadiusAttr().Get(), height=g.GetHeightAttr().Get(), sections=32)
+        elif prim.IsA(UsdGeom.Cube):
+            s = UsdGeom.Cube(prim).GetSizeAttr().Get()
+            m = trimesh.creation.box(extents=(s, s, s))
+        else:  # plane
+            g = UsdGeom.Plane(prim)
+            w, ln = 0.5 * g.GetWidthAttr().Get(), 0.5 * g.GetLengthAttr().Get()
+            m = trimesh.Trimesh([[-w, -ln, 0], [w, -ln, 0], [w, ln, 0], [-w, ln, 0]], [[0, 1, 2], [0, 2, 3]], process=False)
+        v, t = np.asarray(m.vertices, np.float64), np.asarray(m.faces, np.int32)
+    xf = np.asarray(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(time), np.float64)  # row vectors
+    return v @ xf[:3, :3] + xf[3, :3], t
 
 
 class CacheWriter:
@@ -239,7 +334,22 @@ class UsdCacheWriter(CacheWriter):
                 attr.SetDocumentation(doc)
                 attrs[diag] = attr
             self.meshes.append((particles, tris, attrs))
+        self.colliders = _define_colliders(stage, model)
+        self._write_collider_poses(0)
         self.layer.Save()
+
+    def _write_collider_poses(self, k: int):
+        """Author the animated colliders' poses at frame k (time k / fps; static ones once, at default time)."""
+        from pxr import Gf
+
+        tc = self.start_frame + k
+        for col, translate, orient in self.colliders:
+            if k > 0 and not col.animated:
+                continue
+            p, q = col.pose_at(k / self.fps)
+            when = tc if col.animated else None
+            translate.Set(Gf.Vec3d(*map(float, p)), *([when] if when is not None else []))
+            orient.Set(Gf.Quatf(float(q[3]), float(q[0]), float(q[1]), float(q[2])), *([when] if when is not None else []))
 
     def _set_metadata(self):
         self.layer.customLayerData = {"cloth_warp": _usd_dict(self.meta)}
@@ -268,6 +378,8 @@ class UsdCacheWriter(CacheWriter):
                 if key in DIAGNOSTICS and value is not None:
                     attrs[key].Set(int(value) if DIAGNOSTICS[key][0] == "int" else float(value), tc)
         self.stage.SetEndTimeCode(tc)
+        if self.frames_written > 0:
+            self._write_collider_poses(self.frames_written)
         self.frames_written += 1
         if not self.ascii and self.frames_written % self.save_every == 0:
             self.meta["frames_written"] = self.frames_written
@@ -395,6 +507,7 @@ class CacheReader:
         self.metadata = json.loads(str(d["metadata"]))
         self.up_axis = self.metadata.get("up_axis", "Y")
         self.stage = None
+        self.colliders = []
         self.meshes = [{"path": "npz", "points": d["positions"][0] if len(d["positions"]) else np.zeros((0, 3)),
                         "triangles": d["triangles"], "has_uv": False, "samples": len(d["positions"])}]
 
@@ -411,7 +524,13 @@ class CacheReader:
         meta = self.stage.GetRootLayer().customLayerData.get("cloth_warp", {})
         self.metadata = dict(meta)
         self.meshes = []
+        self.colliders = []
         for prim in self.stage.Traverse():
+            if str(prim.GetPath()).startswith(f"/World/{COLLIDER_SCOPE}/"):
+                if prim.IsA(UsdGeom.Gprim):
+                    self.colliders.append({"path": str(prim.GetPath()), "prim": prim,
+                                           **dict(prim.GetCustomDataByKey("clothWarp:collider") or {})})
+                continue
             if prim.IsA(UsdGeom.Mesh):
                 mesh = UsdGeom.Mesh(prim)
                 points = mesh.GetPointsAttr()

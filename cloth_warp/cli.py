@@ -100,6 +100,10 @@ def format_summary(s: dict) -> str:
         if s.get("solver_iterations") and s["solver_iterations"]["max"]:
             lines.append(f"  solver      {s['solver_iterations']['mean']:.0f} iterations/frame on average, "
                          f"{s['solver_iterations']['max']} at most")
+        if s.get("colliders"):
+            c = s.get("contacts", {})
+            lines.append(f"  contacts    {c.get('collider_contacts', 0)} particle-collider contacts with {s['colliders']} "
+                         f"collider{'s' if s['colliders'] != 1 else ''} ({c.get('collider_ccd', 0)} caught only by the swept test)")
     lines.append(f"  cache       {s['output']} (frames {s['start_frame']}..{s['end_frame']}, "
                  f"{s.get('output_bytes', 0) / 1e6:.1f} MB)")
     lo, hi = s["bounds_m"]
@@ -162,6 +166,8 @@ def cmd_validate(args) -> int:
     print(f"{scene.path}: valid")
     print(f"  cloth       {model.particle_count} particles, {model.spring_count} springs, {model.tri_count} triangles, "
           f"material {model.cloths[0].material.name}")
+    if model.colliders:
+        print("  colliders   " + ", ".join(f"{c.shape} {c.name!r}{' (animated)' if c.animated else ''}" for c in model.colliders))
     print(f"  solver      {scene.get('solver.integrator')}, dt = {1.0 / (fps * substeps):.4g} s ({substeps} per frame)")
     print(f"  output      {scene.get('output.frames')} frames at {fps:g} fps -> {default_output(scene)}")
     return EXIT_OK

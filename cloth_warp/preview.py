@@ -19,6 +19,7 @@ log = logging.getLogger(__name__)
 
 FRONT_COLOR = (0.80, 0.42, 0.26)
 BACK_COLOR = (0.55, 0.62, 0.72)
+COLLIDER_COLOR = (0.62, 0.64, 0.66)
 
 
 class Camera:
@@ -57,8 +58,9 @@ class Renderer:
     """Renders frames of one triangle mesh whose points change (BVH refit per frame)."""
 
     def __init__(self, points: np.ndarray, triangles: np.ndarray, *, size=(512, 512), up_axis: str = "Y",
-                 bounds=None, device=None):
-        """`bounds` (lower, upper) [m] frames the camera, ground and checker size (default: `points`')."""
+                 bounds=None, device=None, collider_triangles=None, ground_height=None):
+        """`bounds` (lower, upper) [m] frames the camera, ground and checker size (default: `points`');
+        `collider_triangles` (bool per triangle) are drawn grey; `ground_height` overrides the ground's level."""
         self.device = wp.get_device(device)
         self.width, self.height = int(size[0]), int(size[1])
         if self.width < 8 or self.height < 8:
@@ -67,6 +69,8 @@ class Renderer:
         self.points = wp.array(np.asarray(points, np.float32), dtype=wp.vec3, device=self.device)
         self.indices = wp.array(self.triangles.reshape(-1), dtype=wp.int32, device=self.device)
         self.normals = wp.zeros(len(points), dtype=wp.vec3, device=self.device)
+        material = np.zeros(len(self.triangles), np.int32) if collider_triangles is None else np.asarray(collider_triangles, np.int32)
+        self.tri_material = wp.array(material, dtype=wp.int32, device=self.device)
         self.mesh = wp.Mesh(points=self.points, indices=self.indices)
         self.pixels = wp.zeros(self.width * self.height, dtype=wp.vec3, device=self.device)
         self.up, _, depth = _axes(up_axis)
@@ -74,7 +78,7 @@ class Renderer:
         self.camera = Camera.framing(lo, hi, up_axis)
         radius = 0.5 * float(np.linalg.norm(np.asarray(hi) - np.asarray(lo)))
         # The ground: at the scene's zero level, or just below the cloth's lowest point if that is lower.
-        self.ground_height = min(0.0, float(np.dot(lo, self.up)) - 0.05 * radius)
+        self.ground_height = min(0.0, float(np.dot(lo, self.up)) - 0.05 * radius) if ground_height is None else float(ground_height)
         light = 1.0 * self.up - 0.3 * _axes(up_axis)[1] + 0.35 * depth
         self.light_dir = light / np.linalg.norm(light)
         self.checker = float(10.0 ** np.round(np.log10(max(radius, 1e-3) / 4.0)))
@@ -91,7 +95,7 @@ class Renderer:
                   inputs=[self.mesh.id, self.indices, self.normals, wp.vec3(*c.eye), wp.vec3(*c.forward), wp.vec3(*c.right),
                           wp.vec3(*c.up), c.tan_half_fov, self.width, self.height, wp.vec3(*self.up),
                           wp.vec3(*self.light_dir), self.ground_height, self.checker, wp.vec3(*FRONT_COLOR),
-                          wp.vec3(*BACK_COLOR)],
+                          wp.vec3(*BACK_COLOR), self.tri_material, wp.vec3(*COLLIDER_COLOR)],
                   outputs=[self.pixels], device=self.device)
         rgb = np.clip(self.pixels.numpy().reshape(self.height, self.width, 3), 0.0, 1.0)
         return (255.0 * rgb ** (1.0 / 2.2) + 0.5).astype(np.uint8)
@@ -126,8 +130,21 @@ def render_cache(cache, output, *, frame: int | None = None, size=(512, 512), ev
         frames = list(range(first, last + 1, max(1, int(every))))
     clouds = [_combined(reader, f) for f in frames]
     allpts = np.concatenate(clouds)
-    renderer = Renderer(clouds[0], triangles, size=size, up_axis=reader.up_axis, bounds=(allpts.min(0), allpts.max(0)),
-                        device=device)
+    lo, hi = allpts.min(0), allpts.max(0)
+    up = _axes(reader.up_axis)[0]
+    ground, solid = _collider_geometry(reader, frames, lo, hi, up)
+    if solid:
+        n_cloth = len(clouds[0])
+        tris = [triangles] + [t + n_cloth + off for t, off in zip(solid["triangles"], solid["offsets"])]
+        material = np.concatenate([np.zeros(len(triangles), np.int32), np.ones(sum(len(t) for t in solid["triangles"]), np.int32)])
+        triangles = np.concatenate(tris)
+        clouds = [np.concatenate([c, v]) for c, v in zip(clouds, solid["points"])]
+        allpts = np.concatenate([allpts, *solid["points"]])
+        lo, hi = allpts.min(0), allpts.max(0)
+    else:
+        material = None
+    renderer = Renderer(clouds[0], triangles, size=size, up_axis=reader.up_axis, bounds=(lo, hi), device=device,
+                        collider_triangles=material, ground_height=ground)
     images = [Image.fromarray(renderer.render(c)) for c in clouds]
     with atomic_path(out) as tmp:
         if suffix == ".png":
@@ -137,3 +154,42 @@ def render_cache(cache, output, *, frame: int | None = None, size=(512, 512), ev
             images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=duration, loop=0)
     log.info("rendered %d frame(s) of %s to %s", len(images), cache, out)
     return out
+
+
+def _collider_geometry(reader: CacheReader, frames, lo, hi, up):
+    """The colliders of a cache as triangles per frame. A plane whose normal is the up axis becomes the
+    checkered ground at its level; other planes become a square around the cloth. Returns
+    (ground height or None, {"points": [per-frame vertices], "triangles": [...], "offsets": [...]} or {})."""
+    from .cache import collider_surface
+
+    ground = None
+    meshes = []
+    centre, radius = 0.5 * (lo + hi), max(0.5 * float(np.linalg.norm(hi - lo)), 0.05)
+    for col in reader.colliders:
+        prim = col["prim"]
+        if col.get("shape") == "plane":
+            v, _ = collider_surface(prim, frames[0])
+            normal = np.cross(v[1] - v[0], v[2] - v[0])
+            normal /= np.linalg.norm(normal)
+            if abs(float(np.dot(normal, up))) > 0.999:
+                ground = float(np.dot(v[0], up))
+                continue
+            a = np.cross(normal, up if abs(np.dot(normal, up)) < 0.9 else np.roll(up, 1))
+            a /= np.linalg.norm(a)
+            b = np.cross(normal, a)
+            per = []
+            for f in frames:
+                v, _ = collider_surface(prim, f)
+                c = centre - np.dot(centre - v[0], normal) * normal
+                s = 1.5 * radius
+                per.append(np.array([c - s * a - s * b, c + s * a - s * b, c + s * a + s * b, c - s * a + s * b]))
+            meshes.append((per, np.array([[0, 1, 2], [0, 2, 3]], np.int32)))
+        else:
+            per = [collider_surface(prim, f) for f in frames]
+            meshes.append(([p for p, _ in per], per[0][1]))
+    if not meshes:
+        return ground, {}
+    counts = [len(m[0][0]) for m in meshes]
+    offsets = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(int)
+    points = [np.concatenate([m[0][k] for m in meshes]).astype(np.float32) for k in range(len(frames))]
+    return ground, {"points": points, "triangles": [m[1] for m in meshes], "offsets": list(offsets)}

@@ -43,12 +43,14 @@ def find_scene(name_or_path) -> pathlib.Path:
 
 
 def _kernel_modules(solver):
-    from .kernels import constraints, diagnostics, forces, implicit
+    from .kernels import collide, constraints, diagnostics, forces, implicit
     from .solvers import SolverImplicitEuler
 
     mods = [forces, constraints, diagnostics]
     if isinstance(solver, SolverImplicitEuler):
         mods.append(implicit)
+    if getattr(solver, "collisions", None) is not None:
+        mods.append(collide)
     return mods
 
 
@@ -134,7 +136,7 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
     writer = open_cache(out, model, fps=fps, start_frame=start, save_every=int(scene.get("output.save_every")),
                         normals=bool(scene.get("output.normals")), velocities=bool(scene.get("output.velocities")),
                         metadata=metadata)
-    max_strain, dt_min, dt_max, iterations, rejected = 0.0, math.inf, 0.0, [], 0
+    max_strain, dt_min, dt_max, iterations, rejected, contacts = 0.0, math.inf, 0.0, [], 0, {}
     t_loop = time.perf_counter()
     interrupted = None
     try:
@@ -144,7 +146,11 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
             info = sim.frame_info
             writer.write(sim.state.particle_q.numpy(), sim.state.particle_qd.numpy(),
                          {"maxStrain": stats.max_strain, "dt": info["dt_min"], "solverIterations": info["iterations"],
-                          "solverResidual": info["residual"]})
+                          "solverResidual": info["residual"], "colliderContacts": info.get("collider_contacts"),
+                          "colliderCcd": info.get("collider_ccd")})
+            for key in ("collider_contacts", "collider_ccd"):
+                if key in info:
+                    contacts[key] = contacts.get(key, 0) + info[key]
             max_strain = max(max_strain, stats.max_strain)
             dt_min, dt_max = min(dt_min, info["dt_min"]), max(dt_max, info["dt_max"])
             iterations.append(info["iterations"])
@@ -173,6 +179,7 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
             dt_min=dt_min if done else None, dt_max=dt_max if done else None, rejected_steps=rejected,
             solver_iterations={"mean": float(np.mean(iterations)), "max": int(np.max(iterations))} if iterations else None,
             frames_written=writer.frames_written, end_frame=start + writer.frames_written - 1,
+            colliders=model.collider_count, contacts=contacts,
         )
         writer.close(summary["status"], {k: summary[k] for k in ("frames", "wall_s", "max_strain", "compile_s")})
         summary["output_bytes"] = out.stat().st_size if out.exists() else 0

@@ -58,6 +58,12 @@ LINEAR_SOLVERS = ("cg", "jacobi")
 # The same names as cloth_warp.solvers.SOLVERS (kept here so validation does not import Warp; a test compares).
 INTEGRATORS = ("implicit_euler", "symplectic_euler", "explicit_euler", "midpoint", "rk4")
 PRESETS = tuple(MATERIAL_PRESETS)
+COLLIDER_SHAPES = ("plane", "sphere", "capsule", "box", "cylinder", "mesh")
+# Which geometry keys each collider shape takes (the others are rejected with a message).
+COLLIDER_GEOMETRY = {"plane": ("axis",), "sphere": ("radius",), "capsule": ("radius", "height", "axis"), "box": ("size", "rotation"),
+                     "cylinder": ("radius", "height", "axis"), "mesh": ("mesh", "mesh_prim", "scale", "rotation")}
+COLLIDER_REQUIRED = {"sphere": ("radius",), "capsule": ("radius", "height"), "box": ("size",), "cylinder": ("radius", "height"),
+                     "mesh": ("mesh",)}
 SELECTION = {
     "select": Key("str", None, 'named selection of a grid: "corners", "corner:top_left" (top_right, bottom_left, '
                   'bottom_right), "edge:top" (bottom, left, right)'),
@@ -121,9 +127,33 @@ SCHEMA: dict = {
         },
         "global_damping": Key("float", 0.0, "mass-proportional damping rate", "1/s", 0.0),
     },
-    "colliders": Tables({"type": Key("str", None, "collider shape (arrives with the collisions work)",
-                                     allowed=("plane", "sphere", "capsule", "box", "mesh"))},
-                        "reserved: colliders are not simulated yet, a scene that lists one is rejected"),
+    "colliders": Tables({
+        "type": Key("str", None, "collider shape (required); a plane with no position/axis is the ground", allowed=COLLIDER_SHAPES),
+        "name": Key("str", None, "prim name in the cache (default: type and number)"),
+        "position": Key("vec3", [0.0, 0.0, 0.0], "centre (plane: a point on it; mesh: where its origin goes)", "m"),
+        "radius": Key("float", None, "sphere / capsule / cylinder radius", "m", 0.0, True),
+        "height": Key("float", None, "capsule: length of the straight part (caps excluded); cylinder: full height", "m", 0.0),
+        "size": Key("vec3", None, "box edge lengths along its local x, y, z", "m", 0.0, True),
+        "axis": Key("vec3", None, "capsule / cylinder axis or plane normal (out of the solid; default: the up axis)"),
+        "rotation": ROTATION,
+        "mesh": Key("path", None, "mesh collider file: OBJ, PLY, STL, GLB, OFF or USD; watertight = solid, open = solid "
+                    "behind its triangles"),
+        "mesh_prim": Key("str", None, "prim path of the mesh inside a USD file (default: the first Mesh)"),
+        "scale": Key("float", 1.0, "mesh units to metres", minimum=0.0, exclusive_minimum=True),
+        "thickness": Key("float", 0.004, "contact offset: cloth vertices stay this far from the surface", "m", 0.0, True),
+        "friction": Key("float", 0.3, "Coulomb friction coefficient (static and kinetic)", minimum=0.0),
+        "static_friction": Key("float", None, "static coefficient mu_s (default: friction)", minimum=0.0),
+        "kinetic_friction": Key("float", None, "kinetic coefficient mu_k <= mu_s (default: friction, at most mu_s)", minimum=0.0),
+        "keyframes": Tables(
+            {"time": Key("float", None, "time of the keyframe", "s", 0.0),
+             "translation": Key("vec3", [0.0, 0.0, 0.0], "offset from the initial position", "m"),
+             "rotation": ROTATION},
+            "rigid animation: rotation about the collider's own centre, applied after its initial orientation")},
+        "rigid colliders the cloth rests on, slides over and is pushed by"),
+    "collision": {
+        "self_collision": Key("bool", False, "cloth-cloth contact (not simulated yet: a scene that asks for it is rejected)"),
+        "thickness": Key("float", 0.004, "distance kept between non-adjacent parts of the cloth", "m", 0.0, True),
+    },
     "solver": {
         "integrator": Key("str", "implicit_euler", "time integrator", allowed=INTEGRATORS),
         "linear_solver": Key("str", "cg", "implicit Euler's linear solver", allowed=LINEAR_SOLVERS),
@@ -365,8 +395,40 @@ def _check_values(scene: Scene):
             raise SceneError(f"handles[{i}].keyframes: every keyframe needs a time [s]")
         if any(b <= a for a, b in zip(times, times[1:])):
             raise SceneError(f"handles[{i}].keyframes: times must increase, got {times}")
-    if scene.data.get("colliders"):
-        raise SceneError("colliders: colliders are not simulated in this version; remove the [[colliders]] entries")
+    geometry_keys = {k for keys in COLLIDER_GEOMETRY.values() for k in keys}
+    names = set()
+    for i, col in enumerate(scene.data.get("colliders", [])):
+        where = f"colliders[{i}]"
+        shape = col.get("type")
+        if shape is None:
+            raise SceneError(f"{where}.type: required; allowed: {', '.join(COLLIDER_SHAPES)}")
+        for key in COLLIDER_REQUIRED.get(shape, ()):
+            if key not in col:
+                raise SceneError(f"{where}.{key}: a {shape} collider needs it ({SCHEMA['colliders'].schema[key].doc})")
+        for key in col:
+            if key in geometry_keys and key not in COLLIDER_GEOMETRY[shape]:
+                users = [s for s, keys in COLLIDER_GEOMETRY.items() if key in keys]
+                raise SceneError(f"{where}.{key}: not used by a {shape} collider (only by {', '.join(users)})")
+        mu_s = col.get("static_friction", col.get("friction", 0.3))
+        if "kinetic_friction" in col and col["kinetic_friction"] > mu_s:
+            raise SceneError(f"{where}.kinetic_friction: {col['kinetic_friction']} exceeds the static coefficient {mu_s}")
+        mesh = col.get("mesh")
+        if mesh is not None and not scene.resolve(mesh).is_file():
+            raise SceneError(f"{where}.mesh: file not found: {scene.resolve(mesh)} (paths are relative to the scene file)")
+        axis = col.get("axis")
+        if axis is not None and math.sqrt(sum(a * a for a in axis)) < 1e-12:
+            raise SceneError(f"{where}.axis: must not be the zero vector")
+        times = [k.get("time") for k in col.get("keyframes", [])]
+        if any(t is None for t in times):
+            raise SceneError(f"{where}.keyframes: every keyframe needs a time [s]")
+        if any(b <= a for a, b in zip(times, times[1:])):
+            raise SceneError(f"{where}.keyframes: times must increase, got {times}")
+        name = col.get("name", f"{shape}{i}")
+        if name in names:
+            raise SceneError(f"{where}.name: {name!r} is used by another collider")
+        names.add(name)
+    if scene.data.get("collision", {}).get("self_collision"):
+        raise SceneError("collision.self_collision: cloth-cloth contact is not simulated in this version; set it to false")
 
 
 # -- construction ---------------------------------------------------------------------------------------------
@@ -431,10 +493,42 @@ def build_model(scene: Scene, device=None):
         kfs = [Keyframe(float(k["time"]), tuple(map(float, k.get("translation", [0.0, 0.0, 0.0]))), _rotation_q(k.get("rotation")))
                for k in h["keyframes"]]
         b.add_handle(_selection(cloth, h, f"handles[{i}]"), kfs, name=f"handle{i}")
+    for i, col in enumerate(scene.data.get("colliders", [])):
+        _add_collider(b, scene, col, i)
     jitter = float(scene.get("cloth.jitter"))
     if jitter > 0.0:
         _jitter(b, cloth, jitter, int(scene.get("scene.seed")))
     return b.finalize(device)
+
+
+def _add_collider(b, scene: Scene, col: dict, i: int):
+    from .model import Keyframe
+    from .topology import MeshError
+
+    shape = col["type"]
+    kfs = [Keyframe(float(k["time"]), tuple(map(float, k.get("translation", [0.0, 0.0, 0.0]))), _rotation_q(k.get("rotation")))
+           for k in col.get("keyframes", [])]
+    common = dict(name=col.get("name", f"{shape}{i}"), thickness=float(col.get("thickness", 0.004)),
+                  friction=float(col.get("friction", 0.3)), static_friction=col.get("static_friction"),
+                  kinetic_friction=col.get("kinetic_friction"), keyframes=kfs)
+    pos = tuple(map(float, col.get("position", [0.0, 0.0, 0.0])))
+    axis = col.get("axis")
+    try:
+        if shape == "plane":
+            b.add_plane(normal=axis, point=pos, **common)
+        elif shape == "sphere":
+            b.add_sphere(pos, float(col["radius"]), **common)
+        elif shape == "capsule":
+            b.add_capsule(pos, float(col["radius"]), float(col["height"]), axis=axis, **common)
+        elif shape == "cylinder":
+            b.add_cylinder(pos, float(col["radius"]), float(col["height"]), axis=axis, **common)
+        elif shape == "box":
+            b.add_box(pos, tuple(col["size"]), rotation=_rotation_q(col.get("rotation")), **common)
+        else:
+            b.add_collider_mesh_file(scene.resolve(col["mesh"]), prim_path=col.get("mesh_prim"), position=pos,
+                                     rotation=_rotation_q(col.get("rotation")), scale=float(col.get("scale", 1.0)), **common)
+    except (ValueError, MeshError) as exc:
+        raise SceneError(f"colliders[{i}]: {exc}") from exc
 
 
 def _jitter(builder, cloth, amplitude: float, seed: int):

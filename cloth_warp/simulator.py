@@ -35,8 +35,9 @@ class Simulator:
         wind: a :class:`~cloth_warp.wind.GustyWind` (or anything with ``at(time) -> vec3`` [m/s]); set on
             the control once per frame, at the frame's midpoint (a steady wind once).
 
-    After each frame, :attr:`frame_info` holds the smallest and largest step used [s] and the solver
-    iterations of its steps (summed) (with graph capture: the iterations are not read back, 0).
+    After each frame, :attr:`frame_info` holds the smallest and largest step used [s], the solver
+    iterations of its steps (summed) (with graph capture: the iterations are not read back, 0) and, with
+    collisions, their counters summed over the frame's steps (``collider_contacts``, ``collider_ccd``).
     """
 
     def __init__(self, model: Model, solver: SolverBase, *, fps: float = 60.0, substeps: int = 1, adaptive: bool = False,
@@ -84,6 +85,9 @@ class Simulator:
     def step_frame(self) -> StepStats:
         """Advance one frame; returns the statistics of the new state."""
         t0 = _time.perf_counter()
+        collisions = getattr(self.solver, "collisions", None)
+        if collisions is not None:
+            collisions.reset_counts()
         if self.wind is not None and not getattr(self.wind, "steady", False):
             self.control.set_wind(self.wind.at(self.time + 0.5 * self.frame_dt))
         if self.stepper is not None:
@@ -100,6 +104,8 @@ class Simulator:
             self.frame_info = {"dt_min": self.dt, "dt_max": self.dt, "iterations": 0, "residual": 0.0}
         else:
             self._substeps()
+        if collisions is not None:
+            self.frame_info.update(collisions.read_counts())
         self.frame += 1
         self.time = self.frame * self.frame_dt
         stats = self.diagnostics.measure(self.state)

@@ -187,9 +187,11 @@ def collide_colliders(
     """Resolve every free particle against every collider, colliders in order (see the module docstring).
 
     Per collider: trace the particle's path relative to the collider (start point in the start pose, end
-    point in the end pose); at the first point within the thickness, take the tangent plane there and
-    push the end point onto it (offset by the thickness) with friction; then, if the end point is still
-    within the thickness (curved or concave surfaces), push it out along the surface normal.
+    point in the end pose). If it was clear at the start and touches on the way, or was touching at the
+    start and the path crosses the solid, take the tangent plane at the first touch and push the end point
+    onto it (offset by the thickness) with friction. Then, if the end point is within the thickness
+    (resting and sliding contact, curved or concave surfaces), push it out along the surface normal
+    there. A particle that slides off an edge is therefore let go, not held up on the face's plane.
     """
     i = wp.tid()
     xs = x_start[i]
@@ -215,7 +217,27 @@ def collide_colliders(
         end_dist0, end_n0 = shape_distance(shape, size, mesh, mesh_max_distance, pe)
         hit, t = first_contact(shape, size, mesh, mesh_max_distance, ps, pe, thickness, tolerance)
         touched = int(0)
+        plane = int(0)
         if hit != 0:
+            if t > 0.0:
+                plane = 1  # clear at the start, touching on the way: the swept (CCD) case
+            else:
+                # In contact at the start. Resting or sliding contact is resolved at the end point below,
+                # unless the relative path crosses the solid (a fast collider pushing the particle): then
+                # the end point is clear again behind it, or deep inside with a flipped normal.
+                start_dist, start_n = shape_distance(shape, size, mesh, mesh_max_distance, ps)
+                if end_dist0 >= thickness:
+                    back_hit, back_t = first_contact(shape, size, mesh, mesh_max_distance, pe, ps, thickness, tolerance)
+                    if back_hit != 0:
+                        # crossing only if the path between start and the back hit dips clearly below the
+                        # band (a chord of a curved surface sags by a hair without crossing anything)
+                        mid = ps + 0.5 * (1.0 - back_t) * (pe - ps)
+                        mid_dist, mid_n = shape_distance(shape, size, mesh, mesh_max_distance, mid)
+                        if mid_dist < thickness - wp.max(0.25 * thickness, tolerance):
+                            plane = 1
+                elif wp.dot(end_n0, start_n) < 0.0:
+                    plane = 1
+        if plane != 0:
             pc = ps + t * (pe - ps)
             dist, nl = shape_distance(shape, size, mesh, mesh_max_distance, pc)
             gap = dist - thickness + wp.dot(pe - pc, nl)

@@ -1,4 +1,5 @@
-"""Preview ray caster: one ray per pixel against the cloth's BVH, Lambert shading with shadows, a ground plane.
+"""Preview ray caster: one ray per pixel against the BVH of cloth and colliders, Lambert shading with
+shadows, a ground plane.
 
 Forward-only (previews are never differentiated).
 """
@@ -38,6 +39,8 @@ def render_cloth(
     checker_size: float,
     front_color: wp.vec3,
     back_color: wp.vec3,
+    tri_material: wp.array(dtype=wp.int32),
+    collider_color: wp.vec3,
     pixels_out: wp.array(dtype=wp.vec3),
 ):
     """Shade pixel (tid % width, tid // width) (row 0 at the top), linear RGB in [0, 1]."""
@@ -71,6 +74,8 @@ def render_cloth(
         if wp.dot(n, d) > 0.0:  # two-sided: shade the side facing the camera
             n = -n
             albedo = back_color
+        if tri_material[f] != 0:
+            albedo = collider_color
         p = eye + hit.t * d
         diffuse = wp.max(wp.dot(n, light_dir), 0.0)
         if diffuse > 0.0:

@@ -70,7 +70,18 @@ def test_scene_reference_page_is_current():
         # missing files and inconsistent keys
         ({"cloth.mesh": "missing.obj"}, "either cloth.grid or cloth.mesh"),
         ({"pins[0].indices": [0]}, "pins[0]: give exactly one of select, indices, box (got select, indices)"),
-        ({"colliders": [{"type": "sphere"}]}, "colliders: colliders are not simulated in this version"),
+        # colliders: required and misplaced geometry, friction order, shapes
+        ({"colliders": [{"type": "sphere"}]}, "colliders[0].radius: a sphere collider needs it"),
+        ({"colliders": [{"type": "box", "radius": 1.0, "size": [1, 1, 1]}]},
+         "colliders[0].radius: not used by a box collider (only by sphere, capsule, cylinder)"),
+        ({"colliders": [{"type": "torus"}]}, "colliders[0].type: 'torus' is not allowed; allowed: plane, sphere"),
+        ({"colliders": [{"type": "plane", "static_friction": 0.2, "kinetic_friction": 0.4}]},
+         "colliders[0].kinetic_friction: 0.4 exceeds the static coefficient 0.2"),
+        ({"colliders": [{"type": "mesh", "mesh": "nowhere.obj"}]}, "colliders[0].mesh: file not found"),
+        ({"colliders": [{"type": "plane", "axis": [0, 0, 0]}]}, "colliders[0].axis: must not be the zero vector"),
+        ({"colliders": [{"type": "sphere", "radius": -1.0}]}, "colliders[0].radius: must be > 0 [m]"),
+        ({"colliders": [{"type": "plane"}, {"type": "plane", "name": "plane0"}]}, "colliders[1].name: 'plane0' is used"),
+        ({"collision.self_collision": True}, "collision.self_collision: cloth-cloth contact is not simulated"),
     ],
 )
 def test_scene_errors_name_the_key(overrides, message):

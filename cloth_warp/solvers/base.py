@@ -236,12 +236,13 @@ class SolverBase:
         strain_limit_tolerance: keep sweeping (up to 128) until the limit holds to this strain; None for
             a fixed number of sweeps. Not applied inside graph capture or under the tape.
         collisions: handle the model's colliders and self-collision (default True).
+        collision_rounds: strain-limit / collision passes per step when both are on (default 2).
     """
 
     name = "base"
 
     def __init__(self, model: Model, *, strain_limit: float | None = 0.1, strain_limit_iterations: int = 4,
-                 strain_limit_tolerance: float | None = 1.0e-3, collisions: bool = True):
+                 strain_limit_tolerance: float | None = 1.0e-3, collisions: bool = True, collision_rounds: int = 2):
         from ..collision import CollisionHandler
 
         self.model = model
@@ -250,6 +251,9 @@ class SolverBase:
         )
         handler = CollisionHandler(model) if collisions else None
         self.collisions = handler if handler is not None and handler.active else None
+        if int(collision_rounds) < 1:
+            raise ValueError(f"collision_rounds must be >= 1, got {collision_rounds!r}")
+        self.collision_rounds = int(collision_rounds)
         self._scratch: dict = {}
         # Per-step solver report (iterative solvers fill these).
         self.last_iterations = 0
@@ -299,12 +303,20 @@ class SolverBase:
         x = self.scratch("x_unlimited", wp.vec3, rg)
         v = self.scratch("v_unlimited", wp.vec3, rg)
         self.integrate(state_in, x, v, control, dt)
-        if limiter is not None:
-            limited = state_out if collide is None else State(self.scratch("x_limited", wp.vec3, rg), self.scratch("v_limited", wp.vec3, rg))
-            limiter.apply(self, x, v, limited, dt)
-            x, v = limited.particle_q, limited.particle_qd
-        if collide is not None:
-            collide.apply(state_in.particle_q, x, v, control, dt, state_out.particle_q, state_out.particle_qd)
+        # With both, limiter and collisions alternate: the limiter pulls over-stretched cloth back (possibly
+        # into a collider), the collision pass puts it back out; the last word is the collisions'.
+        rounds = self.collision_rounds if limiter is not None and collide is not None else 1
+        for r in range(rounds):
+            last = r == rounds - 1
+            if limiter is not None:
+                limited = state_out if collide is None else State(self.scratch(f"x_limited{r}", wp.vec3, rg),
+                                                                  self.scratch(f"v_limited{r}", wp.vec3, rg))
+                limiter.apply(self, x, v, limited, dt)
+                x, v = limited.particle_q, limited.particle_qd
+            if collide is not None:
+                out = state_out if last else State(self.scratch(f"x_collided{r}", wp.vec3, rg), self.scratch(f"v_collided{r}", wp.vec3, rg))
+                collide.apply(state_in.particle_q, x, v, control, dt, out.particle_q, out.particle_qd)
+                x, v = out.particle_q, out.particle_qd
 
     def integrate(self, state_in: State, x_out: wp.array, v_out: wp.array, control: Control, dt: float):
         """The integrator proper (no strain limiting)."""
