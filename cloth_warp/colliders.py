@@ -129,10 +129,6 @@ class Collider:
         t, q = interpolate_keyframes(self.keyframes, time)
         return p0 + t, quat_multiply(q, q0)
 
-    def velocity_at(self, time: float, dt: float = 1e-4) -> np.ndarray:
-        """Linear velocity of the collider's origin [m/s] (central difference of the keyframed path)."""
-        return (self.pose_at(time + dt)[0] - self.pose_at(time - dt)[0]) / (2.0 * dt)
-
     def distance(self, points) -> np.ndarray:
         """Signed distance [m] of world points to the surface at the initial pose (numpy; for tests and
         tools: meshes are measured by trimesh)."""
@@ -157,28 +153,6 @@ class Collider:
             d = np.stack([np.linalg.norm(p[:, :2], axis=1) - s[0], np.abs(p[:, 2]) - s[1]], 1)
             return np.linalg.norm(np.maximum(d, 0.0), axis=1) + np.minimum(d.max(1), 0.0)
         return mesh_signed_distance(self.vertices, self.triangles, p)
-
-    def surface_mesh(self, segments: int = 32) -> tuple[np.ndarray, np.ndarray]:
-        """A triangle mesh of the surface in the local frame (for previews): (vertices, triangles).
-        A plane becomes a square of 20 m."""
-        import trimesh
-
-        s = self.local_size
-        if self.shape == "mesh":
-            return np.asarray(self.vertices), np.asarray(self.triangles)
-        if self.shape == "plane":
-            v = np.array([[-10, -10, 0], [10, -10, 0], [10, 10, 0], [-10, 10, 0]], float)
-            return v, np.array([[0, 1, 2], [0, 2, 3]])
-        if self.shape == "sphere":
-            m = trimesh.creation.uv_sphere(radius=s[0], count=[segments, segments])
-        elif self.shape == "capsule":
-            m = trimesh.creation.capsule(height=2 * s[1], radius=s[0], count=[segments, segments])
-            m.apply_translation((0.0, 0.0, -0.5 * (m.bounds[0][2] + m.bounds[1][2])))
-        elif self.shape == "box":
-            m = trimesh.creation.box(extents=[2 * s[0], 2 * s[1], 2 * s[2]])
-        else:
-            m = trimesh.creation.cylinder(radius=s[0], height=2 * s[1], sections=segments)
-        return np.asarray(m.vertices), np.asarray(m.faces)
 
 
 def rotation_to_axis(axis) -> tuple[float, float, float, float]:

@@ -5,6 +5,7 @@ Modules are grouped by what launches together, because each module is one cold c
 * :mod:`.forces` - force functions shared by every integrator and the explicit/RK step kernels;
 * :mod:`.implicit` - Baraff-Witkin system blocks, matrix-free product, CG and Jacobi;
 * :mod:`.constraints` - Provot strain limiting and animated handle targets;
+* :mod:`.collide` - collider distance functions, swept contact and the friction response;
 * :mod:`.diagnostics` - per-step statistics (forward only, no backward code generated).
 
 Parameters that change between scenes are launch arguments; ``wp.constant`` is kept for true
