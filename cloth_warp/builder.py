@@ -333,12 +333,7 @@ class ModelBuilder:
         the rest pose.
         """
         idx = self._check_indices(indices)
-        kfs = []
-        for k in keyframes:
-            if isinstance(k, Keyframe):
-                kfs.append(k)
-            else:
-                kfs.append(Keyframe(float(k[0]), tuple(map(float, k[1])), tuple(map(float, k[2])) if len(k) > 2 else (0.0, 0.0, 0.0, 1.0)))
+        kfs = _keyframes(keyframes)
         if not kfs:
             raise ValueError("a handle needs at least one keyframe")
         times = [k.time for k in kfs]
@@ -364,9 +359,7 @@ class ModelBuilder:
         mu_s = friction if static_friction is None else static_friction
         mu_k = min(friction, mu_s) if kinetic_friction is None else kinetic_friction
         q = (0.0, 0.0, 0.0, 1.0) if rotation is None else tuple(np.asarray(rotation, float).tolist())
-        kfs = [k if isinstance(k, Keyframe) else
-               Keyframe(float(k[0]), tuple(map(float, k[1])), tuple(map(float, k[2])) if len(k) > 2 else (0.0, 0.0, 0.0, 1.0))
-               for k in (keyframes or [])]
+        kfs = _keyframes(keyframes or [])
         col = Collider(name or f"{shape}{len(self.colliders)}", shape, position=tuple(position), rotation=q,
                        thickness=float(thickness), static_friction=float(mu_s), kinetic_friction=float(mu_k), keyframes=kfs,
                        **geometry)
@@ -560,6 +553,13 @@ class ModelBuilder:
         lo, hi = self.particle_positions.min(0), self.particle_positions.max(0)
         # Mesh distance queries look this far: beyond it a vertex is "far" (its exact distance is not needed).
         m.collider_mesh_max_distance = float(10.0 * (max(extent, default=1.0) + np.linalg.norm(hi - lo) + 1.0))
+
+
+def _keyframes(keyframes) -> list[Keyframe]:
+    """Keyframe objects from Keyframes or (time, translation[, quaternion]) tuples."""
+    return [k if isinstance(k, Keyframe) else
+            Keyframe(float(k[0]), tuple(map(float, k[1])), tuple(map(float, k[2])) if len(k) > 2 else (0.0, 0.0, 0.0, 1.0))
+            for k in keyframes]
 
 
 def clamp_boundary_bending(stiffness, springs, middle, law, pinned) -> np.ndarray:
