@@ -5,7 +5,7 @@ Euler, 2 steps per 1/60 s frame) runs `--warmup` frames to put the cloth in cont
 frames are timed three ways in the same process, from the same state: with collisions, without them
 (`collisions=False`, the same solver and strain limiter), and the collision kernel alone (one launch per
 step on the same arrays). Reported: ms per frame and per step, the collision pass's share, and contacts
-per step. Self-collision is not implemented yet; this measures cloth-collider contact only.
+per step. Self-collision is switched off here (benchmarks/bench_selfcollide.py measures it).
 
 Run:  python benchmarks/bench_collide.py                  (32^2, 64^2, 128^2; ~3 min on 2 cores)
       python benchmarks/bench_collide.py --sizes 32 --frames 5 --out benchmarks/results/quick_collide.md
@@ -37,7 +37,8 @@ def measure(size: int, frames: int, warmup: int) -> dict:
     import cloth_warp as cw
     from cloth_warp.scene import build_model, build_solver, load_scene
 
-    scene = load_scene(ROOT / "scenes" / "drape_sphere.toml", {"cloth.grid.resolution": [size, size]})
+    # collider contact alone (bench_selfcollide.py measures self-collision)
+    scene = load_scene(ROOT / "scenes" / "drape_sphere.toml", {"cloth.grid.resolution": [size, size], "collision.self_collision": False})
     model = build_model(scene, "cpu")
     solver = build_solver(scene, model)
     sim = cw.Simulator(model, solver, fps=60, substeps=2)

@@ -158,6 +158,8 @@ class ModelBuilder:
         self.colliders: list[Collider] = []
         self.self_collision = False
         self.cloth_thickness = 0.0
+        self.cloth_friction = 0.0
+        self.self_collision_stiffness = None
 
     @property
     def up_vector(self) -> tuple[float, float, float]:
@@ -268,6 +270,15 @@ class ModelBuilder:
             raise ValueError(f"mesh scale must be positive, got {scale!r}")
         t = topo.mesh_topology(v * scale, tri, SpringModel(spring_model), uvs=uvs)
         return self._add_cloth(t, position, rotation, velocity, material, name or f"cloth{len(self.cloths)}")
+
+    def add_cloth_disc(self, *, radius: float, rings: int = 16, **kwargs) -> ClothRef:
+        """Add a circular cloth of `radius` [m] meshed in `rings` concentric rings
+        (:func:`~cloth_warp.topology.disc_mesh`; e.g. the 30 cm specimen of a Cusick drape test). Placed
+        like a grid (local xy-plane, centre at the origin, then `rotation` and `position`); other keyword
+        arguments as for :meth:`add_cloth_mesh`."""
+        v, t = topo.disc_mesh(radius, rings)
+        kwargs.setdefault("name", f"disc{len(self.cloths)}")
+        return self.add_cloth_mesh(v, t, **kwargs)
 
     def add_cloth_mesh_file(self, path: str | os.PathLike, *, prim_path: str | None = None, **kwargs) -> ClothRef:
         """Add a cloth from a mesh file: OBJ, PLY, STL, GLB/GLTF, OFF (trimesh) or USD (.usd/.usda/.usdc).
@@ -430,12 +441,20 @@ class ModelBuilder:
         kwargs.setdefault("name", os.path.splitext(os.path.basename(os.fspath(path)))[0])
         return self.add_collider_mesh(v, t[keep], **kwargs)
 
-    def enable_self_collision(self, thickness: float = 0.004):
-        """Keep non-adjacent parts of the cloth(s) at least `thickness` [m] apart (cloth-cloth contact)."""
+    def enable_self_collision(self, thickness: float = 0.004, friction: float = 0.3, stiffness: float | None = None):
+        """Keep non-adjacent parts of the cloth(s) at least `thickness` [m] apart (cloth-cloth contact,
+        :mod:`cloth_warp.selfcollision`), with Coulomb `friction` between layers and repulsion
+        `stiffness` [N/m] (default: the median stretch stiffness of the cloth's structural springs)."""
         if not (math.isfinite(thickness) and thickness > 0.0):
             raise ValueError(f"self-collision thickness must be positive [m], got {thickness!r}")
+        if not (math.isfinite(friction) and friction >= 0.0):
+            raise ValueError(f"self-collision friction must be >= 0, got {friction!r}")
+        if stiffness is not None and not (math.isfinite(stiffness) and stiffness > 0.0):
+            raise ValueError(f"self-collision stiffness must be positive [N/m], got {stiffness!r}")
         self.self_collision = True
         self.cloth_thickness = float(thickness)
+        self.cloth_friction = float(friction)
+        self.self_collision_stiffness = stiffness
 
     def _check_indices(self, indices) -> np.ndarray:
         idx = np.unique(np.asarray(indices, np.int64).ravel())
@@ -518,6 +537,13 @@ class ModelBuilder:
         self._finalize_colliders(m, arr)
         m.self_collision = self.self_collision
         m.cloth_thickness = self.cloth_thickness
+        m.cloth_friction = self.cloth_friction
+        k = self.self_collision_stiffness
+        if k is None:
+            structural = (self.spring_kind[order] == SpringKind.STRUCTURAL) & (law == SpringLaw.LINEAR)
+            stiff = m.spring_stiffness.numpy()
+            k = float(np.median(stiff[structural])) if structural.any() else 1.0e3
+        m.self_collision_stiffness = k
         return m
 
     def _finalize_colliders(self, m: Model, arr):

@@ -11,7 +11,8 @@ A USD cache is what DCC tools (usdview, Houdini, Blender, Maya, Omniverse) play:
   plus a default value (the rest pose), ``extent``, vertex ``normals`` and ``velocities`` [m/s] per frame;
 * per-frame diagnostics as custom attributes on each cloth prim (``clothWarp:maxStrain``,
   ``clothWarp:dt`` [s], ``clothWarp:solverIterations``, ``clothWarp:solverResidual``,
-  ``clothWarp:colliderContacts``, ``clothWarp:colliderCcd``);
+  ``clothWarp:colliderContacts``, ``clothWarp:colliderCcd`` and, with self-collision, ``clothWarp:selfProximity``,
+  ``selfCcd``, ``selfSweeps``, ``impactZones``, ``selfUnresolved``);
 * colliders under ``/World/colliders`` as UsdGeom Sphere / Capsule / Cylinder (axis Z) / Cube (scaled) /
   Plane / Mesh prims with a translate and an orient op (time-sampled per frame when animated), grey
   ``displayColor``, and their shape, thickness and friction in the prim's customData;
@@ -48,7 +49,15 @@ DIAGNOSTICS = {  # per-frame custom attributes: name -> (USD type name, descript
     "solverResidual": ("float", "relative residual of the last linear solve in the frame (0 if none)"),
     "colliderContacts": ("int", "particle-collider contacts resolved in the frame's steps (summed)"),
     "colliderCcd": ("int", "of those, contacts only the continuous (swept) test found (summed)"),
+    "selfProximity": ("int", "cloth-cloth repulsion impulses (proximity within the thickness) in the frame's steps"),
+    "selfCcd": ("int", "cloth-cloth impacts found by continuous collision detection (summed over sweeps)"),
+    "selfSweeps": ("int", "CCD sweeps with impulses run in the frame's steps"),
+    "impactZones": ("int", "rigid impact zones formed in the frame's steps (Provot's fail-safe)"),
+    "selfUnresolved": ("int", "steps that ended with cloth-cloth impacts left (should be 0)"),
 }
+# per-frame diagnostic attribute <- collision counter (cloth_warp.collision / cloth_warp.selfcollision)
+COUNTER_DIAGNOSTICS = {"colliderContacts": "collider_contacts", "colliderCcd": "collider_ccd", "selfProximity": "self_proximity",
+                       "selfCcd": "self_ccd", "selfSweeps": "self_sweeps", "impactZones": "impact_zones", "selfUnresolved": "unresolved"}
 COLLIDER_SCOPE = "colliders"  # colliders are written under /World/colliders
 
 

@@ -104,6 +104,13 @@ def format_summary(s: dict) -> str:
             c = s.get("contacts", {})
             lines.append(f"  contacts    {c.get('collider_contacts', 0)} particle-collider contacts with {s['colliders']} "
                          f"collider{'s' if s['colliders'] != 1 else ''} ({c.get('collider_ccd', 0)} caught only by the swept test)")
+        if s.get("self_collision"):
+            c = s.get("contacts", {})
+            lines.append(f"  self        {c.get('self_proximity', 0)} repulsions, {c.get('self_ccd', 0)} CCD impacts in "
+                         f"{c.get('self_sweeps', 0)} sweeps, {c.get('impact_zones', 0)} impact zones "
+                         f"({c.get('impact_zone_particles', 0)} particles), {c.get('unresolved', 0)} steps unresolved")
+        if s.get("drape_coefficient") is not None:
+            lines.append(f"  drape       Cusick drape coefficient {s['drape_coefficient']:.3f}")
     lines.append(f"  cache       {s['output']} (frames {s['start_frame']}..{s['end_frame']}, "
                  f"{s.get('output_bytes', 0) / 1e6:.1f} MB)")
     lo, hi = s["bounds_m"]

@@ -1,11 +1,13 @@
-"""Collision handling after the integrator: cloth against colliders (and cloth against itself).
+"""Collision handling after the integrator: cloth against colliders and cloth against itself.
 
 Bridson, Fedkiw & Anderson (2002) in the order of physics.md 3(f): the integrator (and the strain
 limiter) propose an end-of-step state from the collision-free start state; the collision pass turns
 the step's average velocity vbar = (x_end - x_start) / h into one whose straight-line trajectory stays
 clear of every collider by its thickness, with inelastic normal response and Coulomb friction, and
 hands the same velocity correction to the end velocity. Every solver runs it as the last stage of
-``step`` (so strain limiting never moves cloth back into a collider).
+``step`` (so strain limiting never moves cloth back into a collider). With self-collision on, the
+collider pass is followed by :class:`~cloth_warp.selfcollision.SelfCollision` on its result, which has
+the last word (the cloth is intersection-free at the end of every step).
 
 What differentiates (under ``wp.Tape``): the response is piecewise smooth in positions, velocities,
 friction coefficients and collider poses; the choice of contacts (which particles touch what, the
@@ -19,12 +21,16 @@ import warp as wp
 
 from .kernels import collide as kcol
 from .model import Control, Model
+from .selfcollision import COUNTERS as SELF_COUNTERS
+from .selfcollision import SelfCollision
 
 COUNTERS = ("collider_contacts", "collider_ccd")
+ALL_COUNTERS = COUNTERS + SELF_COUNTERS  # with self-collision, read_counts() also has these
 
 
 class CollisionHandler:
-    """Cloth-collider contact with continuous detection, run by the solvers after each step.
+    """Cloth-collider contact with continuous detection (then self-collision, when the model has it on),
+    run by the solvers after each step.
 
     Per step and particle, every collider in turn: the particle's path relative to the collider (start
     pose to end pose) is traced for its first point within the collider's thickness; the end point is
@@ -35,28 +41,56 @@ class CollisionHandler:
 
     Counters (summed over the steps since :meth:`reset_counts`): ``collider_contacts`` (particle-collider
     contacts resolved) and ``collider_ccd`` (of them, the ones only the continuous trace found: the end
-    point alone was clear, so a discrete test would have tunnelled).
+    point alone was clear, so a discrete test would have tunnelled); with self-collision, also the
+    counters of :class:`~cloth_warp.selfcollision.SelfCollision`.
     """
 
     def __init__(self, model: Model):
         self.model = model
         self.counts = wp.zeros(len(COUNTERS), dtype=wp.int32, device=model.device)
+        self.self_collision = SelfCollision(model) if model.self_collision and model.tri_count else None
 
     @property
     def active(self) -> bool:
-        return self.model.collider_count > 0
+        return self.model.collider_count > 0 or self.self_collision is not None
+
+    def begin_step(self):
+        """A new step starts (its passes share the start state; caches of the previous step are stale)."""
+        if self.self_collision is not None:
+            self.self_collision.grid.invalidate()
 
     def reset_counts(self):
         self.counts.zero_()
+        if self.self_collision is not None:
+            self.self_collision.reset_counts()
 
     def read_counts(self) -> dict:
-        """The counters as ints (one small device-to-host copy)."""
+        """The counters as ints (small device-to-host copies); with self-collision also its counters
+        (see :class:`~cloth_warp.selfcollision.SelfCollision`)."""
         c = self.counts.numpy()
-        return {name: int(c[k]) for k, name in enumerate(COUNTERS)}
+        out = {name: int(c[k]) for k, name in enumerate(COUNTERS)}
+        if self.self_collision is not None:
+            out.update(self.self_collision.read_counts())
+        return out
 
     def apply(self, x_start: wp.array, x_end: wp.array, v_end: wp.array, control: Control, dt: float,
               x_out: wp.array, v_out: wp.array):
-        """Resolve the step x_start -> (x_end, v_end) into (x_out, v_out) (may alias x_end / v_end when not taped)."""
+        """Resolve the step x_start -> (x_end, v_end) into (x_out, v_out) (may alias x_end / v_end when not taped):
+        colliders first, then cloth against itself."""
+        m = self.model
+        if m.collider_count == 0:
+            self.self_collision.apply(x_start, x_end, v_end, dt, x_out, v_out)
+            return
+        if self.self_collision is not None:
+            rg = x_end.requires_grad
+            x_c = wp.empty_like(x_end, requires_grad=rg) if rg else x_out
+            v_c = wp.empty_like(v_end, requires_grad=rg) if rg else v_out
+            self._colliders(x_start, x_end, v_end, control, dt, x_c, v_c)
+            self.self_collision.apply(x_start, x_c, v_c, dt, x_out, v_out)
+            return
+        self._colliders(x_start, x_end, v_end, control, dt, x_out, v_out)
+
+    def _colliders(self, x_start, x_end, v_end, control: Control, dt: float, x_out, v_out):
         m = self.model
         wp.launch(
             kcol.collide_colliders,

@@ -188,8 +188,10 @@ class Model:
             collider_shape (int32, SHAPES index), collider_size (vec3, kernel convention),
             collider_mesh (uint64 wp.Mesh id, 0 for analytic shapes), collider_thickness [m],
             collider_static_friction, collider_kinetic_friction (Coulomb coefficients).
-        self_collision: cloth-cloth contact on (see :class:`~cloth_warp.collision.CollisionHandler`);
-            cloth_thickness: the distance [m] kept between non-adjacent cloth elements.
+        self_collision: cloth-cloth contact on (see :mod:`~cloth_warp.selfcollision`);
+            cloth_thickness: the distance [m] kept between non-adjacent cloth elements;
+            cloth_friction: Coulomb coefficient between cloth layers; self_collision_stiffness: the
+            repulsion stiffness [N/m] of the proximity pass.
     """
 
     def __init__(self):
@@ -208,6 +210,8 @@ class Model:
         self.collider_count = 0
         self.self_collision = False
         self.cloth_thickness = 0.0
+        self.cloth_friction = 0.0
+        self.self_collision_stiffness = 0.0
 
     @property
     def animated(self) -> bool:

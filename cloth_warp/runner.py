@@ -16,6 +16,8 @@ import time
 
 import numpy as np
 
+from .cache import COUNTER_DIAGNOSTICS
+from .collision import ALL_COUNTERS as COLLISION_COUNTERS
 from .scene import Scene, SceneError, build_model, build_solver, build_wind, load_scene
 
 log = logging.getLogger(__name__)
@@ -43,15 +45,27 @@ def find_scene(name_or_path) -> pathlib.Path:
 
 
 def _kernel_modules(solver):
-    from .kernels import collide, constraints, diagnostics, forces, implicit
+    from .kernels import broadphase, collide, constraints, diagnostics, forces, implicit, selfcollide
     from .solvers import SolverImplicitEuler
 
     mods = [forces, constraints, diagnostics]
     if isinstance(solver, SolverImplicitEuler):
         mods.append(implicit)
-    if getattr(solver, "collisions", None) is not None:
+    collisions = getattr(solver, "collisions", None)
+    if collisions is not None:
         mods.append(collide)
+        if collisions.self_collision is not None:
+            mods += [broadphase, selfcollide]
     return mods
+
+
+def _drape_coefficient(scene: Scene, model, positions) -> float:
+    """The Cusick drape coefficient of the scene's cloth at `positions` ([measure.cusick])."""
+    from .drape import drape_coefficient
+
+    radius = scene.get("measure.cusick.disc_radius") or scene.get("cloth.disc.radius")  # checked by the scene loader
+    return drape_coefficient(positions, model.tri_indices.numpy(), pedestal_radius=float(scene.get("measure.cusick.pedestal_radius")),
+                             disc_radius=float(radius), up_axis=model.up_axis)
 
 
 def load_kernels(solver, device) -> float:
@@ -144,11 +158,11 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
         for f in range(n_frames):
             stats = sim.step_frame()
             info = sim.frame_info
-            writer.write(sim.state.particle_q.numpy(), sim.state.particle_qd.numpy(),
-                         {"maxStrain": stats.max_strain, "dt": info["dt_min"], "solverIterations": info["iterations"],
-                          "solverResidual": info["residual"], "colliderContacts": info.get("collider_contacts"),
-                          "colliderCcd": info.get("collider_ccd")})
-            for key in ("collider_contacts", "collider_ccd"):
+            diag = {"maxStrain": stats.max_strain, "dt": info["dt_min"], "solverIterations": info["iterations"],
+                    "solverResidual": info["residual"]}
+            diag.update({attr: info.get(key) for attr, key in COUNTER_DIAGNOSTICS.items()})
+            writer.write(sim.state.particle_q.numpy(), sim.state.particle_qd.numpy(), diag)
+            for key in COLLISION_COUNTERS:
                 if key in info:
                     contacts[key] = contacts.get(key, 0) + info[key]
             max_strain = max(max_strain, stats.max_strain)
@@ -160,6 +174,9 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
                 summary["wall_s"] = time.perf_counter() - t_loop
                 progress(f + 1, n_frames, summary)
         summary["status"] = "complete"
+        cusick = scene.data.get("measure", {}).get("cusick")
+        if cusick is not None:
+            summary["drape_coefficient"] = _drape_coefficient(scene, model, sim.positions())
     except SimulationDiverged as exc:
         summary.update(status="diverged", message=str(exc),
                        diagnosis={"frame": start + summary["frames"] + 1, "time_s": exc.time, "reason": exc.reason,
@@ -179,9 +196,10 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
             dt_min=dt_min if done else None, dt_max=dt_max if done else None, rejected_steps=rejected,
             solver_iterations={"mean": float(np.mean(iterations)), "max": int(np.max(iterations))} if iterations else None,
             frames_written=writer.frames_written, end_frame=start + writer.frames_written - 1,
-            colliders=model.collider_count, contacts=contacts,
+            colliders=model.collider_count, self_collision=bool(model.self_collision), contacts=contacts,
         )
-        writer.close(summary["status"], {k: summary[k] for k in ("frames", "wall_s", "max_strain", "compile_s")})
+        writer.close(summary["status"], {k: summary[k] for k in ("frames", "wall_s", "max_strain", "compile_s", "drape_coefficient")
+                                         if k in summary})
         summary["output_bytes"] = out.stat().st_size if out.exists() else 0
     if interrupted is not None:
         interrupted.summary = summary

@@ -85,6 +85,11 @@ SCHEMA: dict = {
             "resolution": Key("ivec2", [32, 32], "cells along the grid's local x and y", minimum=1),
             "size": Key("vec2", [1.0, 1.0], "extent along local x and y", "m", minimum=0.0, exclusive_minimum=True),
         },
+        "disc": {
+            "radius": Key("float", None, "a circular cloth instead of a grid (e.g. a Cusick specimen), in the local xy-plane "
+                          "centred at the origin", "m", 0.0, True),
+            "rings": Key("int", 16, "concentric rings of the disc mesh (edge length about radius / rings)", minimum=1),
+        },
         "mesh": Key("path", None, "triangle mesh file instead of a grid: OBJ, PLY, STL, GLB, OFF (trimesh) or "
                     "USD (.usd/.usda/.usdc); UV seams are welded for simulation and kept in the cache"),
         "mesh_prim": Key("str", None, "prim path of the mesh inside a USD file (default: the first Mesh)"),
@@ -151,8 +156,11 @@ SCHEMA: dict = {
             "rigid animation: rotation about the collider's own centre, applied after its initial orientation")},
         "rigid colliders the cloth rests on, slides over and is pushed by"),
     "collision": {
-        "self_collision": Key("bool", False, "cloth-cloth contact (not simulated yet: a scene that asks for it is rejected)"),
+        "self_collision": Key("bool", False, "cloth-cloth contact (hash-grid broad phase, proximity, CCD, rigid impact zones)"),
         "thickness": Key("float", 0.004, "distance kept between non-adjacent parts of the cloth", "m", 0.0, True),
+        "friction": Key("float", 0.3, "Coulomb friction between cloth layers", minimum=0.0),
+        "stiffness": Key("float", None, "repulsion stiffness of the proximity pass (default: the cloth's stretch stiffness)", "N/m",
+                         0.0, True),
     },
     "solver": {
         "integrator": Key("str", "implicit_euler", "time integrator", allowed=INTEGRATORS),
@@ -164,6 +172,14 @@ SCHEMA: dict = {
         "max_iterations": Key("int", 1000, "linear-solver iteration cap per step", minimum=1),
         "adaptive": Key("bool", False, "check every step and halve dt on divergence (grows back after good steps)"),
         "dt_min": Key("float", 1e-6, "adaptive floor: below it the run stops with a diagnosis", "s", 0.0, True),
+    },
+    "measure": {
+        "cusick": {
+            "pedestal_radius": Key("float", None, "report the Cusick drape coefficient of the last frame, "
+                                   "(A_shadow - A_pedestal) / (A_disc - A_pedestal), for a specimen on a pedestal of this radius",
+                                   "m", 0.0, True),
+            "disc_radius": Key("float", None, "specimen radius (default: cloth.disc.radius)", "m", 0.0, True),
+        },
     },
     "output": {
         "path": Key("path", None, "cache file: .usdc (default), .usda, .usd or .npz; default out/<scene name>.usdc "
@@ -365,8 +381,21 @@ def load_scene(path, overrides: dict | None = None) -> Scene:
 
 def _check_values(scene: Scene):
     """Checks that span keys (the per-key ones ran in _check)."""
-    if scene.data.get("cloth", {}).get("grid") is not None and scene.data.get("cloth", {}).get("mesh") is not None:
-        raise SceneError("cloth: give either cloth.grid or cloth.mesh, not both")
+    disc = scene.data.get("cloth", {}).get("disc")
+    if disc is not None and "radius" not in disc:
+        raise SceneError("cloth.disc.radius: a disc cloth needs its radius [m]")
+    shapes = [k for k in ("grid", "disc", "mesh") if scene.data.get("cloth", {}).get(k) is not None]
+    if len(shapes) > 1:
+        raise SceneError(f"cloth: give one of cloth.grid, cloth.disc or cloth.mesh, not {' and '.join(shapes)}")
+    cusick = scene.data.get("measure", {}).get("cusick")
+    if cusick is not None:
+        if cusick.get("pedestal_radius") is None:
+            raise SceneError("measure.cusick.pedestal_radius: the pedestal radius [m] is needed for the drape coefficient")
+        radius = cusick.get("disc_radius", (disc or {}).get("radius"))
+        if radius is None:
+            raise SceneError("measure.cusick.disc_radius: give the specimen radius [m] (or use a cloth.disc)")
+        if radius <= cusick["pedestal_radius"]:
+            raise SceneError(f"measure.cusick: the specimen radius {radius} m must exceed the pedestal radius {cusick['pedestal_radius']} m")
     mesh = scene.data.get("cloth", {}).get("mesh")
     if mesh is not None and not scene.resolve(mesh).is_file():
         raise SceneError(f"cloth.mesh: file not found: {scene.resolve(mesh)} (paths are relative to the scene file)")
@@ -427,8 +456,6 @@ def _check_values(scene: Scene):
         if name in names:
             raise SceneError(f"{where}.name: {name!r} is used by another collider")
         names.add(name)
-    if scene.data.get("collision", {}).get("self_collision"):
-        raise SceneError("collision.self_collision: cloth-cloth contact is not simulated in this version; set it to false")
 
 
 # -- construction ---------------------------------------------------------------------------------------------
@@ -479,7 +506,9 @@ def build_model(scene: Scene, device=None):
                   spring_model=scene.get("cloth.spring_model"), name=scene.get("cloth.name"))
     mesh = scene.data.get("cloth", {}).get("mesh")
     try:
-        if mesh is not None:
+        if scene.data.get("cloth", {}).get("disc") is not None:
+            cloth = b.add_cloth_disc(radius=float(scene.get("cloth.disc.radius")), rings=int(scene.get("cloth.disc.rings")), **common)
+        elif mesh is not None:
             cloth = b.add_cloth_mesh_file(scene.resolve(mesh), scale=float(scene.get("cloth.scale")),
                                           prim_path=scene.data["cloth"].get("mesh_prim"), **common)
         else:
@@ -495,6 +524,9 @@ def build_model(scene: Scene, device=None):
         b.add_handle(_selection(cloth, h, f"handles[{i}]"), kfs, name=f"handle{i}")
     for i, col in enumerate(scene.data.get("colliders", [])):
         _add_collider(b, scene, col, i)
+    if scene.get("collision.self_collision"):
+        b.enable_self_collision(float(scene.get("collision.thickness")), float(scene.get("collision.friction")),
+                                scene.get("collision.stiffness"))
     jitter = float(scene.get("cloth.jitter"))
     if jitter > 0.0:
         _jitter(b, cloth, jitter, int(scene.get("scene.seed")))

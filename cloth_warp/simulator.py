@@ -22,8 +22,8 @@ class Simulator:
     With fixed substeps the substep loop of a frame is captured once as a Warp graph (CPU or CUDA) and
     replayed, so per-launch overhead is paid once; with ``adaptive=True`` every step is checked and
     bad steps are retried with half the step (see :class:`AdaptiveStepper`). Capture is skipped for
-    animated handles and colliders (their targets and poses are updated on the host each substep) and for the implicit solver
-    (its iterative solve checks convergence on the host).
+    animated handles and colliders (their targets and poses are updated on the host each substep), for the implicit solver
+    (its iterative solve checks convergence on the host) and for self-collision (its broad phase sizes buffers on the host).
 
     Args:
         model, solver: what to simulate and how.
@@ -59,7 +59,8 @@ class Simulator:
         self.time = 0.0
         self.stepper = AdaptiveStepper(solver, self.dt, dt_min=dt_min, check=check) if adaptive else None
         self.diagnostics = self.stepper.diagnostics if adaptive else Diagnostics(model)
-        possible = not adaptive and not model.animated and not isinstance(solver, SolverImplicitEuler)
+        possible = (not adaptive and not model.animated and not isinstance(solver, SolverImplicitEuler)
+                    and not model.self_collision)
         self.capture = possible if capture is None else (capture and possible)
         self._graph = None
         self.last_stats: StepStats | None = None

@@ -264,6 +264,42 @@ def _add_bend(sl: _SpringList, i: int, j: int, middle: int, weight_b: float, spa
 # Triangle meshes
 
 
+def disc_mesh(radius: float, rings: int) -> tuple[np.ndarray, np.ndarray]:
+    """A disc of `radius` [m] in the local xy-plane centred at the origin, meshed in `rings` concentric
+    rings (ring k has 6k vertices evenly spaced, so every triangle has edges close to radius / rings).
+    Returns (vertices (1 + 3 rings (rings + 1), 3), triangles) with counter-clockwise winding (+z normal)."""
+    if not (np.isfinite(radius) and radius > 0.0):
+        raise ValueError(f"disc radius must be positive [m], got {radius!r}")
+    if int(rings) < 1:
+        raise ValueError(f"disc needs at least 1 ring, got {rings!r}")
+    rings = int(rings)
+    verts = [np.zeros(3)]
+    starts = [0]
+    for k in range(1, rings + 1):
+        starts.append(len(verts))
+        a = 2.0 * np.pi * np.arange(6 * k) / (6 * k)
+        r = radius * k / rings
+        verts.extend(np.stack([r * np.cos(a), r * np.sin(a), np.zeros_like(a)], 1))
+    tris = []
+    for k in range(1, rings + 1):
+        inner_n, outer_n = max(6 * (k - 1), 1), 6 * k
+        i = inner_n if k == 1 else 0  # the centre only fans out
+        j = 0
+        # walk both rings by angle, emitting the triangle that advances the ring whose next vertex comes first
+        while i < inner_n or j < outer_n:
+            a_in = (i + 1) / inner_n if k > 1 else 2.0
+            a_out = (j + 1) / outer_n
+            inner = starts[k - 1] + i % inner_n
+            outer = starts[k] + j % outer_n
+            if j < outer_n and (a_out <= a_in or i >= inner_n):
+                tris.append((inner, outer, starts[k] + (j + 1) % outer_n))
+                j += 1
+            else:
+                tris.append((inner, outer, starts[k - 1] + (i + 1) % inner_n))
+                i += 1
+    return np.asarray(verts), np.asarray(tris, np.int64)
+
+
 class MeshError(ValueError):
     """A mesh that cannot be simulated (the message names the problem)."""
 

@@ -6,6 +6,8 @@ Modules are grouped by what launches together, because each module is one cold c
 * :mod:`.implicit` - Baraff-Witkin system blocks, matrix-free product, CG and Jacobi;
 * :mod:`.constraints` - Provot strain limiting and animated handle targets;
 * :mod:`.collide` - collider distance functions, swept contact and the friction response;
+* :mod:`.broadphase` - the spatial hash grid of voxels for self-collision candidates;
+* :mod:`.selfcollide` - cloth-cloth proximity, CCD and impulse distribution (Bridson et al. 2002);
 * :mod:`.diagnostics` - per-step statistics (forward only, no backward code generated).
 
 Parameters that change between scenes are launch arguments; ``wp.constant`` is kept for true

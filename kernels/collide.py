@@ -220,7 +220,20 @@ def collide_colliders(
         plane = int(0)
         if hit != 0:
             if t > 0.0:
-                plane = 1  # clear at the start, touching on the way: the swept (CCD) case
+                # Clear at the start, touching on the way: the swept (CCD) case when the path goes on into
+                # the solid: the end point is clear again behind it (a thin collider), or inside with the
+                # normal turned away from the first touch's. A path that only grazes a corner or a curved
+                # surface is left to the end-point pass (projecting onto the first touch's tangent plane
+                # would hold cloth out sideways at a corner and stretch it).
+                touch_dist, touch_n = shape_distance(shape, size, mesh, mesh_max_distance, ps + t * (pe - ps))
+                if end_dist0 >= thickness:
+                    back_hit, back_t = first_contact(shape, size, mesh, mesh_max_distance, pe, ps, thickness, tolerance)
+                    mid = ps + 0.5 * (t + 1.0 - back_t) * (pe - ps)
+                    mid_dist, mid_n = shape_distance(shape, size, mesh, mesh_max_distance, mid)
+                    if back_hit != 0 and mid_dist < thickness - wp.max(0.25 * thickness, tolerance):
+                        plane = 1
+                elif wp.dot(end_n0, touch_n) < 0.5:
+                    plane = 1
             else:
                 # In contact at the start. Resting or sliding contact is resolved at the end point below,
                 # unless the relative path crosses the solid (a fast collider pushing the particle): then

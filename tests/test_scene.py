@@ -47,7 +47,7 @@ def test_scene_reference_page_is_current():
     "overrides, message",
     [
         # unknown keys, with a did-you-mean and the allowed keys
-        ({"cloth.gird": 1}, "unknown key 'cloth.gird' (did you mean 'grid'?); allowed here: name, grid, mesh"),
+        ({"cloth.gird": 1}, "unknown key 'cloth.gird' (did you mean 'grid'?); allowed here: name, grid, disc, mesh"),
         ({"solver.substep": 2}, "(did you mean 'substeps'?)"),
         # wrong types
         ({"material.areal_density": "heavy"}, "material.areal_density: expected a finite number [kg/m^2], got 'heavy'"),
@@ -68,7 +68,7 @@ def test_scene_reference_page_is_current():
         ({"forces.up_axis": "X"}, "forces.up_axis: 'X' is not allowed; allowed: Y, Z"),
         ({"output.path": "out/a.abc"}, "output.path: 'out/a.abc' has an unknown extension; allowed: .usdc, .usda, .usd, .npz"),
         # missing files and inconsistent keys
-        ({"cloth.mesh": "missing.obj"}, "either cloth.grid or cloth.mesh"),
+        ({"cloth.mesh": "missing.obj"}, "give one of cloth.grid, cloth.disc or cloth.mesh, not grid and mesh"),
         ({"pins[0].indices": [0]}, "pins[0]: give exactly one of select, indices, box (got select, indices)"),
         # colliders: required and misplaced geometry, friction order, shapes
         ({"colliders": [{"type": "sphere"}]}, "colliders[0].radius: a sphere collider needs it"),
@@ -81,7 +81,12 @@ def test_scene_reference_page_is_current():
         ({"colliders": [{"type": "plane", "axis": [0, 0, 0]}]}, "colliders[0].axis: must not be the zero vector"),
         ({"colliders": [{"type": "sphere", "radius": -1.0}]}, "colliders[0].radius: must be > 0 [m]"),
         ({"colliders": [{"type": "plane"}, {"type": "plane", "name": "plane0"}]}, "colliders[1].name: 'plane0' is used"),
-        ({"collision.self_collision": True}, "collision.self_collision: cloth-cloth contact is not simulated"),
+        ({"collision.friction": -0.1}, "collision.friction: must be >= 0"),
+        ({"cloth.disc": {"rings": 4}}, "cloth.disc.radius: a disc cloth needs its radius"),
+        ({"cloth.disc": {"radius": 0.1}}, "cloth: give one of cloth.grid, cloth.disc or cloth.mesh, not grid and disc"),
+        ({"measure.cusick": {"disc_radius": 0.15}}, "measure.cusick.pedestal_radius: the pedestal radius [m] is needed"),
+        ({"measure.cusick": {"pedestal_radius": 0.09}}, "measure.cusick.disc_radius: give the specimen radius"),
+        ({"measure.cusick": {"pedestal_radius": 0.2, "disc_radius": 0.15}}, "must exceed the pedestal radius 0.2 m"),
     ],
 )
 def test_scene_errors_name_the_key(overrides, message):

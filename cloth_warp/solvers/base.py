@@ -306,6 +306,8 @@ class SolverBase:
         # With both, limiter and collisions alternate: the limiter pulls over-stretched cloth back (possibly
         # into a collider), the collision pass puts it back out; the last word is the collisions'.
         rounds = self.collision_rounds if limiter is not None and collide is not None else 1
+        if collide is not None:
+            collide.begin_step()
         for r in range(rounds):
             last = r == rounds - 1
             if limiter is not None:

@@ -63,9 +63,10 @@ class SolverImplicitEuler(SolverBase):
         strain_limit_iterations: int = 4,
         strain_limit_tolerance: float | None = 1.0e-3,
         collisions: bool = True,
+        collision_rounds: int = 2,
     ):
         super().__init__(model, strain_limit=strain_limit, strain_limit_iterations=strain_limit_iterations,
-                         strain_limit_tolerance=strain_limit_tolerance, collisions=collisions)
+                         strain_limit_tolerance=strain_limit_tolerance, collisions=collisions, collision_rounds=collision_rounds)
         if isinstance(linear_solver, str):
             try:
                 linear_solver = LinearSolver[linear_solver.upper()]

@@ -1,0 +1,200 @@
+"""Broad phase of self-collision: a spatial hash grid of voxels rebuilt every step (Choi & Ko 2002).
+
+Particles and edges are registered in the voxels their swept, padded boxes touch; triangles query the
+particle grid (point-triangle candidates) and edges query the edge grid (edge-edge candidates). Only
+elements sharing a voxel become candidates, pairs sharing a vertex are skipped, and each pair is
+reported once. Buffers grow: the pair count is always exact, and when it exceeds the buffer the
+buffer is enlarged and the search repeated (``grown`` counts how often).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from .kernels import broadphase as kb
+
+
+def _next_pow2(n: int) -> int:
+    return 1 << max(int(n) - 1, 1).bit_length()
+
+
+class ElementSet:
+    """Elements (rows of up to three vertex indices, -1 padded) and their per-step boxes and voxels;
+    with `grid=True` also the hash-grid entries other elements search."""
+
+    def __init__(self, elements: np.ndarray, device, grid: bool):
+        rows = np.full((max(len(elements), 1), 3), -1, np.int32)
+        if len(elements):
+            e = np.asarray(elements, np.int32).reshape(len(elements), -1)
+            rows[: len(e), : e.shape[1]] = e
+        self.count = len(elements)
+        self.device = device
+        self.elements = wp.array(rows, dtype=wp.int32, device=device)
+        n = max(self.count, 1)
+        self.lo = wp.zeros(n, dtype=wp.vec3, device=device)
+        self.hi = wp.zeros(n, dtype=wp.vec3, device=device)
+        self.cell_lo = wp.zeros(n, dtype=wp.vec3i, device=device)
+        self.cell_hi = wp.zeros(n, dtype=wp.vec3i, device=device)
+        self.cell_count = wp.zeros(n, dtype=wp.int32, device=device)
+        self.offsets = wp.zeros(n, dtype=wp.int32, device=device)
+        self.grid = grid
+        self.entries = 0
+        if grid:
+            self._allocate_entries(_next_pow2(4 * n))
+
+    def _allocate_entries(self, capacity: int):
+        """Entry arrays for `capacity` entries and a hash table of 2 x capacity buckets (a bucket then
+        holds about one voxel's entries)."""
+        dev = self.device
+        self.entry_capacity = int(capacity)
+        self.table_size = _next_pow2(max(2 * self.entry_capacity, 64))
+        self.bucket_start = wp.zeros(self.table_size, dtype=wp.int32, device=dev)
+        self.bucket_end = wp.zeros(self.table_size, dtype=wp.int32, device=dev)
+        self.keys = wp.zeros(2 * self.entry_capacity, dtype=wp.int32, device=dev)  # radix sort needs 2x
+        self.values = wp.zeros(2 * self.entry_capacity, dtype=wp.int32, device=dev)
+        self.entry_element = wp.zeros(self.entry_capacity, dtype=wp.int32, device=dev)
+        self.entry_cell = wp.zeros(self.entry_capacity, dtype=wp.vec3i, device=dev)
+        self.sorted_element = wp.zeros(self.entry_capacity, dtype=wp.int32, device=dev)
+        self.sorted_cell = wp.zeros(self.entry_capacity, dtype=wp.vec3i, device=dev)
+        self.sorted_lo = wp.zeros(self.entry_capacity, dtype=wp.vec3, device=dev)
+        self.sorted_hi = wp.zeros(self.entry_capacity, dtype=wp.vec3, device=dev)
+
+    def update(self, x_start: wp.array, velocity: wp.array, dt: float, pad: float, inv_cell_size: float, clamped: wp.array):
+        """Boxes of the step x_start -> x_start + dt velocity grown by `pad` [m]; re-registers the grid's entries."""
+        if self.count == 0:
+            self.entries = 0
+            return
+        dev = self.device
+        wp.launch(kb.element_bounds, dim=self.count, inputs=[self.elements, x_start, velocity, dt, pad, inv_cell_size],
+                  outputs=[self.lo, self.hi, self.cell_lo, self.cell_hi, self.cell_count, clamped], device=dev)
+        if not self.grid:
+            return
+        wp.utils.array_scan(self.cell_count, self.offsets, inclusive=False)
+        total = int(self.offsets.numpy()[self.count - 1]) + int(self.cell_count.numpy()[self.count - 1])
+        if total > self.entry_capacity:
+            self._allocate_entries(_next_pow2(total))
+        wp.launch(kb.fill_cells, dim=self.count, inputs=[self.cell_lo, self.cell_hi, self.offsets, self.table_size - 1],
+                  outputs=[self.keys, self.values, self.entry_element, self.entry_cell], device=dev)
+        wp.utils.radix_sort_pairs(self.keys, self.values, total)
+        wp.launch(kb.gather_sorted_entries, dim=total, inputs=[self.values, self.entry_element, self.entry_cell, self.lo, self.hi],
+                  outputs=[self.sorted_element, self.sorted_cell, self.sorted_lo, self.sorted_hi], device=dev)
+        self.bucket_start.zero_()
+        self.bucket_end.zero_()
+        wp.launch(kb.bucket_ranges, dim=total, inputs=[self.keys, total], outputs=[self.bucket_start, self.bucket_end], device=dev)
+        self.entries = total
+
+
+class PairBuffer:
+    """Candidate pairs (vec2i) of one kind with an exact count; grows instead of dropping pairs."""
+
+    def __init__(self, device, capacity: int = 1024):
+        self.device = device
+        self.count_array = wp.zeros(1, dtype=wp.int32, device=device)
+        self._allocate(capacity)
+        self.count = 0
+        self.grown = 0
+
+    def _allocate(self, capacity: int):
+        self.capacity = int(capacity)
+        self.pairs = wp.zeros(self.capacity, dtype=wp.vec2i, device=self.device)
+
+    def search(self, query: ElementSet, target: ElementSet, same_set: bool, inv_cell_size: float):
+        """Every overlapping, vertex-disjoint (query, target) pair into :attr:`pairs` [: :attr:`count`]."""
+        self.count = 0
+        if query.count == 0 or target.count == 0 or target.entries == 0:
+            return
+        while True:
+            self.count_array.zero_()
+            wp.launch(kb.find_pairs, dim=query.count,
+                      inputs=[query.elements, query.lo, query.hi, query.cell_lo, query.cell_hi, target.elements,
+                              target.sorted_element, target.sorted_cell, target.sorted_lo, target.sorted_hi, target.bucket_start, target.bucket_end,
+                              target.table_size - 1, inv_cell_size, int(same_set), self.capacity],
+                      outputs=[self.pairs, self.count_array], device=self.device)
+            n = int(self.count_array.numpy()[0])
+            if n <= self.capacity:
+                self.count = n
+                return
+            self._allocate(_next_pow2(n))
+            self.grown += 1
+
+    def numpy(self) -> np.ndarray:
+        return self.pairs.numpy()[: self.count].copy()
+
+
+class SelfCollisionGrid:
+    """The per-step broad phase of a cloth mesh: point-triangle and edge-edge candidate pairs.
+
+    Args:
+        triangles: (T, 3) vertex indices; edges: (E, 2) (the unique edges of the triangles by default).
+        particle_count: number of particles.
+        cell_size: voxel edge [m] (Choi & Ko: about an element's size; default twice the mean edge length,
+            the fastest on piled cloth: 30 % less pair search than one edge length, same pairs).
+    """
+
+    def __init__(self, triangles: np.ndarray, particle_count: int, device, cell_size: float | None = None, edges: np.ndarray | None = None,
+                 rest_positions: np.ndarray | None = None):
+        tris = np.asarray(triangles, np.int64).reshape(-1, 3)
+        if edges is None:
+            edges = unique_edges(tris)
+        self.edges_np = np.asarray(edges, np.int64).reshape(-1, 2)
+        if cell_size is None:
+            if rest_positions is None or not len(self.edges_np):
+                raise ValueError("give cell_size or rest_positions to size the voxels")
+            p = np.asarray(rest_positions, float)
+            cell_size = 2.0 * float(np.mean(np.linalg.norm(p[self.edges_np[:, 0]] - p[self.edges_np[:, 1]], axis=1)))
+        if not (cell_size > 0.0):
+            raise ValueError(f"voxel size must be positive [m], got {cell_size!r}")
+        self.cell_size = float(cell_size)
+        self.device = device
+        self.points = ElementSet(np.arange(particle_count).reshape(-1, 1), device, grid=True)
+        self.edges = ElementSet(self.edges_np, device, grid=True)
+        self.triangles = ElementSet(tris, device, grid=False)
+        self.vertex_face = PairBuffer(device)
+        self.edge_edge = PairBuffer(device)
+        # elements whose box spanned more than MAX_CELL_SPAN voxels along an axis (or was not finite), summed over updates
+        self.clamped = wp.zeros(1, dtype=wp.int32, device=device)
+        self._escaped = wp.zeros(1, dtype=wp.int32, device=device)
+        self.builds = 0
+
+    def update(self, x_start: wp.array, velocity: wp.array, dt: float, pad: float, margin: float = 0.0):
+        """Rebuild the grid for the step x_start -> x_start + dt velocity [m/s] and find the candidate pairs
+        (boxes grown by `pad` [m]). With a `margin` [m] the boxes grow by that much more, and the pairs stay
+        valid for later velocities on the same start positions as long as :meth:`covers` says so."""
+        inv = 1.0 / self.cell_size
+        for s in (self.points, self.edges, self.triangles):
+            s.update(x_start, velocity, dt, pad + margin, inv, self.clamped)
+        self.vertex_face.search(self.triangles, self.points, False, inv)
+        self.edge_edge.search(self.edges, self.edges, True, inv)
+        self._reference = (x_start, wp.clone(velocity), float(dt), float(margin))
+        self.builds += 1
+
+    def invalidate(self):
+        """Forget the last update (the start positions it was built on have changed)."""
+        self._reference = None
+
+    def covers(self, x_start: wp.array, velocity: wp.array, dt: float) -> bool:
+        """Whether the pairs of the last :meth:`update` still contain every pair of the step x_start ->
+        x_start + dt velocity: true when no particle's end point moved more than the margin from the end
+        point of that update (then every point of every trajectory moved less, so no element's box grew
+        past the margin it was registered with)."""
+        ref = getattr(self, "_reference", None)
+        if ref is None or ref[0] is not x_start or ref[2] != float(dt) or ref[3] <= 0.0:
+            return False
+        self._escaped.zero_()
+        wp.launch(kb.count_escaped, dim=x_start.shape[0], inputs=[ref[1], velocity, dt, ref[3]], outputs=[self._escaped],
+                  device=self.device)
+        return int(self._escaped.numpy()[0]) == 0
+
+    @property
+    def reference_velocity(self) -> wp.array:
+        """The velocities [m/s] of the last :meth:`update`."""
+        return self._reference[1]
+
+
+def unique_edges(triangles: np.ndarray) -> np.ndarray:
+    """The undirected edges of a triangle list, (E, 2) sorted."""
+    t = np.asarray(triangles, np.int64).reshape(-1, 3)
+    e = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
+    e.sort(axis=1)
+    return np.unique(e, axis=0)

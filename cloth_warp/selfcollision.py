@@ -1,0 +1,370 @@
+"""Cloth-cloth collisions: Bridson, Fedkiw & Anderson (2002) with Provot's rigid impact zones.
+
+Per step, from the collision-free start x^n and the candidate end x~ (physics.md 3(f)):
+
+1. average velocity vbar = (x~ - x^n) / h; hash-grid broad phase on the swept boxes (Choi & Ko), grown
+   by a margin so later corrections that move no end point farther than it reuse the pairs (also the
+   solver's second limiter/collision round of the step); of its pairs, only those whose distance at
+   x^n is within the thickness plus what their vertices can travel are kept;
+2. proximity pass at x^n: elements closer than the cloth thickness get repulsion impulses (never
+   separating faster than 10 % of the overlap per step) with Coulomb friction;
+3. CCD sweeps on the trajectories x^n + t vbar: the first coplanar time at which the elements touch
+   gets an inelastic impulse that leaves them separating at 10 % of the thickness per step; while
+   impacts remain (up to `sweeps`) the sweep repeats on the pairs with a particle the last one moved;
+4. rigid impact zones: the particles of pairs still colliding are merged (union-find) into zones that
+   move rigidly with their linear and angular momentum (x = x_cm + h v_cm + R(h omega) r); detection
+   is repeated with the zones and zones merge until no impact remains;
+5. x^{n+1} = x^n + h vbar, v^{n+1} = v~ + (vbar - vbar_candidate).
+
+Under ``wp.Tape`` steps 2-3 differentiate with the contact set held fixed; an impact zone's rigid
+motion is computed on the host, so the step passes no gradient to its particles' positions.
+Pinned particles have infinite mass (impulses never move them) and keep their motion in a zone.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import warp as wp
+
+from .broadphase import SelfCollisionGrid
+from .kernels import selfcollide as ksc
+
+log = logging.getLogger(__name__)
+
+KINDS = (0, 1)  # vertex-face, edge-edge
+COUNTERS = ("self_proximity", "self_ccd", "self_sweeps", "impact_zones", "impact_zone_particles", "unresolved", "oversized",
+            "pair_buffer_growths")
+
+
+class SelfCollision:
+    """Self-collision of a model's cloth(s), run by :class:`~cloth_warp.collision.CollisionHandler`.
+
+    Args:
+        model: its ``cloth_thickness`` [m], ``cloth_friction`` and ``self_collision_stiffness`` [N/m] are used.
+        sweeps: CCD passes with impulses before rigid impact zones take over.
+        zone_iterations: the most detection / merge rounds of impact zones per step.
+
+    Counters (summed since :meth:`reset_counts`): ``self_proximity`` (repulsion impulses),
+    ``self_ccd`` (CCD impacts found), ``self_sweeps`` (CCD passes run), ``impact_zones`` (zones formed),
+    ``impact_zone_particles``, ``unresolved`` (steps that ended with impacts left: should stay 0),
+    ``oversized`` (elements whose box spans more than 64 voxels on an axis: broad phase clamped),
+    ``pair_buffer_growths``.
+    """
+
+    def __init__(self, model, sweeps: int = 4, zone_iterations: int = 64):
+        self.model = model
+        dev = model.device
+        tris = model.tri_indices.numpy().reshape(-1, 3)
+        self.grid = SelfCollisionGrid(tris, model.particle_count, dev, rest_positions=model.rest_positions)
+        self.edge_indices = self.grid.edges.elements  # (E, 3) rows, -1 padded: columns 0, 1 used
+        self.tri_indices = model.tri_indices
+        mass = model.particle_mass.numpy().astype(np.float64)
+        pinned = model.particle_pinned.numpy() != 0
+        inv = np.where(pinned | (mass <= 0.0), 0.0, 1.0 / np.maximum(mass, 1e-30))
+        self.mass = mass
+        self.inv_mass_np = inv
+        self.inv_mass = wp.array(inv.astype(np.float32), dtype=float, device=dev)
+        self.thickness = float(model.cloth_thickness)
+        self.friction = float(model.cloth_friction)
+        self.stiffness = float(model.self_collision_stiffness)
+        self.sweeps = int(sweeps)
+        # how far [m] a corrected end point may move before the broad phase runs again (its boxes grow by this)
+        self.margin = 0.5 * self.thickness
+        self.zone_iterations = int(zone_iterations)
+        self.counts = wp.zeros(2, dtype=wp.int32, device=dev)
+        self.no_zone = wp.full(model.particle_count, -1, dtype=wp.int32, device=dev)
+        self._cache: dict = {}
+        self._last_weight = None
+        self._lists_build = -1
+        self._close: dict = {}
+        self.reset_counts()
+
+    # -- counters --------------------------------------------------------------------------------
+    def reset_counts(self):
+        self.counts.zero_()
+        self.grid.clamped.zero_()
+        self.host_counts = {"self_sweeps": 0, "impact_zones": 0, "impact_zone_particles": 0, "unresolved": 0}
+        self._grown0 = self.grid.vertex_face.grown + self.grid.edge_edge.grown
+
+    def read_counts(self) -> dict:
+        c = self.counts.numpy()
+        out = {"self_proximity": int(c[ksc.COUNT_PROXIMITY]), "self_ccd": int(c[ksc.COUNT_CCD])}
+        out.update(self.host_counts)
+        out["oversized"] = int(self.grid.clamped.numpy()[0])
+        out["pair_buffer_growths"] = self.grid.vertex_face.grown + self.grid.edge_edge.grown - self._grown0
+        return out
+
+    # -- buffers ---------------------------------------------------------------------------------
+    def _buffer(self, key: str, dtype, fresh: bool, shape=None) -> wp.array:
+        shape = self.model.particle_count if shape is None else shape
+        if fresh:
+            return wp.zeros(shape, dtype=dtype, device=self.model.device, requires_grad=dtype is not wp.int32)
+        buf = self._cache.get(key)
+        if buf is None or buf.shape[0] < (shape if isinstance(shape, int) else shape[0]):
+            buf = wp.zeros(shape, dtype=dtype, device=self.model.device)
+            self._cache[key] = buf
+        return buf
+
+    def _pairs(self, kind: int):
+        """The step's candidate pairs of a kind: the broad phase's, less those too far apart to touch."""
+        return self._close[kind]
+
+    def _grid_pairs(self, kind: int):
+        buf = self.grid.vertex_face if kind == 0 else self.grid.edge_edge
+        return buf.pairs, buf.count
+
+    def contact_tolerance(self) -> float:
+        """Distance [m] at which CCD counts two elements as touching."""
+        return max(1.0e-3 * self.thickness, 1.0e-6)
+
+    def first_contact_times(self, x_start: wp.array, vbar: wp.array, dt: float) -> dict:
+        """Diagnostics: for the step x_start + t vbar, t in [0, dt], every candidate pair of each kind
+        ("vertex_face": (triangle, particle), "edge_edge": (edge, edge) as rows of :attr:`edges`) and its first
+        contact time [s] (-1 when none)."""
+        dev = self.model.device
+        self.grid.update(x_start, vbar, dt, 0.5 * self.thickness)
+        out = {}
+        for kind, name in zip(KINDS, ("vertex_face", "edge_edge")):
+            pairs, count = self._grid_pairs(kind)
+            times = wp.zeros(max(count, 1), dtype=float, device=dev)
+            if count:
+                wp.launch(ksc.eval_first_contact, dim=count,
+                          inputs=[pairs, kind, self.tri_indices, self.edge_indices, x_start, vbar, dt, self.contact_tolerance()],
+                          outputs=[times], device=dev)
+            out[name] = (pairs.numpy()[:count].copy(), times.numpy()[:count].copy())
+        return out
+
+    @property
+    def edges(self) -> np.ndarray:
+        """The cloth's edges (E, 2) as indexed by edge-edge pairs."""
+        return self.grid.edges_np
+
+    # -- the pipeline ----------------------------------------------------------------------------
+    def apply(self, x_start: wp.array, x_end: wp.array, v_end: wp.array, dt: float, x_out: wp.array, v_out: wp.array):
+        """Resolve the step x_start -> (x_end, v_end) into a collision-free (x_out, v_out) (the outputs
+        may alias the inputs when nothing is taped)."""
+        m = self.model
+        dev = m.device
+        n = m.particle_count
+        rg = x_end.requires_grad
+        h_c = self.thickness
+        vbar0 = self._buffer("vbar0", wp.vec3, rg)
+        wp.launch(ksc.average_velocity, dim=n, inputs=[x_start, x_end, dt], outputs=[vbar0], device=dev)
+        pad = 0.5 * h_c
+        self._refresh_grid(x_start, vbar0, dt, pad)  # the solver's later rounds of a step reuse the first's pairs
+        # 2. proximity pass (repulsion + friction) at the start positions
+        vbar = self._impulse_pass(vbar0, "proximity", rg, lambda kind, pairs, count, dv, w: wp.launch(
+            ksc.self_proximity, dim=count,
+            inputs=[pairs, kind, self.tri_indices, self.edge_indices, self.inv_mass, x_start, vbar0, h_c,
+                    self.stiffness, self.friction, dt],
+            outputs=[dv, w, self.counts], device=dev))
+        # 3. CCD sweeps with impulses; 4. impact zones
+        tolerance = self.contact_tolerance()
+        separation = 0.1 * h_c / dt
+        for sweep in range(self.sweeps + 1):
+            respond = sweep < self.sweeps
+            if sweep > 0:
+                self._refresh_grid(x_start, vbar, dt, pad)
+            hits, vbar_next = self._ccd(x_start, vbar, dt, tolerance, separation, respond, rg, self.no_zone, incremental=sweep > 0)
+            if respond:
+                self.host_counts["self_sweeps"] += 1
+            if hits == 0:
+                break
+            if respond:
+                vbar = vbar_next
+        else:
+            vbar = self._impact_zones(x_start, vbar, dt, tolerance, separation, rg, pad)
+        wp.launch(ksc.finish_step, dim=n, inputs=[x_start, vbar, vbar0, v_end, dt], outputs=[x_out, v_out], device=dev)
+
+    def _refresh_grid(self, x_start, vbar, dt, pad):
+        """Re-run the broad phase only when the trajectories left the margin it was built with (the
+        handler invalidates it at the start of each step: same array, new start positions), then keep the
+        pairs close enough to touch (within the thickness, given how far their vertices can move)."""
+        if self.grid.covers(x_start, vbar, dt):
+            return
+        self.grid.update(x_start, vbar, dt, pad, self.margin)
+        dev = self.model.device
+        for kind in KINDS:
+            pairs, count = self._grid_pairs(kind)
+            close = self._buffer(f"close{kind}", wp.vec2i, False, shape=max(count, 1))
+            counter = self._buffer(f"close_count{kind}", wp.int32, False, shape=1)
+            counter.zero_()
+            if count:
+                wp.launch(ksc.select_close_pairs, dim=count,
+                          inputs=[pairs, kind, self.tri_indices, self.edge_indices, x_start, self.grid.reference_velocity, dt,
+                                  self.margin, self.thickness + self.contact_tolerance()],
+                          outputs=[close, counter], device=dev)
+            self._close[kind] = (close, int(counter.numpy()[0]))
+
+    def _impulse_pass(self, vbar, key, rg, launch, lists=None):
+        """Run `launch(kind, pairs, count, dv, weight)` for each pair kind, then average the accumulated
+        velocity changes into a new vbar. `lists` maps kind -> (pairs, count) (default: the grid's)."""
+        m = self.model
+        lists = lists or {kind: self._pairs(kind) for kind in KINDS}
+        if sum(count for _, count in lists.values()) == 0:
+            self._last_weight = None
+            return vbar
+        dv = self._buffer(f"dv_{key}", wp.vec3, rg)
+        weight = self._buffer(f"w_{key}", float, rg)
+        if not rg:
+            dv.zero_()
+            weight.zero_()
+        for kind, (pairs, count) in lists.items():
+            if count:
+                launch(kind, pairs, count, dv, weight)
+        self._last_weight = weight
+        out = self._buffer(f"vbar_{key}", wp.vec3, rg)
+        wp.launch(ksc.apply_velocity_changes, dim=m.particle_count, inputs=[vbar, dv, weight], outputs=[out], device=m.device)
+        return out
+
+    def _active_lists(self, zone, incremental: bool) -> dict:
+        """The pairs a CCD pass must test: all candidates after a broad-phase rebuild; otherwise only the
+        pairs with a particle whose vbar changed since the last pass (it received an impulse there, or
+        belongs to an impact zone): every other pair would give the last pass's answer, a miss."""
+        lists = {kind: self._pairs(kind) for kind in KINDS}
+        if not incremental or self._last_weight is None or self._lists_build != self.grid.builds:
+            self._lists_build = self.grid.builds
+            return lists
+        dev = self.model.device
+        out = {}
+        for kind, (pairs, count) in lists.items():
+            selected = self._buffer(f"active{kind}", wp.vec2i, False, shape=max(count, 1))
+            counter = self._buffer(f"active_count{kind}", wp.int32, False, shape=1)
+            counter.zero_()
+            if count:
+                wp.launch(ksc.select_changed_pairs, dim=count,
+                          inputs=[pairs, kind, self.tri_indices, self.edge_indices, self._last_weight, zone],
+                          outputs=[selected, counter], device=dev)
+            out[kind] = (selected, int(counter.numpy()[0]))
+        return out
+
+    def _ccd(self, x_start, vbar, dt, tolerance, separation, respond, rg, zone, incremental=True):
+        """One CCD pass: the number of impacts found, and vbar after their impulses (when `respond`)."""
+        dev = self.model.device
+        before = int(self.counts.numpy()[ksc.COUNT_CCD])
+        hit = {}
+        lists = self._active_lists(zone, incremental)
+
+        def launch(kind, pairs, count, dv, w):
+            hit[kind] = self._buffer(f"hit{kind}", wp.int32, False, shape=max(count, 1))
+            wp.launch(ksc.self_ccd, dim=count,
+                      inputs=[pairs, kind, self.tri_indices, self.edge_indices, self.inv_mass, zone, x_start, vbar, dt, tolerance,
+                              separation, int(respond)],
+                      outputs=[dv, w, hit[kind], self.counts], device=dev)
+
+        out = self._impulse_pass(vbar, f"ccd{int(respond)}", rg, launch, lists)
+        self._last_hits = {kind: (lists[kind][0], lists[kind][1], flags) for kind, flags in hit.items()}
+        return int(self.counts.numpy()[ksc.COUNT_CCD]) - before, out
+
+    def _colliding_pairs(self) -> np.ndarray:
+        """The particle quadruples of the pairs the last CCD pass found colliding, (k, 4)."""
+        tris = self.tri_indices.numpy().reshape(-1, 3)
+        edges = self.grid.edges_np
+        quads = []
+        for kind, (pairs, count, flags) in self._last_hits.items():
+            sel = pairs.numpy()[:count][flags.numpy()[:count] != 0]
+            if kind == 0:
+                quads.append(np.column_stack([tris[sel[:, 0]], sel[:, 1]]))
+            else:
+                quads.append(np.column_stack([edges[sel[:, 0]], edges[sel[:, 1]]]))
+        return np.concatenate(quads) if quads else np.zeros((0, 4), np.int64)
+
+    def _impact_zones(self, x_start, vbar, dt, tolerance, separation, rg, pad):
+        """Provot's rigid impact zones until no impact remains (or `zone_iterations` rounds)."""
+        m = self.model
+        dev = m.device
+        n = m.particle_count
+        x0 = x_start.numpy().astype(np.float64)
+        links = np.zeros((0, 2), np.int64)  # particle pairs that must move together (all rounds of this step)
+        for _ in range(self.zone_iterations):
+            quads = self._colliding_pairs()
+            links = np.concatenate([links, np.column_stack([np.repeat(quads[:, 0], 3), quads[:, 1:].ravel()])])
+            zone = connected_labels(links, n)
+            zone_ids = np.unique(zone[zone >= 0])
+            v = vbar.numpy().astype(np.float64)
+            zone_v = v.copy()
+            for z in zone_ids:
+                idx = np.flatnonzero(zone == z)
+                zone_v[idx] = self._rigid_motion(idx, x0, v, dt)
+            zone_arr = wp.array(zone.astype(np.int32), dtype=wp.int32, device=dev)
+            out = self._buffer("vbar_zone", wp.vec3, rg)
+            wp.launch(ksc.set_zone_velocity, dim=n, inputs=[zone_arr, wp.array(zone_v.astype(np.float32), dtype=wp.vec3, device=dev), vbar],
+                      outputs=[out], device=dev)
+            vbar = out
+            self._refresh_grid(x_start, vbar, dt, pad)
+            hits, _ = self._ccd(x_start, vbar, dt, tolerance, separation, False, rg, zone_arr)
+            if hits == 0:
+                break
+        else:
+            self.host_counts["unresolved"] += 1
+            log.warning("self-collision: impacts remain after %d impact-zone rounds", self.zone_iterations)
+        self.host_counts["impact_zones"] += len(zone_ids)
+        self.host_counts["impact_zone_particles"] += int((zone >= 0).sum())
+        return vbar
+
+    def _rigid_motion(self, idx: np.ndarray, x0: np.ndarray, v: np.ndarray, dt: float) -> np.ndarray:
+        """Average velocities that move the zone's free particles rigidly with their linear and angular
+        momentum (pinned members keep theirs)."""
+        out = v[idx].copy()
+        free = self.inv_mass_np[idx] > 0.0
+        if free.sum() == 0:
+            return out
+        if not free.all():
+            return self._follow_pinned(idx, free, x0, v, dt)
+        ids = idx[free]
+        mass = self.mass[ids][:, None]
+        total = mass.sum()
+        xc = (mass * x0[ids]).sum(0) / total
+        vc = (mass * v[ids]).sum(0) / total
+        r = x0[ids] - xc
+        momentum = (mass * np.cross(r, v[ids] - vc)).sum(0)
+        inertia = (mass[:, :, None] * ((r * r).sum(1)[:, None, None] * np.eye(3) - r[:, :, None] * r[:, None, :])).sum(0)
+        omega = np.linalg.lstsq(inertia, momentum, rcond=1e-12)[0]
+        angle = np.linalg.norm(omega) * dt
+        rot = np.eye(3)
+        if angle > 0.0:
+            k = omega / np.linalg.norm(omega)
+            kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+            rot = np.eye(3) + np.sin(angle) * kx + (1.0 - np.cos(angle)) * kx @ kx
+        out[free] = (xc + dt * vc + r @ rot.T - x0[ids]) / dt
+        return out
+
+    def _follow_pinned(self, idx, free, x0, v, dt):
+        """A zone holding pinned particles moves with them: the rigid motion that best fits the pinned
+        members' step (weighted Kabsch; handles move rigidly, so it fits them exactly), with the free
+        members' own motion deciding what the pinned ones leave open (a pinned edge's roll)."""
+        out = v[idx].copy()
+        p = x0[idx]
+        q = p + dt * v[idx]
+        w = np.where(free, self.mass[idx], 1.0e6 * max(float(self.mass[idx].max()), 1e-12))[:, None]
+        pc = (w * p).sum(0) / w.sum()
+        qc = (w * q).sum(0) / w.sum()
+        cov = ((p - pc) * w).T @ (q - qc)
+        u, _, vt = np.linalg.svd(cov)
+        d = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
+        rot = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+        out[free] = (qc + (p[free] - pc) @ rot.T - p[free]) / dt
+        return out
+
+
+def connected_labels(links: np.ndarray, count: int) -> np.ndarray:
+    """Per particle, the smallest particle index of its connected component under `links` (k, 2), or -1
+    for particles in no link (min-label propagation with pointer jumping, vectorised)."""
+    label = np.arange(count)
+    if len(links) == 0:
+        return np.full(count, -1)
+    a, b = links[:, 0], links[:, 1]
+    while True:
+        low = np.minimum(label[a], label[b])
+        new = label.copy()
+        np.minimum.at(new, a, low)
+        np.minimum.at(new, b, low)
+        new = new[new]  # pointer jumping: follow labels to their labels
+        if np.array_equal(new, label):
+            break
+        label = new
+    member = np.zeros(count, bool)
+    member[links.ravel()] = True
+    return np.where(member, label, -1)

@@ -1,0 +1,225 @@
+"""Spatial hash grid of voxels for cloth self-collision (Choi & Ko 2002, section 5 of the survey).
+
+Elements (particles, edges, triangles; rows of up to three vertex indices, -1 padded) are registered
+in every voxel their swept, padded bounding box touches: the box of the element's vertices at the
+step's start and at its end (start + dt x velocity), grown by `pad`. Voxels map to hash buckets; a bucket's entries
+are found through the entries sorted by bucket (count -> scan -> fill -> radix sort -> ranges).
+
+A candidate pair is emitted once, from the voxel that holds the lower corner of the two boxes'
+intersection, and only when the boxes overlap and the elements share no vertex; entries of other
+voxels that hash to the same bucket are skipped by their stored voxel coordinates. Pair buffers
+never truncate silently: the pair count is always the true count, pairs are written only while it
+is below the buffer's capacity, and the host grows the buffer and searches again.
+"""
+
+import warp as wp
+
+# An element whose box spans more voxels than this along one axis is clamped (and counted).
+MAX_CELL_SPAN = wp.constant(64)
+
+
+@wp.func
+def cell_of(p: wp.vec3, inv_cell_size: float):
+    return wp.vec3i(int(wp.floor(p[0] * inv_cell_size)), int(wp.floor(p[1] * inv_cell_size)), int(wp.floor(p[2] * inv_cell_size)))
+
+
+@wp.func
+def cell_hash(c: wp.vec3i, table_mask: int):
+    h = (c[0] * 73856093) ^ (c[1] * 19349663) ^ (c[2] * 83492791)
+    return h & table_mask
+
+
+@wp.func
+def boxes_overlap(lo_a: wp.vec3, hi_a: wp.vec3, lo_b: wp.vec3, hi_b: wp.vec3):
+    return (lo_a[0] <= hi_b[0] and lo_b[0] <= hi_a[0] and lo_a[1] <= hi_b[1] and lo_b[1] <= hi_a[1]
+            and lo_a[2] <= hi_b[2] and lo_b[2] <= hi_a[2])
+
+
+@wp.func
+def share_vertex(a: wp.vec3i, b: wp.vec3i):
+    for i in range(3):
+        if a[i] >= 0:
+            for j in range(3):
+                if a[i] == b[j]:
+                    return True
+    return False
+
+
+@wp.func
+def element_row(elements: wp.array2d(dtype=wp.int32), e: int):
+    return wp.vec3i(elements[e, 0], elements[e, 1], elements[e, 2])
+
+
+@wp.kernel
+def element_bounds(
+    elements: wp.array2d(dtype=wp.int32),
+    x_start: wp.array(dtype=wp.vec3),
+    velocity: wp.array(dtype=wp.vec3),
+    dt: float,
+    pad: float,
+    inv_cell_size: float,
+    lo_out: wp.array(dtype=wp.vec3),
+    hi_out: wp.array(dtype=wp.vec3),
+    cell_lo_out: wp.array(dtype=wp.vec3i),
+    cell_hi_out: wp.array(dtype=wp.vec3i),
+    cell_count_out: wp.array(dtype=wp.int32),
+    clamped_out: wp.array(dtype=wp.int32),
+):
+    """Swept, padded box of each element (its vertices from x_start to x_start + dt velocity) and the
+    voxel range it touches."""
+    e = wp.tid()
+    i0 = elements[e, 0]
+    x_end = x_start[i0] + dt * velocity[i0]
+    lo = wp.min(x_start[i0], x_end)
+    hi = wp.max(x_start[i0], x_end)
+    for k in range(1, 3):
+        i = elements[e, k]
+        if i >= 0:
+            x_end = x_start[i] + dt * velocity[i]
+            lo = wp.min(lo, wp.min(x_start[i], x_end))
+            hi = wp.max(hi, wp.max(x_start[i], x_end))
+    grow = wp.vec3(pad, pad, pad)
+    lo = lo - grow
+    hi = hi + grow
+    lo_out[e] = lo
+    hi_out[e] = hi
+    c_lo = cell_of(lo, inv_cell_size)
+    c_hi = cell_of(hi, inv_cell_size)
+    finite = wp.isfinite(lo) and wp.isfinite(hi)
+    clamped = False
+    for k in range(3):
+        if not finite:
+            c_hi[k] = c_lo[k]
+        elif c_hi[k] - c_lo[k] >= MAX_CELL_SPAN:
+            c_hi[k] = c_lo[k] + MAX_CELL_SPAN - 1
+            clamped = True
+    if not finite:
+        c_lo = wp.vec3i(0, 0, 0)
+        c_hi = wp.vec3i(0, 0, 0)
+        clamped = True
+    if clamped:
+        wp.atomic_add(clamped_out, 0, 1)
+    cell_lo_out[e] = c_lo
+    cell_hi_out[e] = c_hi
+    cell_count_out[e] = (c_hi[0] - c_lo[0] + 1) * (c_hi[1] - c_lo[1] + 1) * (c_hi[2] - c_lo[2] + 1)
+
+
+@wp.kernel
+def fill_cells(
+    cell_lo: wp.array(dtype=wp.vec3i),
+    cell_hi: wp.array(dtype=wp.vec3i),
+    offsets: wp.array(dtype=wp.int32),
+    table_mask: int,
+    keys_out: wp.array(dtype=wp.int32),
+    values_out: wp.array(dtype=wp.int32),
+    entry_element_out: wp.array(dtype=wp.int32),
+    entry_cell_out: wp.array(dtype=wp.vec3i),
+):
+    """One entry (bucket key, entry id) per voxel an element touches."""
+    e = wp.tid()
+    lo = cell_lo[e]
+    hi = cell_hi[e]
+    slot = offsets[e]
+    for i in range(lo[0], hi[0] + 1):
+        for j in range(lo[1], hi[1] + 1):
+            for k in range(lo[2], hi[2] + 1):
+                c = wp.vec3i(i, j, k)
+                keys_out[slot] = cell_hash(c, table_mask)
+                values_out[slot] = slot
+                entry_element_out[slot] = e
+                entry_cell_out[slot] = c
+                slot += 1
+
+
+@wp.kernel
+def bucket_ranges(keys: wp.array(dtype=wp.int32), total: int, bucket_start_out: wp.array(dtype=wp.int32),
+                  bucket_end_out: wp.array(dtype=wp.int32)):
+    """[start, end) of each bucket's run in the sorted keys (buckets must be zeroed: empty = [0, 0))."""
+    i = wp.tid()
+    k = keys[i]
+    if i == 0 or keys[i - 1] != k:
+        bucket_start_out[k] = i
+    if i == total - 1 or keys[i + 1] != k:
+        bucket_end_out[k] = i + 1
+
+
+@wp.kernel
+def gather_sorted_entries(sorted_entries: wp.array(dtype=wp.int32), entry_element: wp.array(dtype=wp.int32),
+                          entry_cell: wp.array(dtype=wp.vec3i), lo: wp.array(dtype=wp.vec3), hi: wp.array(dtype=wp.vec3),
+                          element_out: wp.array(dtype=wp.int32), cell_out: wp.array(dtype=wp.vec3i),
+                          lo_out: wp.array(dtype=wp.vec3), hi_out: wp.array(dtype=wp.vec3)):
+    """Entries' element, voxel and box in bucket order, so that a bucket's scan reads memory sequentially."""
+    s = wp.tid()
+    e = sorted_entries[s]
+    element = entry_element[e]
+    element_out[s] = element
+    cell_out[s] = entry_cell[e]
+    lo_out[s] = lo[element]
+    hi_out[s] = hi[element]
+
+
+@wp.kernel
+def find_pairs(
+    query_elements: wp.array2d(dtype=wp.int32),
+    query_lo: wp.array(dtype=wp.vec3),
+    query_hi: wp.array(dtype=wp.vec3),
+    query_cell_lo: wp.array(dtype=wp.vec3i),
+    query_cell_hi: wp.array(dtype=wp.vec3i),
+    target_elements: wp.array2d(dtype=wp.int32),
+    sorted_element: wp.array(dtype=wp.int32),
+    sorted_cell: wp.array(dtype=wp.vec3i),
+    sorted_lo: wp.array(dtype=wp.vec3),
+    sorted_hi: wp.array(dtype=wp.vec3),
+    bucket_start: wp.array(dtype=wp.int32),
+    bucket_end: wp.array(dtype=wp.int32),
+    table_mask: int,
+    inv_cell_size: float,
+    same_set: int,
+    capacity: int,
+    pairs_out: wp.array(dtype=wp.vec2i),
+    pair_count_out: wp.array(dtype=wp.int32),
+):
+    """Pairs (query element, target element) whose boxes overlap and that share no vertex (with
+    `same_set`, each unordered pair once: query < target)."""
+    q = wp.tid()
+    q_row = element_row(query_elements, q)
+    q_lo = query_lo[q]
+    q_hi = query_hi[q]
+    lo = query_cell_lo[q]
+    hi = query_cell_hi[q]
+    for i in range(lo[0], hi[0] + 1):
+        for j in range(lo[1], hi[1] + 1):
+            for k in range(lo[2], hi[2] + 1):
+                c = wp.vec3i(i, j, k)
+                b = cell_hash(c, table_mask)
+                for s in range(bucket_start[b], bucket_end[b]):
+                    ec = sorted_cell[s]
+                    if ec[0] != i or ec[1] != j or ec[2] != k:
+                        continue
+                    t = sorted_element[s]
+                    if same_set != 0 and t <= q:
+                        continue
+                    t_lo = sorted_lo[s]
+                    t_hi = sorted_hi[s]
+                    if not boxes_overlap(q_lo, q_hi, t_lo, t_hi):
+                        continue
+                    # report the pair only from the voxel of the boxes' intersection's lower corner
+                    corner = cell_of(wp.max(q_lo, t_lo), inv_cell_size)
+                    corner = wp.min(corner, hi)  # a clamped box may not reach the corner's voxel
+                    if corner[0] != i or corner[1] != j or corner[2] != k:
+                        continue
+                    if share_vertex(q_row, element_row(target_elements, t)):
+                        continue
+                    slot = wp.atomic_add(pair_count_out, 0, 1)
+                    if slot < capacity:
+                        pairs_out[slot] = wp.vec2i(q, t)
+
+
+@wp.kernel
+def count_escaped(velocity_ref: wp.array(dtype=wp.vec3), velocity: wp.array(dtype=wp.vec3), dt: float, margin: float,
+                  count_out: wp.array(dtype=wp.int32)):
+    """Count particles whose end point moved more than `margin` from the reference step's end point
+    (|dt (velocity - velocity_ref)| > margin); every point of their trajectory then moved less than that."""
+    i = wp.tid()
+    if wp.length(dt * (velocity[i] - velocity_ref[i])) > margin:
+        wp.atomic_add(count_out, 0, 1)

@@ -1,0 +1,544 @@
+"""Cloth-cloth contact (Bridson, Fedkiw & Anderson 2002; physics.md 3(f)): proximity repulsion with
+friction, continuous collision detection on the step's linear trajectories, and impulse distribution.
+
+A contact couples four particles with weights alpha (point-triangle: (-w1, -w2, -w3, 1), the point
+last; edge-edge: (1 - a, a, -(1 - b), -b)) and a unit normal n pointing from the second element toward
+the first. The relative velocity is sum_i alpha_i v_i; an impulse P changes particle i by
+alpha_i P / m_i, so the relative velocity changes by P sum_i alpha_i^2 / m_i and the total momentum
+by P sum_i alpha_i = 0 (pinned particles have 1/m = 0). With equal masses this is Bridson's
+I~ = 2 I / (1 + sum w^2) with the corrected signs.
+
+Contacts of one pass run in parallel: each accumulates its velocity changes, and every particle takes
+the average of the changes it received (a Jacobi pass; several passes converge where Bridson's loop is
+sequential).
+"""
+
+import warp as wp
+
+COPLANAR_BISECTIONS = wp.constant(32)
+NORMAL_EPS = wp.constant(1.0e-12)
+
+# Indices into the self-collision counters.
+COUNT_PROXIMITY = wp.constant(0)
+COUNT_CCD = wp.constant(1)
+
+
+@wp.func
+def closest_point_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
+    """Barycentric weights (of a, b, c) of the point of triangle abc closest to p (Ericson 5.1.5)."""
+    ab = b - a
+    ac = c - a
+    ap = p - a
+    d1 = wp.dot(ab, ap)
+    d2 = wp.dot(ac, ap)
+    if d1 <= 0.0 and d2 <= 0.0:
+        return wp.vec3(1.0, 0.0, 0.0)
+    bp = p - b
+    d3 = wp.dot(ab, bp)
+    d4 = wp.dot(ac, bp)
+    if d3 >= 0.0 and d4 <= d3:
+        return wp.vec3(0.0, 1.0, 0.0)
+    vc = d1 * d4 - d3 * d2
+    if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
+        s = d1 / (d1 - d3)
+        return wp.vec3(1.0 - s, s, 0.0)
+    cp = p - c
+    d5 = wp.dot(ab, cp)
+    d6 = wp.dot(ac, cp)
+    if d6 >= 0.0 and d5 <= d6:
+        return wp.vec3(0.0, 0.0, 1.0)
+    vb = d5 * d2 - d1 * d6
+    if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
+        s = d2 / (d2 - d6)
+        return wp.vec3(1.0 - s, 0.0, s)
+    va = d3 * d6 - d5 * d4
+    if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
+        s = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        return wp.vec3(0.0, 1.0 - s, s)
+    denom = 1.0 / (va + vb + vc)
+    v = vb * denom
+    w = vc * denom
+    return wp.vec3(1.0 - v - w, v, w)
+
+
+@wp.func
+def closest_points_segments(p1: wp.vec3, q1: wp.vec3, p2: wp.vec3, q2: wp.vec3):
+    """Parameters (a, b) in [0, 1]^2 of the closest points p1 + a (q1 - p1), p2 + b (q2 - p2) (Ericson 5.1.9;
+    parallel segments take a = 0 or the clamped projection)."""
+    d1 = q1 - p1
+    d2 = q2 - p2
+    r = p1 - p2
+    aa = wp.dot(d1, d1)
+    ee = wp.dot(d2, d2)
+    f = wp.dot(d2, r)
+    s = float(0.0)
+    t = float(0.0)
+    if aa <= NORMAL_EPS and ee <= NORMAL_EPS:
+        return wp.vec2(0.0, 0.0)
+    if aa <= NORMAL_EPS:
+        return wp.vec2(0.0, wp.clamp(f / ee, 0.0, 1.0))
+    c = wp.dot(d1, r)
+    if ee <= NORMAL_EPS:
+        return wp.vec2(wp.clamp(-c / aa, 0.0, 1.0), 0.0)
+    bb = wp.dot(d1, d2)
+    denom = aa * ee - bb * bb
+    if denom > 1.0e-7 * aa * ee:
+        s = wp.clamp((bb * f - c * ee) / denom, 0.0, 1.0)
+    t = (bb * s + f) / ee
+    if t < 0.0:
+        t = 0.0
+        s = wp.clamp(-c / aa, 0.0, 1.0)
+    elif t > 1.0:
+        t = 1.0
+        s = wp.clamp((bb - c) / aa, 0.0, 1.0)
+    return wp.vec2(s, t)
+
+
+@wp.func
+def weighted_sum(alpha: wp.vec4, a: wp.vec3, b: wp.vec3, c: wp.vec3, d: wp.vec3):
+    return alpha[0] * a + alpha[1] * b + alpha[2] * c + alpha[3] * d
+
+
+@wp.func
+def vertex_face_weights(x: wp.array(dtype=wp.vec3), idx: wp.vec4i):
+    """Weights of the point idx[3] against the triangle idx[0..2] at positions x."""
+    w = closest_point_triangle(x[idx[3]], x[idx[0]], x[idx[1]], x[idx[2]])
+    return wp.vec4(-w[0], -w[1], -w[2], 1.0)
+
+
+@wp.func
+def edge_edge_weights(x: wp.array(dtype=wp.vec3), idx: wp.vec4i):
+    """Weights of edge idx[0]idx[1] against edge idx[2]idx[3] at positions x."""
+    ab = closest_points_segments(x[idx[0]], x[idx[1]], x[idx[2]], x[idx[3]])
+    return wp.vec4(1.0 - ab[0], ab[0], -(1.0 - ab[1]), -ab[1])
+
+
+@wp.func
+def pair_indices(pair: wp.vec2i, kind: int, tri_indices: wp.array2d(dtype=wp.int32), edge_indices: wp.array2d(dtype=wp.int32)):
+    """The four particles of a vertex-face (kind 0: triangle, point) or edge-edge (kind 1) pair."""
+    if kind == 0:
+        t = pair[0]
+        return wp.vec4i(tri_indices[t, 0], tri_indices[t, 1], tri_indices[t, 2], pair[1])
+    return wp.vec4i(edge_indices[pair[0], 0], edge_indices[pair[0], 1], edge_indices[pair[1], 0], edge_indices[pair[1], 1])
+
+
+@wp.func
+def inverse_mass_weight(alpha: wp.vec4, idx: wp.vec4i, inv_mass: wp.array(dtype=float)):
+    """sum_i alpha_i^2 / m_i: the relative velocity change per unit impulse."""
+    s = float(0.0)
+    for i in range(4):
+        s += alpha[i] * alpha[i] * inv_mass[idx[i]]
+    return s
+
+
+@wp.func
+def add_impulse(idx: wp.vec4i, alpha: wp.vec4, inv_mass: wp.array(dtype=float), impulse: wp.vec3,
+                dv_out: wp.array(dtype=wp.vec3), weight_out: wp.array(dtype=float)):
+    """Distribute `impulse` [N s] over the pair: particle i gains alpha_i impulse / m_i."""
+    for i in range(4):
+        im = inv_mass[idx[i]]
+        if im > 0.0 and alpha[i] != 0.0:
+            wp.atomic_add(dv_out, idx[i], alpha[i] * im * impulse)
+            wp.atomic_add(weight_out, idx[i], 1.0)
+
+
+@wp.func
+def pair_impulse(v_rel: wp.vec3, n: wp.vec3, normal_change: float, friction: float, mass_weight: float):
+    """Impulse changing the relative normal velocity by `normal_change` [m/s] and slowing the tangential
+    part by Coulomb friction, v_T <- max(1 - mu dv_N / |v_T|, 0) v_T."""
+    v_n = wp.dot(v_rel, n)
+    v_t = v_rel - v_n * n
+    speed_t = wp.length(v_t)
+    change = normal_change * n
+    if speed_t > 0.0 and friction > 0.0:
+        keep = wp.max(1.0 - friction * normal_change / speed_t, 0.0)
+        change = change + (keep - 1.0) * v_t
+    return change / mass_weight
+
+
+@wp.kernel
+def self_proximity(
+    pairs: wp.array(dtype=wp.vec2i),
+    kind: int,
+    tri_indices: wp.array2d(dtype=wp.int32),
+    edge_indices: wp.array2d(dtype=wp.int32),
+    inv_mass: wp.array(dtype=float),
+    x_start: wp.array(dtype=wp.vec3),
+    vbar: wp.array(dtype=wp.vec3),
+    thickness: float,
+    stiffness: float,
+    friction: float,
+    dt: float,
+    dv_out: wp.array(dtype=wp.vec3),
+    weight_out: wp.array(dtype=float),
+    counts_out: wp.array(dtype=wp.int32),
+):
+    """Repulsion between elements closer than `thickness` at the step's start (Bridson's proximity
+    pass): overlap d = thickness - distance; if the relative normal velocity v_N < 0.1 d / dt, change it
+    by min(dt k d / m, 0.1 d / dt - v_N) (never pushing apart faster than 10 % of the overlap per step),
+    with friction on the tangential part."""
+    tid = wp.tid()
+    idx = pair_indices(pairs[tid], kind, tri_indices, edge_indices)
+    alpha = wp.vec4()
+    if kind == 0:
+        alpha = vertex_face_weights(x_start, idx)
+    else:
+        alpha = edge_edge_weights(x_start, idx)
+    gap = weighted_sum(alpha, x_start[idx[0]], x_start[idx[1]], x_start[idx[2]], x_start[idx[3]])
+    distance = wp.length(gap)
+    if distance >= thickness or distance <= NORMAL_EPS:
+        return
+    mass_weight = inverse_mass_weight(alpha, idx, inv_mass)
+    if mass_weight <= 0.0:
+        return
+    n = gap / distance
+    v_rel = weighted_sum(alpha, vbar[idx[0]], vbar[idx[1]], vbar[idx[2]], vbar[idx[3]])
+    v_n = wp.dot(v_rel, n)
+    overlap = thickness - distance
+    target = 0.1 * overlap / dt
+    if v_n >= target:
+        return
+    change = wp.min(dt * stiffness * overlap * mass_weight, target - v_n)
+    add_impulse(idx, alpha, inv_mass, pair_impulse(v_rel, n, change, friction, mass_weight), dv_out, weight_out)
+    wp.atomic_add(counts_out, COUNT_PROXIMITY, 1)
+
+
+@wp.func
+def coplanarity_cubic(x1: wp.vec3, x2: wp.vec3, x3: wp.vec3, x4: wp.vec3, v1: wp.vec3, v2: wp.vec3, v3: wp.vec3, v4: wp.vec3):
+    """Coefficients (a0, a1, a2, a3) of f(t) = (x21 + t v21) x (x31 + t v31) . (x41 + t v41)."""
+    x21 = x2 - x1
+    x31 = x3 - x1
+    x41 = x4 - x1
+    v21 = v2 - v1
+    v31 = v3 - v1
+    v41 = v4 - v1
+    c0 = wp.cross(x21, x31)
+    c1 = wp.cross(v21, x31) + wp.cross(x21, v31)
+    c2 = wp.cross(v21, v31)
+    return wp.vec4(wp.dot(c0, x41), wp.dot(c1, x41) + wp.dot(c0, v41), wp.dot(c2, x41) + wp.dot(c1, v41), wp.dot(c2, v41))
+
+
+@wp.func
+def cubic_at(c: wp.vec4, t: float):
+    return ((c[3] * t + c[2]) * t + c[1]) * t + c[0]
+
+
+@wp.func
+def root_in(c: wp.vec4, lo: float, hi: float):
+    """A root of the cubic in [lo, hi] when f changes sign there (or vanishes at lo), else -1."""
+    f_lo = cubic_at(c, lo)
+    f_hi = cubic_at(c, hi)
+    if f_lo == 0.0:
+        return lo
+    if f_lo * f_hi > 0.0:
+        return -1.0
+    a = lo
+    b = hi
+    for _ in range(COPLANAR_BISECTIONS):
+        m = 0.5 * (a + b)
+        f_m = cubic_at(c, m)
+        if (f_m < 0.0) == (f_lo < 0.0):
+            a = m
+            f_lo = f_m
+        else:
+            b = m
+    return b
+
+
+@wp.func
+def monotone_breaks(c: wp.vec4, h: float):
+    """The roots of f' inside (0, h) (where f changes monotonicity), as (t1, t2), -1 for none; f' = 3 a3 t^2
+    + 2 a2 t + a1, with the quadratic and linear degenerate cases (a3 = 0, a3 = a2 = 0) handled."""
+    qa = 3.0 * c[3]
+    qb = 2.0 * c[2]
+    qc = c[1]
+    t1 = float(-1.0)
+    t2 = float(-1.0)
+    scale = wp.abs(qa) * h * h + wp.abs(qb) * h + wp.abs(qc)
+    if wp.abs(qa) * h * h <= 1.0e-7 * scale:
+        if wp.abs(qb) * h > 1.0e-7 * scale:
+            t1 = -qc / qb
+    else:
+        disc = qb * qb - 4.0 * qa * qc
+        if disc >= 0.0:
+            sq = wp.sqrt(disc)
+            # numerically stable pair of roots
+            qq = -0.5 * (qb + wp.sign(qb) * sq)
+            if qb == 0.0:
+                qq = -0.5 * sq
+            r1 = qq / qa
+            r2 = r1
+            if qq != 0.0:
+                r2 = qc / qq
+            t1 = wp.min(r1, r2)
+            t2 = wp.max(r1, r2)
+    if not (t1 > 0.0 and t1 < h):
+        t1 = -1.0
+    if not (t2 > 0.0 and t2 < h):
+        t2 = -1.0
+    if t1 < 0.0:
+        t1 = t2
+        t2 = -1.0
+    return wp.vec2(t1, t2)
+
+
+@wp.func
+def lerp_positions(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), i: int, t: float):
+    return x[i] + t * v[i]
+
+
+@wp.func
+def contact_at(kind: int, idx: wp.vec4i, x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), t: float, tolerance: float):
+    """At time t of the linear trajectories: the contact weights, or weights with alpha[3] = 0 when the
+    elements are farther apart than `tolerance`."""
+    p0 = lerp_positions(x, v, idx[0], t)
+    p1 = lerp_positions(x, v, idx[1], t)
+    p2 = lerp_positions(x, v, idx[2], t)
+    p3 = lerp_positions(x, v, idx[3], t)
+    alpha = wp.vec4()
+    if kind == 0:
+        w = closest_point_triangle(p3, p0, p1, p2)
+        alpha = wp.vec4(-w[0], -w[1], -w[2], 1.0)
+    else:
+        ab = closest_points_segments(p0, p1, p2, p3)
+        alpha = wp.vec4(1.0 - ab[0], ab[0], -(1.0 - ab[1]), -ab[1])
+    if wp.length(weighted_sum(alpha, p0, p1, p2, p3)) > tolerance:
+        return wp.vec4(0.0, 0.0, 0.0, 0.0)
+    return alpha
+
+
+@wp.func
+def is_contact(alpha: wp.vec4):
+    """contact_at found the elements within the tolerance (valid weights are never all zero)."""
+    return wp.dot(alpha, alpha) > 0.0
+
+
+@wp.func
+def contact_normal(kind: int, idx: wp.vec4i, x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), t: float, alpha: wp.vec4):
+    """Unit normal at time t (triangle normal / cross product of the edges), oriented from the second
+    element toward the side the first one came from (its start-of-step side)."""
+    p0 = lerp_positions(x, v, idx[0], t)
+    p1 = lerp_positions(x, v, idx[1], t)
+    p2 = lerp_positions(x, v, idx[2], t)
+    p3 = lerp_positions(x, v, idx[3], t)
+    n = wp.vec3()
+    if kind == 0:
+        n = wp.cross(p1 - p0, p2 - p0)
+    else:
+        n = wp.cross(p1 - p0, p3 - p2)
+    start_gap = weighted_sum(alpha, x[idx[0]], x[idx[1]], x[idx[2]], x[idx[3]])
+    ln = wp.length(n)
+    if ln <= NORMAL_EPS:
+        # parallel edges or a degenerate triangle: the direction between the elements at the start
+        n = start_gap
+        ln = wp.length(n)
+        if ln <= NORMAL_EPS:
+            return wp.vec3(0.0, 0.0, 0.0)
+    n = n / ln
+    if wp.dot(start_gap, n) < 0.0:
+        n = -n
+    return n
+
+
+@wp.func
+def first_contact_time(kind: int, idx: wp.vec4i, x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), h: float, tolerance: float):
+    """Earliest t in [0, h] at which the four points are coplanar and the elements within `tolerance`,
+    -1 if none (the end of the step is also tested, so round-off there cannot hide a contact)."""
+    c = coplanarity_cubic(x[idx[0]], x[idx[1]], x[idx[2]], x[idx[3]], v[idx[0]], v[idx[1]], v[idx[2]], v[idx[3]])
+    breaks = monotone_breaks(c, h)
+    lo = float(0.0)
+    for k in range(3):
+        hi = h
+        if k < 2 and breaks[k] > 0.0:
+            hi = breaks[k]
+        if hi > lo or (k == 0 and hi == lo):
+            t = root_in(c, lo, hi)
+            if t >= 0.0:
+                if is_contact(contact_at(kind, idx, x, v, t, tolerance)):
+                    return t
+        lo = hi
+        if lo >= h:
+            break
+    if is_contact(contact_at(kind, idx, x, v, h, tolerance)):
+        return h
+    return -1.0
+
+
+@wp.func
+def may_touch(kind: int, idx: wp.vec4i, x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), dt: float, tolerance: float):
+    """Conservative filter: the distance between two elements changes by at most the largest vertex
+    displacement of each (every point of an element is a convex combination of its vertices), so pairs
+    farther apart at the start than that sum plus the tolerance cannot touch during the step. Culls the
+    many nearby but separated pairs of a smooth cloth before the cubic is solved."""
+    alpha = wp.vec4()
+    reach = float(0.0)
+    if kind == 0:
+        alpha = vertex_face_weights(x, idx)
+        reach = wp.length(v[idx[3]]) + wp.max(wp.length(v[idx[0]]), wp.max(wp.length(v[idx[1]]), wp.length(v[idx[2]])))
+    else:
+        alpha = edge_edge_weights(x, idx)
+        reach = wp.max(wp.length(v[idx[0]]), wp.length(v[idx[1]])) + wp.max(wp.length(v[idx[2]]), wp.length(v[idx[3]]))
+    gap = wp.length(weighted_sum(alpha, x[idx[0]], x[idx[1]], x[idx[2]], x[idx[3]]))
+    return gap - dt * reach <= tolerance
+
+
+@wp.kernel
+def self_ccd(
+    pairs: wp.array(dtype=wp.vec2i),
+    kind: int,
+    tri_indices: wp.array2d(dtype=wp.int32),
+    edge_indices: wp.array2d(dtype=wp.int32),
+    inv_mass: wp.array(dtype=float),
+    zone: wp.array(dtype=wp.int32),
+    x_start: wp.array(dtype=wp.vec3),
+    vbar: wp.array(dtype=wp.vec3),
+    dt: float,
+    tolerance: float,
+    separation_speed: float,
+    respond: int,
+    dv_out: wp.array(dtype=wp.vec3),
+    weight_out: wp.array(dtype=float),
+    hit_out: wp.array(dtype=wp.int32),
+    counts_out: wp.array(dtype=wp.int32),
+):
+    """Continuous collision detection on x_start + t vbar, t in [0, dt]. At the first contact, if the
+    pair is not already separating at `separation_speed` / 2, an inelastic impulse sets its relative
+    normal velocity to `separation_speed` [m/s] (when `respond`). Pairs whose four particles belong to
+    one rigid impact zone (zone id >= 0) are skipped: they move rigidly together."""
+    tid = wp.tid()
+    hit_out[tid] = 0
+    idx = pair_indices(pairs[tid], kind, tri_indices, edge_indices)
+    z = zone[idx[0]]
+    if z >= 0 and zone[idx[1]] == z and zone[idx[2]] == z and zone[idx[3]] == z:
+        return
+    if not may_touch(kind, idx, x_start, vbar, dt, tolerance):
+        return
+    t = first_contact_time(kind, idx, x_start, vbar, dt, tolerance)
+    if t < 0.0:
+        return
+    alpha = contact_at(kind, idx, x_start, vbar, t, tolerance)
+    n = contact_normal(kind, idx, x_start, vbar, t, alpha)
+    if wp.length(n) == 0.0:
+        return
+    v_rel = weighted_sum(alpha, vbar[idx[0]], vbar[idx[1]], vbar[idx[2]], vbar[idx[3]])
+    v_n = wp.dot(v_rel, n)
+    if v_n >= 0.5 * separation_speed:
+        return
+    mass_weight = inverse_mass_weight(alpha, idx, inv_mass)
+    if mass_weight <= 0.0:
+        return
+    hit_out[tid] = 1
+    wp.atomic_add(counts_out, COUNT_CCD, 1)
+    if respond != 0:
+        add_impulse(idx, alpha, inv_mass, pair_impulse(v_rel, n, separation_speed - v_n, 0.0, mass_weight), dv_out, weight_out)
+
+
+@wp.kernel
+def select_close_pairs(
+    pairs: wp.array(dtype=wp.vec2i),
+    kind: int,
+    tri_indices: wp.array2d(dtype=wp.int32),
+    edge_indices: wp.array2d(dtype=wp.int32),
+    x_start: wp.array(dtype=wp.vec3),
+    velocity: wp.array(dtype=wp.vec3),
+    dt: float,
+    margin: float,
+    reach: float,
+    selected_out: wp.array(dtype=wp.vec2i),
+    count_out: wp.array(dtype=wp.int32),
+):
+    """Keep the broad phase's pairs that can come within `reach` [m] during the step: every vertex moves
+    at most dt |velocity| + margin (the broad phase is reused while end points stay within `margin`), so
+    a pair farther apart at the start than reach plus both elements' largest moves never gets close."""
+    tid = wp.tid()
+    idx = pair_indices(pairs[tid], kind, tri_indices, edge_indices)
+    alpha = wp.vec4()
+    move = float(0.0)
+    if kind == 0:
+        alpha = vertex_face_weights(x_start, idx)
+        move = wp.length(velocity[idx[3]]) + wp.max(wp.length(velocity[idx[0]]), wp.max(wp.length(velocity[idx[1]]), wp.length(velocity[idx[2]])))
+    else:
+        alpha = edge_edge_weights(x_start, idx)
+        move = wp.max(wp.length(velocity[idx[0]]), wp.length(velocity[idx[1]])) + wp.max(wp.length(velocity[idx[2]]), wp.length(velocity[idx[3]]))
+    gap = wp.length(weighted_sum(alpha, x_start[idx[0]], x_start[idx[1]], x_start[idx[2]], x_start[idx[3]]))
+    if gap <= reach + dt * move + 2.0 * margin:
+        slot = wp.atomic_add(count_out, 0, 1)
+        selected_out[slot] = pairs[tid]
+
+
+@wp.kernel
+def select_changed_pairs(
+    pairs: wp.array(dtype=wp.vec2i),
+    kind: int,
+    tri_indices: wp.array2d(dtype=wp.int32),
+    edge_indices: wp.array2d(dtype=wp.int32),
+    weight: wp.array(dtype=float),
+    zone: wp.array(dtype=wp.int32),
+    selected_out: wp.array(dtype=wp.vec2i),
+    count_out: wp.array(dtype=wp.int32),
+):
+    """Compact the pairs with a particle that changed in the last pass (received an impulse: weight > 0,
+    or belongs to an impact zone)."""
+    tid = wp.tid()
+    idx = pair_indices(pairs[tid], kind, tri_indices, edge_indices)
+    for i in range(4):
+        if weight[idx[i]] > 0.0 or zone[idx[i]] >= 0:
+            slot = wp.atomic_add(count_out, 0, 1)
+            selected_out[slot] = pairs[tid]
+            return
+
+
+@wp.kernel
+def average_velocity(x_start: wp.array(dtype=wp.vec3), x_end: wp.array(dtype=wp.vec3), dt: float, vbar_out: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    vbar_out[i] = (x_end[i] - x_start[i]) / dt
+
+
+@wp.kernel
+def apply_velocity_changes(vbar: wp.array(dtype=wp.vec3), dv: wp.array(dtype=wp.vec3), weight: wp.array(dtype=float),
+                           vbar_out: wp.array(dtype=wp.vec3)):
+    """Each particle takes the average of the velocity changes its contacts proposed."""
+    i = wp.tid()
+    w = weight[i]
+    if w > 0.0:
+        vbar_out[i] = vbar[i] + dv[i] / w
+    else:
+        vbar_out[i] = vbar[i]
+
+
+@wp.kernel
+def set_zone_velocity(zone: wp.array(dtype=wp.int32), zone_vbar: wp.array(dtype=wp.vec3), vbar: wp.array(dtype=wp.vec3),
+                      vbar_out: wp.array(dtype=wp.vec3)):
+    """Particles of a rigid impact zone take the zone's rigid motion (computed on the host)."""
+    i = wp.tid()
+    if zone[i] >= 0:
+        vbar_out[i] = zone_vbar[i]
+    else:
+        vbar_out[i] = vbar[i]
+
+
+@wp.kernel
+def finish_step(x_start: wp.array(dtype=wp.vec3), vbar: wp.array(dtype=wp.vec3), vbar_candidate: wp.array(dtype=wp.vec3),
+                v_end: wp.array(dtype=wp.vec3), dt: float, x_out: wp.array(dtype=wp.vec3), v_out: wp.array(dtype=wp.vec3)):
+    """x = x_start + dt vbar; the end velocity gets the same correction as the average one."""
+    i = wp.tid()
+    x_out[i] = x_start[i] + dt * vbar[i]
+    v_out[i] = v_end[i] + (vbar[i] - vbar_candidate[i])
+
+
+@wp.kernel
+def eval_first_contact(
+    pairs: wp.array(dtype=wp.vec2i),
+    kind: int,
+    tri_indices: wp.array2d(dtype=wp.int32),
+    edge_indices: wp.array2d(dtype=wp.int32),
+    x_start: wp.array(dtype=wp.vec3),
+    vbar: wp.array(dtype=wp.vec3),
+    dt: float,
+    tolerance: float,
+    time_out: wp.array(dtype=float),
+):
+    """Each candidate pair's first contact time [s] in [0, dt] (-1 for none), without the filter (diagnostics)."""
+    tid = wp.tid()
+    idx = pair_indices(pairs[tid], kind, tri_indices, edge_indices)
+    time_out[tid] = first_contact_time(kind, idx, x_start, vbar, dt, tolerance)

@@ -1,0 +1,54 @@
+"""An independent triangle-triangle intersection checker for the self-collision tests (numpy, float64;
+shares no code with the solver).
+
+Two triangles that share no vertex intersect iff an edge of one crosses the other (for triangles in
+general position); every mesh edge is tested against every triangle it is not incident to, after an
+exact bounding-box filter.
+"""
+
+import numpy as np
+
+
+def unique_edges(tris):
+    e = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
+    return np.unique(np.sort(e, axis=1), axis=0)
+
+
+def segment_crosses_triangle(p, q, a, b, c, eps=1e-12):
+    """Vectorised Moeller-Trumbore: does segment pq cross triangle abc (closed)? All (k, 3) arrays."""
+    d = q - p
+    e1 = b - a
+    e2 = c - a
+    h = np.cross(d, e2)
+    det = np.einsum("ij,ij->i", e1, h)
+    ok = np.abs(det) > eps
+    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    s = p - a
+    u = inv * np.einsum("ij,ij->i", s, h)
+    qv = np.cross(s, e1)
+    v = inv * np.einsum("ij,ij->i", d, qv)
+    t = inv * np.einsum("ij,ij->i", e2, qv)
+    return ok & (u >= 0.0) & (v >= 0.0) & (u + v <= 1.0) & (t >= 0.0) & (t <= 1.0)
+
+
+def intersecting_pairs(x, tris, chunk=256):
+    """(edge, triangle) index pairs where a mesh edge crosses a triangle not incident to it."""
+    x = np.asarray(x, np.float64)
+    tris = np.asarray(tris, np.int64)
+    edges = unique_edges(tris)
+    tlo = x[tris].min(1)
+    thi = x[tris].max(1)
+    elo = np.minimum(x[edges[:, 0]], x[edges[:, 1]])
+    ehi = np.maximum(x[edges[:, 0]], x[edges[:, 1]])
+    found = []
+    for s in range(0, len(edges), chunk):
+        lo, hi, ed = elo[s:s + chunk], ehi[s:s + chunk], edges[s:s + chunk]
+        overlap = np.all((lo[:, None] <= thi[None]) & (tlo[None] <= hi[:, None]), axis=2)
+        incident = (tris[None, :, :] == ed[:, None, 0:1]).any(2) | (tris[None, :, :] == ed[:, None, 1:2]).any(2)
+        ei, ti = np.nonzero(overlap & ~incident)
+        if len(ei) == 0:
+            continue
+        e = ed[ei]
+        hit = segment_crosses_triangle(x[e[:, 0]], x[e[:, 1]], x[tris[ti, 0]], x[tris[ti, 1]], x[tris[ti, 2]])
+        found.extend(zip((ei[hit] + s).tolist(), ti[hit].tolist()))
+    return found
