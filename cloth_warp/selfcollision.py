@@ -185,18 +185,21 @@ class SelfCollision:
         if self.grid.covers(x_start, vbar, dt):
             return
         self.grid.update(x_start, vbar, dt, pad, self.margin)
-        dev = self.model.device
-        for kind in KINDS:
-            pairs, count = self._grid_pairs(kind)
-            close = self._buffer(f"close{kind}", wp.vec2i, False, shape=max(count, 1))
-            counter = self._buffer(f"close_count{kind}", wp.int32, False, shape=1)
+        self._close = self._select("close", ksc.select_close_pairs, {kind: self._grid_pairs(kind) for kind in KINDS},
+                                   [x_start, self.grid.reference_velocity, dt, self.margin, self.thickness + self.contact_tolerance()])
+
+    def _select(self, key: str, kernel, lists: dict, inputs: list) -> dict:
+        """Compact each kind's pairs with `kernel(pairs, kind, triangles, edges, *inputs)` -> kind: (pairs, count)."""
+        out = {}
+        for kind, (pairs, count) in lists.items():
+            selected = self._buffer(f"{key}{kind}", wp.vec2i, False, shape=max(count, 1))
+            counter = self._buffer(f"{key}_count{kind}", wp.int32, False, shape=1)
             counter.zero_()
             if count:
-                wp.launch(ksc.select_close_pairs, dim=count,
-                          inputs=[pairs, kind, self.tri_indices, self.edge_indices, x_start, self.grid.reference_velocity, dt,
-                                  self.margin, self.thickness + self.contact_tolerance()],
-                          outputs=[close, counter], device=dev)
-            self._close[kind] = (close, int(counter.numpy()[0]))
+                wp.launch(kernel, dim=count, inputs=[pairs, kind, self.tri_indices, self.edge_indices, *inputs],
+                          outputs=[selected, counter], device=self.model.device)
+            out[kind] = (selected, int(counter.numpy()[0]))
+        return out
 
     def _impulse_pass(self, vbar, key, rg, launch, lists=None):
         """Run `launch(kind, pairs, count, dv, weight)` for each pair kind, then average the accumulated
@@ -227,18 +230,7 @@ class SelfCollision:
         if not incremental or self._last_weight is None or self._lists_build != self.grid.builds:
             self._lists_build = self.grid.builds
             return lists
-        dev = self.model.device
-        out = {}
-        for kind, (pairs, count) in lists.items():
-            selected = self._buffer(f"active{kind}", wp.vec2i, False, shape=max(count, 1))
-            counter = self._buffer(f"active_count{kind}", wp.int32, False, shape=1)
-            counter.zero_()
-            if count:
-                wp.launch(ksc.select_changed_pairs, dim=count,
-                          inputs=[pairs, kind, self.tri_indices, self.edge_indices, self._last_weight, zone],
-                          outputs=[selected, counter], device=dev)
-            out[kind] = (selected, int(counter.numpy()[0]))
-        return out
+        return self._select("active", ksc.select_changed_pairs, lists, [self._last_weight, zone])
 
     def _ccd(self, x_start, vbar, dt, tolerance, separation, respond, rg, zone, incremental=True):
         """One CCD pass: the number of impacts found, and vbar after their impulses (when `respond`)."""

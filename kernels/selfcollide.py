@@ -114,6 +114,23 @@ def edge_edge_weights(x: wp.array(dtype=wp.vec3), idx: wp.vec4i):
 
 
 @wp.func
+def start_weights(kind: int, x: wp.array(dtype=wp.vec3), idx: wp.vec4i):
+    """Contact weights of a vertex-face (kind 0) or edge-edge (kind 1) pair at positions x."""
+    if kind == 0:
+        return vertex_face_weights(x, idx)
+    return edge_edge_weights(x, idx)
+
+
+@wp.func
+def closing_speed_bound(kind: int, v: wp.array(dtype=wp.vec3), idx: wp.vec4i):
+    """The sum of the two elements' largest vertex speeds [m/s]: every point of an element is a convex
+    combination of its vertices, so their distance changes no faster than this."""
+    if kind == 0:
+        return wp.length(v[idx[3]]) + wp.max(wp.length(v[idx[0]]), wp.max(wp.length(v[idx[1]]), wp.length(v[idx[2]])))
+    return wp.max(wp.length(v[idx[0]]), wp.length(v[idx[1]])) + wp.max(wp.length(v[idx[2]]), wp.length(v[idx[3]]))
+
+
+@wp.func
 def pair_indices(pair: wp.vec2i, kind: int, tri_indices: wp.array2d(dtype=wp.int32), edge_indices: wp.array2d(dtype=wp.int32)):
     """The four particles of a vertex-face (kind 0: triangle, point) or edge-edge (kind 1) pair."""
     if kind == 0:
@@ -179,11 +196,7 @@ def self_proximity(
     with friction on the tangential part."""
     tid = wp.tid()
     idx = pair_indices(pairs[tid], kind, tri_indices, edge_indices)
-    alpha = wp.vec4()
-    if kind == 0:
-        alpha = vertex_face_weights(x_start, idx)
-    else:
-        alpha = edge_edge_weights(x_start, idx)
+    alpha = start_weights(kind, x_start, idx)
     gap = weighted_sum(alpha, x_start[idx[0]], x_start[idx[1]], x_start[idx[2]], x_start[idx[3]])
     distance = wp.length(gap)
     if distance >= thickness or distance <= NORMAL_EPS:
@@ -366,20 +379,12 @@ def first_contact_time(kind: int, idx: wp.vec4i, x: wp.array(dtype=wp.vec3), v: 
 
 @wp.func
 def may_touch(kind: int, idx: wp.vec4i, x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), dt: float, tolerance: float):
-    """Conservative filter: the distance between two elements changes by at most the largest vertex
-    displacement of each (every point of an element is a convex combination of its vertices), so pairs
-    farther apart at the start than that sum plus the tolerance cannot touch during the step. Culls the
-    many nearby but separated pairs of a smooth cloth before the cubic is solved."""
-    alpha = wp.vec4()
-    reach = float(0.0)
-    if kind == 0:
-        alpha = vertex_face_weights(x, idx)
-        reach = wp.length(v[idx[3]]) + wp.max(wp.length(v[idx[0]]), wp.max(wp.length(v[idx[1]]), wp.length(v[idx[2]])))
-    else:
-        alpha = edge_edge_weights(x, idx)
-        reach = wp.max(wp.length(v[idx[0]]), wp.length(v[idx[1]])) + wp.max(wp.length(v[idx[2]]), wp.length(v[idx[3]]))
+    """Conservative filter: pairs farther apart at the start than dt times their closing-speed bound plus
+    the tolerance cannot touch during the step. Culls the many nearby but separated pairs of a smooth
+    cloth before the cubic is solved."""
+    alpha = start_weights(kind, x, idx)
     gap = wp.length(weighted_sum(alpha, x[idx[0]], x[idx[1]], x[idx[2]], x[idx[3]]))
-    return gap - dt * reach <= tolerance
+    return gap - dt * closing_speed_bound(kind, v, idx) <= tolerance
 
 
 @wp.kernel
@@ -452,16 +457,9 @@ def select_close_pairs(
     a pair farther apart at the start than reach plus both elements' largest moves never gets close."""
     tid = wp.tid()
     idx = pair_indices(pairs[tid], kind, tri_indices, edge_indices)
-    alpha = wp.vec4()
-    move = float(0.0)
-    if kind == 0:
-        alpha = vertex_face_weights(x_start, idx)
-        move = wp.length(velocity[idx[3]]) + wp.max(wp.length(velocity[idx[0]]), wp.max(wp.length(velocity[idx[1]]), wp.length(velocity[idx[2]])))
-    else:
-        alpha = edge_edge_weights(x_start, idx)
-        move = wp.max(wp.length(velocity[idx[0]]), wp.length(velocity[idx[1]])) + wp.max(wp.length(velocity[idx[2]]), wp.length(velocity[idx[3]]))
+    alpha = start_weights(kind, x_start, idx)
     gap = wp.length(weighted_sum(alpha, x_start[idx[0]], x_start[idx[1]], x_start[idx[2]], x_start[idx[3]]))
-    if gap <= reach + dt * move + 2.0 * margin:
+    if gap <= reach + dt * closing_speed_bound(kind, velocity, idx) + 2.0 * margin:
         slot = wp.atomic_add(count_out, 0, 1)
         selected_out[slot] = pairs[tid]
 
