@@ -80,6 +80,22 @@ def interpolate_keyframes(keyframes: list[Keyframe], time: float) -> tuple[np.nd
     return t, _slerp(np.asarray(a.rotation, float), np.asarray(b.rotation, float), s)
 
 
+def keyframe_weights(keyframes: list[Keyframe], time: float) -> np.ndarray:
+    """Weights w_j with translation(time) = sum_j w_j keyframes[j].translation (linear interpolation, held
+    outside the keyframes' range): the derivative of a handle's translation by each keyframe's."""
+    w = np.zeros(len(keyframes))
+    times = [f.time for f in keyframes]
+    if time <= times[0]:
+        w[0] = 1.0
+    elif time >= times[-1]:
+        w[-1] = 1.0
+    else:
+        k = int(np.searchsorted(times, time, side="right")) - 1
+        s = (time - times[k]) / (times[k + 1] - times[k])
+        w[k], w[k + 1] = 1.0 - s, s
+    return w
+
+
 def quat_multiply(a, b) -> np.ndarray:
     """Hamilton product a * b of quaternions (x, y, z, w): rotate by b, then by a."""
     ax, ay, az, aw = np.asarray(a, float)

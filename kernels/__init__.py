@@ -8,6 +8,7 @@ Modules are grouped by what launches together, because each module is one cold c
 * :mod:`.collide` - collider distance functions, swept contact and the friction response;
 * :mod:`.broadphase` - the spatial hash grid of voxels for self-collision candidates;
 * :mod:`.selfcollide` - cloth-cloth proximity, CCD and impulse distribution (Bridson et al. 2002);
+* :mod:`.losses` - loss terms of differentiable rollouts (positions, Chamfer, a centroid target);
 * :mod:`.diagnostics` - per-step statistics (forward only, no backward code generated).
 
 Parameters that change between scenes are launch arguments; ``wp.constant`` is kept for true

@@ -86,6 +86,16 @@ def triple_dot(g: wp.vec3, p: wp.array(dtype=wp.vec3), a: int, m: int, b: int):
     return g[0] * p[a] + g[1] * p[m] + g[2] * p[b]
 
 
+@wp.func
+def drag_vector(xa: wp.vec3, xb: wp.vec3, xc: wp.vec3, drag_coefficient: float):
+    """g_t = sqrt(c_A A_t) n_t of a triangle (0 when degenerate)."""
+    cr = wp.cross(xb - xa, xc - xa)
+    twice_area = wp.length(cr)
+    if twice_area < LENGTH_EPS:
+        return wp.vec3(0.0)
+    return wp.sqrt(drag_coefficient * 0.5 * twice_area) * (cr / twice_area)
+
+
 @wp.kernel
 def eval_triangle_drag_vectors(
     tri_indices: wp.array2d(dtype=wp.int32),
@@ -96,13 +106,7 @@ def eval_triangle_drag_vectors(
 ):
     """g_t = sqrt(c_A A_t) n_t, so that -df_a/dv_b = w_a w_b g_t g_t^T for corners a, b of t."""
     t = wp.tid()
-    xa = x[tri_indices[t, 0]]
-    cr = wp.cross(x[tri_indices[t, 1]] - xa, x[tri_indices[t, 2]] - xa)
-    twice_area = wp.length(cr)
-    if twice_area < LENGTH_EPS:
-        drag_vector_out[t] = wp.vec3(0.0)
-        return
-    drag_vector_out[t] = wp.sqrt(tri_drag[t] * 0.5 * twice_area) * (cr / twice_area)
+    drag_vector_out[t] = drag_vector(x[tri_indices[t, 0]], x[tri_indices[t, 1]], x[tri_indices[t, 2]], tri_drag[t])
 
 
 @wp.func
@@ -513,3 +517,145 @@ def compose_warm_start(
         guess_out[i] = dv_pinned[i]
     else:
         guess_out[i] = dv_previous[i]
+
+
+# -- differentiation ---------------------------------------------------------------------------
+# The taped implicit step never tapes the iterative solve. It tapes dv (the solve's result, pinned rows
+# replaced by their prescribed z) and the residual r = S (b - A dv), evaluated element by element with
+# the blocks recomputed from x0, so that every parameter A and b depend on is on the tape. Its backward
+# solves S A S lam = S dL/d(dv) (A is symmetric) and seeds dL/dr = lam (the implicit function theorem:
+# dL/dtheta = lam . dr/dtheta at the solution).
+
+
+@wp.kernel
+def compose_velocity_change(
+    particle_pinned: wp.array(dtype=wp.int32),
+    pin_target: wp.array(dtype=wp.vec3),
+    x0: wp.array(dtype=wp.vec3),
+    v0: wp.array(dtype=wp.vec3),
+    dv_solved: wp.array(dtype=wp.vec3),
+    dt: float,
+    # outputs
+    dv_out: wp.array(dtype=wp.vec3),
+):
+    """dv = the solved value on free particles, z_i (a function of target, x0, v0) on pinned ones."""
+    i = wp.tid()
+    if particle_pinned[i] != 0:
+        dv_out[i] = pinned_velocity_change(i, particle_pinned, pin_target, x0, v0, dt)
+    else:
+        dv_out[i] = dv_solved[i]
+
+
+@wp.kernel
+def eval_residual_particles(
+    particle_mass: wp.array(dtype=float),
+    particle_pin_stiffness: wp.array(dtype=float),
+    particle_pinned: wp.array(dtype=wp.int32),
+    element_force: wp.array(dtype=wp.vec3),
+    x0: wp.array(dtype=wp.vec3),
+    v0: wp.array(dtype=wp.vec3),
+    dv: wp.array(dtype=wp.vec3),
+    pin_target: wp.array(dtype=wp.vec3),
+    gravity: wp.vec3,
+    global_damping: float,
+    dt: float,
+    # outputs (accumulated)
+    residual_out: wp.array(dtype=wp.vec3),
+):
+    """Per-particle part of r = b - A dv: h f0 - h^2 k_pin v0 - M' dv (free particles only)."""
+    i = wp.tid()
+    if particle_pinned[i] != 0:
+        return
+    f0 = total_force(i, particle_mass, particle_pin_stiffness, element_force, x0, v0, pin_target, gravity, global_damping)
+    m_eff = effective_mass(i, particle_mass, particle_pin_stiffness, global_damping, dt)
+    r = dt * (f0 - dt * particle_pin_stiffness[i] * v0[i]) - m_eff * dv[i]
+    wp.atomic_add(residual_out, i, r)
+
+
+@wp.func
+def add_free(residual: wp.array(dtype=wp.vec3), particle_pinned: wp.array(dtype=wp.int32), i: int, value: wp.vec3):
+    if particle_pinned[i] == 0:
+        wp.atomic_add(residual, i, value)
+
+
+@wp.kernel
+def eval_residual_springs(
+    spring_indices: wp.array2d(dtype=wp.int32),
+    spring_rest_length: wp.array(dtype=float),
+    spring_stiffness: wp.array(dtype=float),
+    spring_damping: wp.array(dtype=float),
+    spring_middle: wp.array(dtype=wp.int32),
+    particle_pinned: wp.array(dtype=wp.int32),
+    x0: wp.array(dtype=wp.vec3),
+    v0: wp.array(dtype=wp.vec3),
+    dv: wp.array(dtype=wp.vec3),
+    dt: float,
+    # outputs (accumulated)
+    residual_out: wp.array(dtype=wp.vec3),
+):
+    """Spring and bend-triple part of r: -h^2 K (v0 + dv) - h D dv, blocks recomputed from x0."""
+    s = wp.tid()
+    a = spring_indices[s, 0]
+    b = spring_indices[s, 1]
+    m = spring_middle[s]
+    if m < 0:
+        k_block = spring_stiffness_block(x0[a], x0[b], spring_rest_length[s], spring_stiffness[s])
+        d_block = spring_damping_block(x0[a], x0[b], spring_damping[s])
+        q = dt * dt * (k_block * (v0[a] + dv[a] - v0[b] - dv[b])) + dt * (d_block * (dv[a] - dv[b]))
+        add_free(residual_out, particle_pinned, a, -q)
+        add_free(residual_out, particle_pinned, b, q)
+    else:
+        g = bending_stiffness_weights(x0[a], x0[m], x0[b], spring_stiffness[s])
+        t = dt * dt * (g[0] * (v0[a] + dv[a]) + g[1] * (v0[m] + dv[m]) + g[2] * (v0[b] + dv[b]))
+        add_free(residual_out, particle_pinned, a, -g[0] * t)
+        add_free(residual_out, particle_pinned, m, -g[1] * t)
+        add_free(residual_out, particle_pinned, b, -g[2] * t)
+
+
+@wp.kernel
+def eval_residual_drag(
+    tri_indices: wp.array2d(dtype=wp.int32),
+    tri_drag: wp.array(dtype=float),
+    tri_corner_weights: wp.array(dtype=wp.vec3),
+    particle_pinned: wp.array(dtype=wp.int32),
+    x0: wp.array(dtype=wp.vec3),
+    dv: wp.array(dtype=wp.vec3),
+    dt: float,
+    # outputs (accumulated)
+    residual_out: wp.array(dtype=wp.vec3),
+):
+    """Air-drag part of r: -h w_c g_t (g_t . sum_k w_k dv_k) at each corner c."""
+    t = wp.tid()
+    a = tri_indices[t, 0]
+    b = tri_indices[t, 1]
+    c = tri_indices[t, 2]
+    w = tri_corner_weights[t]
+    g = drag_vector(x0[a], x0[b], x0[c], tri_drag[t])
+    q = dt * wp.dot(g, w[0] * dv[a] + w[1] * dv[b] + w[2] * dv[c]) * g
+    add_free(residual_out, particle_pinned, a, -w[0] * q)
+    add_free(residual_out, particle_pinned, b, -w[1] * q)
+    add_free(residual_out, particle_pinned, c, -w[2] * q)
+
+
+@wp.kernel
+def jacobi_correct(
+    particle_pinned: wp.array(dtype=wp.int32),
+    precond: wp.array(dtype=wp.mat33),
+    dv_in: wp.array(dtype=wp.vec3),
+    residual: wp.array(dtype=wp.vec3),
+    # outputs
+    dv_out: wp.array(dtype=wp.vec3),
+):
+    """One block-Jacobi iteration written as dv + P r (the taped, unrolled reference solve)."""
+    i = wp.tid()
+    if particle_pinned[i] != 0:
+        dv_out[i] = dv_in[i]
+    else:
+        dv_out[i] = dv_in[i] + precond[i] * residual[i]
+
+
+@wp.kernel
+def add_vectors(src: wp.array(dtype=wp.vec3), dst: wp.array(dtype=wp.vec3)):
+    """dst += src (seeding a gradient from a host-side adjoint solve)."""
+    i = wp.tid()
+    dst[i] = dst[i] + src[i]

@@ -7,6 +7,7 @@ import math
 
 import warp as wp
 
+from ..autodiff import paused_tape
 from ..kernels import implicit as ki
 from ..model import Control, Model, State
 from .base import SolverBase
@@ -44,8 +45,14 @@ class SolverImplicitEuler(SolverBase):
             relative to the zero-guess residual |S (b - A z)|, so a good start saves iterations.
         strain_limit, strain_limit_iterations, collisions: see :class:`~cloth_warp.solvers.base.SolverBase`.
 
-    Differentiation: the solve itself runs outside the tape; gradients of the implicit step come from an
-    adjoint solve of the transposed (here: the same, symmetric) system.
+    Differentiation (taped steps, ``state_in.requires_grad``): with ``differentiation="adjoint"`` the solve
+    runs outside the tape; the tape holds dv and the residual r = S (b - A dv), evaluated element by element
+    from x0, v0 and every model parameter, and a backward hook solves the transposed system
+    S A S lam = S dL/d(dv) (A is symmetric: the same CG or Jacobi solve, to the same tolerance) and seeds
+    dL/dr = lam. Gradients are then exact up to the solve tolerance; set a tight `tolerance` (1e-6) for
+    gradient checks. ``differentiation="unrolled"`` instead tapes `max_iterations` block-Jacobi
+    iterations dv <- dv + P r (the reference the adjoint is tested against; memory grows with the
+    iterations). Taped steps never warm-start, so a re-run (checkpointing) reproduces the forward run.
     """
 
     name = "implicit_euler"
@@ -64,6 +71,7 @@ class SolverImplicitEuler(SolverBase):
         strain_limit_tolerance: float | None = 1.0e-3,
         collisions: bool = True,
         collision_rounds: int = 2,
+        differentiation: str = "adjoint",
     ):
         super().__init__(model, strain_limit=strain_limit, strain_limit_iterations=strain_limit_iterations,
                          strain_limit_tolerance=strain_limit_tolerance, collisions=collisions, collision_rounds=collision_rounds)
@@ -73,6 +81,12 @@ class SolverImplicitEuler(SolverBase):
             except KeyError:
                 raise ValueError(f"unknown linear solver {linear_solver!r}; allowed: cg, jacobi") from None
         self.linear_solver = LinearSolver(linear_solver)
+        if differentiation not in ("adjoint", "unrolled"):
+            raise ValueError(f"unknown differentiation {differentiation!r}; allowed: adjoint, unrolled")
+        self.differentiation = differentiation
+        # Backward-pass report: adjoint solves run and their iterations (summed).
+        self.adjoint_solves = 0
+        self.adjoint_iterations = 0
         if max_iterations < 1:
             raise ValueError(f"max_iterations must be >= 1, got {max_iterations!r}")
         if not (tolerance > 0.0 and math.isfinite(tolerance)):
@@ -227,7 +241,7 @@ class SolverImplicitEuler(SolverBase):
         """Assemble and solve the step's linear system; returns the array holding dv [m/s]."""
         self.assemble(state_in, control, dt)
         self._reference_rr = self._read(self.cg_scalars.numpy() if self.model.device.is_cpu else None, 0)
-        if self.warm_start and self._has_previous:
+        if self.warm_start and self._has_previous and not state_in.requires_grad:
             self._restart_from_previous(dt)
         dv = self.solve_cg(dt) if self.linear_solver == LinearSolver.CG else self.solve_jacobi(dt)
         if self.warm_start:
@@ -250,10 +264,11 @@ class SolverImplicitEuler(SolverBase):
         )
 
     def integrate(self, state_in: State, x_out, v_out, control: Control, dt: float):
-        if state_in.requires_grad:
-            raise NotImplementedError("taped implicit steps need the adjoint solve (gradients issue); use an explicit solver under wp.Tape for now")
         m = self.model
-        dv = self.solve(state_in, control, dt)
+        if state_in.requires_grad:
+            dv = self._taped_velocity_change(state_in, control, dt)
+        else:
+            dv = self.solve(state_in, control, dt)
         wp.launch(
             ki.integrate_implicit,
             dim=m.particle_count,
@@ -261,3 +276,76 @@ class SolverImplicitEuler(SolverBase):
             outputs=[x_out, v_out],
             device=m.device,
         )
+
+    # -- differentiation -----------------------------------------------------------------------
+    def system_residual(self, state_in: State, control: Control, dt: float, dv: wp.array) -> wp.array:
+        """r = S (b - A dv) [kg m/s] in a fresh array, element by element (differentiable)."""
+        m = self.model
+        dev = m.device
+        x0, v0 = state_in.particle_q, state_in.particle_qd
+        force = self.element_forces(x0, v0, control, key="_residual")
+        r = wp.zeros(m.particle_count, dtype=wp.vec3, device=dev, requires_grad=True)
+        wp.launch(ki.eval_residual_particles, dim=m.particle_count,
+                  inputs=[m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, force, x0, v0, dv, control.pin_target,
+                          wp.vec3(*m.gravity), m.global_damping, dt], outputs=[r], device=dev)
+        if m.spring_count:
+            wp.launch(ki.eval_residual_springs, dim=m.spring_count,
+                      inputs=[m.spring_indices, m.spring_rest_length, m.spring_stiffness, m.spring_damping, m.spring_middle,
+                              m.particle_pinned, x0, v0, dv, dt], outputs=[r], device=dev)
+        if m.tri_count:
+            wp.launch(ki.eval_residual_drag, dim=m.tri_count,
+                      inputs=[m.tri_indices, m.tri_drag, m.tri_corner_weights, m.particle_pinned, x0, dv, dt], outputs=[r], device=dev)
+        return r
+
+    def _compose(self, state_in: State, control: Control, dt: float, dv_solved: wp.array) -> wp.array:
+        m = self.model
+        dv = wp.zeros(m.particle_count, dtype=wp.vec3, device=m.device, requires_grad=True)
+        wp.launch(ki.compose_velocity_change, dim=m.particle_count,
+                  inputs=[m.particle_pinned, control.pin_target, state_in.particle_q, state_in.particle_qd, dv_solved, dt],
+                  outputs=[dv], device=m.device)
+        return dv
+
+    def _taped_velocity_change(self, state_in: State, control: Control, dt: float) -> wp.array:
+        m = self.model
+        with paused_tape() as tape:
+            if self.differentiation == "unrolled":
+                self.assemble(state_in, control, dt)
+                precond = wp.clone(self.precond, requires_grad=False)
+                start = wp.zeros(m.particle_count, dtype=wp.vec3, device=m.device)
+            else:
+                start = wp.clone(self.solve(state_in, control, dt), requires_grad=False)
+        dv = self._compose(state_in, control, dt, start)
+        if self.differentiation == "unrolled":
+            for _ in range(self.max_iterations):
+                r = self.system_residual(state_in, control, dt, dv)
+                nxt = wp.zeros_like(dv, requires_grad=True)
+                wp.launch(ki.jacobi_correct, dim=m.particle_count, inputs=[m.particle_pinned, precond, dv, r], outputs=[nxt], device=m.device)
+                dv = nxt
+            return dv
+        r = self.system_residual(state_in, control, dt, dv)
+        if tape is not None:
+            tape.record_func(lambda: self._adjoint_solve(state_in, control, dt, dv, r), [dv, r])
+        return dv
+
+    def _adjoint_solve(self, state_in: State, control: Control, dt: float, dv: wp.array, residual: wp.array):
+        """Backward of one taped step: solve S A S lam = S dL/d(dv) and add lam to dL/dr."""
+        m = self.model
+        report = (self.last_iterations, self.last_residual, self.converged)
+        self.assemble(state_in, control, dt)  # the step's blocks and preconditioner (overwritten since)
+        wp.copy(self.rhs, dv.grad)
+        self.dv_alt.zero_()
+        self.cg_scalars.zero_()
+        wp.launch(
+            ki.cg_warm_start,
+            dim=m.particle_count,
+            inputs=[*self._product_args(), m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, self.system_block,
+                    self.bend_vector, self.drag_vector, self.precond, self.rhs, self.dv_alt, m.global_damping, dt],
+            outputs=[self.dv, self.residual, self.preconditioned, self.search, self.cg_scalars],
+            device=m.device,
+        )
+        self._reference_rr = self._read(self.cg_scalars.numpy() if m.device.is_cpu else None, 0)
+        lam = self.solve_cg(dt) if self.linear_solver == LinearSolver.CG else self.solve_jacobi(dt)
+        self.adjoint_solves += 1
+        self.adjoint_iterations += self.last_iterations
+        self.last_iterations, self.last_residual, self.converged = report
+        wp.launch(ki.add_vectors, dim=m.particle_count, inputs=[lam, residual.grad], device=m.device)
