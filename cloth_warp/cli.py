@@ -6,6 +6,8 @@
     cloth-warp info CACHE [--json]              what a cache holds
     cloth-warp scenes                           the shipped scenes
     cloth-warp preview CACHE -o OUT.png|OUT.gif [--frame K] [--size W H] [--every N]
+    cloth-warp fit SCENE --target CACHE --param KEY[=LO:HI] [--param ...] [--loss positions|final|chamfer]
+                         [--iters N] [--lr X] [--frames N] [-o FITTED.toml] [--set ...] [--quiet]
 
 Exit codes: 0 done, 2 bad input (scene key, mesh, missing file, unwritable output), 3 diverged (the cache
 keeps every good frame), 130 interrupted by Ctrl-C or SIGTERM (the cache of the frames done is valid).
@@ -237,6 +239,82 @@ def cmd_preview(args) -> int:
     return EXIT_OK
 
 
+class FitProgress:
+    """One line per iteration (a redrawn bar on a terminal): loss and the current values."""
+
+    def __init__(self, stream=None, quiet: bool = False):
+        self.stream = stream or sys.stderr
+        self.quiet = quiet
+        self.tty = self.stream.isatty()
+        self.start = time.monotonic()
+
+    def __call__(self, iteration: int, total: int, loss: float, values: dict):
+        if self.quiet:
+            return
+        elapsed = time.monotonic() - self.start
+        eta = elapsed / iteration * (total - iteration)
+        shown = "  ".join(f"{k.split('.')[-1]}={_fmt_value(v)}" for k, v in values.items())
+        text = f"{iteration}/{total}  loss {loss:.4e}  {shown}  ETA {_fmt_time(eta)}"
+        if self.tty:
+            width = 20
+            filled = int(width * iteration / total)
+            self.stream.write(f"\r[{'#' * filled}{'.' * (width - filled)}] {text} ")
+            if iteration == total:
+                self.stream.write("\n")
+        else:
+            self.stream.write(f"cloth-warp fit: {text}\n")
+        self.stream.flush()
+
+
+def _fmt_value(v) -> str:
+    if isinstance(v, list):
+        return "[" + ", ".join(f"{x:.4g}" for x in v) + "]"
+    return f"{v:.5g}"
+
+
+def cmd_fit(args) -> int:
+    from .fitting import SceneFit, write_fit_outputs
+    from .runner import find_scene
+    from .scene import load_scene
+
+    scene = load_scene(find_scene(args.scene), parse_set(args.set))
+    if args.iters < 1:
+        raise BadInput(f"--iters must be >= 1, got {args.iters}")
+    if not (args.lr > 0.0):
+        raise BadInput(f"--lr must be > 0, got {args.lr}")
+    try:
+        fit = SceneFit(scene, args.target, args.param or [], loss=args.loss, frames=args.frames, device=args.device)
+    except ValueError as exc:  # unreadable target cache
+        raise BadInput(str(exc)) from exc
+    output = args.output or f"out/{scene.name}_fitted.toml"
+    if not args.quiet:
+        print(f"cloth-warp fit: {scene.name}, {fit.frames} frames ({fit.rollout.steps} steps), {args.loss} loss, "
+              f"{len(fit.parameters)} parameters, {args.iters} iterations", file=sys.stderr)
+    progress = FitProgress(quiet=args.quiet)
+    previous = signal.signal(signal.SIGTERM, _on_sigterm), signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        result = fit.run(iterations=args.iters, learning_rate=args.lr, progress=progress)
+    except KeyboardInterrupt:
+        print("cloth-warp: interrupted before the first iteration; nothing written", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    finally:
+        signal.signal(signal.SIGTERM, previous[0])
+        signal.signal(signal.SIGINT, previous[1])
+    paths = write_fit_outputs(fit, result, output)
+    if not args.quiet:
+        if progress.tty and result.status != "complete":
+            print(file=sys.stderr)
+        lines = [f"{result.status}: {result.iterations} iterations in {result.wall_s:.1f} s, loss {result.initial_loss:.4e} -> "
+                 f"{result.final_loss:.4e} ({result.loss_kind})"]
+        for key in result.parameters:
+            lines.append(f"  {key:<28} {_fmt_value(result.initial_values[key])} -> {_fmt_value(result.final_values[key])}")
+        lines.append(f"  fitted scene  {paths['scene']}")
+        lines.append(f"  report        {paths['report']}")
+        lines.append(f"  loss curve    {paths['loss_curve']}")
+        print("\n".join(lines))
+    return EXIT_INTERRUPTED if result.status == "interrupted" else EXIT_OK
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="cloth-warp", description="Differentiable cloth simulation in NVIDIA Warp.",
                                      epilog="Exit codes: 0 done, 2 bad input, 3 diverged, 130 interrupted.")
@@ -277,6 +355,26 @@ def build_parser() -> argparse.ArgumentParser:
     prev.add_argument("--every", type=int, default=1, help="GIF: use every N-th frame")
     prev.add_argument("--device", help="Warp device for the ray caster")
     prev.set_defaults(func=cmd_preview)
+
+    from .fitting import LOSSES, allowed_parameters
+
+    fit = sub.add_parser("fit", help="fit scene parameters to a target cache with gradients (Adam)",
+                         description="Fit scene keys so the simulated cloth matches a target cache. Parameters: "
+                                     + ", ".join(allowed_parameters()) + ". Positive ones are fitted in log space.")
+    fit.add_argument("scene", help="scene file (.toml) or a shipped scene name; its values are the start")
+    fit.add_argument("--target", required=True, help="target cache (.usdc, .usda, .usd, .npz); its frame k is the scene's frame k")
+    fit.add_argument("--param", action="append", metavar="KEY[=LO:HI]", help="a scene key to fit, with optional bounds; repeatable")
+    fit.add_argument("--loss", default="positions", choices=LOSSES,
+                     help="positions: every target frame; final: the last frame; chamfer: targets on another mesh")
+    fit.add_argument("--iters", type=int, default=50, help="optimizer iterations (default 50)")
+    fit.add_argument("--lr", type=float, default=0.1, help="Adam step size (log space for positive parameters; default 0.1)")
+    fit.add_argument("--frames", type=int, help="fit only the first N frames of the target")
+    fit.add_argument("-o", "--output", help="fitted scene TOML (default out/<scene>_fitted.toml); the JSON report and the "
+                                            "loss-curve PNG go beside it")
+    fit.add_argument("--device", help="Warp device: cpu, cuda, cuda:0 (default: Warp's)")
+    fit.add_argument("--set", action="append", metavar="KEY.PATH=VALUE", help="override a scene key before fitting; repeatable")
+    fit.add_argument("-q", "--quiet", action="store_true", help="no progress and no summary")
+    fit.set_defaults(func=cmd_fit)
     return parser
 
 

@@ -266,6 +266,14 @@ def _check(value, schema, path: str):
 _PATH_PART = re.compile(r"([A-Za-z_][A-Za-z0-9_]*)((?:\[\d+\])*)$")
 
 
+def with_values(scene: Scene, values: dict) -> Scene:
+    """A copy of `scene` with dotted keys set (values already valid: no re-validation)."""
+    data = copy.deepcopy(scene.data)
+    for key, value in values.items():
+        _set_key(data, key, value)
+    return Scene(data, scene.path, dict(scene.overrides), scene.text)
+
+
 def _set_key(data: dict, dotted: str, value):
     """Set `a.b[0].c` in nested dicts/lists (creating tables on the way; arrays must exist up to the index)."""
     parts = dotted.split(".")
@@ -491,8 +499,8 @@ def build_material(scene: Scene):
     return mat.replace(name=f"{mat.name}*", **changes) if changes else mat
 
 
-def build_model(scene: Scene, device=None):
-    """The :class:`~cloth_warp.Model` a scene describes."""
+def build_model(scene: Scene, device=None, requires_grad: bool = False):
+    """The :class:`~cloth_warp.Model` a scene describes (differentiable arrays with `requires_grad`)."""
     from .builder import ModelBuilder
     from .model import Keyframe
     from .topology import MeshError
@@ -530,7 +538,7 @@ def build_model(scene: Scene, device=None):
     jitter = float(scene.get("cloth.jitter"))
     if jitter > 0.0:
         _jitter(b, cloth, jitter, int(scene.get("scene.seed")))
-    return b.finalize(device)
+    return b.finalize(device, requires_grad=requires_grad)
 
 
 def _add_collider(b, scene: Scene, col: dict, i: int):

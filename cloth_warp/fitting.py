@@ -1,0 +1,414 @@
+"""Gradient-based fitting of scene parameters to a target animation (``cloth-warp fit``).
+
+A :class:`SceneFit` simulates a scene with a differentiable :class:`~cloth_warp.gradients.Rollout` and
+fits chosen scene keys so the cloth matches a target cache, with Warp's Adam optimizer::
+
+    fit = cw.SceneFit(load_scene("scenes/fit_hanging.toml"), "out/target.usdc",
+                      ["material.stretch_stiffness", "material.bend_stiffness", "material.damping"])
+    result = fit.run(iterations=60, learning_rate=0.05)
+
+Parameters (scene key paths):
+
+* ``material.<value>``: areal_density, stretch_stiffness, shear_stiffness, bend_stiffness, damping,
+  drag_coefficient; positive, optimized in log space;
+* ``forces.wind`` [m/s] and ``cloth.velocity`` (the initial velocity) [m/s]: vectors, optimized as they are;
+* ``colliders[i].friction``: a collider's Coulomb coefficient (static and kinetic), log space.
+
+Each model array depends linearly on each parameter alone (a stiffness, a mass, a damping c = tau k), so
+the chain rule from the arrays' gradients to a parameter uses the difference of two host-side model
+builds, which is exact; the model is rebuilt from the scene at every iteration. Bounds clip the
+parameter after every step (default: 1/100 to 100 times the start for log-space parameters).
+
+Losses: ``positions`` (mean squared vertex distance over every target frame), ``final`` (the last frame
+only) and ``chamfer`` (symmetric Chamfer distance per frame: targets on a different mesh).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import pathlib
+import re
+import time
+
+import numpy as np
+import warp as wp
+
+from .gradients import ChamferLoss, Loss, PositionLoss, Rollout, model_grad_arrays
+from .scene import Scene, SceneError, build_material, build_model, build_solver, with_values
+
+MATERIAL_VALUES = ("areal_density", "stretch_stiffness", "shear_stiffness", "bend_stiffness", "damping", "drag_coefficient")
+LOSSES = ("positions", "final", "chamfer")
+_COLLIDER_FRICTION = re.compile(r"colliders\[(\d+)\]\.friction$")
+
+
+def allowed_parameters() -> list[str]:
+    return [f"material.{v}" for v in MATERIAL_VALUES] + ["forces.wind", "cloth.velocity", "colliders[i].friction"]
+
+
+@dataclasses.dataclass
+class FitParameter:
+    """One fitted scene key: its current value, bounds and whether it is optimized in log space."""
+
+    key: str
+    value: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+    log: bool
+
+    @property
+    def size(self) -> int:
+        return self.value.size
+
+    def scene_value(self):
+        return float(self.value[0]) if self.size == 1 else [float(v) for v in self.value]
+
+    def encode(self) -> np.ndarray:
+        return np.log(self.value) if self.log else self.value.copy()
+
+    def decode(self, theta: np.ndarray) -> np.ndarray:
+        lo, hi = (np.log(self.lower), np.log(self.upper)) if self.log else (self.lower, self.upper)
+        theta = np.clip(theta, lo, hi)
+        return np.exp(theta) if self.log else theta
+
+
+def parse_parameter(spec: str) -> tuple[str, float | None, float | None]:
+    """``KEY`` or ``KEY=LOWER:UPPER`` (either bound may be empty)."""
+    key, _, bounds = spec.partition("=")
+    lower = upper = None
+    if bounds:
+        lo, sep, hi = bounds.partition(":")
+        if not sep:
+            raise SceneError(f"--param {spec}: bounds are written KEY=LOWER:UPPER")
+        try:
+            lower = float(lo) if lo.strip() else None
+            upper = float(hi) if hi.strip() else None
+        except ValueError:
+            raise SceneError(f"--param {spec}: bounds must be numbers") from None
+    return key.strip(), lower, upper
+
+
+def _current_value(scene: Scene, key: str) -> tuple[np.ndarray, bool]:
+    if key.startswith("material."):
+        name = key.split(".", 1)[1]
+        if name not in MATERIAL_VALUES:
+            raise SceneError(f"--param {key}: not a fittable material value; allowed: {', '.join(allowed_parameters())}")
+        value = float(getattr(build_material(scene), name))
+        if value <= 0.0:
+            raise SceneError(f"--param {key}: the start value must be positive to fit in log space, got {value}")
+        return np.array([value]), True
+    if key in ("forces.wind", "cloth.velocity"):
+        return np.asarray(scene.get(key), float).copy(), False
+    m = _COLLIDER_FRICTION.match(key)
+    if m:
+        cols = scene.data.get("colliders", [])
+        i = int(m.group(1))
+        if i >= len(cols):
+            raise SceneError(f"--param {key}: the scene has {len(cols)} colliders")
+        if "static_friction" in cols[i] or "kinetic_friction" in cols[i]:
+            raise SceneError(f"--param {key}: the collider sets static_friction/kinetic_friction; fit needs one friction value")
+        value = float(cols[i].get("friction", 0.3))
+        if value <= 0.0:
+            raise SceneError(f"--param {key}: the start value must be positive to fit in log space, got {value}")
+        return np.array([value]), True
+    raise SceneError(f"--param {key}: cannot be fitted; allowed: {', '.join(allowed_parameters())}")
+
+
+def make_parameter(scene: Scene, spec: str) -> FitParameter:
+    key, lower, upper = parse_parameter(spec)
+    value, log = _current_value(scene, key)
+    if log:
+        lo = np.full_like(value, value / 100.0 if lower is None else lower)
+        hi = np.full_like(value, value * 100.0 if upper is None else upper)
+        if not (lo > 0.0).all():
+            raise SceneError(f"--param {spec}: the lower bound of a positive parameter must be > 0")
+    else:
+        lo = np.full_like(value, -np.inf if lower is None else lower)
+        hi = np.full_like(value, np.inf if upper is None else upper)
+    if (lo > hi).any():
+        raise SceneError(f"--param {spec}: lower bound above upper bound")
+    return FitParameter(key, np.clip(value, lo, hi), lo, hi, log)
+
+
+def read_targets(target, substeps: int, frames: int | None) -> dict[int, np.ndarray]:
+    """Target points by frame (1..N) from a cache path or reader, or a dict {frame: points} as given."""
+    if isinstance(target, dict):
+        out = {int(k): np.asarray(v, np.float32) for k, v in target.items()}
+    else:
+        from .cache import CacheReader
+
+        reader = target if isinstance(target, CacheReader) else CacheReader(target)
+        count = reader.frame_count - 1  # frame 0 of a cache is the initial state
+        if count < 1:
+            raise SceneError(f"target {reader.path}: needs at least one simulated frame")
+        out = {f: reader.points(reader.start_frame + f) for f in range(1, count + 1)}  # points() takes time codes
+    if frames is not None:
+        out = {f: p for f, p in out.items() if f <= frames}
+    if not out:
+        raise SceneError("target: no frames to fit")
+    return out
+
+
+@dataclasses.dataclass
+class FitResult:
+    """What a fit did: loss and values per iteration, the best values found, and timings."""
+
+    parameters: list[str]
+    initial_values: dict
+    final_values: dict
+    initial_loss: float
+    final_loss: float
+    iterations: int
+    losses: list
+    values: list
+    wall_s: float
+    loss_kind: str
+    frames: int
+    status: str = "complete"
+
+    def report(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+class SceneFit:
+    """Fit scene keys so the simulated cloth matches target frames.
+
+    Args:
+        scene: the scene (its values are the start).
+        target: a cache path / :class:`~cloth_warp.cache.CacheReader` (frame k = the scene's frame k),
+            {frame: points}, or a :class:`~cloth_warp.gradients.Loss` of its own or a function model -> Loss
+            (then give `frames`; a loss's steps count substeps).
+        parameters: specs ``KEY`` or ``KEY=LOWER:UPPER`` (see the module docstring).
+        loss: ``positions``, ``final`` or ``chamfer``.
+        frames: fit the first `frames` frames only (default: all the target has).
+        checkpoint_every: passed to :class:`Rollout`; default: every state kept up to 240 steps, about
+            sqrt(steps) of them beyond (one extra forward pass, memory ~sqrt(T)).
+        device: Warp device.
+    """
+
+    def __init__(self, scene: Scene, target, parameters: list[str], *, loss: str = "positions", frames: int | None = None,
+                 checkpoint_every=None, device=None):
+        if not isinstance(target, Loss) and loss not in LOSSES:
+            raise SceneError(f"loss: {loss!r} is not a loss; allowed: {', '.join(LOSSES)}")
+        if not parameters:
+            raise SceneError("fit: give at least one --param")
+        if float(scene.get("forces.gusts.strength")) > 0.0:
+            raise SceneError("forces.gusts.strength: gusty wind is not differentiable here; set it to 0 to fit")
+        self.scene = scene
+        self.parameters = [make_parameter(scene, p) for p in parameters]
+        keys = [p.key for p in self.parameters]
+        if len(set(keys)) != len(keys):
+            raise SceneError(f"--param: a key is given twice: {keys}")
+        self.loss_kind = loss
+        self.substeps = int(scene.get("solver.substeps"))
+        self.fps = float(scene.get("output.fps"))
+        self.dt = 1.0 / (self.fps * self.substeps)
+        self.device = wp.get_device(device)
+        self.model = build_model(self._scene_with(self._values()), self.device, requires_grad=True)
+        n = self.model.particle_count
+        if callable(target) and not isinstance(target, Loss):
+            target = target(self.model)  # a loss factory (losses that need the model, e.g. CentroidLoss)
+        if isinstance(target, Loss):
+            if frames is None:
+                raise SceneError("fit: a custom loss needs the number of frames to simulate")
+            self.frames, self.loss, self.loss_kind = int(frames), target, type(target).__name__
+            targets = {}
+        else:
+            targets = read_targets(target, self.substeps, frames)
+            self.frames = max(targets)
+        if loss == "final" and targets:
+            targets = {self.frames: targets[self.frames]}
+        steps = {f * self.substeps: p for f, p in targets.items()}
+        if loss == "chamfer" and targets:
+            self.loss = ChamferLoss(steps, device=self.device)
+        elif targets:
+            bad = [f for f, p in targets.items() if p.shape[0] != n]
+            if bad:
+                raise SceneError(f"target: frame {bad[0]} has {targets[bad[0]].shape[0]} points, the scene's cloth {n}; "
+                                 "use --loss chamfer for a target on a different mesh")
+            self.loss = PositionLoss(steps, device=self.device)
+        self.solver = build_solver(scene, self.model)
+        steps = self.frames * self.substeps
+        if checkpoint_every is None and steps > 240:
+            checkpoint_every = "auto"
+        self.rollout = Rollout(self.model, self.solver, dt=self.dt, steps=steps, checkpoint_every=checkpoint_every)
+        self.evaluations = 0
+
+    # -- values <-> model ------------------------------------------------------------------------
+    def _values(self, values: list[np.ndarray] | None = None) -> dict:
+        values = values if values is not None else [p.value for p in self.parameters]
+        return {p.key: (float(v[0]) if p.size == 1 else [float(x) for x in v]) for p, v in zip(self.parameters, values)}
+
+    def _scene_with(self, values: dict) -> Scene:
+        return with_values(self.scene, values)
+
+    def _arrays(self, values: dict) -> dict[str, np.ndarray]:
+        m = build_model(self._scene_with(values), "cpu", requires_grad=True)
+        return {name: a.numpy().astype(np.float64) for name, a in model_grad_arrays(m).items() if name != "particle_q"}
+
+    def _apply(self, values: dict, arrays: dict[str, np.ndarray]):
+        grad_arrays = model_grad_arrays(self.model)
+        for name, a in arrays.items():
+            if name != "particle_qd":
+                grad_arrays[name].assign(a.astype(np.float32))
+        wind = values.get("forces.wind", self.scene.get("forces.wind"))
+        self.rollout.control.wind.assign(np.asarray(wind, np.float32).reshape(1, 3))
+
+    def loss_and_gradient(self, values: list[np.ndarray]) -> tuple[float, list[np.ndarray]]:
+        """The loss at parameter values and its gradient with respect to each of them."""
+        named = self._values(values)
+        base = self._arrays(named)
+        self._apply(named, base)
+        state0 = self.model.state(requires_grad=True)
+        state0.particle_qd.assign(base["particle_qd"].astype(np.float32))
+        loss = self.rollout.gradient(self.loss, state0)
+        self.evaluations += 1
+        grads = {name: a.grad.numpy().astype(np.float64) for name, a in model_grad_arrays(self.model).items() if name != "particle_q"}
+        grads["particle_qd"] = state0.particle_qd.grad.numpy().astype(np.float64)
+        out = []
+        for p, v in zip(self.parameters, values):
+            if p.key == "forces.wind":
+                out.append(self.rollout.control.wind.grad.numpy().astype(np.float64).reshape(3))
+                continue
+            g = np.zeros(p.size)
+            for k in range(p.size):
+                step = abs(float(v[k])) if abs(float(v[k])) > 0.0 else 1.0
+                moved = [x.copy() for x in values]
+                moved[self.parameters.index(p)][k] += step
+                other = self._arrays(self._values(moved))
+                g[k] = sum(float(np.sum(grads[name] * (other[name] - base[name]))) for name in base) / step
+            out.append(g)
+        return loss, out
+
+    # -- the optimization --------------------------------------------------------------------
+    def run(self, iterations: int = 50, learning_rate: float = 0.05, decay: float = 0.1, progress=None) -> FitResult:
+        """Adam on the encoded parameters (log space for positive ones); keeps the best values seen.
+
+        The step size decays geometrically from `learning_rate` to `decay` times it over the iterations
+        (damps Adam's overshoot near the optimum). `progress(iteration, iterations, loss, values)` is called
+        after every evaluation. Ctrl-C ends the fit early with the best values so far (status
+        ``interrupted``)."""
+        from warp.optim import Adam
+
+        if iterations < 1:
+            raise SceneError(f"iterations: must be >= 1, got {iterations}")
+        t0 = time.perf_counter()
+        sizes = [p.size for p in self.parameters]
+        theta = wp.array(np.concatenate([p.encode() for p in self.parameters]).astype(np.float32), dtype=float, device="cpu")
+        optimizer = Adam([theta], lr=learning_rate)
+        initial = {p.key: p.scene_value() for p in self.parameters}
+        losses, history = [], []
+        best = (math.inf, [p.value for p in self.parameters])
+        status = "complete"
+        try:
+            self._iterate(theta, optimizer, sizes, iterations, learning_rate, decay, losses, history, best, progress)
+        except KeyboardInterrupt:
+            status = "interrupted"
+        best = self._best
+        if not losses:
+            raise KeyboardInterrupt
+        for p, v in zip(self.parameters, best[1]):
+            p.value = v
+        final = {p.key: p.scene_value() for p in self.parameters}
+        return FitResult([p.key for p in self.parameters], initial, final, losses[0], best[0], len(losses), losses, history,
+                         time.perf_counter() - t0, self.loss_kind, self.frames, status)
+
+    def _iterate(self, theta, optimizer, sizes, iterations, learning_rate, decay, losses, history, best, progress):
+        self._best = best
+        for it in range(iterations):
+            optimizer.lr = learning_rate * decay ** (it / max(iterations - 1, 1))
+            values = self._split(theta.numpy().astype(np.float64), sizes)
+            loss, grads = self.loss_and_gradient(values)
+            named = self._values(values)
+            losses.append(loss)
+            history.append(named)
+            if not math.isfinite(loss):
+                raise FloatingPointError(f"fit: the loss is not finite at iteration {it} with {named}")
+            if loss < self._best[0]:
+                self._best = (loss, values)
+            if progress is not None:
+                progress(it + 1, iterations, loss, named)
+            g_theta = np.concatenate([g * v if p.log else g for p, g, v in zip(self.parameters, grads, values)])
+            if not np.isfinite(g_theta).all():
+                raise FloatingPointError(f"fit: non-finite gradient at iteration {it} with {named}")
+            optimizer.step([wp.array(g_theta.astype(np.float32), dtype=float, device="cpu")])
+            stepped = self._split(theta.numpy().astype(np.float64), sizes)  # decoding clips to the bounds
+            theta.assign(np.concatenate([np.log(v) if p.log else v for p, v in zip(self.parameters, stepped)]).astype(np.float32))
+
+    def _split(self, theta: np.ndarray, sizes: list[int]) -> list[np.ndarray]:
+        out, k = [], 0
+        for p, s in zip(self.parameters, sizes):
+            out.append(p.decode(theta[k : k + s]))
+            k += s
+        return out
+
+    # -- outputs -------------------------------------------------------------------------------
+    def fitted_scene_toml(self, output: pathlib.Path) -> str:
+        """The scene with the fitted values, as TOML; relative mesh paths are rewritten for `output`'s folder."""
+        import os
+
+        import tomli_w
+
+        scene = self._scene_with(self._values())
+        data = scene.data
+        out_dir = pathlib.Path(output).resolve().parent
+
+        def rebase(table):
+            if isinstance(table, dict) and isinstance(table.get("mesh"), str):
+                table["mesh"] = os.path.relpath(scene.resolve(table["mesh"]).resolve(), out_dir)
+
+        rebase(data.get("cloth"))
+        for col in data.get("colliders", []):
+            rebase(col)
+        header = (f"# Fitted by cloth-warp fit from {scene.path.name if scene.path else 'a scene'}: "
+                  + ", ".join(f"{p.key} = {p.scene_value()}" for p in self.parameters) + "\n")
+        return header + tomli_w.dumps(data)
+
+
+def loss_curve_png(losses: list[float], path, title: str = "fit loss", size=(640, 400)) -> pathlib.Path:
+    """A log-scale loss curve as a PNG (Pillow; no plotting library needed)."""
+    from PIL import Image, ImageDraw
+
+    from .cache import atomic_path
+
+    w, h = size
+    img = Image.new("RGB", size, "white")
+    draw = ImageDraw.Draw(img)
+    left, right, top, bottom = 70, w - 20, 30, h - 40
+    draw.rectangle([left, top, right, bottom], outline="black")
+    values = np.log10(np.maximum(np.asarray(losses, float), 1e-300))
+    lo, hi = float(values.min()), float(values.max())
+    if hi - lo < 1e-9:
+        lo, hi = lo - 0.5, hi + 0.5
+    lo, hi = math.floor(lo), math.ceil(hi)
+    for e in range(lo, hi + 1):
+        y = bottom - (e - lo) / (hi - lo) * (bottom - top)
+        draw.line([left, y, right, y], fill=(225, 225, 225))
+        draw.text((8, y - 6), f"1e{e}", fill="black")
+    n = len(values)
+    pts = [(left + (i / max(n - 1, 1)) * (right - left), bottom - (v - lo) / (hi - lo) * (bottom - top)) for i, v in enumerate(values)]
+    if len(pts) > 1:
+        draw.line(pts, fill=(200, 40, 40), width=2)
+    for p in pts:
+        draw.ellipse([p[0] - 2, p[1] - 2, p[0] + 2, p[1] + 2], fill=(200, 40, 40))
+    draw.text((left, 8), f"{title}: {losses[0]:.3e} -> {min(losses):.3e} in {n} iterations", fill="black")
+    draw.text((left + (right - left) // 2 - 20, bottom + 12), "iteration", fill="black")
+    path = pathlib.Path(path)
+    with atomic_path(path) as tmp:
+        img.save(tmp, format="PNG")
+    return path
+
+
+def write_fit_outputs(fit: SceneFit, result: FitResult, output) -> dict[str, pathlib.Path]:
+    """fitted scene TOML at `output`, the JSON report and the loss-curve PNG beside it (atomic writes)."""
+    from .cache import atomic_write_text
+
+    output = pathlib.Path(output)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    report = output.with_suffix(".json")
+    curve = output.with_name(output.stem + "_loss.png")
+    atomic_write_text(output, fit.fitted_scene_toml(output))
+    atomic_write_text(report, json.dumps(result.report(), indent=1) + "\n")
+    loss_curve_png(result.losses, curve, title=f"{result.loss_kind} loss")
+    return {"scene": output, "report": report, "loss_curve": curve}
