@@ -109,14 +109,8 @@ _NO_LOSS = Loss()
 
 def _gather(x: wp.array, ids: wp.array) -> wp.array:
     out = wp.zeros(ids.shape[0], dtype=wp.vec3, device=x.device, requires_grad=x.requires_grad)
-    wp.launch(_gather_kernel, dim=ids.shape[0], inputs=[x, ids], outputs=[out], device=x.device)
+    wp.launch(kl.gather_points, dim=ids.shape[0], inputs=[x, ids], outputs=[out], device=x.device)
     return out
-
-
-@wp.kernel
-def _gather_kernel(x: wp.array(dtype=wp.vec3), ids: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.vec3)):
-    i = wp.tid()
-    out[i] = x[ids[i]]
 
 
 def model_grad_arrays(model: Model) -> dict[str, wp.array]:

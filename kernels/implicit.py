@@ -573,9 +573,10 @@ def eval_residual_particles(
 
 
 @wp.func
-def add_free(residual: wp.array(dtype=wp.vec3), particle_pinned: wp.array(dtype=wp.int32), i: int, value: wp.vec3):
+def add_free(particle_pinned: wp.array(dtype=wp.int32), i: int, value: wp.vec3, residual_out: wp.array(dtype=wp.vec3)):
+    """residual_out[i] += value on free particles (pinned rows of the filtered residual stay 0)."""
     if particle_pinned[i] == 0:
-        wp.atomic_add(residual, i, value)
+        wp.atomic_add(residual_out, i, value)
 
 
 @wp.kernel
@@ -602,14 +603,14 @@ def eval_residual_springs(
         k_block = spring_stiffness_block(x0[a], x0[b], spring_rest_length[s], spring_stiffness[s])
         d_block = spring_damping_block(x0[a], x0[b], spring_damping[s])
         q = dt * dt * (k_block * (v0[a] + dv[a] - v0[b] - dv[b])) + dt * (d_block * (dv[a] - dv[b]))
-        add_free(residual_out, particle_pinned, a, -q)
-        add_free(residual_out, particle_pinned, b, q)
+        add_free(particle_pinned, a, -q, residual_out)
+        add_free(particle_pinned, b, q, residual_out)
     else:
         g = bending_stiffness_weights(x0[a], x0[m], x0[b], spring_stiffness[s])
         t = dt * dt * (g[0] * (v0[a] + dv[a]) + g[1] * (v0[m] + dv[m]) + g[2] * (v0[b] + dv[b]))
-        add_free(residual_out, particle_pinned, a, -g[0] * t)
-        add_free(residual_out, particle_pinned, m, -g[1] * t)
-        add_free(residual_out, particle_pinned, b, -g[2] * t)
+        add_free(particle_pinned, a, -g[0] * t, residual_out)
+        add_free(particle_pinned, m, -g[1] * t, residual_out)
+        add_free(particle_pinned, b, -g[2] * t, residual_out)
 
 
 @wp.kernel
@@ -632,9 +633,9 @@ def eval_residual_drag(
     w = tri_corner_weights[t]
     g = drag_vector(x0[a], x0[b], x0[c], tri_drag[t])
     q = dt * wp.dot(g, w[0] * dv[a] + w[1] * dv[b] + w[2] * dv[c]) * g
-    add_free(residual_out, particle_pinned, a, -w[0] * q)
-    add_free(residual_out, particle_pinned, b, -w[1] * q)
-    add_free(residual_out, particle_pinned, c, -w[2] * q)
+    add_free(particle_pinned, a, -w[0] * q, residual_out)
+    add_free(particle_pinned, b, -w[1] * q, residual_out)
+    add_free(particle_pinned, c, -w[2] * q, residual_out)
 
 
 @wp.kernel
@@ -655,7 +656,7 @@ def jacobi_correct(
 
 
 @wp.kernel
-def add_vectors(src: wp.array(dtype=wp.vec3), dst: wp.array(dtype=wp.vec3)):
-    """dst += src (seeding a gradient from a host-side adjoint solve)."""
+def add_vectors(src: wp.array(dtype=wp.vec3), dst_out: wp.array(dtype=wp.vec3)):
+    """dst_out += src (seeding a gradient from a host-side adjoint solve)."""
     i = wp.tid()
-    dst[i] = dst[i] + src[i]
+    dst_out[i] = dst_out[i] + src[i]

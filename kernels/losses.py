@@ -81,3 +81,15 @@ def eval_point_loss(
     """loss += weight |point - target|^2."""
     d = point[0] - target
     wp.atomic_add(loss_out, 0, weight * wp.dot(d, d))
+
+
+@wp.kernel
+def gather_points(
+    x: wp.array(dtype=wp.vec3),
+    ids: wp.array(dtype=wp.int32),
+    # outputs
+    points_out: wp.array(dtype=wp.vec3),
+):
+    """points_out = x[ids] (a loss over selected particles)."""
+    i = wp.tid()
+    points_out[i] = x[ids[i]]

@@ -348,4 +348,4 @@ class SolverImplicitEuler(SolverBase):
         self.adjoint_solves += 1
         self.adjoint_iterations += self.last_iterations
         self.last_iterations, self.last_residual, self.converged = report
-        wp.launch(ki.add_vectors, dim=m.particle_count, inputs=[lam, residual.grad], device=m.device)
+        wp.launch(ki.add_vectors, dim=m.particle_count, inputs=[lam], outputs=[residual.grad], device=m.device)
