@@ -631,8 +631,13 @@ def eval_residual_drag(
     b = tri_indices[t, 1]
     c = tri_indices[t, 2]
     w = tri_corner_weights[t]
-    g = drag_vector(x0[a], x0[b], x0[c], tri_drag[t])
-    q = dt * wp.dot(g, w[0] * dv[a] + w[1] * dv[b] + w[2] * dv[c]) * g
+    # g g^T p = c_A A (n . p) n, written without g's square root (whose derivative is infinite at c_A = 0)
+    cr = wp.cross(x0[b] - x0[a], x0[c] - x0[a])
+    twice_area = wp.length(cr)
+    if twice_area < LENGTH_EPS:
+        return
+    p = w[0] * dv[a] + w[1] * dv[b] + w[2] * dv[c]
+    q = (dt * tri_drag[t] * wp.dot(cr, p) / (2.0 * twice_area)) * cr
     add_free(particle_pinned, a, -w[0] * q, residual_out)
     add_free(particle_pinned, b, -w[1] * q, residual_out)
     add_free(particle_pinned, c, -w[2] * q, residual_out)
