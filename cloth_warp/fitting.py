@@ -299,10 +299,10 @@ class SceneFit:
         optimizer = Adam([theta], lr=learning_rate)
         initial = {p.key: p.scene_value() for p in self.parameters}
         losses, history = [], []
-        best = (math.inf, [p.value for p in self.parameters])
+        self._best = (math.inf, [p.value for p in self.parameters])
         status = "complete"
         try:
-            self._iterate(theta, optimizer, sizes, iterations, learning_rate, decay, losses, history, best, progress)
+            self._iterate(theta, optimizer, sizes, iterations, learning_rate, decay, losses, history, progress)
         except KeyboardInterrupt:
             status = "interrupted"
         best = self._best
@@ -314,8 +314,7 @@ class SceneFit:
         return FitResult([p.key for p in self.parameters], initial, final, losses[0], best[0], len(losses), losses, history,
                          time.perf_counter() - t0, self.loss_kind, self.frames, status)
 
-    def _iterate(self, theta, optimizer, sizes, iterations, learning_rate, decay, losses, history, best, progress):
-        self._best = best
+    def _iterate(self, theta, optimizer, sizes, iterations, learning_rate, decay, losses, history, progress):
         for it in range(iterations):
             optimizer.lr = learning_rate * decay ** (it / max(iterations - 1, 1))
             values = self._split(theta.numpy().astype(np.float64), sizes)

@@ -29,6 +29,7 @@ from .forces import (
     spring_damping_block,
     spring_stiffness_block,
     total_force,
+    triangle_drag_force,
 )
 
 LENGTH_EPS = wp.constant(1.0e-9)
@@ -631,13 +632,9 @@ def eval_residual_drag(
     b = tri_indices[t, 1]
     c = tri_indices[t, 2]
     w = tri_corner_weights[t]
-    # g g^T p = c_A A (n . p) n, written without g's square root (whose derivative is infinite at c_A = 0)
-    cr = wp.cross(x0[b] - x0[a], x0[c] - x0[a])
-    twice_area = wp.length(cr)
-    if twice_area < LENGTH_EPS:
-        return
-    p = w[0] * dv[a] + w[1] * dv[b] + w[2] * dv[c]
-    q = (dt * tri_drag[t] * wp.dot(cr, p) / (2.0 * twice_area)) * cr
+    # g g^T p = c_A A (n . p) n = -(the drag force at velocities p, no wind); not through g, whose square
+    # root has an infinite derivative at c_A = 0
+    q = -dt * triangle_drag_force(x0[a], x0[b], x0[c], dv[a], dv[b], dv[c], w, tri_drag[t], wp.vec3(0.0))
     add_free(particle_pinned, a, -w[0] * q, residual_out)
     add_free(particle_pinned, b, -w[1] * q, residual_out)
     add_free(particle_pinned, c, -w[2] * q, residual_out)

@@ -243,16 +243,24 @@ class SolverImplicitEuler(SolverBase):
         self._reference_rr = self._read(self.cg_scalars.numpy() if self.model.device.is_cpu else None, 0)
         if self.warm_start and self._has_previous and not state_in.requires_grad:
             self._restart_from_previous(dt)
-        dv = self.solve_cg(dt) if self.linear_solver == LinearSolver.CG else self.solve_jacobi(dt)
+        dv = self._iterate(dt)
         if self.warm_start:
             wp.copy(self.dv_previous, dv)
             self._has_previous = True
         return dv
 
+    def _iterate(self, dt: float) -> wp.array:
+        return self.solve_cg(dt) if self.linear_solver == LinearSolver.CG else self.solve_jacobi(dt)
+
     def _restart_from_previous(self, dt: float):
         m = self.model
         wp.launch(ki.compose_warm_start, dim=m.particle_count, inputs=[m.particle_pinned, self.dv_previous, self.dv],
                   outputs=[self.dv_alt], device=m.device)
+        self._start_from_guess(dt)
+
+    def _start_from_guess(self, dt: float):
+        """Restart the iteration from the guess in dv_alt: r0 = S (rhs - A guess), search direction, |r0|^2."""
+        m = self.model
         self.cg_scalars.zero_()
         wp.launch(
             ki.cg_warm_start,
@@ -334,17 +342,9 @@ class SolverImplicitEuler(SolverBase):
         self.assemble(state_in, control, dt)  # the step's blocks and preconditioner (overwritten since)
         wp.copy(self.rhs, dv.grad)
         self.dv_alt.zero_()
-        self.cg_scalars.zero_()
-        wp.launch(
-            ki.cg_warm_start,
-            dim=m.particle_count,
-            inputs=[*self._product_args(), m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, self.system_block,
-                    self.bend_vector, self.drag_vector, self.precond, self.rhs, self.dv_alt, m.global_damping, dt],
-            outputs=[self.dv, self.residual, self.preconditioned, self.search, self.cg_scalars],
-            device=m.device,
-        )
+        self._start_from_guess(dt)
         self._reference_rr = self._read(self.cg_scalars.numpy() if m.device.is_cpu else None, 0)
-        lam = self.solve_cg(dt) if self.linear_solver == LinearSolver.CG else self.solve_jacobi(dt)
+        lam = self._iterate(dt)
         self.adjoint_solves += 1
         self.adjoint_iterations += self.last_iterations
         self.last_iterations, self.last_residual, self.converged = report
