@@ -37,7 +37,7 @@ def parse_args():
     p.add_argument("--sizes", type=int, nargs="+", default=[32, 64, 128])
     p.add_argument("--frames", type=int, default=20, help="frames timed per configuration (halved above 64^2)")
     p.add_argument("--device", default="cpu")
-    p.add_argument("--out", default=str(HERE / "results" / "bench_cloth.md"))
+    p.add_argument("--out", default=None, help="default benchmarks/results/bench_cloth[_cuda].md")
     p.add_argument("--no-newton", action="store_true", help="skip the Newton comparison even if installed")
     return p.parse_args()
 
@@ -283,7 +283,7 @@ def write_report(args, compile_times, rows, refs, newton):
                     lines.append(f"| {r['size']}^2 | Newton {r['solver']} | unstable up to {r.get('tried', '?')} | | | |")
     text = "\n".join(lines) + "\n"
     print(text)
-    out = pathlib.Path(args.out)
+    out = pathlib.Path(args.out or HERE / "results" / f"bench_cloth{'' if args.device == 'cpu' else '_cuda'}.md")
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_suffix(out.suffix + ".tmp")
     tmp.write_text(text)

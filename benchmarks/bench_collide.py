@@ -27,11 +27,18 @@ def parse_args():
     p.add_argument("--sizes", type=int, nargs="+", default=[32, 64, 128])
     p.add_argument("--frames", type=int, default=10)
     p.add_argument("--warmup", type=int, default=40)
-    p.add_argument("--out", default=str(HERE / "results" / "bench_collide.md"))
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--out", default=None, help="default benchmarks/results/bench_collide[_cuda].md")
     return p.parse_args()
 
 
-def measure(size: int, frames: int, warmup: int) -> dict:
+def device_name(device: str) -> str:
+    import warp as wp
+
+    return "CPU backend" if device == "cpu" else f"{device}, {wp.get_device(device).name}"
+
+
+def measure(size: int, frames: int, warmup: int, device: str = "cpu") -> dict:
     import warp as wp
 
     import cloth_warp as cw
@@ -39,7 +46,7 @@ def measure(size: int, frames: int, warmup: int) -> dict:
 
     # collider contact alone (bench_selfcollide.py measures self-collision)
     scene = load_scene(ROOT / "scenes" / "drape_sphere.toml", {"cloth.grid.resolution": [size, size], "collision.self_collision": False})
-    model = build_model(scene, "cpu")
+    model = build_model(scene, device)
     solver = build_solver(scene, model)
     sim = cw.Simulator(model, solver, fps=60, substeps=2)
     for _ in range(warmup):
@@ -82,12 +89,13 @@ def main():
 
     wp.config.log_level = wp.LOG_WARNING
     wp.init()
-    rows = [measure(n, args.frames, args.warmup) for n in args.sizes]
+    rows = [measure(n, args.frames, args.warmup, args.device) for n in args.sizes]
     lines = [
         "# Collider contact cost (drape_sphere: cotton over a sphere and the ground, implicit Euler, 2 steps/frame)",
         "",
-        f"`python benchmarks/bench_collide.py --sizes {' '.join(map(str, args.sizes))} --frames {args.frames} --warmup {args.warmup}` "
-        "(CPU backend, one process; ratios are what to compare across machines).",
+        f"`python benchmarks/bench_collide.py --sizes {' '.join(map(str, args.sizes))} --frames {args.frames} --warmup {args.warmup}"
+        f"{'' if args.device == 'cpu' else ' --device ' + args.device}` (device {device_name(args.device)}, one process; "
+        "ratios are what to compare across machines).",
         "",
         "| grid | particles | ms/frame with collisions | ms/frame without | one collision pass [ms] | passes/step | "
         "collision share of the step | µs per particle per pass | contacts/step |",
@@ -104,7 +112,7 @@ def main():
               "(more at 64^2 and 128^2); with them the limiter also runs once more per step.", ""]
     text = "\n".join(lines)
     print(text)
-    out = pathlib.Path(args.out)
+    out = pathlib.Path(args.out or HERE / "results" / f"bench_collide{'' if args.device == 'cpu' else '_cuda'}.md")
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(text)
     out.with_suffix(".json").write_text(json.dumps(rows, indent=1))

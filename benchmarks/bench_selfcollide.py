@@ -32,30 +32,40 @@ def parse_args():
     p.add_argument("--scale-thickness", action="store_true",
                    help="scale the self-collision thickness with the cell size (the scene's value at 32^2): the same "
                         "thickness-to-edge ratio at every resolution")
-    p.add_argument("--out", default=None, help="default benchmarks/results/bench_selfcollide[_scaled].md")
+    p.add_argument("--device", default="cpu", help="Warp device; on CUDA each timed stage is bracketed by a synchronize")
+    p.add_argument("--out", default=None, help="default benchmarks/results/bench_selfcollide[_scaled][_cuda].md")
     return p.parse_args()
 
 
 class Clock:
     """Wraps bound methods to sum their wall time [s] under a name."""
 
-    def __init__(self):
+    def __init__(self, synchronize: bool = False):
         self.total: dict[str, float] = {}
+        self.synchronize = synchronize
 
     def wrap(self, obj, attr: str, name: str):
         fn = getattr(obj, attr)
 
         def timed(*a, **k):
+            if self.synchronize:
+                import warp as wp
+
+                wp.synchronize()
             t0 = time.perf_counter()
             try:
                 return fn(*a, **k)
             finally:
+                if self.synchronize:
+                    wp.synchronize()
                 self.total[name] = self.total.get(name, 0.0) + time.perf_counter() - t0
 
         setattr(obj, attr, timed)
 
 
-def measure(scene_name: str, size: int, frames: int, warmup: int, scale_thickness: bool = False) -> dict:
+def measure(scene_name: str, size: int, frames: int, warmup: int, scale_thickness: bool = False, device: str = "cpu") -> dict:
+    import warp as wp
+
     import cloth_warp as cw
     from cloth_warp.scene import build_model, build_solver, load_scene
 
@@ -64,7 +74,7 @@ def measure(scene_name: str, size: int, frames: int, warmup: int, scale_thicknes
     if scale_thickness:
         overrides["collision.thickness"] = float(scene.get("collision.thickness")) * 32.0 / size
         scene = load_scene(ROOT / "scenes" / f"{scene_name}.toml", overrides)
-    model = build_model(scene, "cpu")
+    model = build_model(scene, device)
     solver = build_solver(scene, model)
     substeps = int(scene.get("solver.substeps"))
     sim = cw.Simulator(model, solver, fps=60, substeps=substeps)
@@ -74,11 +84,12 @@ def measure(scene_name: str, size: int, frames: int, warmup: int, scale_thicknes
     warm_s = time.perf_counter() - t0
     handler = solver.collisions
     selfc = handler.self_collision
-    clock = Clock()
+    clock = Clock(synchronize=device != "cpu")
     clock.wrap(selfc, "apply", "self")
     clock.wrap(handler, "_colliders", "colliders")
     counts: dict[str, int] = {}
     vf = ee = 0
+    wp.synchronize()
     t0 = time.perf_counter()
     for _ in range(frames):
         sim.step_frame()
@@ -87,6 +98,7 @@ def measure(scene_name: str, size: int, frames: int, warmup: int, scale_thicknes
                 counts[k] = counts.get(k, 0) + v
         vf += selfc.grid.vertex_face.count
         ee += selfc.grid.edge_edge.count
+    wp.synchronize()
     total = (time.perf_counter() - t0) / frames
     self_s = clock.total.get("self", 0.0) / frames
     coll_s = clock.total.get("colliders", 0.0) / frames
@@ -107,14 +119,16 @@ def main():
     rows = []
     for name in args.scenes:
         for n in args.sizes:
-            rows.append(measure(name, n, args.frames, args.warmup, args.scale_thickness))
+            rows.append(measure(name, n, args.frames, args.warmup, args.scale_thickness, args.device))
             r = rows[-1]
             print(f"{name} {n}^2: {r['ms_frame']:.1f} ms/frame, self {r['self_ms_frame']:.1f}, rest {r['rest_ms_frame']:.1f}", flush=True)
     lines = [
         "# Self-collision cost (implicit Euler, 2 steps per 1/60 s frame, limiter/collision rounds per step as shipped)",
         "",
         f"`python benchmarks/bench_selfcollide.py --sizes {' '.join(map(str, args.sizes))} --frames {args.frames} "
-        f"--warmup {args.warmup}{' --scale-thickness' if args.scale_thickness else ''}` (CPU backend, one process; "
+        f"--warmup {args.warmup}{' --scale-thickness' if args.scale_thickness else ''}"
+        f"{'' if args.device == 'cpu' else ' --device ' + args.device}` "
+        f"({'CPU backend' if args.device == 'cpu' else args.device + ', ' + wp.get_device(args.device).name}, one process; "
         + ("thickness scaled with the cell size" if args.scale_thickness else "the scenes' own 4 mm thickness at every resolution")
         + ").",
         "",
@@ -135,7 +149,7 @@ def main():
               "CCD sweeps and impact zones.", ""]
     text = "\n".join(lines)
     print(text)
-    out = pathlib.Path(args.out or HERE / "results" / f"bench_selfcollide{'_scaled' if args.scale_thickness else ''}.md")
+    out = pathlib.Path(args.out or HERE / "results" / f"bench_selfcollide{'_scaled' if args.scale_thickness else ''}{'' if args.device == 'cpu' else '_cuda'}.md")
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(text)
     out.with_suffix(".json").write_text(json.dumps(rows, indent=1))
