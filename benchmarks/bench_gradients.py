@@ -1,6 +1,6 @@
 """Backward/forward time and peak memory of differentiable rollouts, with and without checkpointing.
 
-    python benchmarks/bench_gradients.py [--quick]
+    python benchmarks/bench_gradients.py [--quick] [--config RES:STEPS:none|auto|S:implicit|symplectic ...] [--out FILE]
 
 Hanging cotton cloth (two corners pinned, strain limit 10 %). Per configuration, in a fresh process:
 forward = one rollout on the taped code path without a tape; gradient = Rollout.gradient (forward and
@@ -56,11 +56,16 @@ def measure(res, steps, every, integrator):
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true", help="fewer configurations")
+    ap.add_argument("--config", action="append", metavar="RES:STEPS:CHECKPOINT:INTEGRATOR",
+                    help="run only these configurations, e.g. 64:1000:auto:symplectic (repeatable)")
+    ap.add_argument("--out", help="results file (default benchmarks/results/bench_gradients.md)")
     args = ap.parse_args()
     configs = [(64, 60, "none", "implicit"), (64, 60, "auto", "implicit"), (64, 320, "none", "symplectic"), (64, 320, "auto", "symplectic")]
     configs += [(32, t, e, "symplectic") for t in (100, 1000) for e in ("none", "auto")] + [(32, 10000, "auto", "symplectic")]
     if args.quick:
         configs = configs[:2] + [(32, 100, "none", "symplectic"), (32, 1000, "none", "symplectic"), (32, 1000, "auto", "symplectic")]
+    if args.config:
+        configs = [(int(c.split(":")[0]), int(c.split(":")[1]), c.split(":")[2], c.split(":")[3]) for c in args.config]
     rows = ["| cloth | integrator | steps T | checkpoint | forward s | gradient s | backward / forward | peak memory MB | MB per step |",
             "|---|---|---|---|---|---|---|---|---|"]
     for res, steps, every, integ in configs:
@@ -70,8 +75,8 @@ def main():
                f"{m['gradient_s']:.2f} | {back:.2f} | {m['peak_mb']:.0f} | {m['peak_mb'] / steps:.3f} |")
         print(row, flush=True)
         rows.append(row)
-    path = pathlib.Path(__file__).parent / "results" / "bench_gradients.md"
-    path.write_text("# bench_gradients\n\n`python benchmarks/bench_gradients.py" + (" --quick" if args.quick else "") + "`\n\n"
+    path = pathlib.Path(args.out) if args.out else pathlib.Path(__file__).parent / "results" / "bench_gradients.md"
+    path.write_text("# bench_gradients\n\n`python benchmarks/bench_gradients.py " + " ".join(sys.argv[1:]) + "`\n\n"
                     "backward / forward = (gradient time - forward passes in it) / forward time.\n\n" + "\n".join(rows) + "\n")
     print(f"wrote {path}")
 

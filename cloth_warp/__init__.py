@@ -21,7 +21,7 @@ from . import materials, topology
 from .builder import ClothRef, ModelBuilder, load_mesh_file, quat_from_axis_angle
 from .cache import CacheReader, UsdCacheWriter, open_cache
 from .diagnostics import Diagnostics, StepStats
-from .gradients import CentroidLoss, ChamferLoss, Loss, PositionLoss, Rollout
+from .gradients import CentroidLoss, ChamferLoss, ChordAngleLoss, Loss, PositionLoss, Rollout
 from .materials import FabricMaterial
 from .model import Control, Handle, Keyframe, Model, State
 from .runner import run_scene
@@ -48,6 +48,7 @@ _logging.getLogger(__name__).addHandler(_logging.NullHandler())
 
 __all__ = [
     "CentroidLoss",
+    "ChordAngleLoss",
     "ChamferLoss",
     "Loss",
     "PositionLoss",

@@ -6,8 +6,9 @@
     cloth-warp info CACHE [--json]              what a cache holds
     cloth-warp scenes                           the shipped scenes
     cloth-warp preview CACHE -o OUT.png|OUT.gif [--frame K] [--size W H] [--every N]
-    cloth-warp fit SCENE --target CACHE --param KEY[=LO:HI] [--param ...] [--loss positions|final|chamfer]
+    cloth-warp fit SCENE [--target CACHE] [--param KEY[=LO:HI] ...] [--loss positions|final|chamfer]
                          [--iters N] [--lr X] [--frames N] [-o FITTED.toml] [--set ...] [--quiet]
+                                                (target and params default to the scene's [fit] table)
 
 Exit codes: 0 done, 2 bad input (scene key, mesh, missing file, unwritable output), 3 diverged (the cache
 keeps every good frame), 130 interrupted by Ctrl-C or SIGTERM (the cache of the frames done is valid).
@@ -278,22 +279,24 @@ def cmd_fit(args) -> int:
     from .scene import load_scene
 
     scene = load_scene(find_scene(args.scene), parse_set(args.set))
-    if args.iters < 1:
-        raise BadInput(f"--iters must be >= 1, got {args.iters}")
-    if not (args.lr > 0.0):
-        raise BadInput(f"--lr must be > 0, got {args.lr}")
+    iterations = int(scene.get("fit.iterations")) if args.iters is None else args.iters
+    learning_rate = float(scene.get("fit.learning_rate")) if args.lr is None else args.lr
+    if iterations < 1:
+        raise BadInput(f"--iters must be >= 1, got {iterations}")
+    if not (learning_rate > 0.0):
+        raise BadInput(f"--lr must be > 0, got {learning_rate}")
     try:
-        fit = SceneFit(scene, args.target, args.param or [], loss=args.loss, frames=args.frames, device=args.device)
+        fit = SceneFit(scene, args.target, args.param, loss=args.loss, frames=args.frames, device=args.device)
     except ValueError as exc:  # unreadable target cache
         raise BadInput(str(exc)) from exc
     output = args.output or f"out/{scene.name}_fitted.toml"
     if not args.quiet:
-        print(f"cloth-warp fit: {scene.name}, {fit.frames} frames ({fit.rollout.steps} steps), {args.loss} loss, "
-              f"{len(fit.parameters)} parameters, {args.iters} iterations", file=sys.stderr)
+        print(f"cloth-warp fit: {scene.name}, {fit.frames} frames ({fit.rollout.steps} steps), {fit.loss_kind} loss, "
+              f"{len(fit.parameters)} parameters, {iterations} iterations", file=sys.stderr)
     progress = FitProgress(quiet=args.quiet)
     previous = signal.signal(signal.SIGTERM, _on_sigterm), signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
-        result = fit.run(iterations=args.iters, learning_rate=args.lr, progress=progress)
+        result = fit.run(iterations=iterations, learning_rate=learning_rate, progress=progress)
     except KeyboardInterrupt:
         print("cloth-warp: interrupted before the first iteration; nothing written", file=sys.stderr)
         return EXIT_INTERRUPTED
@@ -308,6 +311,8 @@ def cmd_fit(args) -> int:
                  f"{result.final_loss:.4e} ({result.loss_kind})"]
         for key in result.parameters:
             lines.append(f"  {key:<28} {_fmt_value(result.initial_values[key])} -> {_fmt_value(result.final_values[key])}")
+        for key, value in result.measured.items():
+            lines.append(f"  {key:<28} {_fmt_value(value)}")
         lines.append(f"  fitted scene  {paths['scene']}")
         lines.append(f"  report        {paths['report']}")
         lines.append(f"  loss curve    {paths['loss_curve']}")
@@ -362,12 +367,15 @@ def build_parser() -> argparse.ArgumentParser:
                          description="Fit scene keys so the simulated cloth matches a target cache. Parameters: "
                                      + ", ".join(allowed_parameters()) + ". Positive ones are fitted in log space.")
     fit.add_argument("scene", help="scene file (.toml) or a shipped scene name; its values are the start")
-    fit.add_argument("--target", required=True, help="target cache (.usdc, .usda, .usd, .npz); its frame k is the scene's frame k")
-    fit.add_argument("--param", action="append", metavar="KEY[=LO:HI]", help="a scene key to fit, with optional bounds; repeatable")
-    fit.add_argument("--loss", default="positions", choices=LOSSES,
-                     help="positions: every target frame; final: the last frame; chamfer: targets on another mesh")
-    fit.add_argument("--iters", type=int, default=50, help="optimizer iterations (default 50)")
-    fit.add_argument("--lr", type=float, default=0.1, help="Adam step size (log space for positive parameters; default 0.1)")
+    fit.add_argument("--target", help="target cache (.usdc, .usda, .usd, .npz); its frame k is the scene's frame k "
+                     "(default: the scene's [fit.target]: a cache, a centroid or a chord angle)")
+    fit.add_argument("--param", action="append", metavar="KEY[=LO:HI]",
+                     help="a scene key to fit, with optional bounds; repeatable (default: the scene's fit.params)")
+    fit.add_argument("--loss", choices=LOSSES, help="how a target cache is matched: positions (every frame), final (last frame), "
+                     "chamfer (a target on another mesh) (default: fit.loss, else positions)")
+    fit.add_argument("--iters", type=int, help="optimizer iterations (default: fit.iterations, else 50)")
+    fit.add_argument("--lr", type=float, help="Adam step: relative for positive parameters, relative to the start's magnitude "
+                     "for vectors (default: fit.learning_rate, else 0.1)")
     fit.add_argument("--frames", type=int, help="fit only the first N frames of the target")
     fit.add_argument("-o", "--output", help="fitted scene TOML (default out/<scene>_fitted.toml); the JSON report and the "
                                             "loss-curve PNG go beside it")

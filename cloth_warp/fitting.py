@@ -35,11 +35,12 @@ import time
 import numpy as np
 import warp as wp
 
-from .gradients import ChamferLoss, Loss, PositionLoss, Rollout, model_grad_arrays
-from .scene import Scene, SceneError, build_material, build_model, build_solver, with_values
+from .gradients import CentroidLoss, ChamferLoss, ChordAngleLoss, Loss, PositionLoss, Rollout, model_grad_arrays
+from .scene import FIT_LOSSES, Scene, SceneError, build_material, build_model, build_solver, scene_selection, with_values
 
 MATERIAL_VALUES = ("areal_density", "stretch_stiffness", "shear_stiffness", "bend_stiffness", "damping", "drag_coefficient")
-LOSSES = ("positions", "final", "chamfer")
+LOSSES = FIT_LOSSES
+VECTOR_EPS = 0.1  # a vector parameter's Adam eps, relative to its first gradient's norm (see SceneFit.run)
 _COLLIDER_FRICTION = re.compile(r"colliders\[(\d+)\]\.friction$")
 
 
@@ -49,13 +50,19 @@ def allowed_parameters() -> list[str]:
 
 @dataclasses.dataclass
 class FitParameter:
-    """One fitted scene key: its current value, bounds and whether it is optimized in log space."""
+    """One fitted scene key: its current value, bounds and how it is encoded for the optimizer.
+
+    Positive parameters are optimized as log(value): a step of the learning rate is a relative change.
+    Vectors in m/s are optimized as value / scale, scale = the start's largest component (at least
+    1 m/s), so the learning rate is a step relative to the start's magnitude for them too.
+    """
 
     key: str
     value: np.ndarray
     lower: np.ndarray
     upper: np.ndarray
     log: bool
+    scale: float = 1.0
 
     @property
     def size(self) -> int:
@@ -64,13 +71,17 @@ class FitParameter:
     def scene_value(self):
         return float(self.value[0]) if self.size == 1 else [float(v) for v in self.value]
 
-    def encode(self) -> np.ndarray:
-        return np.log(self.value) if self.log else self.value.copy()
+    def encode(self, value: np.ndarray | None = None) -> np.ndarray:
+        value = self.value if value is None else value
+        return np.log(value) if self.log else value / self.scale
 
     def decode(self, theta: np.ndarray) -> np.ndarray:
-        lo, hi = (np.log(self.lower), np.log(self.upper)) if self.log else (self.lower, self.upper)
-        theta = np.clip(theta, lo, hi)
-        return np.exp(theta) if self.log else theta
+        value = np.exp(theta) if self.log else theta * self.scale
+        return np.clip(value, self.lower, self.upper)
+
+    def encoded_gradient(self, grad: np.ndarray, value: np.ndarray) -> np.ndarray:
+        """dL/dtheta from dL/dvalue."""
+        return grad * value if self.log else grad * self.scale
 
 
 def parse_parameter(spec: str) -> tuple[str, float | None, float | None]:
@@ -128,7 +139,8 @@ def make_parameter(scene: Scene, spec: str) -> FitParameter:
         hi = np.full_like(value, np.inf if upper is None else upper)
     if (lo > hi).any():
         raise SceneError(f"--param {spec}: lower bound above upper bound")
-    return FitParameter(key, np.clip(value, lo, hi), lo, hi, log)
+    scale = 1.0 if log else max(float(np.abs(value).max()), 1.0)
+    return FitParameter(key, np.clip(value, lo, hi), lo, hi, log, scale)
 
 
 def read_targets(target, substeps: int, frames: int | None) -> dict[int, np.ndarray]:
@@ -166,9 +178,30 @@ class FitResult:
     loss_kind: str
     frames: int
     status: str = "complete"
+    measured: dict = dataclasses.field(default_factory=dict)
+    """What the loss measures at the best values (a throw's landing distance, a chord angle), if it reports it."""
 
     def report(self) -> dict:
         return dataclasses.asdict(self)
+
+
+def scene_target(scene: Scene, frames: int):
+    """The target a scene's ``[fit.target]`` table names: a cache path, or a loss factory (model -> Loss)
+    evaluated at the last of `frames` frames; None when the table names none."""
+    target = scene.data.get("fit", {}).get("target", {})
+    step = frames * int(scene.get("solver.substeps"))
+    if "cache" in target:
+        path = scene.resolve(target["cache"])
+        if not path.is_file():
+            raise SceneError(f"fit.target.cache: file not found: {path} (paths are relative to the scene file; simulate the "
+                             "target first, see the scene's header)")
+        return path
+    if "centroid" in target:
+        return lambda model: CentroidLoss(target["centroid"], step, model)
+    if "chord_angle" in target:
+        tip = scene_selection(scene, target["tip"], "fit.target.tip")
+        return lambda model: ChordAngleLoss(target["chord_angle"], tip, step, model, origin=scene.get("fit.target.chord_origin"))
+    return None
 
 
 class SceneFit:
@@ -178,21 +211,32 @@ class SceneFit:
         scene: the scene (its values are the start).
         target: a cache path / :class:`~cloth_warp.cache.CacheReader` (frame k = the scene's frame k),
             {frame: points}, or a :class:`~cloth_warp.gradients.Loss` of its own or a function model -> Loss
-            (then give `frames`; a loss's steps count substeps).
-        parameters: specs ``KEY`` or ``KEY=LOWER:UPPER`` (see the module docstring).
-        loss: ``positions``, ``final`` or ``chamfer``.
-        frames: fit the first `frames` frames only (default: all the target has).
+            (then give `frames`; a loss's steps count substeps). None: the scene's ``[fit.target]``
+            (a cache, a centroid for the last frame, or a chord angle).
+        parameters: specs ``KEY`` or ``KEY=LOWER:UPPER`` (see the module docstring); None: ``fit.params``.
+        loss: ``positions``, ``final`` or ``chamfer`` (None: ``fit.loss``).
+        frames: fit the first `frames` frames only (default: ``fit.frames``, else all the target cache has,
+            else ``output.frames``).
         checkpoint_every: passed to :class:`Rollout`; default: every state kept up to 240 steps, about
             sqrt(steps) of them beyond (one extra forward pass, memory ~sqrt(T)).
         device: Warp device.
     """
 
-    def __init__(self, scene: Scene, target, parameters: list[str], *, loss: str = "positions", frames: int | None = None,
-                 checkpoint_every=None, device=None):
+    def __init__(self, scene: Scene, target=None, parameters: list[str] | None = None, *, loss: str | None = None,
+                 frames: int | None = None, checkpoint_every=None, device=None):
+        loss = scene.get("fit.loss") if loss is None else loss
+        parameters = scene.get("fit.params") if parameters is None else parameters
+        frames = scene.get("fit.frames") if frames is None else frames
+        if target is None:
+            target = scene_target(scene, int(frames or scene.get("output.frames")))
+            if target is None:
+                raise SceneError("fit: no target; give --target CACHE or a [fit.target] table (cache, centroid or chord_angle)")
+            if callable(target) and frames is None:
+                frames = int(scene.get("output.frames"))
         if not isinstance(target, Loss) and loss not in LOSSES:
             raise SceneError(f"loss: {loss!r} is not a loss; allowed: {', '.join(LOSSES)}")
         if not parameters:
-            raise SceneError("fit: give at least one --param")
+            raise SceneError("fit: give at least one --param (or fit.params in the scene)")
         if float(scene.get("forces.gusts.strength")) > 0.0:
             raise SceneError("forces.gusts.strength: gusty wind is not differentiable here; set it to 0 to fit")
         self.scene = scene
@@ -210,9 +254,10 @@ class SceneFit:
         if callable(target) and not isinstance(target, Loss):
             target = target(self.model)  # a loss factory (losses that need the model, e.g. CentroidLoss)
         if isinstance(target, Loss):
+            named = {CentroidLoss: "centroid", ChordAngleLoss: "chord_angle"}
             if frames is None:
                 raise SceneError("fit: a custom loss needs the number of frames to simulate")
-            self.frames, self.loss, self.loss_kind = int(frames), target, type(target).__name__
+            self.frames, self.loss, self.loss_kind = int(frames), target, named.get(type(target), type(target).__name__)
             targets = {}
         else:
             targets = read_targets(target, self.substeps, frames)
@@ -234,6 +279,7 @@ class SceneFit:
             checkpoint_every = "auto"
         self.rollout = Rollout(self.model, self.solver, dt=self.dt, steps=steps, checkpoint_every=checkpoint_every)
         self.evaluations = 0
+        self.last_measured: dict = {}
 
     # -- values <-> model ------------------------------------------------------------------------
     def _values(self, values: list[np.ndarray] | None = None) -> dict:
@@ -264,6 +310,8 @@ class SceneFit:
         state0.particle_qd.assign(base["particle_qd"].astype(np.float32))
         loss = self.rollout.gradient(self.loss, state0)
         self.evaluations += 1
+        measure = getattr(self.loss, "measure", None)
+        self.last_measured = measure(self.rollout.final_state) if measure is not None else {}
         grads = {name: a.grad.numpy().astype(np.float64) for name, a in model_grad_arrays(self.model).items() if name != "particle_q"}
         grads["particle_qd"] = state0.particle_qd.grad.numpy().astype(np.float64)
         out = []
@@ -282,27 +330,32 @@ class SceneFit:
         return loss, out
 
     # -- the optimization --------------------------------------------------------------------
-    def run(self, iterations: int = 50, learning_rate: float = 0.05, decay: float = 0.1, progress=None) -> FitResult:
+    def run(self, iterations: int = 50, learning_rate: float = 0.05, decay: float = 0.1, progress=None,
+            betas: tuple[float, float] | None = None) -> FitResult:
         """Adam on the encoded parameters (log space for positive ones); keeps the best values seen.
 
         The step size decays geometrically from `learning_rate` to `decay` times it over the iterations
-        (damps Adam's overshoot near the optimum). `progress(iteration, iterations, loss, values)` is called
-        after every evaluation. Ctrl-C ends the fit early with the best values so far (status
-        ``interrupted``)."""
+        (damps Adam's overshoot near the optimum). Each parameter has its own Warp Adam; a vector's one
+        has eps = VECTOR_EPS x its first gradient's norm, so a component whose gradient is negligible
+        next to the others (wind along a banner's pole, which a normal-only drag cannot feel) does not
+        take full-size steps from noise, as plain per-component Adam would. `progress(iteration,
+        iterations, loss, values)` is called after every evaluation. `betas`: Adam's moment decay rates
+        (default: the scene's fit.betas, (0.9, 0.999)); a one-parameter fit settles with less overshoot at
+        lower ones. Ctrl-C ends the fit early with the best values so far (status ``interrupted``)."""
         from warp.optim import Adam
 
         if iterations < 1:
             raise SceneError(f"iterations: must be >= 1, got {iterations}")
         t0 = time.perf_counter()
-        sizes = [p.size for p in self.parameters]
-        theta = wp.array(np.concatenate([p.encode() for p in self.parameters]).astype(np.float32), dtype=float, device="cpu")
-        optimizer = Adam([theta], lr=learning_rate)
+        thetas = [wp.array(p.encode().astype(np.float32), dtype=float, device="cpu") for p in self.parameters]
+        betas = tuple(self.scene.get("fit.betas")) if betas is None else tuple(betas)
+        optimizers = [Adam([theta], lr=learning_rate, betas=betas) for theta in thetas]
         initial = {p.key: p.scene_value() for p in self.parameters}
         losses, history = [], []
-        self._best = (math.inf, [p.value for p in self.parameters])
+        self._best = (math.inf, [p.value for p in self.parameters], {})
         status = "complete"
         try:
-            self._iterate(theta, optimizer, sizes, iterations, learning_rate, decay, losses, history, progress)
+            self._iterate(thetas, optimizers, iterations, learning_rate, decay, losses, history, progress)
         except KeyboardInterrupt:
             status = "interrupted"
         best = self._best
@@ -312,12 +365,11 @@ class SceneFit:
             p.value = v
         final = {p.key: p.scene_value() for p in self.parameters}
         return FitResult([p.key for p in self.parameters], initial, final, losses[0], best[0], len(losses), losses, history,
-                         time.perf_counter() - t0, self.loss_kind, self.frames, status)
+                         time.perf_counter() - t0, self.loss_kind, self.frames, status, best[2])
 
-    def _iterate(self, theta, optimizer, sizes, iterations, learning_rate, decay, losses, history, progress):
+    def _iterate(self, thetas, optimizers, iterations, learning_rate, decay, losses, history, progress):
         for it in range(iterations):
-            optimizer.lr = learning_rate * decay ** (it / max(iterations - 1, 1))
-            values = self._split(theta.numpy().astype(np.float64), sizes)
+            values = [p.decode(theta.numpy().astype(np.float64)) for p, theta in zip(self.parameters, thetas)]
             loss, grads = self.loss_and_gradient(values)
             named = self._values(values)
             losses.append(loss)
@@ -325,22 +377,18 @@ class SceneFit:
             if not math.isfinite(loss):
                 raise FloatingPointError(f"fit: the loss is not finite at iteration {it} with {named}")
             if loss < self._best[0]:
-                self._best = (loss, values)
+                self._best = (loss, values, self.last_measured)
             if progress is not None:
                 progress(it + 1, iterations, loss, named)
-            g_theta = np.concatenate([g * v if p.log else g for p, g, v in zip(self.parameters, grads, values)])
-            if not np.isfinite(g_theta).all():
-                raise FloatingPointError(f"fit: non-finite gradient at iteration {it} with {named}")
-            optimizer.step([wp.array(g_theta.astype(np.float32), dtype=float, device="cpu")])
-            stepped = self._split(theta.numpy().astype(np.float64), sizes)  # decoding clips to the bounds
-            theta.assign(np.concatenate([np.log(v) if p.log else v for p, v in zip(self.parameters, stepped)]).astype(np.float32))
-
-    def _split(self, theta: np.ndarray, sizes: list[int]) -> list[np.ndarray]:
-        out, k = [], 0
-        for p, s in zip(self.parameters, sizes):
-            out.append(p.decode(theta[k : k + s]))
-            k += s
-        return out
+            for p, g, v, theta, opt in zip(self.parameters, grads, values, thetas, optimizers):
+                g_theta = p.encoded_gradient(g, v)
+                if not np.isfinite(g_theta).all():
+                    raise FloatingPointError(f"fit: non-finite gradient of {p.key} at iteration {it} with {named}")
+                if it == 0 and p.size > 1:
+                    opt.eps = max(VECTOR_EPS * float(np.linalg.norm(g_theta)), opt.eps)
+                opt.lr = learning_rate * decay ** (it / max(iterations - 1, 1))
+                opt.step([wp.array(g_theta.astype(np.float32), dtype=float, device="cpu")])
+                theta.assign(p.encode(p.decode(theta.numpy().astype(np.float64))).astype(np.float32))  # clip to the bounds
 
     # -- outputs -------------------------------------------------------------------------------
     def fitted_scene_toml(self, output: pathlib.Path) -> str:

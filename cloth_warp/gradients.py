@@ -97,14 +97,63 @@ class CentroidLoss(Loss):
         m = model.particle_mass.numpy().astype(np.float64)
         self.weights = wp.array((m / m.sum()).astype(np.float32), dtype=float, device=model.device)
 
+    def centroid(self, x: wp.array) -> wp.array:
+        return _weighted_sum(x, self.weights)
+
     def evaluate(self, step, state, out):
         x = state.particle_q
-        c = wp.zeros(1, dtype=wp.vec3, device=x.device, requires_grad=x.requires_grad)
-        wp.launch(kl.eval_weighted_sum, dim=x.shape[0], inputs=[x, self.weights], outputs=[c], device=x.device)
-        wp.launch(kl.eval_point_loss, dim=1, inputs=[c, self.target, 1.0], outputs=[out], device=x.device)
+        wp.launch(kl.eval_point_loss, dim=1, inputs=[self.centroid(x), self.target, 1.0], outputs=[out], device=x.device)
+
+    def measure(self, state: State) -> dict:
+        """The centroid [m] of `state` and its distance [m] to the target (for reports)."""
+        c = self.centroid(state.particle_q).numpy()[0].astype(float)
+        return {"centroid": [float(v) for v in c], "distance_m": float(np.linalg.norm(c - np.asarray(self.target, float)))}
+
+
+class ChordAngleLoss(Loss):
+    """Squared difference [rad^2] between a chord's angle below horizontal and a target angle at one step.
+
+    The chord runs from a fixed `origin` [m] (a cantilever's clamp edge) to the centroid of the `tip`
+    particles; "horizontal" is the plane normal to the model's up axis. For the ASTM D1388 cantilever
+    test the target is 41.5 deg at overhang 2c (c the bending length).
+    """
+
+    def __init__(self, angle_deg: float, tip, step: int, model: Model, origin=(0.0, 0.0, 0.0)):
+        self.steps = frozenset([int(step)])
+        self.angle = math.radians(float(angle_deg))
+        self.origin = wp.vec3(*np.asarray(origin, float))
+        self.up = wp.vec3(0.0, 0.0, 1.0) if model.up_axis == "Z" else wp.vec3(0.0, 1.0, 0.0)
+        tip = np.asarray(tip, np.int64)
+        if tip.size == 0:
+            raise ValueError("ChordAngleLoss: no tip particles")
+        w = np.zeros(model.particle_count, np.float32)
+        w[tip] = 1.0 / tip.size
+        self.weights = wp.array(w, dtype=float, device=model.device)
+
+    def tip(self, x: wp.array) -> wp.array:
+        return _weighted_sum(x, self.weights)
+
+    def evaluate(self, step, state, out):
+        x = state.particle_q
+        wp.launch(kl.eval_chord_angle_loss, dim=1, inputs=[self.tip(x), self.origin, self.up, self.angle, 1.0], outputs=[out],
+                  device=x.device)
+
+    def measure(self, state: State) -> dict:
+        """The chord angle [deg] of `state` (for reports)."""
+        d = self.tip(state.particle_q).numpy()[0].astype(float) - np.asarray(self.origin, float)
+        up = np.asarray(self.up, float)
+        rise = float(d @ up)
+        return {"chord_angle_deg": math.degrees(math.atan2(-rise, float(np.linalg.norm(d - rise * up))))}
 
 
 _NO_LOSS = Loss()
+
+
+def _weighted_sum(x: wp.array, weights: wp.array) -> wp.array:
+    """sum_i weights_i x_i as a one-element (taped) array."""
+    c = wp.zeros(1, dtype=wp.vec3, device=x.device, requires_grad=x.requires_grad)
+    wp.launch(kl.eval_weighted_sum, dim=x.shape[0], inputs=[x, weights], outputs=[c], device=x.device)
+    return c
 
 
 def _gather(x: wp.array, ids: wp.array) -> wp.array:

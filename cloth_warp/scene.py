@@ -58,6 +58,8 @@ LINEAR_SOLVERS = ("cg", "jacobi")
 # The same names as cloth_warp.solvers.SOLVERS (kept here so validation does not import Warp; a test compares).
 INTEGRATORS = ("implicit_euler", "symplectic_euler", "explicit_euler", "midpoint", "rk4")
 PRESETS = tuple(MATERIAL_PRESETS)
+# The same names as cloth_warp.fitting.LOSSES (kept here so validation does not import Warp).
+FIT_LOSSES = ("positions", "final", "chamfer")
 COLLIDER_SHAPES = ("plane", "sphere", "capsule", "box", "cylinder", "mesh")
 # Which geometry keys each collider shape takes (the others are rejected with a message).
 COLLIDER_GEOMETRY = {"plane": ("axis",), "sphere": ("radius",), "capsule": ("radius", "height", "axis"), "box": ("size", "rotation"),
@@ -181,6 +183,26 @@ SCHEMA: dict = {
             "disc_radius": Key("float", None, "specimen radius (default: cloth.disc.radius)", "m", 0.0, True),
         },
     },
+    "fit": {
+        "params": Key("strs", None, "scene keys `cloth-warp fit` fits when no --param is given: \"KEY\" or \"KEY=LOWER:UPPER\""),
+        "loss": Key("str", "positions", "what a target cache is matched by: every frame's positions, the last frame's, or "
+                    "the Chamfer distance (a target on another mesh)", allowed=FIT_LOSSES),
+        "frames": Key("int", None, "frames simulated and fitted (default: all of the target cache, else output.frames)", minimum=1),
+        "iterations": Key("int", 50, "Adam iterations", minimum=1),
+        "learning_rate": Key("float", 0.1, "Adam step: a relative change for positive values, relative to the start's "
+                             "magnitude (at least 1 m/s) for vectors", minimum=0.0, exclusive_minimum=True),
+        "betas": Key("vec2", [0.9, 0.999], "Adam's decay rates of the gradient's first and second moments (lower: less "
+                     "momentum, less overshoot)", minimum=0.0),
+        "target": {
+            "cache": Key("path", None, "target animation cache (what --target gives); its frame k is the scene's frame k"),
+            "centroid": Key("vec3", None, "where the cloth's centre of mass must be at the last fitted frame (a throw's "
+                            "landing spot)", "m"),
+            "chord_angle": Key("float", None, "angle below horizontal of the chord from chord_origin to the tip's centroid at "
+                               "the last fitted frame (ASTM D1388 cantilever: 41.5)", "deg"),
+            "chord_origin": Key("vec3", [0.0, 0.0, 0.0], "start of the chord (a cantilever's clamp edge)", "m"),
+            "tip": SELECTION,  # the particles whose centroid ends the chord (one of select, indices, box)
+        },
+    },
     "output": {
         "path": Key("path", None, "cache file: .usdc (default), .usda, .usd or .npz; default out/<scene name>.usdc "
                     "in the working directory"),
@@ -227,6 +249,9 @@ def _check_key(value, key: Key, path: str):
     elif kind == "ints":
         if not isinstance(value, list) or not all(_integer(c) for c in value):
             raise SceneError(f"{path}: expected an array of integers, got {value!r}")
+    elif kind == "strs":
+        if not isinstance(value, list) or not all(isinstance(c, str) for c in value):
+            raise SceneError(f"{path}: expected an array of strings, got {value!r}")
     if key.allowed and value not in key.allowed:
         close = difflib.get_close_matches(str(value), [str(a) for a in key.allowed], n=1)
         hint = f" (did you mean {close[0]!r}?)" if close else ""
@@ -432,6 +457,18 @@ def _check_values(scene: Scene):
             raise SceneError(f"handles[{i}].keyframes: every keyframe needs a time [s]")
         if any(b <= a for a, b in zip(times, times[1:])):
             raise SceneError(f"handles[{i}].keyframes: times must increase, got {times}")
+    target = scene.data.get("fit", {}).get("target")
+    if target is not None:
+        kinds = [k for k in ("cache", "centroid", "chord_angle") if k in target]
+        if len(kinds) > 1:
+            raise SceneError(f"fit.target: give one of cache, centroid, chord_angle, not {' and '.join(kinds)}")
+        tip = target.get("tip")
+        if "chord_angle" in target:
+            given = [k for k in SELECTION if k in (tip or {})]
+            if len(given) != 1:
+                raise SceneError("fit.target.tip: a chord_angle target needs the tip particles: exactly one of select, indices, box")
+        elif tip is not None or "chord_origin" in target:
+            raise SceneError("fit.target.tip / chord_origin: only used with fit.target.chord_angle")
     geometry_keys = {k for keys in COLLIDER_GEOMETRY.values() for k in keys}
     names = set()
     for i, col in enumerate(scene.data.get("colliders", [])):
@@ -503,27 +540,12 @@ def build_model(scene: Scene, device=None, requires_grad: bool = False):
     """The :class:`~cloth_warp.Model` a scene describes (differentiable arrays with `requires_grad`)."""
     from .builder import ModelBuilder
     from .model import Keyframe
-    from .topology import MeshError
 
     up = scene.get("forces.up_axis")
     gravity = scene.get("forces.gravity")
     b = ModelBuilder(up_axis=up, gravity=None if gravity is None else tuple(gravity),
                      global_damping=float(scene.get("forces.global_damping")))
-    common = dict(position=tuple(scene.get("cloth.position")), rotation=_rotation_q(scene.data.get("cloth", {}).get("rotation")),
-                  velocity=tuple(scene.get("cloth.velocity")), material=build_material(scene),
-                  spring_model=scene.get("cloth.spring_model"), name=scene.get("cloth.name"))
-    mesh = scene.data.get("cloth", {}).get("mesh")
-    try:
-        if scene.data.get("cloth", {}).get("disc") is not None:
-            cloth = b.add_cloth_disc(radius=float(scene.get("cloth.disc.radius")), rings=int(scene.get("cloth.disc.rings")), **common)
-        elif mesh is not None:
-            cloth = b.add_cloth_mesh_file(scene.resolve(mesh), scale=float(scene.get("cloth.scale")),
-                                          prim_path=scene.data["cloth"].get("mesh_prim"), **common)
-        else:
-            cloth = b.add_cloth_grid(resolution=tuple(scene.get("cloth.grid.resolution")), size=tuple(scene.get("cloth.grid.size")),
-                                     **common)
-    except MeshError as exc:
-        raise SceneError(f"cloth.mesh: {exc}") from exc
+    cloth = _add_cloth(b, scene)
     for i, pin in enumerate(scene.data.get("pins", [])):
         b.pin(_selection(cloth, pin, f"pins[{i}]"), stiffness=pin.get("stiffness"))
     for i, h in enumerate(scene.data.get("handles", [])):
@@ -539,6 +561,37 @@ def build_model(scene: Scene, device=None, requires_grad: bool = False):
     if jitter > 0.0:
         _jitter(b, cloth, jitter, int(scene.get("scene.seed")))
     return b.finalize(device, requires_grad=requires_grad)
+
+
+def _add_cloth(b, scene: Scene):
+    """Add the scene's cloth (grid, disc or mesh) to builder `b`; returns its handle."""
+    from .topology import MeshError
+
+    common = dict(position=tuple(scene.get("cloth.position")), rotation=_rotation_q(scene.data.get("cloth", {}).get("rotation")),
+                  velocity=tuple(scene.get("cloth.velocity")), material=build_material(scene),
+                  spring_model=scene.get("cloth.spring_model"), name=scene.get("cloth.name"))
+    mesh = scene.data.get("cloth", {}).get("mesh")
+    try:
+        if scene.data.get("cloth", {}).get("disc") is not None:
+            cloth = b.add_cloth_disc(radius=float(scene.get("cloth.disc.radius")), rings=int(scene.get("cloth.disc.rings")), **common)
+        elif mesh is not None:
+            cloth = b.add_cloth_mesh_file(scene.resolve(mesh), scale=float(scene.get("cloth.scale")),
+                                          prim_path=scene.data["cloth"].get("mesh_prim"), **common)
+        else:
+            cloth = b.add_cloth_grid(resolution=tuple(scene.get("cloth.grid.resolution")), size=tuple(scene.get("cloth.grid.size")),
+                                     **common)
+    except MeshError as exc:
+        raise SceneError(f"cloth.mesh: {exc}") from exc
+    return cloth
+
+
+def scene_selection(scene: Scene, spec: dict, where: str):
+    """Particle indices (numpy) of a selection table (select / indices / box) on the scene's cloth."""
+    import numpy as np
+
+    from .builder import ModelBuilder
+
+    return np.asarray(_selection(_add_cloth(ModelBuilder(up_axis=scene.get("forces.up_axis")), scene), spec, where), np.int64)
 
 
 def _add_collider(b, scene: Scene, col: dict, i: int):
@@ -610,7 +663,7 @@ def build_wind(scene: Scene):
 
 def _kind_text(key: Key) -> str:
     return {"float": "number", "int": "integer", "bool": "boolean", "str": "string", "path": "path", "vec2": "[x, y]",
-            "vec3": "[x, y, z]", "ivec2": "[nx, ny]", "ints": "[i, ...]"}[key.kind]
+            "vec3": "[x, y, z]", "ivec2": "[nx, ny]", "ints": "[i, ...]", "strs": "[\"...\", ...]"}[key.kind]
 
 
 def _rows(schema, prefix):

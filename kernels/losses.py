@@ -93,3 +93,21 @@ def gather_points(
     """points_out = x[ids] (a loss over selected particles)."""
     i = wp.tid()
     points_out[i] = x[ids[i]]
+
+
+@wp.kernel
+def eval_chord_angle_loss(
+    tip: wp.array(dtype=wp.vec3),
+    origin: wp.vec3,
+    up: wp.vec3,
+    angle: float,
+    weight: float,
+    # outputs (accumulated)
+    loss_out: wp.array(dtype=float),
+):
+    """loss += weight (a - angle)^2 [rad^2], a = the chord origin -> tip's angle below horizontal."""
+    d = tip[0] - origin
+    rise = wp.dot(d, up)
+    run = wp.length(d - rise * up)
+    a = wp.atan2(-rise, run)
+    wp.atomic_add(loss_out, 0, weight * (a - angle) * (a - angle))
