@@ -156,7 +156,7 @@ def test_chord_angle_loss_gradient_and_cantilever_target():
     fit = SceneFit(scene, None, None, frames=8)
     assert fit.loss_kind == "chord_angle" and [p.key for p in fit.parameters] == ["material.bend_stiffness"]
     value = [fit.parameters[0].value.copy()]
-    loss, grad = fit.loss_and_gradient(value)
+    _, grad = fit.loss_and_gradient(value)
     assert fit.last_measured["chord_angle_deg"] > 41.5 and grad[0][0] < 0.0
     eps = 0.02 * value[0]
     fd = (fit.loss_and_gradient([value[0] + eps])[0] - fit.loss_and_gradient([value[0] - eps])[0]) / (2 * eps[0])
