@@ -420,25 +420,38 @@ class ModelBuilder:
                               radius=float(radius), height=float(height))
 
     def add_collider_mesh(self, vertices, triangles, position=(0.0, 0.0, 0.0), rotation=None, scale: float = 1.0, *, name=None,
-                          thickness=0.004, friction=0.3, static_friction=None, kinetic_friction=None, keyframes=None) -> Collider:
-        """A rigid triangle-mesh collider (vertices [m] x `scale` in its local frame, then rotated and placed).
-        A watertight mesh is solid; an open one is solid behind its triangles (right-hand winding)."""
+                          thickness=0.004, friction=0.3, static_friction=None, kinetic_friction=None, keyframes=None,
+                          point_cache=None, point_cache_times=None) -> Collider:
+        """A triangle-mesh collider (vertices [m] x `scale` in its local frame, then rotated and placed).
+        A watertight mesh is solid; an open one is solid behind its triangles (right-hand winding).
+        `point_cache` (samples, vertices, 3) at `point_cache_times` [s] makes it deform (x `scale` too)."""
         v = np.asarray(vertices, float) * float(scale)
+        pc = None if point_cache is None else np.asarray(point_cache, float) * float(scale)
         return self._collider("mesh", name, position, rotation, thickness, friction, static_friction, kinetic_friction, keyframes,
-                              vertices=v, triangles=np.asarray(triangles))
+                              vertices=v, triangles=np.asarray(triangles), point_cache=pc, point_cache_times=point_cache_times)
 
-    def add_collider_mesh_file(self, path, *, prim_path: str | None = None, **kwargs) -> Collider:
+    def add_collider_mesh_file(self, path, *, prim_path: str | None = None, deforming: bool = False, **kwargs) -> Collider:
         """A mesh collider read with trimesh (OBJ, PLY, STL, GLB, OFF) or from a USD Mesh (options as
-        :meth:`add_collider_mesh`); duplicate vertices are merged."""
+        :meth:`add_collider_mesh`); duplicate vertices are merged. `deforming`: follow the USD mesh's
+        time-sampled points (a point cache, see :func:`read_usd_point_cache`)."""
         suffix = os.path.splitext(os.fspath(path))[1].lower()
-        if suffix in (".usd", ".usda", ".usdc"):
+        times = cache = None
+        if deforming:
+            if suffix not in (".usd", ".usda", ".usdc"):
+                raise MeshError(f"{path}: a deforming collider reads a USD point cache (.usd, .usda, .usdc)")
+            times, cache, t = read_usd_point_cache(path, prim_path)
+            v = cache[0]
+        elif suffix in (".usd", ".usda", ".usdc"):
             v, t, _ = read_usd_mesh(path, prim_path)
         else:
             v, t, _ = load_mesh_file(path)
-        v, inverse = np.unique(np.round(np.asarray(v, float), 9), axis=0, return_inverse=True)
+        v, first, inverse = np.unique(np.round(np.asarray(v, float), 9), axis=0, return_index=True, return_inverse=True)
         t = inverse.reshape(-1)[np.asarray(t)]
         keep = (t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 0] != t[:, 2])
         kwargs.setdefault("name", os.path.splitext(os.path.basename(os.fspath(path)))[0])
+        if deforming:
+            v = cache[0][first]  # unrounded
+            kwargs.update(point_cache=cache[:, first], point_cache_times=times)
         return self.add_collider_mesh(v, t[keep], **kwargs)
 
     def enable_self_collision(self, thickness: float = 0.004, friction: float = 0.3, stiffness: float | None = None):
@@ -559,23 +572,28 @@ class ModelBuilder:
         mu_s = np.zeros(n, np.float32)
         mu_k = np.zeros(n, np.float32)
         ids = np.zeros(n, np.uint64)
-        m.collider_meshes = []  # keeps the wp.Mesh objects (and their BVHs) alive
+        deforming = np.zeros(n, np.int32)
+        m.collider_meshes = {}  # collider index -> wp.Mesh (keeps the meshes and their BVHs alive)
         for k, c in enumerate(cols):
             shape[k] = SHAPE_IDS[c.shape]
             size[k] = c.local_size
             thickness[k], mu_s[k], mu_k[k] = c.thickness, c.static_friction, c.kinetic_friction
             if c.shape == "mesh":
-                mesh = wp.Mesh(points=wp.array(c.vertices.astype(np.float32), dtype=wp.vec3, device=m.device),
-                               indices=wp.array(c.triangles.reshape(-1).astype(np.int32), dtype=wp.int32, device=m.device))
-                m.collider_meshes.append(mesh)
+                # Deforming meshes carry per-vertex velocities [m/s] (Model.update_control sets both per step).
+                mesh = wp.Mesh(points=wp.array(c.vertices_at(0.0).astype(np.float32), dtype=wp.vec3, device=m.device),
+                               indices=wp.array(c.triangles.reshape(-1).astype(np.int32), dtype=wp.int32, device=m.device),
+                               velocities=wp.zeros(len(c.vertices), dtype=wp.vec3, device=m.device) if c.deforming else None)
+                m.collider_meshes[k] = mesh
                 ids[k] = mesh.id
+                deforming[k] = int(c.deforming)
         m.collider_shape = arr(shape, wp.int32)
         m.collider_size = arr(size, wp.vec3)
         m.collider_thickness = arr(thickness, float)
         m.collider_static_friction = arr(mu_s, float, True)
         m.collider_kinetic_friction = arr(mu_k, float, True)
         m.collider_mesh = arr(ids, wp.uint64)
-        extent = [np.ptp(c.vertices, axis=0).max() for c in cols if c.shape == "mesh"]
+        m.collider_deforming = arr(deforming, wp.int32)
+        extent = [np.ptp((c.point_cache if c.deforming else c.vertices[None]).reshape(-1, 3), axis=0).max() for c in cols if c.shape == "mesh"]
         lo, hi = self.particle_positions.min(0), self.particle_positions.max(0)
         # Mesh distance queries look this far: beyond it a vertex is "far" (its exact distance is not needed).
         m.collider_mesh_max_distance = float(10.0 * (max(extent, default=1.0) + np.linalg.norm(hi - lo) + 1.0))
@@ -653,6 +671,64 @@ def load_mesh_file(path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     return np.asarray(loaded.vertices), np.asarray(loaded.faces), uv
 
 
+def _usd_mesh_prim(path: str, prim_path: str | None):
+    """(stage, the UsdGeom.Mesh prim at `prim_path` or the first one) of a USD file."""
+    from pxr import Usd, UsdGeom
+
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"mesh file not found: {path}")
+    stage = Usd.Stage.Open(path)
+    if stage is None:
+        raise MeshError(f"cannot open {path} as USD")
+    if prim_path is not None:
+        prim = stage.GetPrimAtPath(prim_path)
+        if not prim or not prim.IsA(UsdGeom.Mesh):
+            meshes = [str(p.GetPath()) for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)]
+            raise MeshError(f"{path}: no Mesh at {prim_path!r}; meshes: {', '.join(meshes) or 'none'}")
+        return stage, prim
+    prim = next((p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)), None)
+    if prim is None:
+        raise MeshError(f"{path} holds no UsdGeom.Mesh")
+    return stage, prim
+
+
+def read_usd_point_cache(path, prim_path: str | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A deforming UsdGeom.Mesh (a point cache) as (times [s], vertices [m] per time (T, V, 3), triangles).
+
+    Every time sample of the points (the stage's start time code is t = 0, timeCodesPerSecond sets the
+    rate), in world space with the prim's transform at that time and scaled by metersPerUnit; the
+    topology must not change. A mesh without time samples gives one sample at t = 0.
+    """
+    from pxr import Usd, UsdGeom
+
+    from .cache import fan_triangulate
+
+    path = os.fspath(path)
+    stage, prim = _usd_mesh_prim(path, prim_path)
+    mesh = UsdGeom.Mesh(prim)
+    codes = mesh.GetPointsAttr().GetTimeSamples() or [Usd.TimeCode.Default()]
+    scale = UsdGeom.GetStageMetersPerUnit(stage)
+    frames = []
+    for code in codes:
+        p = np.asarray(mesh.GetPointsAttr().Get(code), np.float64)
+        if frames and p.shape != frames[0].shape:
+            raise MeshError(f"{path}: mesh {prim.GetPath()} changes its point count over time ({len(frames[0])} -> {len(p)})")
+        xform = np.asarray(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(code), np.float64)
+        frames.append((p @ xform[:3, :3] + xform[3, :3]) * scale)
+    if not len(frames[0]):
+        raise MeshError(f"{path}: mesh {prim.GetPath()} has no points")
+    start, rate = stage.GetStartTimeCode(), stage.GetTimeCodesPerSecond()
+    times = np.array([0.0 if isinstance(c, Usd.TimeCode) else (c - start) / rate for c in codes])
+    counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get() or [], np.int64)
+    indices = np.asarray(mesh.GetFaceVertexIndicesAttr().Get() or [], np.int64)
+    if counts.sum() != len(indices):
+        raise MeshError(f"{path}: faceVertexCounts sum {counts.sum()} != {len(indices)} faceVertexIndices")
+    tris = fan_triangulate(counts, indices)
+    if mesh.GetOrientationAttr().Get() == UsdGeom.Tokens.leftHanded:
+        tris = tris[:, ::-1]
+    return times, np.stack(frames), np.asarray(tris, np.int64)
+
+
 def read_usd_mesh(path, prim_path: str | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Read a UsdGeom.Mesh as (vertices [m], triangles, per-vertex uvs or None), like :func:`load_mesh_file`.
 
@@ -667,20 +743,7 @@ def read_usd_mesh(path, prim_path: str | None = None) -> tuple[np.ndarray, np.nd
     from .cache import fan_triangulate
 
     path = os.fspath(path)
-    if not os.path.exists(path):
-        raise FileNotFoundError(f"mesh file not found: {path}")
-    stage = Usd.Stage.Open(path)
-    if stage is None:
-        raise MeshError(f"cannot open {path} as USD")
-    if prim_path is not None:
-        prim = stage.GetPrimAtPath(prim_path)
-        if not prim or not prim.IsA(UsdGeom.Mesh):
-            meshes = [str(p.GetPath()) for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)]
-            raise MeshError(f"{path}: no Mesh at {prim_path!r}; meshes: {', '.join(meshes) or 'none'}")
-    else:
-        prim = next((p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)), None)
-        if prim is None:
-            raise MeshError(f"{path} holds no UsdGeom.Mesh")
+    stage, prim = _usd_mesh_prim(path, prim_path)
     mesh = UsdGeom.Mesh(prim)
     time = Usd.TimeCode.Default()
     points = mesh.GetPointsAttr().Get(time)

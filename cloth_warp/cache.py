@@ -148,7 +148,7 @@ def _indexed_corner_uvs(corner_uv: np.ndarray):
 
 def _define_colliders(stage, model) -> list:
     """Collider prims under /World/colliders (UsdGeom shapes, meshes for mesh colliders) with a translate and
-    an orient op; returns (collider, translate op, orient op) per collider."""
+    an orient op; returns (collider, translate op, orient op, geom) per collider."""
     from pxr import Gf, UsdGeom, Vt
 
     if not getattr(model, "colliders", None):
@@ -199,7 +199,7 @@ def _define_colliders(stage, model) -> list:
         orient = geom.AddOrientOp()
         if col.shape == "box":
             geom.AddScaleOp().Set(Gf.Vec3f(*map(float, col.size)))
-        out.append((col, translate, orient))
+        out.append((col, translate, orient, geom))
     return out
 
 
@@ -352,13 +352,17 @@ class UsdCacheWriter(CacheWriter):
         from pxr import Gf
 
         tc = self.start_frame + k
-        for col, translate, orient in self.colliders:
+        for col, translate, orient, geom in self.colliders:
             if k > 0 and not col.animated:
                 continue
             p, q = col.pose_at(k / self.fps)
             when = tc if col.animated else None
             translate.Set(Gf.Vec3d(*map(float, p)), *([when] if when is not None else []))
             orient.Set(Gf.Quatf(float(q[3]), float(q[0]), float(q[1]), float(q[2])), *([when] if when is not None else []))
+            if col.deforming:  # a point-cache body: its points, time-sampled like the cloth's
+                pts = np.ascontiguousarray(col.vertices_at(k / self.fps), np.float32)
+                geom.GetPointsAttr().Set(self._Vt.Vec3fArray.FromNumpy(pts), tc)
+                geom.GetExtentAttr().Set(self._Vt.Vec3fArray.FromNumpy(np.stack([pts.min(0), pts.max(0)])), tc)
 
     def _set_metadata(self):
         self.layer.customLayerData = {"cloth_warp": _usd_dict(self.meta)}

@@ -41,6 +41,10 @@ class Collider:
         thickness: contact offset [m]: cloth vertices are kept at least this far from the surface.
         static_friction, kinetic_friction: Coulomb coefficients mu_s >= mu_k >= 0.
         keyframes: rigid animation (:class:`~cloth_warp.model.Keyframe`), empty for a static collider.
+        point_cache: a deforming mesh collider's vertices (local frame [m]) at `point_cache_times`, shape
+            (samples, vertices, 3) (a body read from a USD point cache); between samples the vertices move
+            linearly, outside them they hold. The triangles stay the same.
+        point_cache_times: the samples' times [s], increasing.
     """
 
     name: str
@@ -56,6 +60,8 @@ class Collider:
     static_friction: float = 0.3
     kinetic_friction: float = 0.3
     keyframes: list[Keyframe] = field(default_factory=list)
+    point_cache: np.ndarray | None = None
+    point_cache_times: np.ndarray | None = None
 
     def __post_init__(self):
         if self.shape not in SHAPES:
@@ -75,6 +81,8 @@ class Collider:
                 raise ValueError(f"{where}: a box needs three positive edge lengths [m], got {self.size!r}")
         if self.shape == "mesh":
             self._check_mesh(where)
+        if self.point_cache is not None:
+            self._check_point_cache(where)
         if self.kinetic_friction > self.static_friction:
             raise ValueError(f"{where}: kinetic_friction {self.kinetic_friction} exceeds static_friction {self.static_friction}")
         q = np.asarray(self.rotation, float)
@@ -105,9 +113,39 @@ class Collider:
         self.vertices = v
         self.triangles = t.astype(np.int32)
 
+    def _check_point_cache(self, where: str):
+        if self.shape != "mesh":
+            raise ValueError(f"{where}: only a mesh collider can deform (point_cache)")
+        pc = np.asarray(self.point_cache, np.float64)
+        times = np.asarray(self.point_cache_times if self.point_cache_times is not None else [], np.float64).reshape(-1)
+        if pc.ndim != 3 or pc.shape[1:] != self.vertices.shape:
+            raise ValueError(f"{where}: point_cache must have shape (samples, {len(self.vertices)}, 3), got {pc.shape}")
+        if len(times) != len(pc) or len(pc) == 0:
+            raise ValueError(f"{where}: point_cache_times needs one time per sample ({len(pc)}), got {len(times)}")
+        if not (np.all(np.isfinite(pc)) and np.all(np.isfinite(times))):
+            raise ValueError(f"{where}: point_cache has non-finite values")
+        if np.any(np.diff(times) <= 0.0):
+            raise ValueError(f"{where}: point_cache_times must increase strictly")
+        self.point_cache, self.point_cache_times = pc, times
+
+    @property
+    def deforming(self) -> bool:
+        return self.point_cache is not None
+
     @property
     def animated(self) -> bool:
-        return len(self.keyframes) > 0
+        return len(self.keyframes) > 0 or self.deforming
+
+    def vertices_at(self, time: float) -> np.ndarray:
+        """A mesh collider's local vertices [m] at `time` [s] (the point cache, linear between samples)."""
+        if not self.deforming:
+            return self.vertices
+        times = self.point_cache_times
+        k = int(np.clip(np.searchsorted(times, time, side="right") - 1, 0, len(times) - 1))
+        if k == len(times) - 1 or time <= times[0]:
+            return self.point_cache[k]
+        w = (time - times[k]) / (times[k + 1] - times[k])
+        return (1.0 - w) * self.point_cache[k] + w * self.point_cache[k + 1]
 
     @property
     def local_size(self) -> tuple[float, float, float]:

@@ -95,7 +95,8 @@ class CollisionHandler:
         wp.launch(
             kcol.collide_colliders,
             dim=m.particle_count,
-            inputs=[m.particle_pinned, m.collider_count, m.collider_shape, m.collider_size, m.collider_mesh, m.collider_thickness,
+            inputs=[m.particle_pinned, m.collider_count, m.collider_shape, m.collider_size, m.collider_mesh, m.collider_deforming,
+                    m.collider_thickness,
                     m.collider_static_friction, m.collider_kinetic_friction, m.collider_mesh_max_distance,
                     control.collider_transform_start, control.collider_transform_end, x_start, x_end, v_end, dt],
             outputs=[x_out, v_out, self.counts],
@@ -113,7 +114,8 @@ def penetration_depths(model: Model, positions: np.ndarray, time: float = 0.0) -
     out = np.zeros(model.collider_count)
     for k, col in enumerate(model.colliders):
         p, q = col.pose_at(time)
-        moved = dataclasses.replace(col, position=tuple(p), rotation=tuple(q), keyframes=[])
+        moved = dataclasses.replace(col, position=tuple(p), rotation=tuple(q), keyframes=[], point_cache=None, point_cache_times=None,
+                                    vertices=col.vertices_at(time) if col.shape == "mesh" else None)
         d = moved.distance(x) if len(x) else np.zeros(0)
         out[k] = max(0.0, float(np.max(col.thickness - d))) if len(d) else 0.0
     return out

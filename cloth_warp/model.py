@@ -202,7 +202,8 @@ class Model:
         gravity: (3,) [m/s^2]; global_damping: mass-proportional damping rate [1/s].
         colliders: the :class:`~cloth_warp.colliders.Collider` descriptions; per collider the arrays
             collider_shape (int32, SHAPES index), collider_size (vec3, kernel convention),
-            collider_mesh (uint64 wp.Mesh id, 0 for analytic shapes), collider_thickness [m],
+            collider_mesh (uint64 wp.Mesh id, 0 for analytic shapes), collider_deforming (int32, 1 for a
+            mesh following a point cache: its wp.Mesh carries vertex velocities), collider_thickness [m],
             collider_static_friction, collider_kinetic_friction (Coulomb coefficients).
         self_collision: cloth-cloth contact on (see :mod:`~cloth_warp.selfcollision`);
             cloth_thickness: the distance [m] kept between non-adjacent cloth elements;
@@ -265,6 +266,20 @@ class Model:
             out[k, :3], out[k, 3:] = p, q
         return out
 
+    def set_collider_geometry(self, time: float, dt: float = 0.0):
+        """Move deforming mesh colliders to their point cache at `time` [s], with vertex velocities
+        (x(time) - x(time - dt)) / dt [m/s], and refit their BVHs. (The meshes are shared by every
+        Control of the model: the geometry is that of the last step set up; it is not differentiated.)"""
+        for k, col in enumerate(self.colliders):
+            if not col.deforming:
+                continue
+            mesh = self.collider_meshes[k]
+            end = col.vertices_at(time)
+            vel = (end - col.vertices_at(time - dt)) / dt if dt > 0.0 else np.zeros_like(end)
+            mesh.points.assign(end.astype(np.float32))
+            mesh.velocities.assign(vel.astype(np.float32))
+            mesh.refit()
+
     def update_control(self, control: Control, time: float, dt: float = 0.0, force: bool = False):
         """Set the control for the step that ends at `time` [s] and lasts `dt` [s]: animated handles'
         pin targets at `time`, colliders' poses at `time - dt` and `time` (static ones only when `force`)."""
@@ -272,6 +287,7 @@ class Model:
         if self.colliders and (force or any(c.animated for c in self.colliders)):
             control.collider_transform_start.assign(self.collider_transforms(time - dt))
             control.collider_transform_end.assign(self.collider_transforms(time))
+            self.set_collider_geometry(time, dt)
         if not self.handles:
             return
         targets = control.pin_target.numpy()

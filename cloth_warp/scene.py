@@ -63,7 +63,7 @@ FIT_LOSSES = ("positions", "final", "chamfer")
 COLLIDER_SHAPES = ("plane", "sphere", "capsule", "box", "cylinder", "mesh")
 # Which geometry keys each collider shape takes (the others are rejected with a message).
 COLLIDER_GEOMETRY = {"plane": ("axis",), "sphere": ("radius",), "capsule": ("radius", "height", "axis"), "box": ("size", "rotation"),
-                     "cylinder": ("radius", "height", "axis"), "mesh": ("mesh", "mesh_prim", "scale", "rotation")}
+                     "cylinder": ("radius", "height", "axis"), "mesh": ("mesh", "mesh_prim", "scale", "rotation", "deforming")}
 COLLIDER_REQUIRED = {"sphere": ("radius",), "capsule": ("radius", "height"), "box": ("size",), "cylinder": ("radius", "height"),
                      "mesh": ("mesh",)}
 SELECTION = {
@@ -147,6 +147,8 @@ SCHEMA: dict = {
                     "behind its triangles"),
         "mesh_prim": Key("str", None, "prim path of the mesh inside a USD file (default: the first Mesh)"),
         "scale": Key("float", 1.0, "mesh units to metres", minimum=0.0, exclusive_minimum=True),
+        "deforming": Key("bool", False, "mesh: follow the USD mesh's time-sampled points (a point cache, e.g. an animated "
+                         "body; its start time code is t = 0, timeCodesPerSecond its rate), linear between samples"),
         "thickness": Key("float", 0.004, "contact offset: cloth vertices stay this far from the surface", "m", 0.0, True),
         "friction": Key("float", 0.3, "Coulomb friction coefficient (static and kinetic)", minimum=0.0),
         "static_friction": Key("float", None, "static coefficient mu_s (default: friction)", minimum=0.0),
@@ -619,7 +621,8 @@ def _add_collider(b, scene: Scene, col: dict, i: int):
             b.add_box(pos, tuple(col["size"]), rotation=_rotation_q(col.get("rotation")), **common)
         else:
             b.add_collider_mesh_file(scene.resolve(col["mesh"]), prim_path=col.get("mesh_prim"), position=pos,
-                                     rotation=_rotation_q(col.get("rotation")), scale=float(col.get("scale", 1.0)), **common)
+                                     rotation=_rotation_q(col.get("rotation")), scale=float(col.get("scale", 1.0)),
+                                     deforming=bool(col.get("deforming", False)), **common)
     except (ValueError, MeshError) as exc:
         raise SceneError(f"colliders[{i}]: {exc}") from exc
 

@@ -97,6 +97,26 @@ def shape_distance(shape: int, size: wp.vec3, mesh: wp.uint64, max_distance: flo
 
 
 @wp.func
+def mesh_surface_velocity(mesh: wp.uint64, max_distance: float, p: wp.vec3):
+    """Velocity [m/s] (local frame) of a deforming mesh's surface at its point nearest to p (zero when none)."""
+    query = wp.mesh_query_point_sign_normal(mesh, p, max_distance, 1.0e-3)
+    if not query.result:
+        return wp.vec3(0.0)
+    return wp.mesh_eval_velocity(mesh, query.face, query.u, query.v)
+
+
+@wp.func
+def surface_velocity(deforming: int, mesh: wp.uint64, max_distance: float, t_start: wp.transform, t_end: wp.transform,
+                     p: wp.vec3, inv_dt: float):
+    """World velocity [m/s] of the collider's surface point at local p: the rigid motion from t_start to
+    t_end, plus, for a deforming mesh, its vertices' interpolated velocity there."""
+    u = (wp.transform_point(t_end, p) - wp.transform_point(t_start, p)) * inv_dt
+    if deforming != 0:
+        u = u + wp.transform_vector(t_end, mesh_surface_velocity(mesh, max_distance, p))
+    return u
+
+
+@wp.func
 def first_contact(shape: int, size: wp.vec3, mesh: wp.uint64, max_distance: float, p_start: wp.vec3, p_end: wp.vec3,
                   thickness: float, tolerance: float):
     """Earliest fraction t in [0, 1] of the segment p_start -> p_end whose distance to the shape is
@@ -167,6 +187,7 @@ def collide_colliders(
     collider_shape: wp.array(dtype=wp.int32),
     collider_size: wp.array(dtype=wp.vec3),
     collider_mesh: wp.array(dtype=wp.uint64),
+    collider_deforming: wp.array(dtype=wp.int32),
     collider_thickness: wp.array(dtype=float),
     collider_static_friction: wp.array(dtype=float),
     collider_kinetic_friction: wp.array(dtype=float),
@@ -192,6 +213,8 @@ def collide_colliders(
     onto it (offset by the thickness) with friction. Then, if the end point is within the thickness
     (resting and sliding contact, curved or concave surfaces), push it out along the surface normal
     there. A particle that slides off an edge is therefore let go, not held up on the face's plane.
+    A deforming mesh is tested in its end-of-step shape: the start point is first carried along by the
+    surface's motion there (its vertex velocities x dt), and contacts take the surface's velocity.
     """
     i = wp.tid()
     xs = x_start[i]
@@ -211,8 +234,11 @@ def collide_colliders(
         mu_k = collider_kinetic_friction[c]
         t_start = collider_transform_start[c]
         t_end = collider_transform_end[c]
+        deforming = collider_deforming[c]
         ps = wp.transform_point(wp.transform_inverse(t_start), xs)
         pe = wp.transform_point(wp.transform_inverse(t_end), xe)
+        if deforming != 0:
+            ps = ps + dt * mesh_surface_velocity(mesh, mesh_max_distance, ps)
         tolerance = 1.0e-3 * thickness + 1.0e-7
         end_dist0, end_n0 = shape_distance(shape, size, mesh, mesh_max_distance, pe)
         hit, t = first_contact(shape, size, mesh, mesh_max_distance, ps, pe, thickness, tolerance)
@@ -256,7 +282,7 @@ def collide_colliders(
             gap = dist - thickness + wp.dot(pe - pc, nl)
             if gap < 0.0:
                 n = wp.transform_vector(t_end, nl)
-                u = (wp.transform_point(t_end, pc) - wp.transform_point(t_start, pc)) * inv_dt
+                u = surface_velocity(deforming, mesh, mesh_max_distance, t_start, t_end, pc, inv_dt)
                 vbar, ve = contact_response((xe - xs) * inv_dt, ve, u, n, -gap * inv_dt, mu_s, mu_k)
                 xe = xs + dt * vbar
                 pe = wp.transform_point(wp.transform_inverse(t_end), xe)
@@ -267,7 +293,7 @@ def collide_colliders(
         dist_end, n_end = shape_distance(shape, size, mesh, mesh_max_distance, pe)
         if dist_end < thickness:
             n = wp.transform_vector(t_end, n_end)
-            u = (wp.transform_point(t_end, pe) - wp.transform_point(t_start, pe)) * inv_dt
+            u = surface_velocity(deforming, mesh, mesh_max_distance, t_start, t_end, pe, inv_dt)
             vbar, ve = contact_response((xe - xs) * inv_dt, ve, u, n, (thickness - dist_end) * inv_dt, mu_s, mu_k)
             xe = xs + dt * vbar
             touched = 1

@@ -301,3 +301,77 @@ def test_cloth_draped_over_sphere_comes_to_rest():
     # draped, not slid off: the cap rests on the ball, the corners on the ground
     on_ball, on_ground = (int((collider_distance(m, k, sim.positions())[0] < 0.006).sum()) for k in range(2))
     assert on_ball > 10 and on_ground >= 4, (on_ball, on_ground)
+
+
+def _growing_ball_cache(path, fps=24.0, seconds=1.0, r0=0.15, r1=0.3):
+    """A USD point cache: an icosphere at the origin whose radius grows linearly from r0 to r1 [m] over
+    `seconds`, one time sample per frame from time code 1 (stage start), like an exported animated body."""
+    from pxr import Usd, UsdGeom, Vt
+
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    stage.SetTimeCodesPerSecond(fps)
+    frames = int(round(seconds * fps))
+    stage.SetStartTimeCode(1)
+    stage.SetEndTimeCode(1 + frames)
+    mesh = UsdGeom.Mesh.Define(stage, "/body")
+    mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(ball.faces), 3, np.int32)))
+    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(np.ascontiguousarray(ball.faces.reshape(-1).astype(np.int32))))
+    for k in range(frames + 1):
+        r = r0 + (r1 - r0) * k / frames
+        mesh.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(ball.vertices * r, np.float32)), 1 + k)
+    stage.GetRootLayer().Save()
+    return r0, r1
+
+
+def test_point_cache_collider_pushes_cloth_and_is_cached(tmp_path):
+    """A deforming mesh collider read from a USD point cache (a ball growing from 15 to 30 cm radius in 1 s)
+    lifts a cloth lying on it: in every frame no vertex is deeper than the thickness in the ball of that time,
+    the cloth's top follows the radius, and the cache holds the ball's points per frame for DCC playback."""
+    from cloth_warp.builder import read_usd_point_cache
+    from cloth_warp.cache import CacheReader
+
+    body = tmp_path / "body.usda"
+    r0, r1 = _growing_ball_cache(body)
+    times, points, tris = read_usd_point_cache(body)
+    assert len(times) == 25 and times[0] == 0.0 and times[-1] == pytest.approx(1.0)
+    assert np.linalg.norm(points[-1], axis=1).max() == pytest.approx(r1, rel=1e-6) and tris.shape[1] == 3
+    scene = tmp_path / "grow.toml"
+    scene.write_text(f"""
+[cloth]
+grid = {{ resolution = [8, 8], size = [0.5, 0.5] }}
+position = [-0.25, {r0 + 0.01}, 0.25]
+rotation = {{ axis = [1.0, 0.0, 0.0], angle = -90.0 }}
+[material]
+preset = "cotton"
+[[colliders]]
+type = "mesh"
+mesh = "body.usda"
+deforming = true
+friction = 0.5
+[solver]
+integrator = "implicit_euler"
+substeps = 2
+[output]
+frames = 30
+fps = 30
+""")
+    out = tmp_path / "grow.usdc"
+    summary = cw.run_scene(scene, output=out)
+    assert summary["status"] == "complete"
+    reader = CacheReader(out)
+    model = cw.scene.build_model(cw.scene.load_scene(scene), "cpu")
+    tops = []
+    for f in range(reader.frame_count):
+        t = f / reader.fps
+        x = reader.points(reader.start_frame + f)
+        assert penetration_depths(model, x, t).max() < 1e-5, (f, penetration_depths(model, x, t))
+        tops.append(x[:, 1].max())
+    assert tops[-1] == pytest.approx(r1 + model.colliders[0].thickness, abs=0.01)  # carried up by 15 cm
+    ball = [c for c in reader.colliders if c["shape"] == "mesh"][0]["prim"]
+    from pxr import UsdGeom
+
+    pts = UsdGeom.Mesh(ball).GetPointsAttr()
+    assert len(pts.GetTimeSamples()) == reader.frame_count
+    assert np.linalg.norm(np.asarray(pts.Get(reader.start_frame + 30)), axis=1).max() == pytest.approx(r1, rel=1e-5)
