@@ -303,25 +303,29 @@ def test_cloth_draped_over_sphere_comes_to_rest():
     assert on_ball > 10 and on_ground >= 4, (on_ball, on_ground)
 
 
-def _growing_ball_cache(path, fps=24.0, seconds=1.0, r0=0.15, r1=0.3):
-    """A USD point cache: an icosphere at the origin whose radius grows linearly from r0 to r1 [m] over
-    `seconds`, one time sample per frame from time code 1 (stage start), like an exported animated body."""
+def _point_cache(path, mesh, points_at, fps=24.0, seconds=1.0):
+    """Write a USD point cache of trimesh `mesh` whose vertices at time t [s] are points_at(t): one time
+    sample per frame from time code 1 (the stage start), metres, like an exported animated body."""
     from pxr import Usd, UsdGeom, Vt
 
-    ball = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
     stage = Usd.Stage.CreateNew(str(path))
     UsdGeom.SetStageMetersPerUnit(stage, 1.0)
     stage.SetTimeCodesPerSecond(fps)
     frames = int(round(seconds * fps))
     stage.SetStartTimeCode(1)
     stage.SetEndTimeCode(1 + frames)
-    mesh = UsdGeom.Mesh.Define(stage, "/body")
-    mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(ball.faces), 3, np.int32)))
-    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(np.ascontiguousarray(ball.faces.reshape(-1).astype(np.int32))))
+    prim = UsdGeom.Mesh.Define(stage, "/body")
+    prim.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(mesh.faces), 3, np.int32)))
+    prim.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(np.ascontiguousarray(mesh.faces.reshape(-1).astype(np.int32))))
     for k in range(frames + 1):
-        r = r0 + (r1 - r0) * k / frames
-        mesh.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(ball.vertices * r, np.float32)), 1 + k)
+        prim.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(points_at(k / fps), np.float32)), 1 + k)
     stage.GetRootLayer().Save()
+
+
+def _growing_ball_cache(path, r0=0.15, r1=0.3):
+    """An icosphere at the origin whose radius grows linearly from r0 to r1 [m] over 1 s."""
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    _point_cache(path, ball, lambda t: ball.vertices * (r0 + (r1 - r0) * t))
     return r0, r1
 
 
@@ -375,3 +379,40 @@ fps = 30
     pts = UsdGeom.Mesh(ball).GetPointsAttr()
     assert len(pts.GetTimeSamples()) == reader.frame_count
     assert np.linalg.norm(np.asarray(pts.Get(reader.start_frame + 30)), axis=1).max() == pytest.approx(r1, rel=1e-5)
+
+
+def test_point_cache_collider_carries_cloth_by_friction(tmp_path):
+    """A slab read from a point cache slides along x at 0.5 m/s under a cloth lying on it (mu = 1): static
+    friction against the surface's own velocity (its vertex velocities) carries the cloth along at the
+    slab's speed. A contact that took the surface as still would hold the cloth back and let the slab slip
+    away beneath it."""
+    from cloth_warp.scene import build_model, build_solver, load_scene
+
+    slab = trimesh.creation.box(extents=(2.0, 0.1, 2.0))
+    _point_cache(tmp_path / "slab.usda", slab, lambda t: slab.vertices + np.array([0.5 * t, -0.05, 0.0]))
+    scene = tmp_path / "slide.toml"
+    scene.write_text("""
+[cloth]
+grid = { resolution = [6, 6], size = [0.3, 0.3] }
+position = [-0.15, 0.005, 0.15]
+rotation = { axis = [1.0, 0.0, 0.0], angle = -90.0 }
+[[colliders]]
+type = "mesh"
+mesh = "slab.usda"
+deforming = true
+friction = 1.0
+[solver]
+integrator = "implicit_euler"
+substeps = 2
+""")
+    sc = load_scene(scene)
+    m = build_model(sc, "cpu")
+    sim = cw.Simulator(m, build_solver(sc, m), fps=60, substeps=2)
+    x0 = sim.positions()[:, 0].mean()
+    for _ in range(36):  # 0.6 s: the slab moves 0.3 m (it starts moving at once, as the cache does)
+        stats = sim.step_frame()
+    x = sim.positions()
+    v = sim.state.particle_qd.numpy()
+    assert x[:, 0].mean() - x0 == pytest.approx(0.3, abs=0.02)
+    assert v[:, 0].mean() == pytest.approx(0.5, abs=0.02) and stats.max_strain < 0.05
+    assert penetration_depths(m, x, 0.6).max() < 1e-5
