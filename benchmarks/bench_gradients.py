@@ -65,7 +65,7 @@ def main():
     if args.quick:
         configs = configs[:2] + [(32, 100, "none", "symplectic"), (32, 1000, "none", "symplectic"), (32, 1000, "auto", "symplectic")]
     if args.config:
-        configs = [(int(c.split(":")[0]), int(c.split(":")[1]), c.split(":")[2], c.split(":")[3]) for c in args.config]
+        configs = [(int(res), int(steps), every, integ) for res, steps, every, integ in (c.split(":") for c in args.config)]
     rows = ["| cloth | integrator | steps T | checkpoint | forward s | gradient s | backward / forward | peak memory MB | MB per step |",
             "|---|---|---|---|---|---|---|---|---|"]
     for res, steps, every, integ in configs:

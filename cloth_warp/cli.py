@@ -58,11 +58,20 @@ def _fmt_time(seconds: float) -> str:
 class Progress:
     """A progress bar on a terminal (frames, ms/frame, ETA); plain lines every 10 % or 10 s otherwise."""
 
+    width = 24
+
     def __init__(self, stream=None, quiet: bool = False):
         self.stream = stream or sys.stderr
         self.quiet = quiet
         self.tty = self.stream.isatty()
-        self.last_line = time.monotonic()
+        self.start = self.last_line = time.monotonic()
+
+    def _bar(self, done: int, total: int, text: str):
+        """Redraw the terminal bar; a newline once done."""
+        filled = int(self.width * done / total)
+        self.stream.write(f"\r[{'#' * filled}{'.' * (self.width - filled)}] {text} ")
+        if done == total:
+            self.stream.write("\n")
 
     def __call__(self, frame: int, total: int, summary: dict):
         if self.quiet:
@@ -73,11 +82,7 @@ class Progress:
         text = f"{frame}/{total} frames  {ms:.1f} ms/frame  ETA {_fmt_time(eta)}"
         now = time.monotonic()
         if self.tty:
-            width = 24
-            filled = int(width * frame / total)
-            self.stream.write(f"\r[{'#' * filled}{'.' * (width - filled)}] {text} ")
-            if frame == total:
-                self.stream.write("\n")
+            self._bar(frame, total, text)
         elif frame == total or frame % max(1, total // 10) == 0 or now - self.last_line > 10.0:
             self.stream.write(f"cloth-warp: {text}\n")
             self.last_line = now
@@ -240,14 +245,10 @@ def cmd_preview(args) -> int:
     return EXIT_OK
 
 
-class FitProgress:
+class FitProgress(Progress):
     """One line per iteration (a redrawn bar on a terminal): loss and the current values."""
 
-    def __init__(self, stream=None, quiet: bool = False):
-        self.stream = stream or sys.stderr
-        self.quiet = quiet
-        self.tty = self.stream.isatty()
-        self.start = time.monotonic()
+    width = 20
 
     def __call__(self, iteration: int, total: int, loss: float, values: dict):
         if self.quiet:
@@ -257,11 +258,7 @@ class FitProgress:
         shown = "  ".join(f"{k.split('.')[-1]}={_fmt_value(v)}" for k, v in values.items())
         text = f"{iteration}/{total}  loss {loss:.4e}  {shown}  ETA {_fmt_time(eta)}"
         if self.tty:
-            width = 20
-            filled = int(width * iteration / total)
-            self.stream.write(f"\r[{'#' * filled}{'.' * (width - filled)}] {text} ")
-            if iteration == total:
-                self.stream.write("\n")
+            self._bar(iteration, total, text)
         else:
             self.stream.write(f"cloth-warp fit: {text}\n")
         self.stream.flush()

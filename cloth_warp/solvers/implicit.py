@@ -106,7 +106,6 @@ class SolverImplicitEuler(SolverBase):
         if not (0.0 < warm_start_reduction <= 1.0):
             raise ValueError(f"warm_start_reduction must be in (0, 1], got {warm_start_reduction!r}")
         self.warm_start_reduction = float(warm_start_reduction)
-        self._warm_started = False  # this step's solve started from the previous dv
         self._has_previous = False
         self._reference_rr = 0.0
         n, s, t = model.particle_count, max(model.spring_count, 1), max(model.tri_count, 1)
@@ -165,15 +164,16 @@ class SolverImplicitEuler(SolverBase):
         return [m.particle_spring_offsets, m.particle_spring_ids, m.particle_spring_role, m.spring_indices, m.spring_middle,
                 m.particle_tri_offsets, m.particle_tri_ids, m.tri_indices, m.tri_corner_weights]
 
-    def solve_cg(self, dt: float) -> wp.array:
-        """Filtered PCG on the assembled system; returns the array holding dv."""
+    def solve_cg(self, dt: float, warm: bool = False) -> wp.array:
+        """Filtered PCG on the assembled system (`warm`: started from the previous step's dv); returns the
+        array holding dv."""
         m = self.model
         dev = m.device
         scal = self.cg_scalars.numpy() if dev.is_cpu else None
         rr0 = self._reference_rr  # |S (b - A z)|^2: the zero-guess residual, also after a warm start
         iterations = 0
         rel = math.sqrt(max(self._read(scal, 0), 0.0) / rr0) if rr0 > 1e-300 else 0.0
-        stop = self._stop_residual(rel)
+        stop = self._stop_residual(rel, warm)
         if rr0 > 1e-300 and rel > stop:
             common = self._product_args()
             for k in range(self.max_iterations):
@@ -201,8 +201,8 @@ class SolverImplicitEuler(SolverBase):
         self._report(iterations, rel)
         return self.dv
 
-    def solve_jacobi(self, dt: float) -> wp.array:
-        """Block Jacobi on the assembled system; returns the array holding dv."""
+    def solve_jacobi(self, dt: float, warm: bool = False) -> wp.array:
+        """Block Jacobi on the assembled system (`warm` as in :meth:`solve_cg`); returns the array holding dv."""
         m = self.model
         dev = m.device
         scal = self.cg_scalars.numpy() if dev.is_cpu else None
@@ -210,7 +210,7 @@ class SolverImplicitEuler(SolverBase):
         src, dst = self.dv, self.dv_alt
         iterations = 0
         rel = math.sqrt(max(self._read(scal, 0), 0.0) / rr0) if rr0 > 1e-300 else 0.0
-        stop = self._stop_residual(rel)
+        stop = self._stop_residual(rel, warm)
         if rr0 > 1e-300 and rel > stop:
             common = self._product_args()
             for k in range(self.max_iterations):
@@ -240,9 +240,9 @@ class SolverImplicitEuler(SolverBase):
         self._report(iterations, rel)
         return src
 
-    def _stop_residual(self, rel_start: float) -> float:
+    def _stop_residual(self, rel_start: float, warm: bool) -> float:
         """The relative residual at which this solve stops (see `warm_start_reduction`)."""
-        if not self._warm_started:
+        if not warm:
             return self.tolerance
         return min(self.tolerance, max(self.warm_start_reduction * rel_start, WARM_START_FLOOR))
 
@@ -261,18 +261,17 @@ class SolverImplicitEuler(SolverBase):
         """Assemble and solve the step's linear system; returns the array holding dv [m/s]."""
         self.assemble(state_in, control, dt)
         self._reference_rr = self._read(self.cg_scalars.numpy() if self.model.device.is_cpu else None, 0)
-        self._warm_started = self.warm_start and self._has_previous and not state_in.requires_grad
-        if self._warm_started:
+        warm = self.warm_start and self._has_previous and not state_in.requires_grad
+        if warm:
             self._restart_from_previous(dt)
-        dv = self._iterate(dt)
-        self._warm_started = False  # the adjoint solve and other callers of _iterate start cold
+        dv = self._iterate(dt, warm)
         if self.warm_start:
             wp.copy(self.dv_previous, dv)
             self._has_previous = True
         return dv
 
-    def _iterate(self, dt: float) -> wp.array:
-        return self.solve_cg(dt) if self.linear_solver == LinearSolver.CG else self.solve_jacobi(dt)
+    def _iterate(self, dt: float, warm: bool = False) -> wp.array:
+        return self.solve_cg(dt, warm) if self.linear_solver == LinearSolver.CG else self.solve_jacobi(dt, warm)
 
     def _restart_from_previous(self, dt: float):
         m = self.model
