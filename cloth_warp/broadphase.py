@@ -23,7 +23,7 @@ class ElementSet:
     """Elements (rows of up to three vertex indices, -1 padded) and their per-step boxes and voxels;
     with `grid=True` also the hash-grid entries other elements search."""
 
-    def __init__(self, elements: np.ndarray, device, grid: bool):
+    def __init__(self, elements: np.ndarray, device, grid: bool, ids: np.ndarray | None = None):
         rows = np.full((max(len(elements), 1), 3), -1, np.int32)
         if len(elements):
             e = np.asarray(elements, np.int32).reshape(len(elements), -1)
@@ -31,6 +31,9 @@ class ElementSet:
         self.count = len(elements)
         self.device = device
         self.elements = wp.array(rows, dtype=wp.int32, device=device)
+        # the id pairs report for each row (its index in the full set; a patch's subsets keep the full set's ids)
+        self.ids_np = np.arange(self.count) if ids is None else np.asarray(ids, np.int64)
+        self.ids = wp.array(np.append(self.ids_np, 0).astype(np.int32)[: max(self.count, 1)], dtype=wp.int32, device=device)
         n = max(self.count, 1)
         self.lo = wp.zeros(n, dtype=wp.vec3, device=device)
         self.hi = wp.zeros(n, dtype=wp.vec3, device=device)
@@ -59,6 +62,10 @@ class ElementSet:
         self.sorted_cell = wp.zeros(self.entry_capacity, dtype=wp.vec3i, device=dev)
         self.sorted_lo = wp.zeros(self.entry_capacity, dtype=wp.vec3, device=dev)
         self.sorted_hi = wp.zeros(self.entry_capacity, dtype=wp.vec3, device=dev)
+
+    def subset(self, ids: np.ndarray, grid: bool) -> "ElementSet":
+        """The elements with these ids, keeping their ids."""
+        return ElementSet(self.elements.numpy()[ids], self.device, grid, ids=ids)
 
     def update(self, x_start: wp.array, velocity: wp.array, dt: float, pad: float, inv_cell_size: float, clamped: wp.array):
         """Boxes of the step x_start -> x_start + dt velocity grown by `pad` [m]; re-registers the grid's entries."""
@@ -99,18 +106,23 @@ class PairBuffer:
         self.capacity = int(capacity)
         self.pairs = wp.zeros(self.capacity, dtype=wp.vec2i, device=self.device)
 
-    def search(self, query: ElementSet, target: ElementSet, same_set: bool, inv_cell_size: float):
-        """Every overlapping, vertex-disjoint (query, target) pair into :attr:`pairs` [: :attr:`count`]."""
+    def search(self, searches: list, inv_cell_size: float):
+        """Every overlapping, vertex-disjoint pair of the `searches` into :attr:`pairs` [: :attr:`count`]:
+        each is (query set, target set with grid entries, ordered, query skip flags, target skip flags) and
+        appends its (query id, target id) pairs (with `ordered`, each unordered pair once)."""
         self.count = 0
-        if query.count == 0 or target.count == 0 or target.entries == 0:
+        searches = [s for s in searches if s[0].count and s[1].count and s[1].entries]
+        if not searches:
             return
         while True:
             self.count_array.zero_()
-            wp.launch(kb.find_pairs, dim=query.count,
-                      inputs=[query.elements, query.lo, query.hi, query.cell_lo, query.cell_hi, target.elements,
-                              target.sorted_element, target.sorted_cell, target.sorted_lo, target.sorted_hi, target.bucket_start, target.bucket_end,
-                              target.table_size - 1, inv_cell_size, int(same_set), self.capacity],
-                      outputs=[self.pairs, self.count_array], device=self.device)
+            for query, target, ordered, query_skip, target_skip in searches:
+                wp.launch(kb.find_pairs, dim=query.count,
+                          inputs=[query.elements, query.ids, query_skip, query.lo, query.hi, query.cell_lo, query.cell_hi,
+                                  target.elements, target.ids, target_skip, target.sorted_element, target.sorted_cell,
+                                  target.sorted_lo, target.sorted_hi, target.bucket_start, target.bucket_end,
+                                  target.table_size - 1, inv_cell_size, int(ordered), self.capacity],
+                          outputs=[self.pairs, self.count_array], device=self.device)
             n = int(self.count_array.numpy()[0])
             if n <= self.capacity:
                 self.count = n
@@ -152,43 +164,105 @@ class SelfCollisionGrid:
         self.triangles = ElementSet(tris, device, grid=False)
         self.vertex_face = PairBuffer(device)
         self.edge_edge = PairBuffer(device)
+        # pairs with a re-registered (dirty) element, found by the last patch
+        self.patch_vertex_face = PairBuffer(device)
+        self.patch_edge_edge = PairBuffer(device)
+        # per element of each set: re-registered by a patch since the last full build (1) or not (0)
+        self.dirty = {name: wp.zeros(max(s.count, 1), dtype=wp.int32, device=device) for name, s in self.element_sets()}
+        self._none = {name: wp.zeros(max(s.count, 1), dtype=wp.int32, device=device) for name, s in self.element_sets()}
+        self._escaped_particles = wp.zeros(max(particle_count, 1), dtype=wp.int32, device=device)
         # elements whose box spanned more than MAX_CELL_SPAN voxels along an axis (or was not finite), summed over updates
         self.clamped = wp.zeros(1, dtype=wp.int32, device=device)
         self._escaped = wp.zeros(1, dtype=wp.int32, device=device)
+        self._reference = None
         self.builds = 0
+        self.patches = 0
+
+    def element_sets(self):
+        """(name, :class:`ElementSet`) of the points, edges and triangles."""
+        return (("points", self.points), ("edges", self.edges), ("triangles", self.triangles))
 
     def update(self, x_start: wp.array, velocity: wp.array, dt: float, pad: float, margin: float = 0.0):
         """Rebuild the grid for the step x_start -> x_start + dt velocity [m/s] and find the candidate pairs
-        (boxes grown by `pad` [m]). With a `margin` [m] the boxes grow by that much more, and the pairs stay
-        valid for later velocities on the same start positions as long as :meth:`covers` says so."""
+        (boxes grown by `pad` [m]). With a `margin` [m] the boxes grow by that much more, and :meth:`refresh`
+        keeps the pairs for later velocities on the same start positions, patching them where end points leave the margin."""
         inv = 1.0 / self.cell_size
-        for s in (self.points, self.edges, self.triangles):
+        for _, s in self.element_sets():
             s.update(x_start, velocity, dt, pad + margin, inv, self.clamped)
-        self.vertex_face.search(self.triangles, self.points, False, inv)
-        self.edge_edge.search(self.edges, self.edges, True, inv)
-        self._reference = (x_start, wp.clone(velocity), float(dt), float(margin))
+        for flags in self.dirty.values():
+            flags.zero_()
+        none = self._none
+        self.vertex_face.search([(self.triangles, self.points, False, none["triangles"], none["points"])], inv)
+        self.edge_edge.search([(self.edges, self.edges, True, none["edges"], none["edges"])], inv)
+        self.patch_vertex_face.count = self.patch_edge_edge.count = 0
+        self._reference = (x_start, wp.clone(velocity), float(dt), float(margin), float(pad))
         self.builds += 1
 
     def invalidate(self):
         """Forget the last update (the start positions it was built on have changed)."""
         self._reference = None
 
-    def covers(self, x_start: wp.array, velocity: wp.array, dt: float) -> bool:
-        """Whether the pairs of the last :meth:`update` still contain every pair of the step x_start ->
-        x_start + dt velocity: true when no particle's end point moved more than the margin from the end
-        point of that update (then every point of every trajectory moved less, so no element's box grew
-        past the margin it was registered with)."""
-        ref = getattr(self, "_reference", None)
-        if ref is None or ref[0] is not x_start or ref[2] != float(dt) or ref[3] <= 0.0:
-            return False
+    def refresh(self, x_start: wp.array, velocity: wp.array, dt: float, pad: float, margin: float, max_dirty: float = 0.1) -> str:
+        """Make the pairs valid for the step x_start -> x_start + dt velocity: "kept" when no particle's end
+        point moved more than the margin from its reference (the end point it was registered with; then no
+        point of any trajectory moved more, so every element's swept box lies inside its registered one);
+        "patched" when some did: those particles take the new end point as their reference, the elements
+        touching them are re-registered in small grids of their own, and their pairs against everything
+        are searched again (:attr:`patch_vertex_face`, :attr:`patch_edge_edge`; :attr:`dirty` flags them);
+        "built" (a full :meth:`update`) on new start positions, or when more than `max_dirty` of the
+        elements would be re-registered."""
+        ref = self._reference
+        if ref is None or ref[0] is not x_start or ref[2] != float(dt) or ref[3] != float(margin) or ref[4] != float(pad) or margin <= 0.0:
+            self.update(x_start, velocity, dt, pad, margin)
+            return "built"
         self._escaped.zero_()
-        wp.launch(kb.count_escaped, dim=x_start.shape[0], inputs=[ref[1], velocity, dt, ref[3]], outputs=[self._escaped],
+        wp.launch(kb.take_escaped, dim=x_start.shape[0], inputs=[velocity, dt, margin], outputs=[ref[1], self._escaped_particles, self._escaped],
                   device=self.device)
-        return int(self._escaped.numpy()[0]) == 0
+        if int(self._escaped.numpy()[0]) == 0:
+            return "kept"
+        ids = {}
+        for name, s in self.element_sets():
+            wp.launch(kb.mark_dirty, dim=s.count, inputs=[s.elements, self._escaped_particles], outputs=[self.dirty[name]], device=self.device)
+            ids[name] = np.flatnonzero(self.dirty[name].numpy()[: s.count])
+        total = sum(s.count for _, s in self.element_sets())
+        if sum(len(i) for i in ids.values()) > max_dirty * total:
+            self.update(x_start, velocity, dt, pad, margin)
+            return "built"
+        self._patch(x_start, dt, pad + margin, ids)
+        return "patched"
+
+    def _patch(self, x_start: wp.array, dt: float, grow: float, ids: dict):
+        """Register the dirty elements (at the reference velocities) in grids of their own and search every
+        pair with a dirty element: dirty against the full grid's clean elements, dirty against dirty and
+        (vertex-face) the full set's clean triangles against the dirty points."""
+        inv = 1.0 / self.cell_size
+        velocity = self._reference[1]
+        points = self.points.subset(ids["points"], grid=True)
+        edges = self.edges.subset(ids["edges"], grid=True)
+        triangles = self.triangles.subset(ids["triangles"], grid=False)
+        for s in (points, edges, triangles):
+            s.update(x_start, velocity, dt, grow, inv, self.clamped)
+        dirty, none = self.dirty, self._none
+        self.patch_vertex_face.search([
+            (triangles, self.points, False, none["triangles"], dirty["points"]),
+            (triangles, points, False, none["triangles"], none["points"]),
+            (self.triangles, points, False, dirty["triangles"], none["points"]),
+        ], inv)
+        self.patch_edge_edge.search([
+            (edges, self.edges, False, none["edges"], dirty["edges"]),
+            (edges, edges, True, none["edges"], none["edges"]),
+        ], inv)
+        self.patches += 1
+
+    def dirty_flags(self, kind: int) -> tuple[wp.array, wp.array]:
+        """The dirty flags of the first and second element of a vertex-face (0) or edge-edge (1) pair."""
+        if kind == 0:
+            return self.dirty["triangles"], self.dirty["points"]
+        return self.dirty["edges"], self.dirty["edges"]
 
     @property
     def reference_velocity(self) -> wp.array:
-        """The velocities [m/s] of the last :meth:`update`."""
+        """Per particle, the velocity [m/s] its registered trajectory was built with."""
         return self._reference[1]
 
 

@@ -57,7 +57,7 @@ class CollisionHandler:
     def begin_step(self):
         """A new step starts (its passes share the start state; caches of the previous step are stale)."""
         if self.self_collision is not None:
-            self.self_collision.grid.invalidate()
+            self.self_collision.begin_step()
 
     def reset_counts(self):
         self.counts.zero_()

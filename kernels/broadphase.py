@@ -7,7 +7,9 @@ are found through the entries sorted by bucket (count -> scan -> fill -> radix s
 
 A candidate pair is emitted once, from the voxel that holds the lower corner of the two boxes'
 intersection, and only when the boxes overlap and the elements share no vertex; entries of other
-voxels that hash to the same bucket are skipped by their stored voxel coordinates. Pair buffers
+voxels that hash to the same bucket are skipped by their stored voxel coordinates. Elements carry ids
+(their index in the full set), so the same search runs between the full grid and small grids of the
+elements re-registered by a patch. Pair buffers
 never truncate silently: the pair count is always the true count, pairs are written only while it
 is below the buffer's capacity, and the host grows the buffer and searches again.
 """
@@ -161,11 +163,15 @@ def gather_sorted_entries(sorted_entries: wp.array(dtype=wp.int32), entry_elemen
 @wp.kernel
 def find_pairs(
     query_elements: wp.array2d(dtype=wp.int32),
+    query_ids: wp.array(dtype=wp.int32),
+    query_skip: wp.array(dtype=wp.int32),
     query_lo: wp.array(dtype=wp.vec3),
     query_hi: wp.array(dtype=wp.vec3),
     query_cell_lo: wp.array(dtype=wp.vec3i),
     query_cell_hi: wp.array(dtype=wp.vec3i),
     target_elements: wp.array2d(dtype=wp.int32),
+    target_ids: wp.array(dtype=wp.int32),
+    target_skip: wp.array(dtype=wp.int32),
     sorted_element: wp.array(dtype=wp.int32),
     sorted_cell: wp.array(dtype=wp.vec3i),
     sorted_lo: wp.array(dtype=wp.vec3),
@@ -174,14 +180,19 @@ def find_pairs(
     bucket_end: wp.array(dtype=wp.int32),
     table_mask: int,
     inv_cell_size: float,
-    same_set: int,
+    ordered: int,
     capacity: int,
     pairs_out: wp.array(dtype=wp.vec2i),
     pair_count_out: wp.array(dtype=wp.int32),
 ):
-    """Pairs (query element, target element) whose boxes overlap and that share no vertex (with
-    `same_set`, each unordered pair once: query < target)."""
+    """Pairs (query element, target element), as ids (`query_ids`, `target_ids` map a set's rows to the
+    ids pairs report), whose boxes overlap and that share no vertex. Queries and targets whose id is
+    flagged in `query_skip` / `target_skip` take no part; with `ordered`, each unordered pair is
+    reported once (query id < target id). Appends to the buffer (counts every pair, writes those that fit)."""
     q = wp.tid()
+    q_id = query_ids[q]
+    if query_skip[q_id] != 0:
+        return
     q_row = element_row(query_elements, q)
     q_lo = query_lo[q]
     q_hi = query_hi[q]
@@ -197,7 +208,10 @@ def find_pairs(
                     if ec[0] != i or ec[1] != j or ec[2] != k:
                         continue
                     t = sorted_element[s]
-                    if same_set != 0 and t <= q:
+                    t_id = target_ids[t]
+                    if ordered != 0 and t_id <= q_id:
+                        continue
+                    if target_skip[t_id] != 0:
                         continue
                     t_lo = sorted_lo[s]
                     t_hi = sorted_hi[s]
@@ -212,14 +226,63 @@ def find_pairs(
                         continue
                     slot = wp.atomic_add(pair_count_out, 0, 1)
                     if slot < capacity:
-                        pairs_out[slot] = wp.vec2i(q, t)
+                        pairs_out[slot] = wp.vec2i(q_id, t_id)
 
 
 @wp.kernel
-def count_escaped(velocity_ref: wp.array(dtype=wp.vec3), velocity: wp.array(dtype=wp.vec3), dt: float, margin: float,
-                  count_out: wp.array(dtype=wp.int32)):
-    """Count particles whose end point moved more than `margin` from the reference step's end point
-    (|dt (velocity - velocity_ref)| > margin); every point of their trajectory then moved less than that."""
+def take_escaped(velocity: wp.array(dtype=wp.vec3), dt: float, margin: float, velocity_ref: wp.array(dtype=wp.vec3),
+                 escaped_out: wp.array(dtype=wp.int32), count_out: wp.array(dtype=wp.int32)):
+    """Particles whose end point left the margin around their reference step's end point: flag them, count
+    them and make their current velocity their reference."""
     i = wp.tid()
+    escaped_out[i] = 0
     if wp.length(dt * (velocity[i] - velocity_ref[i])) > margin:
+        escaped_out[i] = 1
+        velocity_ref[i] = velocity[i]
         wp.atomic_add(count_out, 0, 1)
+
+
+@wp.kernel
+def mark_dirty(elements: wp.array2d(dtype=wp.int32), escaped: wp.array(dtype=wp.int32), dirty: wp.array(dtype=wp.int32)):
+    """An element with an escaped vertex is dirty (flags accumulate until the next full build)."""
+    e = wp.tid()
+    for k in range(3):
+        i = elements[e, k]
+        if i >= 0:
+            if escaped[i] != 0:
+                dirty[e] = 1
+
+
+@wp.kernel
+def keep_clean_pairs(pairs: wp.array(dtype=wp.vec2i), first_dirty: wp.array(dtype=wp.int32), second_dirty: wp.array(dtype=wp.int32),
+                     selected_out: wp.array(dtype=wp.vec2i), count_out: wp.array(dtype=wp.int32)):
+    """Compact the pairs whose two elements are both clean (a patch searched the others again)."""
+    tid = wp.tid()
+    p = pairs[tid]
+    if first_dirty[p[0]] == 0 and second_dirty[p[1]] == 0:
+        slot = wp.atomic_add(count_out, 0, 1)
+        selected_out[slot] = p
+
+
+@wp.kernel
+def mark_changed_elements(elements: wp.array2d(dtype=wp.int32), weight: wp.array(dtype=float), zone: wp.array(dtype=wp.int32),
+                          flags_out: wp.array(dtype=wp.int32)):
+    """An element changed when a vertex did: it received a velocity change (weight > 0) or is in an impact zone."""
+    e = wp.tid()
+    flags_out[e] = 0
+    for k in range(3):
+        i = elements[e, k]
+        if i >= 0:
+            if weight[i] > 0.0 or zone[i] >= 0:
+                flags_out[e] = 1
+
+
+@wp.kernel
+def keep_flagged_pairs(pairs: wp.array(dtype=wp.vec2i), first_flags: wp.array(dtype=wp.int32), second_flags: wp.array(dtype=wp.int32),
+                       selected_out: wp.array(dtype=wp.vec2i), count_out: wp.array(dtype=wp.int32)):
+    """Compact the pairs with a flagged element."""
+    tid = wp.tid()
+    p = pairs[tid]
+    if first_flags[p[0]] != 0 or second_flags[p[1]] != 0:
+        slot = wp.atomic_add(count_out, 0, 1)
+        selected_out[slot] = p

@@ -465,25 +465,14 @@ def select_close_pairs(
 
 
 @wp.kernel
-def select_changed_pairs(
-    pairs: wp.array(dtype=wp.vec2i),
-    kind: int,
-    tri_indices: wp.array2d(dtype=wp.int32),
-    edge_indices: wp.array2d(dtype=wp.int32),
-    weight: wp.array(dtype=float),
-    zone: wp.array(dtype=wp.int32),
-    selected_out: wp.array(dtype=wp.vec2i),
-    count_out: wp.array(dtype=wp.int32),
-):
-    """Compact the pairs with a particle that changed in the last pass (received an impulse: weight > 0,
-    or belongs to an impact zone)."""
-    tid = wp.tid()
-    idx = pair_indices(pairs[tid], kind, tri_indices, edge_indices)
-    for i in range(4):
-        if weight[idx[i]] > 0.0 or zone[idx[i]] >= 0:
-            slot = wp.atomic_add(count_out, 0, 1)
-            selected_out[slot] = pairs[tid]
-            return
+def mark_changed(vbar: wp.array(dtype=wp.vec3), vbar_ref: wp.array(dtype=wp.vec3), changed_out: wp.array(dtype=float)):
+    """1 where vbar differs from the reference, else 0 (a change flag in the form of an impulse weight)."""
+    i = wp.tid()
+    a = vbar[i]
+    b = vbar_ref[i]
+    changed_out[i] = 0.0
+    if a[0] != b[0] or a[1] != b[1] or a[2] != b[2]:
+        changed_out[i] = 1.0
 
 
 @wp.kernel

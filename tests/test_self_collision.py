@@ -65,6 +65,53 @@ def test_hash_grid_finds_exactly_the_brute_force_pairs(seed, cell, device):
     assert grid.vertex_face.grown + grid.edge_edge.grown > 0 and int(grid.clamped.numpy()[0]) == 0
 
 
+def random_soup(seed, n=300, t=400):
+    """Random points in the unit cube with triangles of nearby points (element-sized elements)."""
+    rng = np.random.default_rng(seed)
+    x0 = rng.uniform(0.0, 1.0, (n, 3)).astype(np.float32)
+    near = np.argsort(np.linalg.norm(x0[:, None] - x0[None], axis=2), axis=1)[:, 1:13]
+    tris = np.array([[i, *rng.choice(near[i], 2, replace=False)] for i in rng.integers(0, n, t)])
+    return rng, x0, tris
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_hash_grid_patch_finds_exactly_the_pairs_of_a_fresh_build(seed, device):
+    """Check the broad phase's patch: after a build with a margin, some particles' end points leave it
+    (others move within it); the full build's pairs between clean elements plus the patch's pairs are
+    exactly, and once each, the pairs a brute-force search finds on the registered boxes (each particle's
+    trajectory at its reference velocity: the new one where it escaped), and they contain every pair of
+    the new velocities' own boxes. A second patch (more particles escaping) accumulates dirty elements."""
+    rng, x0, tris = random_soup(seed)
+    n = len(x0)
+    dt, pad, margin = 0.1, 0.01, 0.02
+    grid = SelfCollisionGrid(tris, n, device, cell_size=0.05)
+    xs = wp.array(x0, dtype=wp.vec3, device=device)
+    ref = rng.normal(0.0, 0.3, (n, 3)).astype(np.float32)
+    assert grid.refresh(xs, wp.array(ref, dtype=wp.vec3, device=device), dt, pad, margin) == "built"
+    edges = unique_edges(tris)
+    points = np.arange(n)[:, None]
+    for round_, escaping in enumerate((5, 8)):
+        vel = ref + rng.uniform(-1.0, 1.0, (n, 3)).astype(np.float32) * (0.5 * margin / dt / np.sqrt(3.0))  # within the margin
+        moved = rng.choice(n, escaping, replace=False)
+        vel[moved] += rng.normal(0.0, 1.0, (escaping, 3)).astype(np.float32)  # far outside it
+        assert grid.refresh(xs, wp.array(vel, dtype=wp.vec3, device=device), dt, pad, margin) == "patched"
+        ref[moved] = vel[moved]
+        np.testing.assert_array_equal(grid.reference_velocity.numpy(), ref)
+        assert grid.refresh(xs, wp.array(vel, dtype=wp.vec3, device=device), dt, pad, margin) == "kept"
+        for kind, (query, target, same, main, patch) in enumerate(((tris, points, False, grid.vertex_face, grid.patch_vertex_face),
+                                                                    (edges, edges, True, grid.edge_edge, grid.patch_edge_edge))):
+            first, second = (f.numpy() for f in grid.dirty_flags(kind))
+            kept = [tuple(p) for p in main.numpy().tolist() if first[p[0]] == 0 and second[p[1]] == 0]
+            patched = [tuple(sorted(p)) if same else tuple(p) for p in patch.numpy().tolist()]
+            found = kept + patched
+            assert len(set(found)) == len(found), "a pair reported twice"
+            registered = brute_force_pairs(x0, x0 + dt * ref, query, target, pad + margin, same)
+            assert set(found) == registered
+            assert brute_force_pairs(x0, x0 + dt * vel, query, target, pad, same) <= set(found)
+            assert first.sum() > 0 and len(patched) > 0
+    assert grid.builds == 1 and grid.patches == 2
+
+
 # -- analytic CCD and impulses (physics.md 1(j)) --------------------------------------------------------
 
 def point_triangle_model(device, *, pin_triangle, velocity, thickness=1.0e-3, point=(0.25, 0.25, 1.0), mass=0.5):
