@@ -1,9 +1,9 @@
 /* A tight single-threaded C reference of cloth_warp's semi-implicit substep, for benchmark ratios.
 
    Same work as the Warp kernels without strain limiting: linear springs with damping along the spring,
-   Choi-Ko bend triples (the arc-relative energy of kernels/forces.py: push f_b, energy term, three
-   forces), per-triangle linear drag with corner weights, gravity, pins, symplectic Euler. Forces are
-   scattered straight into one array (the natural C formulation; Warp gathers per particle instead).
+   Choi-Ko bend triples (the arc-relative energy of kernels/forces.py, in its algebra: straight triples
+   skipped, four divisions, three forces), per-triangle linear drag with corner weights, gravity, pins,
+   symplectic Euler. Forces are scattered straight into one array, as the Warp kernels do.
    Built at benchmark time with the system compiler (-O3 -march=native) and called through ctypes. */
 #include <math.h>
 #include <string.h>
@@ -43,20 +43,18 @@ void substeps(int steps, int n, int s_count, int t_count, const int *springs, co
             } else {
                 int m = middle[s];
                 v3 e1 = sub(x[m], x[a]), e2 = sub(x[b], x[m]), ch = sub(x[b], x[a]);
-                float l1 = len(e1), l2 = len(e2), lc = len(ch);
-                if (l1 < 1e-9f || l2 < 1e-9f || lc < 1e-9f) continue;
-                float arc = l1 + l2, sr = lc / arc;
-                float fb = 0.0f;
-                if (lc < arc) fb = -4.0f * k[s] / (arc * arc) * ((((P4 * sr + P3) * sr + P2) * sr + P1) * sr + P0);
-                float t = 1.0f - sr;
-                if (t < 0) t = 0;
+                float l1 = len(e1), l2 = len(e2), lc = len(ch), arc = l1 + l2;
+                if (l1 < 1e-9f || l2 < 1e-9f || lc < 1e-9f || lc >= arc) continue;
+                float inv_arc = 1.0f / arc, sr = lc * inv_arc, t = 1.0f - sr;
+                float p = (((P4 * sr + P3) * sr + P2) * sr + P1) * sr + P0;
                 float integral = t * (R0 + t * (R1 / 2 + t * (R2 / 3 + t * (R3 / 4 + t * R4 / 5))));
-                float energy = -4.0f * k[s] / arc * integral;
-                float gg = fb * sr - energy / arc;
-                v3 u1 = mul(e1, 1.0f / l1), u2 = mul(e2, 1.0f / l2), uc = mul(ch, 1.0f / lc);
-                acc(f, a, sub(mul(u1, gg), mul(uc, fb)));
-                acc(f, b, sub(mul(uc, fb), mul(u2, gg)));
-                acc(f, m, mul(sub(u2, u1), gg));
+                float scale = -4.0f * k[s] * inv_arc * inv_arc;
+                float fb = scale * p, gg = scale * (p * sr - integral);
+                v3 fc = mul(ch, fb / lc);
+                v3 fa = sub(mul(e1, gg / l1), fc), fe = sub(fc, mul(e2, gg / l2));
+                acc(f, a, fa);
+                acc(f, b, fe);
+                acc(f, m, mul(add(fa, fe), -1.0f));
             }
         }
         for (int t = 0; t < t_count; ++t) {

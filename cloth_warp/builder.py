@@ -519,8 +519,14 @@ class ModelBuilder:
         m.spring_law = arr(law, wp.int32)
         m.spring_kind = arr(self.spring_kind[order], wp.int32)
         m.spring_middle = arr(middle.astype(np.int32), wp.int32)
+        # the same indices as vector rows (the force kernels read one contiguous row per element)
+        first = m.linear_spring_count
+        m.spring_ends = arr(springs, wp.vec2i)
+        m.bend_triples = arr(np.column_stack([springs[first:, 0], middle[first:], springs[first:, 1]]).astype(np.int32).reshape(-1, 3),
+                             wp.vec3i)
         tris = self.triangles.astype(np.int32).reshape(-1, 3)
         m.tri_indices = arr(tris, wp.int32)
+        m.tri_vertices = arr(tris, wp.vec3i)
         m.tri_drag = arr(self.tri_drag.astype(np.float32), float, True)
         m.tri_corner_weights = arr(self.tri_corner_weights.astype(np.float32).reshape(-1, 3), wp.vec3)
         so, sid, srole = topo.particle_springs(springs, middle, n)

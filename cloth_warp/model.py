@@ -193,6 +193,8 @@ class Model:
         spring_damping: c [N s/m]; spring_law / spring_kind: int32 enums (topology.SpringLaw / SpringKind);
         spring_middle: middle particle of span-2 bend triples, -1 otherwise. Springs are ordered linear
             first (`linear_spring_count` of them), bend triples after.
+        spring_ends (vec2i per spring), bend_triples ((end a, middle, end b) vec3i per bend triple, in
+            spring order from `linear_spring_count`), tri_vertices (vec3i): the same indices as vector rows.
         tri_indices: (tri_count, 3) int32; tri_drag: c_A per triangle [N s/m^3];
         tri_corner_weights: share of each triangle's drag per corner (vec3, sums to 1).
         particle_spring_offsets / _ids / _role, particle_tri_offsets / _ids: incidence lists (gather); the

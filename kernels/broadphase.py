@@ -230,27 +230,27 @@ def find_pairs(
 
 
 @wp.kernel
-def take_escaped(velocity: wp.array(dtype=wp.vec3), dt: float, margin: float, velocity_ref: wp.array(dtype=wp.vec3),
+def take_escaped(velocity: wp.array(dtype=wp.vec3), dt: float, margin: float, velocity_ref_out: wp.array(dtype=wp.vec3),
                  escaped_out: wp.array(dtype=wp.int32), count_out: wp.array(dtype=wp.int32)):
     """Particles whose end point left the margin around their reference step's end point: flag them, count
-    them and make their current velocity their reference."""
+    them and make their current velocity their reference (updated in place: forward-only broad phase)."""
     i = wp.tid()
     escaped_out[i] = 0
-    if wp.length(dt * (velocity[i] - velocity_ref[i])) > margin:
+    if wp.length(dt * (velocity[i] - velocity_ref_out[i])) > margin:
         escaped_out[i] = 1
-        velocity_ref[i] = velocity[i]
+        velocity_ref_out[i] = velocity[i]
         wp.atomic_add(count_out, 0, 1)
 
 
 @wp.kernel
-def mark_dirty(elements: wp.array2d(dtype=wp.int32), escaped: wp.array(dtype=wp.int32), dirty: wp.array(dtype=wp.int32)):
+def mark_dirty(elements: wp.array2d(dtype=wp.int32), escaped: wp.array(dtype=wp.int32), dirty_out: wp.array(dtype=wp.int32)):
     """An element with an escaped vertex is dirty (flags accumulate until the next full build)."""
     e = wp.tid()
     for k in range(3):
         i = elements[e, k]
         if i >= 0:
             if escaped[i] != 0:
-                dirty[e] = 1
+                dirty_out[e] = 1
 
 
 @wp.kernel

@@ -71,15 +71,24 @@ def bending_forces(xa: wp.vec3, xm: wp.vec3, xb: wp.vec3, bend_stiffness: float)
     l1 = wp.length(e1)
     l2 = wp.length(e2)
     chord = wp.length(c)
-    if l1 < LENGTH_EPS or l2 < LENGTH_EPS or chord < LENGTH_EPS:
-        return wp.vec3(0.0), wp.vec3(0.0), wp.vec3(0.0)
     arc = l1 + l2
-    u1 = e1 / l1
-    u2 = e2 / l2
-    uc = c / chord
-    fb = buckling_force(chord, arc, bend_stiffness)
-    g = fb * (chord / arc) - buckling_energy(chord, arc, bend_stiffness) / arc
-    return g * u1 - fb * uc, fb * uc - g * u2, g * (u2 - u1)
+    if l1 < LENGTH_EPS or l2 < LENGTH_EPS or chord < LENGTH_EPS or chord >= arc:
+        # straight (or degenerate): f_b = 0 and E = 0
+        return wp.vec3(0.0), wp.vec3(0.0), wp.vec3(0.0)
+    # buckling_force and buckling_energy / l with their common factor -4 k_b / l^2 taken out (4 divisions in all)
+    inv_arc = 1.0 / arc
+    s = chord * inv_arc
+    t = 1.0 - s
+    p = (((BUCKLING_P4 * s + BUCKLING_P3) * s + BUCKLING_P2) * s + BUCKLING_P1) * s + BUCKLING_P0
+    integral = t * (BUCKLING_R0 + t * (BUCKLING_R1 * 0.5 + t * (BUCKLING_R2 * (1.0 / 3.0) + t * (BUCKLING_R3 * 0.25 + t * (BUCKLING_R4 * 0.2)))))
+    scale = -4.0 * bend_stiffness * inv_arc * inv_arc
+    fb = scale * p
+    g = scale * (p * s - integral)
+    # g u1 - f_b uc, f_b uc - g u2, g (u2 - u1) with u = e / |e|
+    fc = (fb / chord) * c
+    fa = (g / l1) * e1 - fc
+    f_end = fc - (g / l2) * e2
+    return fa, f_end, -fa - f_end
 
 
 @wp.func
@@ -185,7 +194,7 @@ def corner_weight(i: int, a: int, b: int, weights: wp.vec3):
 @wp.kernel
 def eval_spring_forces(
     # Model
-    spring_indices: wp.array2d(dtype=wp.int32),
+    spring_ends: wp.array(dtype=wp.vec2i),
     spring_rest_length: wp.array(dtype=float),
     spring_stiffness: wp.array(dtype=float),
     spring_damping: wp.array(dtype=float),
@@ -197,18 +206,16 @@ def eval_spring_forces(
 ):
     """Linear springs (the first `linear_spring_count` springs): scatter +-f to both ends."""
     s = wp.tid()
-    a = spring_indices[s, 0]
-    b = spring_indices[s, 1]
-    f = spring_force(x[a], x[b], v[a], v[b], spring_rest_length[s], spring_stiffness[s], spring_damping[s])
-    wp.atomic_add(force_out, a, f)
-    wp.atomic_sub(force_out, b, f)
+    e = spring_ends[s]
+    f = spring_force(x[e[0]], x[e[1]], v[e[0]], v[e[1]], spring_rest_length[s], spring_stiffness[s], spring_damping[s])
+    wp.atomic_add(force_out, e[0], f)
+    wp.atomic_sub(force_out, e[1], f)
 
 
 @wp.kernel
 def eval_bending_forces(
     # Model
-    spring_indices: wp.array2d(dtype=wp.int32),
-    spring_middle: wp.array(dtype=wp.int32),
+    bend_triples: wp.array(dtype=wp.vec3i),
     spring_stiffness: wp.array(dtype=float),
     first: int,
     # State
@@ -216,21 +223,19 @@ def eval_bending_forces(
     # outputs (zeroed by the caller)
     force_out: wp.array(dtype=wp.vec3),
 ):
-    """Choi-Ko bend triples (springs `first` onwards): scatter the three forces."""
-    s = wp.tid() + first
-    a = spring_indices[s, 0]
-    b = spring_indices[s, 1]
-    m = spring_middle[s]
-    fa, fb, fm = bending_forces(x[a], x[m], x[b], spring_stiffness[s])
-    wp.atomic_add(force_out, a, fa)
-    wp.atomic_add(force_out, b, fb)
-    wp.atomic_add(force_out, m, fm)
+    """Choi-Ko bend triples (end a, middle, end b; springs `first` onwards): scatter the three forces."""
+    q = wp.tid()
+    t = bend_triples[q]
+    fa, fb, fm = bending_forces(x[t[0]], x[t[1]], x[t[2]], spring_stiffness[q + first])
+    wp.atomic_add(force_out, t[0], fa)
+    wp.atomic_add(force_out, t[2], fb)
+    wp.atomic_add(force_out, t[1], fm)
 
 
 @wp.kernel
 def eval_drag_forces(
     # Model
-    tri_indices: wp.array2d(dtype=wp.int32),
+    tri_vertices: wp.array(dtype=wp.vec3i),
     tri_drag: wp.array(dtype=float),
     tri_corner_weights: wp.array(dtype=wp.vec3),
     # State
@@ -243,14 +248,12 @@ def eval_drag_forces(
 ):
     """Air drag with wind per triangle, split over its corners by the drag weights."""
     t = wp.tid()
-    a = tri_indices[t, 0]
-    b = tri_indices[t, 1]
-    c = tri_indices[t, 2]
+    c = tri_vertices[t]
     w = tri_corner_weights[t]
-    f = triangle_drag_force(x[a], x[b], x[c], v[a], v[b], v[c], w, tri_drag[t], wind[0])
-    wp.atomic_add(force_out, a, w[0] * f)
-    wp.atomic_add(force_out, b, w[1] * f)
-    wp.atomic_add(force_out, c, w[2] * f)
+    f = triangle_drag_force(x[c[0]], x[c[1]], x[c[2]], v[c[0]], v[c[1]], v[c[2]], w, tri_drag[t], wind[0])
+    wp.atomic_add(force_out, c[0], w[0] * f)
+    wp.atomic_add(force_out, c[1], w[1] * f)
+    wp.atomic_add(force_out, c[2], w[2] * f)
 
 
 @wp.func

@@ -279,15 +279,15 @@ class SolverBase:
         dev = m.device
         if m.linear_spring_count:
             wp.launch(kf.eval_spring_forces, dim=m.linear_spring_count,
-                      inputs=[m.spring_indices, m.spring_rest_length, m.spring_stiffness, m.spring_damping, x, v],
+                      inputs=[m.spring_ends, m.spring_rest_length, m.spring_stiffness, m.spring_damping, x, v],
                       outputs=[force], device=dev)
         if m.spring_count > m.linear_spring_count:
             wp.launch(kf.eval_bending_forces, dim=m.spring_count - m.linear_spring_count,
-                      inputs=[m.spring_indices, m.spring_middle, m.spring_stiffness, m.linear_spring_count, x],
+                      inputs=[m.bend_triples, m.spring_stiffness, m.linear_spring_count, x],
                       outputs=[force], device=dev)
         if m.tri_count:
             wp.launch(kf.eval_drag_forces, dim=m.tri_count,
-                      inputs=[m.tri_indices, m.tri_drag, m.tri_corner_weights, x, v, control.wind], outputs=[force], device=dev)
+                      inputs=[m.tri_vertices, m.tri_drag, m.tri_corner_weights, x, v, control.wind], outputs=[force], device=dev)
         return force
 
     def step(self, state_in: State, state_out: State, control: Control, dt: float):
