@@ -307,7 +307,7 @@ def integrate_euler(
         return
     f = total_force(i, particle_mass, particle_pin_stiffness, element_force, x_in, v_in, pin_target, gravity, global_damping)
     v0 = v_in[i]
-    v1 = v0 + dt * f / particle_mass[i]
+    v1 = v0 + (dt / particle_mass[i]) * f
     if symplectic != 0:
         x_out[i] = x0 + dt * v1
     else:
