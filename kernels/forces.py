@@ -11,6 +11,10 @@ under wp.Tape). The integrators then read one force per particle.
 
 import warp as wp
 
+from . import contracting_cpu_flags
+
+wp.set_module_options({"cpu_compiler_flags": contracting_cpu_flags()})
+
 SPRING_LINEAR = wp.constant(0)
 
 # Choi & Ko's quartic fit of the immediate-buckling curve (physics.md 7.2).

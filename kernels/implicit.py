@@ -31,6 +31,9 @@ from .forces import (
     total_force,
     triangle_drag_force,
 )
+from . import contracting_cpu_flags
+
+wp.set_module_options({"cpu_compiler_flags": contracting_cpu_flags()})
 
 LENGTH_EPS = wp.constant(1.0e-9)
 CG_RS = wp.constant(0)
