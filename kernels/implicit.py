@@ -267,40 +267,76 @@ def eval_implicit_system(
 
 
 @wp.kernel
-def cg_product(
+def scatter_system_product(
     # Model
-    spring_offsets: wp.array(dtype=wp.int32),
-    spring_ids: wp.array(dtype=wp.int32),
-    spring_role: wp.array(dtype=wp.int32),
-    spring_indices: wp.array2d(dtype=wp.int32),
-    spring_middle: wp.array(dtype=wp.int32),
-    tri_offsets: wp.array(dtype=wp.int32),
-    tri_ids: wp.array(dtype=wp.int32),
-    tri_indices: wp.array2d(dtype=wp.int32),
+    spring_ends: wp.array(dtype=wp.vec2i),
+    linear_spring_count: int,
+    bend_triples: wp.array(dtype=wp.vec3i),
+    bend_count: int,
+    tri_vertices: wp.array(dtype=wp.vec3i),
     tri_corner_weights: wp.array(dtype=wp.vec3),
-    particle_mass: wp.array(dtype=float),
-    particle_pin_stiffness: wp.array(dtype=float),
-    particle_pinned: wp.array(dtype=wp.int32),
+    # per-step blocks
     system_block: wp.array(dtype=wp.mat33),
     bend_vector: wp.array(dtype=wp.vec3),
     drag_vector: wp.array(dtype=wp.vec3),
+    p: wp.array(dtype=wp.vec3),
+    dt: float,
+    # outputs (zeroed by the caller)
+    product_out: wp.array(dtype=wp.vec3),
+):
+    """The element part of A p, one element per thread and scattered (each element's work done once, where
+    the per-particle gather of `system_product` repeats a triple's or triangle's dot for every member):
+    linear springs B_s (p_a - p_b) to a and its negative to b, then bend triples h^2 g_r (g . p_triple),
+    then triangles h w_r (g . p_mean) g."""
+    e = wp.tid()
+    if e < linear_spring_count:
+        ends = spring_ends[e]
+        y = system_block[e] * (p[ends[0]] - p[ends[1]])
+        wp.atomic_add(product_out, ends[0], y)
+        wp.atomic_sub(product_out, ends[1], y)
+        return
+    e -= linear_spring_count
+    if e < bend_count:
+        t = bend_triples[e]
+        g = bend_vector[e + linear_spring_count]
+        d = (dt * dt) * triple_dot(g, p, t[0], t[1], t[2])
+        wp.atomic_add(product_out, t[0], g[0] * d)
+        wp.atomic_add(product_out, t[1], g[1] * d)
+        wp.atomic_add(product_out, t[2], g[2] * d)
+        return
+    e -= bend_count
+    c = tri_vertices[e]
+    w = tri_corner_weights[e]
+    g = drag_vector[e]
+    y = (dt * wp.dot(g, w[0] * p[c[0]] + w[1] * p[c[1]] + w[2] * p[c[2]])) * g
+    wp.atomic_add(product_out, c[0], w[0] * y)
+    wp.atomic_add(product_out, c[1], w[1] * y)
+    wp.atomic_add(product_out, c[2], w[2] * y)
+
+
+@wp.kernel
+def cg_product(
+    # Model
+    particle_mass: wp.array(dtype=float),
+    particle_pin_stiffness: wp.array(dtype=float),
+    particle_pinned: wp.array(dtype=wp.int32),
     search: wp.array(dtype=wp.vec3),
     global_damping: float,
     dt: float,
     iteration: int,
-    # outputs
+    # outputs: holds the element part (scatter_system_product) on entry, q on exit
     product_out: wp.array(dtype=wp.vec3),
     cg_scalars_out: wp.array2d(dtype=wp.float64),
 ):
-    """q = S A c and c . q (filtered matrix-free product of the CG search direction)."""
+    """q = S A c (the mass term added to the scattered element part, pinned rows filtered) and c . q."""
     i = wp.tid()
     if particle_pinned[i] != 0:
         product_out[i] = wp.vec3(0.0)
         return
-    m_eff = effective_mass(i, particle_mass, particle_pin_stiffness, global_damping, dt)
-    q = system_product(i, spring_offsets, spring_ids, spring_role, spring_indices, spring_middle, tri_offsets, tri_ids, tri_indices, tri_corner_weights, system_block, bend_vector, drag_vector, m_eff, search, dt)
+    c = search[i]
+    q = effective_mass(i, particle_mass, particle_pin_stiffness, global_damping, dt) * c + product_out[i]
     product_out[i] = q
-    wp.atomic_add(cg_scalars_out, iteration, CG_CAC, wp.float64(wp.dot(search[i], q)))
+    wp.atomic_add(cg_scalars_out, iteration, CG_CAC, wp.float64(wp.dot(c, q)))
 
 
 @wp.kernel

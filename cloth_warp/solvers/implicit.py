@@ -175,13 +175,22 @@ class SolverImplicitEuler(SolverBase):
         rel = math.sqrt(max(self._read(scal, 0), 0.0) / rr0) if rr0 > 1e-300 else 0.0
         stop = self._stop_residual(rel, warm)
         if rr0 > 1e-300 and rel > stop:
-            common = self._product_args()
+            bends = m.spring_count - m.linear_spring_count
+            elements = m.linear_spring_count + bends + m.tri_count
             for k in range(self.max_iterations):
+                self.product.zero_()
+                wp.launch(
+                    ki.scatter_system_product,
+                    dim=elements,
+                    inputs=[m.spring_ends, m.linear_spring_count, m.bend_triples, bends, m.tri_vertices, m.tri_corner_weights,
+                            self.system_block, self.bend_vector, self.drag_vector, self.search, dt],
+                    outputs=[self.product],
+                    device=dev,
+                )
                 wp.launch(
                     ki.cg_product,
                     dim=m.particle_count,
-                    inputs=[*common, m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, self.system_block,
-                            self.bend_vector, self.drag_vector, self.search, m.global_damping, dt, k],
+                    inputs=[m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, self.search, m.global_damping, dt, k],
                     outputs=[self.product, self.cg_scalars],
                     device=dev,
                 )
