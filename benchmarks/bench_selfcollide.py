@@ -144,9 +144,9 @@ def main():
             f"{r['collider_ms_frame']:.2f} | {r['rest_ms_frame']:.1f} | {r['self_ms_frame'] / r['rest_ms_frame']:.2f} | "
             f"{1e3 * r['self_ms_frame'] / passes / r['particles']:.2f} | {r['vf_pairs']:.0f} / {r['ee_pairs']:.0f} | {r['close_pairs']} | "
             f"{ps.get('self_proximity', 0):.0f} / {ps.get('self_ccd', 0):.1f} / {ps.get('impact_zones', 0):.2f} |")
-    lines += ["", "Self-collision runs once per limiter/collision round (twice per step; the second reuses the first's broad "
-              "phase when no end point moved beyond the margin): broad phase (hash grid), close-pair filter, proximity pass, "
-              "CCD sweeps and impact zones.", ""]
+    lines += ["", "Self-collision runs once per limiter/collision round (twice per step): broad phase (hash grid, built once per "
+              "step and patched where end points move beyond its margin), close-pair filter, proximity pass, CCD sweeps (the "
+              "second round only on the pairs the limiter or proximity pass changed) and impact zones.", ""]
     text = "\n".join(lines)
     print(text)
     out = pathlib.Path(args.out or HERE / "results" / f"bench_selfcollide{'_scaled' if args.scale_thickness else ''}{'' if args.device == 'cpu' else '_cuda'}.md")

@@ -164,11 +164,12 @@ class SelfCollisionGrid:
         self.triangles = ElementSet(tris, device, grid=False)
         self.vertex_face = PairBuffer(device)
         self.edge_edge = PairBuffer(device)
-        # pairs with a re-registered (dirty) element, found by the last patch
+        # pairs with an element the last patch registered again
         self.patch_vertex_face = PairBuffer(device)
         self.patch_edge_edge = PairBuffer(device)
-        # per element of each set: re-registered by a patch since the last full build (1) or not (0)
+        # per element of each set: registered again by a patch since the last full build (dirty) / by the last patch (fresh)
         self.dirty = {name: wp.zeros(max(s.count, 1), dtype=wp.int32, device=device) for name, s in self.element_sets()}
+        self.fresh = {name: wp.zeros(max(s.count, 1), dtype=wp.int32, device=device) for name, s in self.element_sets()}
         self._none = {name: wp.zeros(max(s.count, 1), dtype=wp.int32, device=device) for name, s in self.element_sets()}
         self._escaped_particles = wp.zeros(max(particle_count, 1), dtype=wp.int32, device=device)
         # elements whose box spanned more than MAX_CELL_SPAN voxels along an axis (or was not finite), summed over updates
@@ -189,7 +190,7 @@ class SelfCollisionGrid:
         inv = 1.0 / self.cell_size
         for _, s in self.element_sets():
             s.update(x_start, velocity, dt, pad + margin, inv, self.clamped)
-        for flags in self.dirty.values():
+        for flags in (*self.dirty.values(), *self.fresh.values()):
             flags.zero_()
         none = self._none
         self.vertex_face.search([(self.triangles, self.points, False, none["triangles"], none["points"])], inv)
@@ -202,15 +203,16 @@ class SelfCollisionGrid:
         """Forget the last update (the start positions it was built on have changed)."""
         self._reference = None
 
-    def refresh(self, x_start: wp.array, velocity: wp.array, dt: float, pad: float, margin: float, max_dirty: float = 0.1) -> str:
+    def refresh(self, x_start: wp.array, velocity: wp.array, dt: float, pad: float, margin: float, max_fresh: float = 0.25) -> str:
         """Make the pairs valid for the step x_start -> x_start + dt velocity: "kept" when no particle's end
         point moved more than the margin from its reference (the end point it was registered with; then no
         point of any trajectory moved more, so every element's swept box lies inside its registered one);
         "patched" when some did: those particles take the new end point as their reference, the elements
-        touching them are re-registered in small grids of their own, and their pairs against everything
-        are searched again (:attr:`patch_vertex_face`, :attr:`patch_edge_edge`; :attr:`dirty` flags them);
-        "built" (a full :meth:`update`) on new start positions, or when more than `max_dirty` of the
-        elements would be re-registered."""
+        touching them (:meth:`fresh_flags`) are registered again in small grids of their own, and their
+        pairs against everything are searched again (:attr:`patch_vertex_face`, :attr:`patch_edge_edge`):
+        the caller's pairs without a fresh element plus these are the pairs of the registered boxes.
+        "built" (a full :meth:`update`) on new start positions, or when more than `max_fresh` of the
+        elements would be registered again."""
         ref = self._reference
         if ref is None or ref[0] is not x_start or ref[2] != float(dt) or ref[3] != float(margin) or ref[4] != float(pad) or margin <= 0.0:
             self.update(x_start, velocity, dt, pad, margin)
@@ -220,45 +222,55 @@ class SelfCollisionGrid:
                   device=self.device)
         if int(self._escaped.numpy()[0]) == 0:
             return "kept"
-        ids = {}
+        fresh_ids, old_ids = {}, {}
         for name, s in self.element_sets():
-            wp.launch(kb.mark_dirty, dim=s.count, inputs=[s.elements, self._escaped_particles], outputs=[self.dirty[name]], device=self.device)
-            ids[name] = np.flatnonzero(self.dirty[name].numpy()[: s.count])
+            wp.launch(kb.mark_dirty, dim=s.count, inputs=[s.elements, self._escaped_particles], outputs=[self.dirty[name], self.fresh[name]],
+                      device=self.device)
+            fresh = self.fresh[name].numpy()[: s.count] != 0
+            fresh_ids[name] = np.flatnonzero(fresh)
+            old_ids[name] = np.flatnonzero((self.dirty[name].numpy()[: s.count] != 0) & ~fresh)
         total = sum(s.count for _, s in self.element_sets())
-        if sum(len(i) for i in ids.values()) > max_dirty * total:
+        if sum(len(i) for i in fresh_ids.values()) > max_fresh * total:
             self.update(x_start, velocity, dt, pad, margin)
             return "built"
-        self._patch(x_start, dt, pad + margin, ids)
+        self._patch(x_start, dt, pad + margin, fresh_ids, old_ids)
         return "patched"
 
-    def _patch(self, x_start: wp.array, dt: float, grow: float, ids: dict):
-        """Register the dirty elements (at the reference velocities) in grids of their own and search every
-        pair with a dirty element: dirty against the full grid's clean elements, dirty against dirty and
-        (vertex-face) the full set's clean triangles against the dirty points."""
+    def _patch(self, x_start: wp.array, dt: float, grow: float, fresh_ids: dict, old_ids: dict):
+        """Register the fresh elements (at the reference velocities) in grids of their own and search every
+        pair with a fresh element: against the full grid's never-patched elements, against each other, and
+        against the elements earlier patches registered (their boxes are still valid: none of their
+        vertices moved since)."""
         inv = 1.0 / self.cell_size
         velocity = self._reference[1]
-        points = self.points.subset(ids["points"], grid=True)
-        edges = self.edges.subset(ids["edges"], grid=True)
-        triangles = self.triangles.subset(ids["triangles"], grid=False)
-        for s in (points, edges, triangles):
+        fresh_points = self.points.subset(fresh_ids["points"], grid=True)
+        fresh_edges = self.edges.subset(fresh_ids["edges"], grid=True)
+        fresh_triangles = self.triangles.subset(fresh_ids["triangles"], grid=False)
+        dirty_points = self.points.subset(np.concatenate([fresh_ids["points"], old_ids["points"]]), grid=True)
+        old_edges = self.edges.subset(old_ids["edges"], grid=True)
+        old_triangles = self.triangles.subset(old_ids["triangles"], grid=False)
+        for s in (fresh_points, fresh_edges, fresh_triangles, dirty_points, old_edges, old_triangles):
             s.update(x_start, velocity, dt, grow, inv, self.clamped)
         dirty, none = self.dirty, self._none
         self.patch_vertex_face.search([
-            (triangles, self.points, False, none["triangles"], dirty["points"]),
-            (triangles, points, False, none["triangles"], none["points"]),
-            (self.triangles, points, False, dirty["triangles"], none["points"]),
+            (fresh_triangles, self.points, False, none["triangles"], dirty["points"]),
+            (fresh_triangles, dirty_points, False, none["triangles"], none["points"]),
+            (self.triangles, fresh_points, False, dirty["triangles"], none["points"]),
+            (old_triangles, fresh_points, False, none["triangles"], none["points"]),
         ], inv)
         self.patch_edge_edge.search([
-            (edges, self.edges, False, none["edges"], dirty["edges"]),
-            (edges, edges, True, none["edges"], none["edges"]),
+            (fresh_edges, self.edges, False, none["edges"], dirty["edges"]),
+            (fresh_edges, fresh_edges, True, none["edges"], none["edges"]),
+            (fresh_edges, old_edges, False, none["edges"], none["edges"]),
         ], inv)
         self.patches += 1
 
-    def dirty_flags(self, kind: int) -> tuple[wp.array, wp.array]:
-        """The dirty flags of the first and second element of a vertex-face (0) or edge-edge (1) pair."""
+    def fresh_flags(self, kind: int) -> tuple[wp.array, wp.array]:
+        """The flags of the elements the last patch registered again, for the first and second element of a
+        vertex-face (0) or edge-edge (1) pair: the caller's earlier pairs with a flagged element are stale."""
         if kind == 0:
-            return self.dirty["triangles"], self.dirty["points"]
-        return self.dirty["edges"], self.dirty["edges"]
+            return self.fresh["triangles"], self.fresh["points"]
+        return self.fresh["edges"], self.fresh["edges"]
 
     @property
     def reference_velocity(self) -> wp.array:

@@ -73,9 +73,10 @@ class SelfCollision:
         self.friction = float(model.cloth_friction)
         self.stiffness = float(model.self_collision_stiffness)
         self.sweeps = int(sweeps)
-        # how far [m] a corrected end point may move before its elements are registered again (boxes grow by this;
-        # an eighth of the thickness measured fastest on the 128^2 pile: fewer close pairs, patches are cheap)
-        self.margin = 0.125 * self.thickness
+        # how far [m] a corrected end point may move before its elements are registered again (boxes grow by this).
+        # Measured on the pile at 64^2 and 128^2 with 1-4 mm thickness: a margin of ~4 % of a voxel (8 % of an edge)
+        # balances close pairs (grow with it) against patches and rebuilds (shrink with it)
+        self.margin = max(0.04 * self.grid.cell_size, 0.125 * self.thickness)
         self.zone_iterations = int(zone_iterations)
         self.counts = wp.zeros(2, dtype=wp.int32, device=dev)
         self.no_zone = wp.full(model.particle_count, -1, dtype=wp.int32, device=dev)
@@ -83,7 +84,7 @@ class SelfCollision:
         self._last_weight = None
         self._resolved = None  # (x_start, dt, vbar) of the last round that ended without impacts
         self._close: dict = {}
-        self._main_close: dict = {}
+        self._flip = False
         self.reset_counts()
 
     # -- counters --------------------------------------------------------------------------------
@@ -210,24 +211,25 @@ class SelfCollision:
             return
         close_inputs = [x_start, self.grid.reference_velocity, dt, self.margin, self.thickness + self.contact_tolerance()]
         if done == "built":
-            self._close = self._main_close = self._select("close", ksc.select_close_pairs, {kind: self._grid_pairs(kind) for kind in KINDS},
-                                                          close_inputs)
+            self._close = self._select("close", ksc.select_close_pairs, {kind: self._grid_pairs(kind) for kind in KINDS}, close_inputs)
             return
-        # patched: the full build's close pairs between clean elements, then the patch's close pairs
+        # patched: the current close pairs without a freshly registered element, then the patch's close pairs
         dev = self.model.device
-        self._close = {}
+        self._flip = not self._flip  # double buffer: the new list is compacted from the current one
+        close = {}
         for kind in KINDS:
-            pairs, count = self._main_close[kind]
+            pairs, count = self._close[kind]
             patch = self.grid.patch_vertex_face if kind == 0 else self.grid.patch_edge_edge
-            selected = self._buffer(f"patched{kind}", wp.vec2i, False, shape=max(count + patch.count, 1))
+            selected = self._buffer(f"patched{kind}{int(self._flip)}", wp.vec2i, False, shape=max(count + patch.count, 1))
             counter = self._buffer(f"patched_count{kind}", wp.int32, False, shape=1)
             counter.zero_()
             if count:
-                wp.launch(kbp.keep_clean_pairs, dim=count, inputs=[pairs, *self.grid.dirty_flags(kind)], outputs=[selected, counter], device=dev)
+                wp.launch(kbp.keep_clean_pairs, dim=count, inputs=[pairs, *self.grid.fresh_flags(kind)], outputs=[selected, counter], device=dev)
             if patch.count:
                 wp.launch(ksc.select_close_pairs, dim=patch.count, inputs=[patch.pairs, kind, self.tri_indices, self.edge_indices, *close_inputs],
                           outputs=[selected, counter], device=dev)
-            self._close[kind] = (selected, int(counter.numpy()[0]))
+            close[kind] = (selected, int(counter.numpy()[0]))
+        self._close = close
 
     def _select(self, key: str, kernel, lists: dict, inputs: list) -> dict:
         """Compact each kind's pairs with `kernel(pairs, kind, triangles, edges, *inputs)` -> kind: (pairs, count)."""

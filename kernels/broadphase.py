@@ -243,20 +243,23 @@ def take_escaped(velocity: wp.array(dtype=wp.vec3), dt: float, margin: float, ve
 
 
 @wp.kernel
-def mark_dirty(elements: wp.array2d(dtype=wp.int32), escaped: wp.array(dtype=wp.int32), dirty_out: wp.array(dtype=wp.int32)):
-    """An element with an escaped vertex is dirty (flags accumulate until the next full build)."""
+def mark_dirty(elements: wp.array2d(dtype=wp.int32), escaped: wp.array(dtype=wp.int32), dirty_out: wp.array(dtype=wp.int32),
+               fresh_out: wp.array(dtype=wp.int32)):
+    """An element with an escaped vertex is fresh (registered again now) and dirty (flags accumulate until the next full build)."""
     e = wp.tid()
+    fresh_out[e] = 0
     for k in range(3):
         i = elements[e, k]
         if i >= 0:
             if escaped[i] != 0:
+                fresh_out[e] = 1
                 dirty_out[e] = 1
 
 
 @wp.kernel
 def keep_clean_pairs(pairs: wp.array(dtype=wp.vec2i), first_dirty: wp.array(dtype=wp.int32), second_dirty: wp.array(dtype=wp.int32),
                      selected_out: wp.array(dtype=wp.vec2i), count_out: wp.array(dtype=wp.int32)):
-    """Compact the pairs whose two elements are both clean (a patch searched the others again)."""
+    """Compact the pairs with neither element flagged (a patch searched the others again)."""
     tid = wp.tid()
     p = pairs[tid]
     if first_dirty[p[0]] == 0 and second_dirty[p[1]] == 0:

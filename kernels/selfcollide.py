@@ -123,11 +123,18 @@ def start_weights(kind: int, x: wp.array(dtype=wp.vec3), idx: wp.vec4i):
 
 @wp.func
 def closing_speed_bound(kind: int, v: wp.array(dtype=wp.vec3), idx: wp.vec4i):
-    """The sum of the two elements' largest vertex speeds [m/s]: every point of an element is a convex
-    combination of its vertices, so their distance changes no faster than this."""
+    """The largest relative speed [m/s] between a vertex of the first element and one of the second: a point
+    of each element is a convex combination of its vertices, so their separation changes at
+    sum_ij a_i b_j (v_i - v_j), no faster than that (elements moving together, as in a pile, stay close)."""
+    bound = float(0.0)
     if kind == 0:
-        return wp.length(v[idx[3]]) + wp.max(wp.length(v[idx[0]]), wp.max(wp.length(v[idx[1]]), wp.length(v[idx[2]])))
-    return wp.max(wp.length(v[idx[0]]), wp.length(v[idx[1]])) + wp.max(wp.length(v[idx[2]]), wp.length(v[idx[3]]))
+        for k in range(3):
+            bound = wp.max(bound, wp.length(v[idx[k]] - v[idx[3]]))
+        return bound
+    for k in range(2):
+        for j in range(2, 4):
+            bound = wp.max(bound, wp.length(v[idx[k]] - v[idx[j]]))
+    return bound
 
 
 @wp.func

@@ -76,11 +76,12 @@ def random_soup(seed, n=300, t=400):
 
 @pytest.mark.parametrize("seed", [3, 4])
 def test_hash_grid_patch_finds_exactly_the_pairs_of_a_fresh_build(seed, device):
-    """Check the broad phase's patch: after a build with a margin, some particles' end points leave it
-    (others move within it); the full build's pairs between clean elements plus the patch's pairs are
-    exactly, and once each, the pairs a brute-force search finds on the registered boxes (each particle's
-    trajectory at its reference velocity: the new one where it escaped), and they contain every pair of
-    the new velocities' own boxes. A second patch (more particles escaping) accumulates dirty elements."""
+    """Check the broad phase's patches: after a build with a margin, some particles' end points leave it
+    (others move within it), twice; each time the earlier pairs without a freshly registered element plus
+    the patch's pairs are exactly, and once each, the pairs a brute-force search finds on the registered
+    boxes (each particle's trajectory at its reference velocity: the new one where it escaped), and they
+    contain every pair of the new velocities' own boxes. The second patch also moves particles of the
+    first one's elements, and elements the first one registered stay registered."""
     rng, x0, tris = random_soup(seed)
     n = len(x0)
     dt, pad, margin = 0.1, 0.01, 0.02
@@ -90,18 +91,23 @@ def test_hash_grid_patch_finds_exactly_the_pairs_of_a_fresh_build(seed, device):
     assert grid.refresh(xs, wp.array(ref, dtype=wp.vec3, device=device), dt, pad, margin) == "built"
     edges = unique_edges(tris)
     points = np.arange(n)[:, None]
-    for round_, escaping in enumerate((5, 8)):
+    current = [set(map(tuple, grid.vertex_face.numpy().tolist())), set(map(tuple, grid.edge_edge.numpy().tolist()))]
+    first_moved = None
+    for escaping in (5, 8):
         vel = ref + rng.uniform(-1.0, 1.0, (n, 3)).astype(np.float32) * (0.5 * margin / dt / np.sqrt(3.0))  # within the margin
         moved = rng.choice(n, escaping, replace=False)
+        if first_moved is not None:
+            moved[0] = first_moved[0]  # a particle of the first patch escapes again
         vel[moved] += rng.normal(0.0, 1.0, (escaping, 3)).astype(np.float32)  # far outside it
         assert grid.refresh(xs, wp.array(vel, dtype=wp.vec3, device=device), dt, pad, margin) == "patched"
         ref[moved] = vel[moved]
+        first_moved = moved
         np.testing.assert_array_equal(grid.reference_velocity.numpy(), ref)
         assert grid.refresh(xs, wp.array(vel, dtype=wp.vec3, device=device), dt, pad, margin) == "kept"
-        for kind, (query, target, same, main, patch) in enumerate(((tris, points, False, grid.vertex_face, grid.patch_vertex_face),
-                                                                    (edges, edges, True, grid.edge_edge, grid.patch_edge_edge))):
-            first, second = (f.numpy() for f in grid.dirty_flags(kind))
-            kept = [tuple(p) for p in main.numpy().tolist() if first[p[0]] == 0 and second[p[1]] == 0]
+        for kind, (query, target, same, patch) in enumerate(((tris, points, False, grid.patch_vertex_face),
+                                                             (edges, edges, True, grid.patch_edge_edge))):
+            first, second = (f.numpy() for f in grid.fresh_flags(kind))
+            kept = [p for p in current[kind] if first[p[0]] == 0 and second[p[1]] == 0]
             patched = [tuple(sorted(p)) if same else tuple(p) for p in patch.numpy().tolist()]
             found = kept + patched
             assert len(set(found)) == len(found), "a pair reported twice"
@@ -109,6 +115,7 @@ def test_hash_grid_patch_finds_exactly_the_pairs_of_a_fresh_build(seed, device):
             assert set(found) == registered
             assert brute_force_pairs(x0, x0 + dt * vel, query, target, pad, same) <= set(found)
             assert first.sum() > 0 and len(patched) > 0
+            current[kind] = set(found)
     assert grid.builds == 1 and grid.patches == 2
 
 
