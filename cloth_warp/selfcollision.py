@@ -224,7 +224,8 @@ class SelfCollision:
             counter = self._buffer(f"patched_count{kind}", wp.int32, False, shape=1)
             counter.zero_()
             if count:
-                wp.launch(kbp.keep_clean_pairs, dim=count, inputs=[pairs, *self.grid.fresh_flags(kind)], outputs=[selected, counter], device=dev)
+                wp.launch(kbp.select_flagged_pairs, dim=count, inputs=[pairs, *self.grid.fresh_flags(kind), 0], outputs=[selected, counter],
+                          device=dev)
             if patch.count:
                 wp.launch(ksc.select_close_pairs, dim=patch.count, inputs=[patch.pairs, kind, self.tri_indices, self.edge_indices, *close_inputs],
                           outputs=[selected, counter], device=dev)
@@ -287,7 +288,7 @@ class SelfCollision:
             counter = self._buffer(f"active_count{kind}", wp.int32, False, shape=1)
             counter.zero_()
             if count:
-                wp.launch(kbp.keep_flagged_pairs, dim=count, inputs=[pairs, first, second], outputs=[selected, counter], device=dev)
+                wp.launch(kbp.select_flagged_pairs, dim=count, inputs=[pairs, first, second, 1], outputs=[selected, counter], device=dev)
             out[kind] = (selected, int(counter.numpy()[0]))
         return out
 

@@ -257,17 +257,6 @@ def mark_dirty(elements: wp.array2d(dtype=wp.int32), escaped: wp.array(dtype=wp.
 
 
 @wp.kernel
-def keep_clean_pairs(pairs: wp.array(dtype=wp.vec2i), first_dirty: wp.array(dtype=wp.int32), second_dirty: wp.array(dtype=wp.int32),
-                     selected_out: wp.array(dtype=wp.vec2i), count_out: wp.array(dtype=wp.int32)):
-    """Compact the pairs with neither element flagged (a patch searched the others again)."""
-    tid = wp.tid()
-    p = pairs[tid]
-    if first_dirty[p[0]] == 0 and second_dirty[p[1]] == 0:
-        slot = wp.atomic_add(count_out, 0, 1)
-        selected_out[slot] = p
-
-
-@wp.kernel
 def mark_changed_elements(elements: wp.array2d(dtype=wp.int32), weight: wp.array(dtype=float), zone: wp.array(dtype=wp.int32),
                           flags_out: wp.array(dtype=wp.int32)):
     """An element changed when a vertex did: it received a velocity change (weight > 0) or is in an impact zone."""
@@ -281,11 +270,12 @@ def mark_changed_elements(elements: wp.array2d(dtype=wp.int32), weight: wp.array
 
 
 @wp.kernel
-def keep_flagged_pairs(pairs: wp.array(dtype=wp.vec2i), first_flags: wp.array(dtype=wp.int32), second_flags: wp.array(dtype=wp.int32),
-                       selected_out: wp.array(dtype=wp.vec2i), count_out: wp.array(dtype=wp.int32)):
-    """Compact the pairs with a flagged element."""
+def select_flagged_pairs(pairs: wp.array(dtype=wp.vec2i), first_flags: wp.array(dtype=wp.int32), second_flags: wp.array(dtype=wp.int32),
+                         flagged: int, selected_out: wp.array(dtype=wp.vec2i), count_out: wp.array(dtype=wp.int32)):
+    """Compact the pairs with a flagged element (`flagged` = 1) or with neither element flagged (0)."""
     tid = wp.tid()
     p = pairs[tid]
-    if first_flags[p[0]] != 0 or second_flags[p[1]] != 0:
+    hit = first_flags[p[0]] != 0 or second_flags[p[1]] != 0
+    if hit == (flagged != 0):
         slot = wp.atomic_add(count_out, 0, 1)
         selected_out[slot] = p
