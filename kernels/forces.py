@@ -230,7 +230,12 @@ def eval_bending_forces(
     """Choi-Ko bend triples (end a, middle, end b; springs `first` onwards): scatter the three forces."""
     q = wp.tid()
     t = bend_triples[q]
-    fa, fb, fm = bending_forces(x[t[0]], x[t[1]], x[t[2]], spring_stiffness[q + first])
+    bend_stiffness = spring_stiffness[q + first]
+    fa, fb, fm = bending_forces(x[t[0]], x[t[1]], x[t[2]], bend_stiffness)
+    if bend_stiffness != 0.0 and wp.length_sq(fa) + wp.length_sq(fb) == 0.0:
+        # straight (most triples of a smooth cloth in float32): nothing to scatter, and no gradient to pass
+        # (with k_b = 0 the scatter still runs, so d f / d k_b reaches the tape)
+        return
     wp.atomic_add(force_out, t[0], fa)
     wp.atomic_add(force_out, t[2], fb)
     wp.atomic_add(force_out, t[1], fm)
