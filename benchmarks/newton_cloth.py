@@ -5,7 +5,7 @@ tri_ka), bending 1e-5 N m (edge_ke), hanging from two corners, Y up, 1/60 s fram
 smallest stable substep count of a doubling ladder is timed; max strain is over the grid's structural
 edges. Prints one JSON line.
 
-Run:  python benchmarks/newton_cloth.py --sizes 32 64 --frames 10
+Run:  python benchmarks/newton_cloth.py --sizes 32 64 --frames 10 [--solvers VBD SemiImplicit]
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ import warp as wp
 import newton
 
 FPS = 60.0
+SOLVERS = ("SemiImplicit", "XPBD", "VBD")
 LADDER = (1, 2, 4, 8, 16, 32, 64, 128, 256, 512)
 
 
@@ -85,13 +86,14 @@ def main():
     p = argparse.ArgumentParser()
     p.add_argument("--sizes", type=int, nargs="+", default=[32, 64, 128])
     p.add_argument("--frames", type=int, default=20)
+    p.add_argument("--solvers", nargs="+", default=list(SOLVERS), choices=list(SOLVERS))
     args = p.parse_args()
     wp.config.log_level = wp.LOG_WARNING
     rows = []
     for n in args.sizes:
         edges = structural_edges(n)
         frames = args.frames if n <= 64 else max(3, args.frames // 2)
-        for solver in ("SemiImplicit", "XPBD", "VBD"):
+        for solver in args.solvers:
             model = build(n, springs=solver == "XPBD")
             rest = np.linalg.norm(model.particle_q.numpy()[edges[:, 0]] - model.particle_q.numpy()[edges[:, 1]], axis=1)
             chosen = None
