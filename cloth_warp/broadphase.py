@@ -32,8 +32,8 @@ class ElementSet:
         self.device = device
         self.elements = wp.array(rows, dtype=wp.int32, device=device)
         # the id pairs report for each row (its index in the full set; a patch's subsets keep the full set's ids)
-        self.ids_np = np.arange(self.count) if ids is None else np.asarray(ids, np.int64)
-        self.ids = wp.array(np.append(self.ids_np, 0).astype(np.int32)[: max(self.count, 1)], dtype=wp.int32, device=device)
+        ids = np.arange(self.count) if ids is None else np.asarray(ids)
+        self.ids = wp.array(np.append(ids, 0).astype(np.int32)[: max(self.count, 1)], dtype=wp.int32, device=device)
         n = max(self.count, 1)
         self.lo = wp.zeros(n, dtype=wp.vec3, device=device)
         self.hi = wp.zeros(n, dtype=wp.vec3, device=device)

@@ -191,7 +191,11 @@ class SelfCollision:
                 vbar = vbar_next
         else:
             vbar, resolved = self._impact_zones(x_start, vbar, dt, tolerance, separation, rg, pad)
-        self._resolved = (x_start, float(dt), wp.clone(vbar, requires_grad=False)) if resolved else None
+        self._resolved = None
+        if resolved:
+            final = self._buffer("resolved_vbar", wp.vec3, False)
+            wp.copy(final, vbar)
+            self._resolved = (x_start, float(dt), final)
         wp.launch(ksc.finish_step, dim=n, inputs=[x_start, vbar, vbar0, v_end, dt], outputs=[x_out, v_out], device=dev)
 
     def begin_step(self):

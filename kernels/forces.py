@@ -37,21 +37,23 @@ BUCKLING_R4 = wp.constant(-11.541)
 
 
 @wp.func
+def buckling_curve(s: float):
+    """Choi & Ko's fit P(s) of the immediate-buckling curve (negative on 0 <= s < 1), s = chord / arc."""
+    return (((BUCKLING_P4 * s + BUCKLING_P3) * s + BUCKLING_P2) * s + BUCKLING_P1) * s + BUCKLING_P0
+
+
+@wp.func
+def buckling_curve_integral(t: float):
+    """int_{1-t}^1 P(s) ds from the Taylor coefficients about s = 1 (no cancellation near the onset t = 0)."""
+    return t * (BUCKLING_R0 + t * (BUCKLING_R1 * 0.5 + t * (BUCKLING_R2 * (1.0 / 3.0) + t * (BUCKLING_R3 * 0.25 + t * (BUCKLING_R4 * 0.2)))))
+
+
+@wp.func
 def buckling_force(chord: float, arc: float, bend_stiffness: float):
     """Choi-Ko push f_b = (4 k_b / l_arc^2) |P(chord / l_arc)| [N] (0 when the triple is straight)."""
     if chord >= arc:
         return 0.0
-    s = wp.max(chord / arc, 0.0)
-    p = (((BUCKLING_P4 * s + BUCKLING_P3) * s + BUCKLING_P2) * s + BUCKLING_P1) * s + BUCKLING_P0
-    return -4.0 * bend_stiffness / (arc * arc) * p
-
-
-@wp.func
-def buckling_energy(chord: float, arc: float, bend_stiffness: float):
-    """E = (4 k_b / l_arc) int_s^1 |P| [J], s = chord / l_arc: the work of the push from straight to s."""
-    t = wp.clamp(1.0 - chord / arc, 0.0, 1.0)
-    integral = t * (BUCKLING_R0 + t * (BUCKLING_R1 / 2.0 + t * (BUCKLING_R2 / 3.0 + t * (BUCKLING_R3 / 4.0 + t * BUCKLING_R4 / 5.0))))
-    return -4.0 * bend_stiffness / arc * integral
+    return -4.0 * bend_stiffness / (arc * arc) * buckling_curve(wp.max(chord / arc, 0.0))
 
 
 @wp.func
@@ -79,12 +81,11 @@ def bending_forces(xa: wp.vec3, xm: wp.vec3, xb: wp.vec3, bend_stiffness: float)
     if l1 < LENGTH_EPS or l2 < LENGTH_EPS or chord < LENGTH_EPS or chord >= arc:
         # straight (or degenerate): f_b = 0 and E = 0
         return wp.vec3(0.0), wp.vec3(0.0), wp.vec3(0.0)
-    # buckling_force and buckling_energy / l with their common factor -4 k_b / l^2 taken out (4 divisions in all)
+    # f_b = s_k P(s) and E / l = s_k int_s^1 P, with the common factor s_k = -4 k_b / l^2 (4 divisions in all)
     inv_arc = 1.0 / arc
     s = chord * inv_arc
-    t = 1.0 - s
-    p = (((BUCKLING_P4 * s + BUCKLING_P3) * s + BUCKLING_P2) * s + BUCKLING_P1) * s + BUCKLING_P0
-    integral = t * (BUCKLING_R0 + t * (BUCKLING_R1 * 0.5 + t * (BUCKLING_R2 * (1.0 / 3.0) + t * (BUCKLING_R3 * 0.25 + t * (BUCKLING_R4 * 0.2)))))
+    p = buckling_curve(s)
+    integral = buckling_curve_integral(1.0 - s)
     scale = -4.0 * bend_stiffness * inv_arc * inv_arc
     fb = scale * p
     g = scale * (p * s - integral)
