@@ -35,6 +35,7 @@ import time
 import numpy as np
 import warp as wp
 
+from .cache import CacheError
 from .gradients import CentroidLoss, ChamferLoss, ChordAngleLoss, Loss, PositionLoss, Rollout, model_grad_arrays
 from .scene import FIT_LOSSES, Scene, SceneError, build_material, build_model, build_solver, scene_selection, with_values
 
@@ -192,6 +193,8 @@ def scene_target(scene: Scene, frames: int):
     step = frames * int(scene.get("solver.substeps"))
     if "cache" in target:
         path = scene.resolve(target["cache"])
+        if path.is_dir():
+            raise SceneError(f"fit.target.cache: {path} is a directory, not a cache file")
         if not path.is_file():
             raise SceneError(f"fit.target.cache: file not found: {path} (paths are relative to the scene file; simulate the "
                              "target first, see the scene's header)")
@@ -227,6 +230,7 @@ class SceneFit:
         loss = scene.get("fit.loss") if loss is None else loss
         parameters = scene.get("fit.params") if parameters is None else parameters
         frames = scene.get("fit.frames") if frames is None else frames
+        from_scene = target is None
         if target is None:
             target = scene_target(scene, int(frames or scene.get("output.frames")))
             if target is None:
@@ -239,6 +243,14 @@ class SceneFit:
             raise SceneError("fit: give at least one --param (or fit.params in the scene)")
         if float(scene.get("forces.gusts.strength")) > 0.0:
             raise SceneError("forces.gusts.strength: gusty wind is not differentiable here; set it to 0 to fit")
+        targets = None
+        if not callable(target) and not isinstance(target, Loss):  # read the target before any work: a bad file exits early
+            try:
+                targets = read_targets(target, int(scene.get("solver.substeps")), frames)
+            except CacheError as exc:
+                if from_scene:
+                    raise SceneError(f"fit.target.cache: {exc}") from exc
+                raise
         self.scene = scene
         self.parameters = [make_parameter(scene, p) for p in parameters]
         keys = [p.key for p in self.parameters]
@@ -260,7 +272,8 @@ class SceneFit:
             self.frames, self.loss, self.loss_kind = int(frames), target, named.get(type(target), type(target).__name__)
             targets = {}
         else:
-            targets = read_targets(target, self.substeps, frames)
+            if targets is None:  # a factory that gave targets rather than a Loss
+                targets = read_targets(target, self.substeps, frames)
             self.frames = max(targets)
         if loss == "final" and targets:
             targets = {self.frames: targets[self.frames]}

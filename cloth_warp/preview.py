@@ -12,7 +12,7 @@ import pathlib
 import numpy as np
 import warp as wp
 
-from .cache import CacheReader, atomic_path, vertex_normals
+from .cache import CacheError, CacheReader, atomic_path, usd_errors, vertex_normals
 from .kernels import render as kr
 
 log = logging.getLogger(__name__)
@@ -117,8 +117,8 @@ def render_cache(cache, output, *, frame: int | None = None, size=(512, 512), ev
     suffix = out.suffix.lower()
     if suffix not in (".png", ".gif"):
         raise ValueError(f"preview output must end in .png or .gif, got {out.name!r}")
-    if not reader.meshes:
-        raise ValueError(f"{cache} holds no mesh to render")
+    if not reader.meshes:  # the reader refuses such a file; kept for readers built otherwise
+        raise CacheError(f"{cache}: holds no mesh to render")
     offsets = np.cumsum([0] + [len(m["points"]) for m in reader.meshes])
     triangles = np.concatenate([m["triangles"] + o for m, o in zip(reader.meshes, offsets)])
     first, last = reader.start_frame, reader.end_frame
@@ -132,7 +132,13 @@ def render_cache(cache, output, *, frame: int | None = None, size=(512, 512), ev
     allpts = np.concatenate(clouds)
     lo, hi = allpts.min(0), allpts.max(0)
     up = _axes(reader.up_axis)[0]
-    ground, solid = _collider_geometry(reader, frames, lo, hi, up)
+    try:
+        with usd_errors(reader.path, "corrupt collider: "):
+            ground, solid = _collider_geometry(reader, frames, lo, hi, up)
+    except CacheError:
+        raise
+    except (TypeError, ValueError, IndexError, AttributeError) as exc:  # a collider prim without its size, radius ...
+        raise CacheError(f"{reader.path}: a collider cannot be drawn: {exc}") from exc
     if solid:
         n_cloth = len(clouds[0])
         tris = [triangles] + [t + n_cloth + off for t, off in zip(solid["triangles"], solid["offsets"])]
