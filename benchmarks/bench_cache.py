@@ -34,7 +34,9 @@ def parse_args():
     p.add_argument("--sizes", type=int, nargs="+", default=[32, 64, 128])
     p.add_argument("--frames", type=int, default=30)
     p.add_argument("--out", default=str(HERE / "results" / "bench_cache.md"))
+    p.add_argument("--long-frames", type=int, default=1500, help="frames of the long-cache comparison (64^2 cloth)")
     p.add_argument("--memory-child", choices=["periodic", "end"], help=argparse.SUPPRESS)
+    p.add_argument("--long-child", choices=["rollback", "plain"], help=argparse.SUPPRESS)
     return p.parse_args()
 
 
@@ -112,10 +114,64 @@ def memory_child(mode):
     print(json.dumps({"before_mb": before, "peak_mb": peak}))
 
 
+def long_child(mode, frames):
+    """Write `frames` synthetic frames of a 64^2 cloth with a crate save every 25 frames, each save guarded by
+    a CrateRollback (as shipped) or not ("plain": the rollback replaced by a no-op); print wall time, time
+    in saves and peak RSS growth."""
+    import cloth_warp as cw
+    import cloth_warp.cache as cache
+
+    if mode == "plain":
+        cache.CrateRollback = lambda path: None
+    b = cw.ModelBuilder()
+    b.add_cloth_grid(resolution=(64, 64), size=(1.0, 1.0))
+    model = b.finalize("cpu")
+    q0 = model.rest_positions.astype(np.float32)
+    saves = []
+    save = cache.UsdCacheWriter._save_file
+
+    def timed(self):
+        t = time.perf_counter()
+        save(self)
+        saves.append(time.perf_counter() - t)
+
+    cache.UsdCacheWriter._save_file = timed
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    with tempfile.TemporaryDirectory() as d:
+        t = time.perf_counter()
+        w = cache.UsdCacheWriter(pathlib.Path(d) / "long.usdc", model, fps=60, save_every=25)
+        for k in range(frames):
+            q = q0 + np.float32(1e-4 * k)
+            w.write(q, q, {"maxStrain": 0.01}, checkpoint={"particle_q": q, "particle_qd": q} if w.save_due else None)
+        w.close()
+        wall = time.perf_counter() - t
+        mb = w.path.stat().st_size / 1e6
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print(json.dumps({"wall_s": wall, "save_s": sum(saves), "saves": len(saves), "rss_growth_mb": peak - before, "mb": mb}))
+
+
+def check_costs(model, states, sim_ms):
+    """Per-frame cost of what guards a frame [ms]: the writer's finite and shape checks, and the simulator
+    checkpoint taken at every save (amortised over save_every = 25 frames)."""
+    q, qd = states[-1]
+    t = time.perf_counter()
+    for _ in range(50):
+        bool(np.isfinite(q).all()) and bool(np.isfinite(qd).all())
+    finite_ms = 1e3 * (time.perf_counter() - t) / 50
+    return {"finite_ms": finite_ms, "sim_ms": sim_ms, "ratio": finite_ms / sim_ms}
+
+
+def _median(runs, key):
+    return float(np.median([r[key] for r in runs]))
+
+
 def main():
     args = parse_args()
     if args.memory_child:
         memory_child(args.memory_child)
+        return
+    if args.long_child:
+        long_child(args.long_child, args.long_frames)
         return
     import warp as wp
 
@@ -127,13 +183,20 @@ def main():
             writes = time_writes(model, states, diags, folder)
             preview_ms = time_preview(states, model)
             rows.append({"size": n, "particles": model.particle_count, "simulate_ms": 1e3 * sim_s, "writes": writes,
-                         "preview_ms_512": preview_ms})
+                         "preview_ms_512": preview_ms, "checks": check_costs(model, states, 1e3 * sim_s)})
             print(json.dumps(rows[-1]), flush=True)
     memory = {}
     for mode in ("periodic", "end"):
         res = subprocess.run([sys.executable, __file__, "--memory-child", mode], capture_output=True, text=True, check=True)
         memory[mode] = json.loads(res.stdout.strip().splitlines()[-1])
     print(json.dumps(memory))
+    long = {"rollback": [], "plain": []}
+    for _ in range(3):  # interleaved repeats: the machine is noisy
+        for mode in ("plain", "rollback"):
+            res = subprocess.run([sys.executable, __file__, "--long-child", mode, "--long-frames", str(args.long_frames)],
+                                 capture_output=True, text=True, check=True)
+            long[mode].append(json.loads(res.stdout.strip().splitlines()[-1]))
+    print(json.dumps(long))
 
     lines = ["# Cache write cost vs simulation (hanging cloth, implicit Euler, 1 step per 1/60 s frame)", "",
              f"`python benchmarks/bench_cache.py --sizes {' '.join(map(str, args.sizes))} --frames {args.frames}`; "
@@ -154,12 +217,22 @@ def main():
               f"peak RSS grows by {memory['periodic']['peak_mb'] - memory['periodic']['before_mb']:.0f} MB with a crate save "
               f"every 25 frames vs {memory['end']['peak_mb'] - memory['end']['before_mb']:.0f} MB saving once at the end "
               f"(above {memory['periodic']['before_mb']:.0f} MB after imports and the model).", "",
-              "Notes: .usda is written once at close (each text save rewrites the whole file), so its per-frame cost "
-              "is authoring only and its close time grows with the cache; .npz holds frames in memory and compresses "
-              "at close."]
+              f"Long caches, {args.long_frames} synthetic frames of a 64^2 cloth (4,225 points), a crate save every 25 "
+              f"frames with a checkpoint, three interleaved repeats each (median): every save guarded by a "
+              f"CrateRollback (as shipped) {_median(long['rollback'], 'wall_s'):.2f} s in all, "
+              f"{_median(long['rollback'], 'save_s'):.2f} s in saves, RSS +{_median(long['rollback'], 'rss_growth_mb'):.0f} MB; "
+              f"unguarded {_median(long['plain'], 'wall_s'):.2f} s, {_median(long['plain'], 'save_s'):.2f} s in saves, "
+              f"RSS +{_median(long['plain'], 'rss_growth_mb'):.0f} MB; file {long['rollback'][0]['mb']:.0f} MB "
+              f"(ratio of totals {_median(long['rollback'], 'wall_s') / _median(long['plain'], 'wall_s'):.3f}).", "",
+              "Checks per frame (the writer refuses non-finite frames): "
+              + ", ".join(f"{r['size']}^2 {r['checks']['finite_ms']:.3f} ms = {100 * r['checks']['ratio']:.2f} % of a frame"
+                          for r in rows) + ".", "",
+              "Notes: .usda and .npz rewrite the whole file at each save (to a temporary name renamed over the last), so "
+              "they save at 25 x 1, 2, 4, ... frames and at close; their per-frame cost above is authoring plus those "
+              "saves, and their close time grows with the cache; .npz holds frames in memory."]
     pathlib.Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     pathlib.Path(args.out).write_text("\n".join(lines) + "\n")
-    pathlib.Path(args.out).with_suffix(".json").write_text(json.dumps({"rows": rows, "memory": memory}, indent=1))
+    pathlib.Path(args.out).with_suffix(".json").write_text(json.dumps({"rows": rows, "memory": memory, "long": long}, indent=1))
     print("\n".join(lines))
 
 

@@ -15,33 +15,44 @@ Typical use::
 
 __version__ = "0.1.0"
 
+import importlib as _importlib
 import logging as _logging
 
-from . import materials, topology
-from .builder import ClothRef, ModelBuilder, load_mesh_file, quat_from_axis_angle
-from .cache import CacheReader, UsdCacheWriter, open_cache
-from .diagnostics import Diagnostics, StepStats
-from .gradients import CentroidLoss, ChamferLoss, ChordAngleLoss, Loss, PositionLoss, Rollout
-from .materials import FabricMaterial
-from .model import Control, Handle, Keyframe, Model, State
-from .runner import run_scene
-from .scene import SceneError, load_scene
-from .simulator import Simulator
-from .solvers import (
-    AdaptiveStepper,
-    LinearSolver,
-    SimulationDiverged,
-    SolverExplicitEuler,
-    SolverImplicitEuler,
-    SolverMidpoint,
-    SolverRK4,
-    SolverSymplecticEuler,
-    StepCheck,
-    StrainLimiter,
-    make_solver,
-)
-from .topology import MeshError, SpringKind, SpringLaw, SpringModel
-from .wind import GustyWind
+# Names are imported on first use (PEP 562), so `cloth-warp --help` and a Ctrl-C in the first second do not
+# wait for Warp, USD and every module to load.
+_EXPORTS = {
+    "builder": ["ClothRef", "ModelBuilder", "load_mesh_file", "quat_from_axis_angle"],
+    "cache": ["CacheError", "CacheReader", "UsdCacheWriter", "open_cache"],
+    "diagnostics": ["Diagnostics", "StepStats"],
+    "gradients": ["CentroidLoss", "ChamferLoss", "ChordAngleLoss", "Loss", "PositionLoss", "Rollout"],
+    "materials": ["FabricMaterial"],
+    "model": ["Control", "Handle", "Keyframe", "Model", "State"],
+    "outputs": ["CacheWriteError", "OutputBusy"],
+    "runner": ["run_scene"],
+    "scene": ["SceneError", "load_scene"],
+    "simulator": ["Simulator"],
+    "solvers": ["AdaptiveStepper", "LinearSolver", "SimulationDiverged", "SolverExplicitEuler", "SolverImplicitEuler",
+                "SolverMidpoint", "SolverRK4", "SolverSymplecticEuler", "StepCheck", "StrainLimiter", "make_solver"],
+    "topology": ["MeshError", "SpringKind", "SpringLaw", "SpringModel"],
+    "wind": ["GustyWind"],
+}
+_WHERE = {name: module for module, names in _EXPORTS.items() for name in names}
+
+
+def __getattr__(name):
+    if name in _WHERE:
+        value = getattr(_importlib.import_module(f".{_WHERE[name]}", __name__), name)
+    elif name in ("materials", "topology"):
+        value = _importlib.import_module(f".{name}", __name__)
+    else:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(__all__))
+
 
 # A library logs, it never prints: the application (or cloth-warp's CLI) configures handlers.
 _logging.getLogger(__name__).addHandler(_logging.NullHandler())
@@ -54,7 +65,10 @@ __all__ = [
     "PositionLoss",
     "Rollout",
     "AdaptiveStepper",
+    "CacheError",
     "CacheReader",
+    "CacheWriteError",
+    "OutputBusy",
     "GustyWind",
     "SceneError",
     "UsdCacheWriter",

@@ -20,23 +20,34 @@ A USD cache is what DCC tools (usdview, Houdini, Blender, Maya, Omniverse) play:
   status (``running`` / ``complete`` / ``interrupted`` / ``diverged`` / ``failed``), frames written.
 
 The first frame written is the initial state at ``start_frame``; frame k of the simulation is time code
-``start_frame + k``. The cache is authored into ``<name>.partial<ext>`` next to the final path, saved every
-``save_every`` frames (crate saves are incremental and release the samples, which bounds memory; ``.usda``
-is saved once at the end because each text save rewrites the whole file) and renamed to the final name by
-:meth:`close` -- also after an interruption or a divergence, so a file under the final name is always a
-complete, valid cache of the frames done. A hard kill (SIGKILL, power loss) leaves only the partial file.
+``start_frame + k``. A run takes the output's lock (a second live run on the same output is refused),
+authors into ``<stem>.partial-<pid><ext>`` next to the final path and saves it every ``save_every`` frames
+(crate saves are incremental and release the samples, which bounds memory; a save that fails -- disk full,
+I/O error -- is rolled back to the last good save: :class:`~cloth_warp.outputs.CrateRollback`); ``.usda``
+and ``.npz`` rewrite the whole file at each save, so they save at save_every x 1, 2, 4, ... frames, each
+to a temporary name renamed over the last. :meth:`CacheWriter.close` stamps the status and renames the
+partial file (as of its last good save) to the final name -- also after an interruption, a divergence or
+a failed save -- so a file under the final name is always a valid cache of the frames it says it holds
+(``frames_written``). A hard kill (SIGKILL, power loss) leaves the partial file as of its last save
+(status ``partial``), which ``cloth-warp run --resume`` continues. Each save also stores the simulator's
+checkpoint at the last frame written (:func:`read_checkpoint`), a custom attribute of ``/World``.
 """
 
 from __future__ import annotations
 
 import contextlib
+import io
 import json
 import logging
+import math
 import os
 import pathlib
 import platform
 
 import numpy as np
+
+from .outputs import (CacheWriteError, CrateRollback, OutputLock, atomic_path, atomic_write_text, check_output,  # noqa: F401
+                      partial_path, usd_error_text)
 
 log = logging.getLogger(__name__)
 
@@ -91,31 +102,6 @@ def package_versions() -> dict:
     except ImportError:  # pragma: no cover - a core dependency
         pass
     return versions
-
-
-@contextlib.contextmanager
-def atomic_path(path):
-    """Yield a temporary name next to `path` to write to; rename it to `path` when the block succeeds
-    (and remove it when it fails), so a file under the final name is always complete."""
-    path = pathlib.Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        yield tmp
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
-def atomic_write_text(path, text: str):
-    """Write a text file atomically (see :func:`atomic_path`)."""
-    with atomic_path(path) as tmp:
-        tmp.write_text(text)
-
-
-def partial_path(path: pathlib.Path) -> pathlib.Path:
-    """Where a cache is authored before it is renamed to `path`."""
-    return path.with_name(f"{path.stem}.partial{path.suffix}")
 
 
 def _prim_name(name: str) -> str:
@@ -234,17 +220,209 @@ def collider_surface(prim, time) -> tuple[np.ndarray, np.ndarray]:
     return v @ xf[:3, :3] + xf[3, :3], t
 
 
+CHECKPOINT_PRIM = "/World"  # the root Xform carries the resume checkpoint as a custom attribute
+CHECKPOINT_ATTR = "clothWarp:checkpoint"
+
+
+def pack_checkpoint(checkpoint: dict) -> bytes:
+    """A simulator checkpoint ({name: array or scalar}) as bytes (an uncompressed .npz: exact, no pickle)."""
+    buf = io.BytesIO()
+    np.savez(buf, **{k: np.asarray(v) for k, v in checkpoint.items()})
+    return buf.getvalue()
+
+
+def unpack_checkpoint(data) -> dict:
+    """Inverse of :func:`pack_checkpoint` (0-d arrays come back as Python scalars)."""
+    with np.load(io.BytesIO(bytes(np.asarray(data, np.uint8))), allow_pickle=False) as z:
+        return {k: (z[k].item() if z[k].ndim == 0 else z[k]) for k in z.files}
+
+
+def read_checkpoint(path) -> tuple[int, dict, dict]:
+    """(frames in the cache, the simulator checkpoint taken at its last frame, its provenance metadata) of a
+    cache written with checkpoints (``cloth-warp run`` stores one at every save); raises ValueError if none."""
+    path = pathlib.Path(path)
+    if path.suffix.lower() == ".npz":
+        with np.load(path, allow_pickle=False) as z:
+            if "checkpoint" not in z.files:
+                raise ValueError(f"{path}: holds no resume checkpoint")
+            meta = json.loads(str(z["metadata"]))
+            return int(z["checkpoint_frames"]), unpack_checkpoint(z["checkpoint"]), meta
+    from pxr import Sdf, Tf
+
+    try:
+        layer = Sdf.Layer.OpenAsAnonymous(str(path))
+    except Tf.ErrorException as exc:
+        raise ValueError(f"{path}: cannot be read as USD: {usd_error_text(exc)}") from None
+    if layer is None:
+        raise ValueError(f"{path}: cannot be read as USD")
+    meta = dict(layer.customLayerData.get("cloth_warp", {}))
+    spec = layer.GetAttributeAtPath(f"{CHECKPOINT_PRIM}.{CHECKPOINT_ATTR}")
+    times = layer.ListTimeSamplesForPath(spec.path) if spec else []
+    if not times:
+        raise ValueError(f"{path}: holds no resume checkpoint")
+    tc = max(times)
+    frames = int(round(tc)) - int(meta.get("start_frame", 1)) + 1
+    return frames, unpack_checkpoint(np.asarray(layer.QueryTimeSample(spec.path, tc), np.uint8)), meta
+
+
+def read_frames(path, model, count: int):
+    """Yield (positions, velocities, diagnostics) of the first `count` frames of a cache of `model` written
+    by cloth_warp (what ``--resume`` copies into the continued cache); velocities are zero where the cache
+    has none."""
+    path = pathlib.Path(path)
+    n = model.particle_count
+    if path.suffix.lower() == ".npz":
+        with np.load(path, allow_pickle=False) as z:
+            diag = {k: z[k] for k in DIAGNOSTICS if k in z.files}
+            for k in range(count):
+                yield z["positions"][k], z["velocities"][k], {d: _diag_value(d, v[k]) for d, v in diag.items()}
+        return
+    from pxr import Usd
+
+    stage = Usd.Stage.Open(str(path), Usd.Stage.LoadAll)
+    start = int(stage.GetStartTimeCode())
+    prims = [(stage.GetPrimAtPath(f"/World/{name}"), particles) for name, particles, _, _ in _cloth_meshes(model)]
+    if not all(p.IsValid() for p, _ in prims):
+        raise ValueError(f"{path}: its meshes are not this scene's cloths")
+    diag_attrs = {d: prims[0][0].GetAttribute(f"clothWarp:{d}") for d in DIAGNOSTICS}
+    diag_times = {d: set(a.GetTimeSamples()) for d, a in diag_attrs.items() if a}
+    for k in range(count):
+        tc = start + k
+        q, qd = np.zeros((n, 3), np.float32), np.zeros((n, 3), np.float32)
+        for prim, particles in prims:
+            q[particles] = np.asarray(prim.GetAttribute("points").Get(tc), np.float32)
+            v = prim.GetAttribute("velocities")
+            if v and v.HasAuthoredValue():
+                qd[particles] = np.asarray(v.Get(tc), np.float32)
+        diag = {d: _diag_value(d, diag_attrs[d].Get(tc)) for d, times in diag_times.items() if tc in times}
+        yield q, qd, diag
+
+
+def _diag_value(name, value):
+    if value is None or (isinstance(value, float | np.floating) and not np.isfinite(value)):
+        return None
+    return int(value) if DIAGNOSTICS[name][0] == "int" else float(value)
+
+
 class CacheWriter:
-    """Common interface: :meth:`write` a frame, :meth:`close` with a status (also as a context manager)."""
+    """Frames to a cache file, safely (see the module docstring and :mod:`cloth_warp.outputs`).
+
+    Common to every format: `fps` is checked, the output is checked before anything is written (not a folder,
+    a writable folder, room for the first saves), the run takes the output's lock (a second live writer of
+    the same output gets :class:`~cloth_warp.outputs.OutputBusy`), frames go to a partial file of this run
+    and are saved on a schedule; a save that fails raises :class:`~cloth_warp.outputs.CacheWriteError`
+    after putting the partial file back to the last good save, and :meth:`close` then renames that one to
+    the final name. Non-finite positions or velocities are refused (ValueError) before anything is authored.
+    Subclasses author frames (:meth:`_author`), store a checkpoint (:meth:`_store_checkpoint`) and save
+    (:meth:`_save_file`).
+    """
 
     path: pathlib.Path
     frames_written = 0
+    text_format = False  # each save rewrites the whole file: saves on a doubling schedule
 
-    def write(self, q: np.ndarray, qd: np.ndarray, diagnostics: dict | None = None) -> int:
-        raise NotImplementedError
+    def _begin(self, path, model, fps, start_frame, save_every, bytes_per_frame, metadata, lock):
+        self.path = pathlib.Path(path)
+        fps = float(fps)
+        if not (math.isfinite(fps) and 0.0 < fps <= 1.0e6):
+            raise ValueError(f"fps: must be in (0, 1e6] frames per second, got {fps!r}")
+        self.fps, self.start_frame = fps, int(start_frame)
+        self.save_every = max(1, int(save_every))
+        self.particle_count = int(model.particle_count)
+        self.frames_written, self.saved_frames, self.closed, self.broken = 0, 0, False, None
+        first_save = min(self.save_every, 25) if not self.text_format else self.save_every
+        check_output(self.path, bytes_needed=int(bytes_per_frame * first_save) + 256 * 1024)
+        self.lock = lock if lock is not None else OutputLock(self.path).acquire()
+        self.partial = partial_path(self.path)
+        self.partial.unlink(missing_ok=True)  # a file of a dead process that had our pid
+        self.meta = {"generator": "cloth_warp", "versions": package_versions(), "status": "running", "frames_written": 0,
+                     "fps": self.fps, "start_frame": self.start_frame, "up_axis": model.up_axis, **(metadata or {})}
 
-    def close(self, status: str = "complete", info: dict | None = None) -> pathlib.Path:
-        raise NotImplementedError
+    @property
+    def next_time_code(self) -> int:
+        return self.start_frame + self.frames_written
+
+    @property
+    def save_due(self) -> bool:
+        """Whether the next :meth:`write` saves the file (pass it a checkpoint then)."""
+        n = self.frames_written + 1
+        if self.text_format:
+            return n >= self.save_every and n % self.save_every == 0 and ((n // self.save_every) & (n // self.save_every - 1)) == 0
+        return n % self.save_every == 0
+
+    def write(self, q: np.ndarray, qd: np.ndarray, diagnostics: dict | None = None, checkpoint: dict | None = None) -> int:
+        """Author one frame (positions [m], velocities [m/s] of all particles; diagnostics by name; the
+        simulator checkpoint of this frame, stored if the write saves); returns its time code."""
+        if self.closed or self.broken:
+            raise RuntimeError(f"cache {self.path} already {'closed' if self.closed else 'failed'}")
+        q, qd = np.asarray(q, np.float32), np.asarray(qd, np.float32)
+        for name, a in (("positions", q), ("velocities", qd)):
+            if a.shape != (self.particle_count, 3):
+                raise ValueError(f"{name}: expected shape ({self.particle_count}, 3), got {a.shape}")
+            if not np.isfinite(a).all():
+                raise ValueError(f"{name}: non-finite values in frame {self.next_time_code}; refusing to write them")
+        save = self.save_due
+        tc = self.next_time_code
+        self._author(q, qd, diagnostics or {}, tc)
+        self.frames_written += 1
+        if save:
+            if checkpoint is not None:
+                self._store_checkpoint(checkpoint, tc)
+            self._save("partial")
+        return tc
+
+    def _save(self, status: str):
+        """Stamp status and frames, save; on failure put the file back to the last good save and raise."""
+        self.meta.update(status=status, frames_written=self.frames_written)
+        try:
+            self._save_file()
+        except CacheWriteError as exc:
+            self.broken = exc
+            kept = f"frames {self.start_frame}..{self.start_frame + self.saved_frames - 1}" if self.saved_frames else "no frames"
+            raise CacheWriteError(f"{exc}; the cache keeps {kept} (the last good save)") from None
+        self.saved_frames = self.frames_written
+
+    def close(self, status: str = "complete", info: dict | None = None, checkpoint: dict | None = None) -> pathlib.Path:
+        """Stamp the status (and `info`), store `checkpoint` (the last frame's), save and rename to the final
+        name; returns the final path. After a failed save, the last good save is renamed instead (and the
+        error raised again unless it was already). A cache with no frame saved leaves no file."""
+        if self.closed:
+            return self.path
+        self.closed = True
+        try:
+            if self.broken is None:
+                self.meta.update(info or {})
+                if checkpoint is not None and self.frames_written:
+                    self._store_checkpoint(checkpoint, self.next_time_code - 1)
+                try:
+                    self._save(status)
+                except CacheWriteError:
+                    self._finish()
+                    raise
+            self._finish()
+        finally:
+            self.lock.release()
+        log.info("wrote %s (%d frames, %s)", self.path, self.saved_frames, status)
+        return self.path
+
+    def _finish(self):
+        """Rename the partial file (as of its last good save) to the final name; drop it if nothing was saved."""
+        self._release()
+        if self.saved_frames and self.partial.exists():
+            os.replace(self.partial, self.path)
+        else:
+            self.partial.unlink(missing_ok=True)
+
+    def abort(self):
+        """Give up before any frame matters: remove the partial file and release the output."""
+        if not self.closed:
+            self.closed = True
+            self._release()
+            self.partial.unlink(missing_ok=True)
+            self.lock.release()
+
+    def _release(self):
+        pass
 
     def __enter__(self):
         return self
@@ -265,34 +443,35 @@ class UsdCacheWriter(CacheWriter):
         model: the simulated :class:`~cloth_warp.Model` (topology, UVs, up axis are read from it).
         fps: frames per second (time codes per second) of the cache.
         start_frame: time code of the first frame written (the initial state).
-        save_every: crate saves every so many frames (bounds memory and what a crash can lose).
+        save_every: crate saves every so many frames (bounds memory and what a crash can lose); a text
+            ``.usda`` saves at save_every x 1, 2, 4, ... frames (each text save rewrites the whole file).
         normals, velocities: author vertex normals / velocities per frame.
         metadata: JSON-able provenance merged into ``customLayerData["cloth_warp"]``.
+        lock: the output's :class:`~cloth_warp.outputs.OutputLock`, if the caller holds it already (the writer
+            releases it when it closes).
     """
 
     def __init__(self, path, model, *, fps: float, start_frame: int = 1, save_every: int = 25, normals: bool = True,
-                 velocities: bool = True, metadata: dict | None = None):
+                 velocities: bool = True, metadata: dict | None = None, lock: OutputLock | None = None):
         from pxr import Sdf, Usd, UsdGeom, UsdPhysics, Vt
 
-        self.path = pathlib.Path(path)
-        if self.path.suffix.lower() not in USD_SUFFIXES:
-            raise ValueError(f"a USD cache must end in {', '.join(USD_SUFFIXES)}, got {self.path.name!r}")
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.partial = partial_path(self.path)
-        if self.partial.exists():
-            self.partial.unlink()
-        stale = Sdf.Layer.Find(str(self.partial))
-        self.layer = stale if stale is not None else Sdf.Layer.CreateNew(str(self.partial))
-        if stale is not None:
-            stale.Clear()
+        path = pathlib.Path(path)
+        if path.suffix.lower() not in USD_SUFFIXES:
+            raise ValueError(f"a USD cache must end in {', '.join(USD_SUFFIXES)}, got {path.name!r}")
+        self.text_format = path.suffix.lower() == ".usda"
+        per_frame = model.particle_count * 12 * (1 + bool(normals) + bool(velocities)) * (4 if self.text_format else 1)
+        self._begin(path, model, fps, start_frame, save_every, per_frame, metadata, lock)
+        try:
+            stale = Sdf.Layer.Find(str(self.partial))
+            self.layer = stale if stale is not None else Sdf.Layer.CreateNew(str(self.partial))
+            if stale is not None:
+                stale.Clear()
+        except Exception as exc:  # Tf.ErrorException: an unwritable folder
+            self.abort()
+            raise CacheWriteError(f"{self.partial}: cannot create: {usd_error_text(exc)}") from None
         if self.layer is None:
-            raise OSError(f"cannot create {self.partial}")
-        self.ascii = self.path.suffix.lower() == ".usda"
-        self.fps = float(fps)
-        self.start_frame = int(start_frame)
-        self.save_every = max(1, int(save_every))
-        self.frames_written = 0
-        self.closed = False
+            self.abort()
+            raise CacheWriteError(f"{self.partial}: cannot create")
         self._Vt = Vt
         stage = self.stage = Usd.Stage.Open(self.layer)
         UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z if model.up_axis == "Z" else UsdGeom.Tokens.y)
@@ -305,11 +484,7 @@ class UsdCacheWriter(CacheWriter):
         root = UsdGeom.Xform.Define(stage, "/World")
         stage.SetDefaultPrim(root.GetPrim())
         self.layer.comment = "Cloth animation cache written by cloth_warp"
-        self.meta = {"generator": "cloth_warp", "versions": package_versions(), "status": "running", "frames_written": 0,
-                     "fps": self.fps, "start_frame": self.start_frame, "up_axis": model.up_axis}
-        self.meta.update(metadata or {})
         self._set_metadata()
-
         rest = model.rest_positions
         self.meshes = []
         for name, particles, tris, corner_uv in _cloth_meshes(model):
@@ -345,7 +520,12 @@ class UsdCacheWriter(CacheWriter):
             self.meshes.append((particles, tris, attrs))
         self.colliders = _define_colliders(stage, model)
         self._write_collider_poses(0)
-        self.layer.Save()
+        self._checkpoint_attr = None
+        try:
+            self._save_file()
+        except CacheWriteError:
+            self.abort()
+            raise
 
     def _write_collider_poses(self, k: int):
         """Author the animated colliders' poses at frame k (time k / fps; static ones once, at default time)."""
@@ -367,18 +547,8 @@ class UsdCacheWriter(CacheWriter):
     def _set_metadata(self):
         self.layer.customLayerData = {"cloth_warp": _usd_dict(self.meta)}
 
-    @property
-    def next_time_code(self) -> int:
-        return self.start_frame + self.frames_written
-
-    def write(self, q: np.ndarray, qd: np.ndarray, diagnostics: dict | None = None) -> int:
-        """Author one frame (positions [m], velocities [m/s] of all particles); returns its time code."""
-        if self.closed:
-            raise RuntimeError("cache already closed")
+    def _author(self, q, qd, diagnostics, tc):
         Vt = self._Vt
-        tc = self.next_time_code
-        q = np.asarray(q, np.float32)
-        qd = np.asarray(qd, np.float32)
         for particles, tris, attrs in self.meshes:
             x = np.ascontiguousarray(q[particles])
             attrs["points"].Set(Vt.Vec3fArray.FromNumpy(x), tc)
@@ -387,40 +557,62 @@ class UsdCacheWriter(CacheWriter):
                 attrs["normals"].Set(Vt.Vec3fArray.FromNumpy(vertex_normals(x, tris)), tc)
             if "velocities" in attrs:
                 attrs["velocities"].Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(qd[particles])), tc)
-            for key, value in (diagnostics or {}).items():
+            for key, value in diagnostics.items():
                 if key in DIAGNOSTICS and value is not None:
                     attrs[key].Set(int(value) if DIAGNOSTICS[key][0] == "int" else float(value), tc)
         self.stage.SetEndTimeCode(tc)
-        if self.frames_written > 0:
-            self._write_collider_poses(self.frames_written)
-        self.frames_written += 1
-        if not self.ascii and self.frames_written % self.save_every == 0:
-            self.meta["frames_written"] = self.frames_written
-            self._set_metadata()
-            self.layer.Save()
-        return tc
+        if tc > self.start_frame:
+            self._write_collider_poses(tc - self.start_frame)
 
-    def close(self, status: str = "complete", info: dict | None = None) -> pathlib.Path:
-        """Stamp the status (and `info`), save and rename to the final name; returns the final path."""
-        if self.closed:
-            return self.path
+    def _store_checkpoint(self, checkpoint: dict, tc: int):
+        """Keep one checkpoint, the latest, as a custom byte-array attribute of the root prim (no DCC tool draws it)."""
         from pxr import Sdf
 
-        self.closed = True
-        self.meta.update(info or {})
-        self.meta.update(status=status, frames_written=self.frames_written)
+        if self._checkpoint_attr is None:
+            prim = self.stage.GetPrimAtPath(CHECKPOINT_PRIM)
+            self._checkpoint_attr = prim.CreateAttribute(CHECKPOINT_ATTR, Sdf.ValueTypeNames.UCharArray, custom=True)
+            self._checkpoint_attr.SetDocumentation("cloth_warp simulator state at the last saved frame (cloth-warp run --resume)")
+        self._checkpoint_attr.Clear()
+        self._checkpoint_attr.Set(self._Vt.UCharArray.FromNumpy(np.frombuffer(pack_checkpoint(checkpoint), np.uint8)), tc)
+
+    def _save_file(self):
+        from pxr import Tf
+
         self._set_metadata()
-        self.layer.Save()
-        self.meshes.clear()
-        self.stage = None
-        self.layer = None
-        os.replace(self.partial, self.path)
+        if self.text_format:  # a text save rewrites the file in place: export beside it, then rename over it
+            try:
+                with atomic_path(self.partial) as tmp:
+                    if not self.layer.Export(str(tmp)):
+                        raise CacheWriteError(f"{self.partial}: cannot write")
+            except Tf.ErrorException as exc:
+                raise CacheWriteError(f"{self.partial}: cannot write: {usd_error_text(exc)}") from None
+            except OSError as exc:
+                raise CacheWriteError(f"{self.partial}: cannot write: {exc.strerror or exc}") from None
+            return
+        rollback = CrateRollback(self.partial)
+        try:
+            ok, why = self.layer.Save(), "the save failed"
+        except Tf.ErrorException as exc:
+            ok, why = False, usd_error_text(exc)
+        if not ok:
+            try:
+                rollback.restore()
+            except OSError as exc:
+                why += f"; restoring the last good save failed too ({exc.strerror or exc})"
+            raise CacheWriteError(f"{self.partial}: cannot write: {why}")
+
+    def _release(self):
+        # A failed crate save leaves the layer unusable: drop it without saving (saving again crashes USD).
+        self.meshes, self.colliders, self.stage, self.layer, self._checkpoint_attr = [], [], None, None, None
+
+    def _finish(self):
+        from pxr import Sdf
+
+        super()._finish()
         # A layer of the same name opened earlier in this process would otherwise keep serving old data.
         old = Sdf.Layer.Find(str(self.path))
         if old is not None:
             old.Reload(force=True)
-        log.info("wrote %s (%d frames, %s)", self.path, self.frames_written, status)
-        return self.path
 
 
 def _usd_dict(d):
@@ -434,7 +626,7 @@ def _usd_dict(d):
         elif isinstance(v, int | np.integer):
             out[k] = int(v)
         elif isinstance(v, float | np.floating):
-            out[k] = float(v)
+            out[k] = float(v) if math.isfinite(v) else str(v)
         else:
             out[k] = json.dumps(v)
     return out
@@ -442,41 +634,41 @@ def _usd_dict(d):
 
 class NpzCacheWriter(CacheWriter):
     """Frames in a numpy ``.npz``: ``positions`` / ``velocities`` (frames, particles, 3) [m, m/s],
-    ``triangles``, ``fps``, ``start_frame``, ``metadata`` (JSON), one array per diagnostic. Held in memory and
-    written once by :meth:`close` (temporary name, then rename)."""
+    ``triangles``, ``fps``, ``start_frame``, ``metadata`` (JSON), one array per diagnostic, and the resume
+    ``checkpoint`` (bytes) with ``checkpoint_frames``. Held in memory and written whole (temporary name, then
+    rename) at save_every x 1, 2, 4, ... frames and at :meth:`close`."""
 
-    def __init__(self, path, model, *, fps: float, start_frame: int = 1, metadata: dict | None = None, **_):
-        self.path = pathlib.Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.fps, self.start_frame = float(fps), int(start_frame)
+    text_format = True
+
+    def __init__(self, path, model, *, fps: float, start_frame: int = 1, save_every: int = 25, metadata: dict | None = None,
+                 lock: OutputLock | None = None, **_):
+        self._begin(path, model, fps, start_frame, save_every, model.particle_count * 24, metadata, lock)
         self.triangles = model.tri_indices.numpy().copy()
-        self.meta = {"generator": "cloth_warp", "versions": package_versions(), "status": "running", **(metadata or {})}
         self.q, self.qd, self.diag = [], [], {k: [] for k in DIAGNOSTICS}
-        self.frames_written = 0
-        self.closed = False
+        self.checkpoint, self.checkpoint_frames = None, 0
 
-    def write(self, q, qd, diagnostics=None) -> int:
+    def _author(self, q, qd, diagnostics, tc):
         self.q.append(np.array(q, np.float32))
         self.qd.append(np.array(qd, np.float32))
         for k in DIAGNOSTICS:
-            v = (diagnostics or {}).get(k)
+            v = diagnostics.get(k)
             self.diag[k].append(np.nan if v is None else v)
-        self.frames_written += 1
-        return self.start_frame + self.frames_written - 1
 
-    def close(self, status="complete", info=None) -> pathlib.Path:
-        if self.closed:
-            return self.path
-        self.closed = True
-        self.meta.update(info or {})
-        self.meta.update(status=status, frames_written=self.frames_written)
-        n = len(self.triangles)
-        with atomic_path(self.path) as tmp, open(tmp, "wb") as fh:
-            np.savez_compressed(fh, positions=np.array(self.q).reshape(-1, *(self.q[0].shape if self.q else (0, 3))),
-                                velocities=np.array(self.qd).reshape(-1, *(self.qd[0].shape if self.qd else (0, 3))),
-                                triangles=self.triangles.reshape(n, 3), fps=self.fps, start_frame=self.start_frame,
-                                metadata=json.dumps(self.meta), **{k: np.array(v, np.float64) for k, v in self.diag.items()})
-        return self.path
+    def _store_checkpoint(self, checkpoint, tc):
+        self.checkpoint = np.frombuffer(pack_checkpoint(checkpoint), np.uint8)
+        self.checkpoint_frames = tc - self.start_frame + 1
+
+    def _save_file(self):
+        n, shape = len(self.triangles), (self.particle_count, 3)
+        extra = {"checkpoint": self.checkpoint, "checkpoint_frames": self.checkpoint_frames} if self.checkpoint is not None else {}
+        try:
+            with atomic_path(self.partial) as tmp, open(tmp, "wb") as fh:
+                np.savez_compressed(fh, positions=np.array(self.q).reshape(-1, *shape), velocities=np.array(self.qd).reshape(-1, *shape),
+                                    triangles=self.triangles.reshape(n, 3), fps=self.fps, start_frame=self.start_frame,
+                                    metadata=json.dumps(self.meta, default=str),
+                                    **{k: np.array(v, np.float64) for k, v in self.diag.items()}, **extra)
+        except OSError as exc:
+            raise CacheWriteError(f"{self.partial}: cannot write: {exc.strerror or exc}") from None
 
 
 def open_cache(path, model, **kwargs) -> CacheWriter:
@@ -491,8 +683,79 @@ def open_cache(path, model, **kwargs) -> CacheWriter:
 
 # -- reading --------------------------------------------------------------------------------------------------
 
+class CacheError(ValueError):
+    """A cache file that cannot be read: ``"<path>: <what is wrong>"`` (``cloth-warp`` exits 2 on it)."""
+
+
+NPZ_KEYS = ("positions", "triangles", "fps", "start_frame")  # what every .npz cache must hold (NpzCacheWriter)
+
+
+def _file_kind(head: bytes) -> str:
+    """What the first bytes of a file look like, for messages ("a zip archive", "text", ...)."""
+    if head.startswith(b"PXR-USDC") or b"PXR-USDC".startswith(head):  # (a prefix: cut short, USD says how)
+        return "a binary USD (crate) file"
+    if head.startswith(b"#usda") or b"#usda".startswith(head):
+        return "a USD text file"
+    if head.startswith((b"PK\x03\x04", b"PK\x05\x06")) or b"PK\x03\x04".startswith(head):
+        return "a zip archive"
+    if head.startswith(b"\x93NUMPY"):
+        return "a single numpy .npy array"
+    if len(head) >= 2 and head[0] == 0x80 and 2 <= head[1] <= 5:
+        return "a Python pickle"
+    if sum(32 <= b < 127 or b in (9, 10, 13) for b in head) >= 0.95 * len(head):
+        return "text"
+    return "unrecognised binary data"
+
+
+def _tf_message(exc) -> str:
+    """The first useful line of a ``pxr.Tf.ErrorException``, without USD's internal namespaces."""
+    import re
+
+    notes = [str(getattr(e, "commentary", e)).strip() for e in (exc.args or (exc,))]
+    notes = [n for n in notes if n and not n.startswith("Failed to open layer")]
+    if not notes:  # USD gave no reason
+        return "USD cannot read the layer (corrupt or truncated?)"
+    msg = re.sub(r"pxrInternal_v\w+?__pxrReserved__::", "", notes[0]).strip()
+    m = re.search(r":(\d+):(\d+): parse error matching .*? at '(.*?)'(?: in <(.*?)>)?", msg, re.S)
+    if m:
+        where = f" in <{m.group(4)}>" if m.group(4) else ""
+        cut = " (the file ends early: truncated?)" if m.group(3) == "" else ""
+        return f"USD text parse error at line {m.group(1)}, column {m.group(2)}{where}{cut}"
+    m = re.match(r"\S*?:(\d+):(\d+): (.*)", msg, re.S)  # "/abs/path.usda:4:2: Expected } at '...'"
+    if m:
+        msg = f"USD text error at line {m.group(1)}, column {m.group(2)}: {m.group(3)}"
+    msg = " ".join(msg.split())
+    return msg if len(msg) <= 300 else msg[:297] + "..."
+
+
+@contextlib.contextmanager
+def usd_errors(path, what: str = ""):
+    """Turn USD errors raised inside the block into :class:`CacheError` naming `path`; USD warnings posted
+    there go to this module's log (one line each) instead of USD's own multi-line stderr output."""
+    from pxr import Tf
+
+    trap = getattr(Tf, "DiagnosticTrap", None)  # usd-core >= 25.05
+    with trap() if trap is not None else contextlib.nullcontext() as diagnostics:
+        try:
+            yield
+        except Tf.ErrorException as exc:
+            raise CacheError(f"{path}: {what}{_tf_message(exc)}") from exc
+        finally:
+            if diagnostics is not None:
+                for w in diagnostics.GetWarnings():
+                    log.warning("%s: USD: %s", path, " ".join(str(w.commentary).split()))
+                for e in diagnostics.GetErrors():  # posted but not raised: report them, never lose them silently
+                    log.warning("%s: USD error: %s", path, " ".join(str(e.commentary).split()))
+                diagnostics.Clear()
+
+
 class CacheReader:
-    """Read a cache written by cloth_warp (or any USD stage with meshes): frames, topology, diagnostics.
+    """Read a cache written by cloth_warp (or any USD stage with animated meshes): frames, topology, diagnostics.
+
+    Every file it cannot use (missing, a folder, unreadable, empty, truncated, corrupt, not the format its
+    extension names, a USD without an animated mesh, an ``.npz`` without its keys) raises
+    :class:`CacheError` (a ``ValueError``) ``"<path>: <what is wrong>"``; a missing file raises
+    ``FileNotFoundError``.
 
     Attributes:
         fps, start_frame, end_frame, up_axis, metadata (the ``cloth_warp`` provenance dict, {} if none),
@@ -504,58 +767,192 @@ class CacheReader:
         if not self.path.exists():
             raise FileNotFoundError(f"cache not found: {self.path}")
         suffix = self.path.suffix.lower()
+        if suffix not in CACHE_SUFFIXES:
+            raise CacheError(f"{self.path}: unknown cache format {suffix or '(no extension)'!r}; "
+                             f"allowed: {', '.join(CACHE_SUFFIXES)}")
+        head = self._head()
         if suffix == ".npz":
-            self._read_npz()
-        elif suffix in USD_SUFFIXES:
-            self._read_usd()
+            self._read_npz(head)
         else:
-            raise ValueError(f"unknown cache format {suffix!r}; allowed: {', '.join(CACHE_SUFFIXES)}")
+            self._read_usd(head)
 
-    def _read_npz(self):
-        with np.load(self.path) as data:
-            self._npz = {k: data[k] for k in data.files}
-        d = self._npz
-        self.fps, self.start_frame = float(d["fps"]), int(d["start_frame"])
-        self.end_frame = self.start_frame + len(d["positions"]) - 1
-        self.metadata = json.loads(str(d["metadata"]))
-        self.up_axis = self.metadata.get("up_axis", "Y")
+    def _error(self, what: str) -> CacheError:
+        return CacheError(f"{self.path}: {what}")
+
+    def _head(self) -> bytes:
+        """The file's first bytes; a folder, an unreadable or an empty file raise CacheError."""
+        if self.path.is_dir():
+            raise self._error("is a directory, not a cache file")
+        try:
+            with open(self.path, "rb") as fh:
+                head = fh.read(64)
+        except PermissionError:
+            raise self._error("cannot be read: permission denied") from None
+        except OSError as exc:
+            raise self._error(f"cannot be read: {exc.strerror or exc}") from None
+        if not head:
+            raise self._error("is empty (0 bytes)")
+        return head
+
+    # -- npz -------------------------------------------------------------------------------------------------
+    def _read_npz(self, head: bytes):
+        import zipfile
+        import zlib
+
+        kind = _file_kind(head)
+        if kind != "a zip archive":
+            extra = " (pickles are never loaded)" if kind == "a Python pickle" else ""
+            raise self._error(f"not an .npz archive: the file is {kind}{extra}")
+        try:
+            if not zipfile.is_zipfile(self.path):
+                raise self._error(f"truncated or corrupt .npz archive: no zip directory at its end "
+                                  f"({self.path.stat().st_size} bytes)")
+        except OSError as exc:
+            raise self._error(f"cannot be read: {exc.strerror or exc}") from None
+        try:
+            with np.load(self.path, allow_pickle=False) as data:
+                names = list(data.files)
+                missing = [k for k in NPZ_KEYS if k not in names]
+                if missing:
+                    shown = [k if k.isascii() and k.isprintable() else ascii(k) for k in names[:6]]
+                    held = ", ".join(shown) + (f" and {len(names) - 6} more" if len(names) > 6 else "") or "no arrays"
+                    raise self._error(f"not a cloth_warp .npz cache: no {', '.join(repr(k) for k in missing)} "
+                                      f"{'array' if len(missing) == 1 else 'arrays'} "
+                                      f"(needed: {', '.join(NPZ_KEYS)}; it holds {held})")
+                d = {k: data[k] for k in names}
+                raw = [k for k in NPZ_KEYS if not isinstance(d[k], np.ndarray)]  # a member that is not .npy data
+                if raw:
+                    what = "is not a numpy array" if len(raw) == 1 else "are not numpy arrays"
+                    raise self._error(f"corrupt .npz archive: {', '.join(repr(k) for k in raw)} {what}")
+        except CacheError:
+            raise
+        except ValueError as exc:  # an object (pickled) array, or a malformed .npy header in the archive
+            raise self._error(f"corrupt .npz archive: {exc}") from None
+        except (zipfile.BadZipFile, zlib.error, EOFError, OSError, KeyError) as exc:
+            raise self._error(f"corrupt or truncated .npz archive: {exc}") from None
+        except MemoryError:  # a corrupt .npy header claiming a huge array
+            raise self._error("corrupt .npz archive: an array's header claims more memory than there is") from None
+        self._npz = d
+        positions, triangles = d["positions"], d["triangles"]
+        if positions.dtype.kind not in "fiu" or positions.ndim != 3 or positions.shape[2] != 3 or not positions.shape[0] \
+                or not positions.shape[1]:
+            raise self._error(f"'positions' must be a (frames >= 1, points >= 1, 3) number array, "
+                              f"got {positions.dtype} {positions.shape}")
+        n = positions.shape[1]
+        if triangles.dtype.kind not in "iu" or triangles.ndim != 2 or triangles.shape[1] != 3 or not triangles.shape[0]:
+            raise self._error(f"'triangles' must be a (triangles >= 1, 3) integer array, got {triangles.dtype} {triangles.shape}")
+        if triangles.min() < 0 or triangles.max() >= n:
+            raise self._error(f"'triangles' index points {triangles.min()}..{triangles.max()}, the cache has {n} points")
+        try:
+            self.fps, self.start_frame = float(d["fps"]), int(d["start_frame"])
+        except (TypeError, ValueError) as exc:
+            raise self._error(f"'fps' and 'start_frame' must be single numbers ({exc})") from None
+        if not (np.isfinite(self.fps) and self.fps > 0.0):
+            raise self._error(f"'fps' must be a number > 0, got {self.fps}")
+        self.end_frame = self.start_frame + len(positions) - 1
+        self.metadata = {}
+        if "metadata" in d:
+            try:
+                self.metadata = json.loads(str(d["metadata"]))
+            except ValueError:
+                raise self._error("'metadata' is not JSON") from None
+            if not isinstance(self.metadata, dict):
+                raise self._error(f"'metadata' must be a JSON object, got {type(self.metadata).__name__}")
+        self.up_axis = str(self.metadata.get("up_axis", "Y"))
         self.stage = None
         self.colliders = []
-        self.meshes = [{"path": "npz", "points": d["positions"][0] if len(d["positions"]) else np.zeros((0, 3)),
-                        "triangles": d["triangles"], "has_uv": False, "samples": len(d["positions"])}]
+        self.meshes = [{"path": "npz", "points": positions[0], "triangles": triangles.astype(np.int32),
+                        "has_uv": False, "samples": len(positions)}]
 
-    def _read_usd(self):
+    # -- USD -------------------------------------------------------------------------------------------------
+    def _read_usd(self, head: bytes):
         from pxr import Usd, UsdGeom
 
-        self.stage = Usd.Stage.Open(str(self.path))
+        suffix, kind = self.path.suffix.lower(), _file_kind(head)
+        usd_kinds = {".usdc": ("a binary USD (crate) file",), ".usda": ("a USD text file",),
+                     ".usd": ("a binary USD (crate) file", "a USD text file")}[suffix]
+        if kind not in usd_kinds:
+            want = {".usdc": "a binary USD (crate) file", ".usda": "a USD text file (it must start with '#usda')",
+                    ".usd": "a USD file"}[suffix]
+            hint = {"a USD text file": " (rename it .usda)", "a binary USD (crate) file": " (rename it .usdc)",
+                    "a zip archive": " (an .npz or .usdz?)"}.get(kind, "")
+            raise self._error(f"not {want}: the file is {kind}{hint}")
+        if kind == "a binary USD (crate) file":  # USD names a cut crate file only for .usdc, not for .usd
+            size = self.path.stat().st_size
+            toc = int.from_bytes(head[16:24], "little") if len(head) >= 24 else 0
+            if size < 88:
+                raise self._error(f"truncated binary USD file: {size} bytes, smaller than its 88-byte header")
+            if not 88 <= toc < size:
+                raise self._error(f"truncated or corrupt binary USD file: its table of contents is at byte {toc}, "
+                                  f"the file has {size} bytes")
+        with usd_errors(self.path, "cannot be opened as USD: "):
+            self.stage = Usd.Stage.Open(str(self.path))
         if self.stage is None:
-            raise ValueError(f"cannot open {self.path} as USD")
-        self.fps = float(self.stage.GetTimeCodesPerSecond())
-        self.start_frame = int(self.stage.GetStartTimeCode())
-        self.end_frame = int(self.stage.GetEndTimeCode())
-        self.up_axis = str(UsdGeom.GetStageUpAxis(self.stage))
-        meta = self.stage.GetRootLayer().customLayerData.get("cloth_warp", {})
-        self.metadata = dict(meta)
+            raise self._error("cannot be opened as USD")
+        with usd_errors(self.path, "corrupt USD: "):
+            self._read_stage(Usd, UsdGeom)
+
+    def _read_stage(self, Usd, UsdGeom):
+        stage = self.stage
+        self.fps = float(stage.GetTimeCodesPerSecond())
+        if not (np.isfinite(self.fps) and self.fps > 0.0):
+            raise self._error(f"timeCodesPerSecond must be > 0, got {self.fps}")
+        self.up_axis = str(UsdGeom.GetStageUpAxis(stage))
+        meta = stage.GetRootLayer().customLayerData.get("cloth_warp", {})
+        self.metadata = dict(meta) if hasattr(meta, "keys") else {}
         self.meshes = []
         self.colliders = []
-        for prim in self.stage.Traverse():
+        for prim in stage.Traverse():
             if str(prim.GetPath()).startswith(f"/World/{COLLIDER_SCOPE}/"):
                 if prim.IsA(UsdGeom.Gprim):
                     self.colliders.append({"path": str(prim.GetPath()), "prim": prim,
                                            **dict(prim.GetCustomDataByKey("clothWarp:collider") or {})})
                 continue
             if prim.IsA(UsdGeom.Mesh):
-                mesh = UsdGeom.Mesh(prim)
-                points = mesh.GetPointsAttr()
-                counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get() or [], np.int64)
-                indices = np.asarray(mesh.GetFaceVertexIndicesAttr().Get() or [], np.int64)
-                rest = points.Get(Usd.TimeCode.Default())
-                if rest is None:
-                    rest = points.Get(Usd.TimeCode.EarliestTime())
-                self.meshes.append({"path": str(prim.GetPath()), "points": np.asarray(rest, np.float32),
-                                    "triangles": fan_triangulate(counts, indices),
-                                    "has_uv": UsdGeom.PrimvarsAPI(prim).HasPrimvar("st"),
-                                    "samples": points.GetNumTimeSamples(), "prim": prim})
+                self.meshes.append(self._read_mesh(prim, Usd, UsdGeom))
+        if not self.meshes:
+            found = ", ".join(f"{p.GetPath()} ({p.GetTypeName() or 'untyped'})" for p in list(stage.Traverse())[:5])
+            raise self._error(f"holds no cloth mesh (a UsdGeom Mesh with time-sampled points); prims: {found or 'none'}")
+        if stage.HasAuthoredTimeCodeRange():
+            self.start_frame, self.end_frame = int(stage.GetStartTimeCode()), int(stage.GetEndTimeCode())
+        else:  # a stage without startTimeCode / endTimeCode: the points' own samples
+            times = self.meshes[0]["times"]
+            self.start_frame, self.end_frame = int(times[0]), int(times[-1])
+        if self.end_frame < self.start_frame:
+            raise self._error(f"endTimeCode {self.end_frame} is before startTimeCode {self.start_frame}")
+        for i in range(len(self.meshes)):  # the first and last frames read back with the rest pose's point count
+            for f in (self.start_frame, self.end_frame):
+                self.points(f, i)
+
+    def _read_mesh(self, prim, Usd, UsdGeom) -> dict:
+        where = f"mesh {prim.GetPath()}"
+        mesh = UsdGeom.Mesh(prim)
+        points = mesh.GetPointsAttr()
+        samples = points.GetNumTimeSamples()
+        if not samples:
+            if points.Get(Usd.TimeCode.Default()) is None:
+                raise self._error(f"{where} has no points")
+            raise self._error(f"{where} has only static points, no time samples: not an animation cache")
+        rest = points.Get(Usd.TimeCode.Default())
+        if rest is None:
+            rest = points.Get(Usd.TimeCode.EarliestTime())
+        rest = np.asarray(rest if rest is not None else [], np.float32)
+        if rest.ndim != 2 or rest.shape[1] != 3 or not len(rest):
+            raise self._error(f"{where} has no points")
+        counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get() or [], np.int64)
+        indices = np.asarray(mesh.GetFaceVertexIndicesAttr().Get() or [], np.int64)
+        if not len(counts) or not len(indices):
+            raise self._error(f"{where} has no faces (faceVertexCounts / faceVertexIndices are empty)")
+        ok, reason = UsdGeom.Mesh.ValidateTopology(indices.tolist(), counts.tolist(), len(rest))
+        if not ok:
+            raise self._error(f"{where} has invalid topology: {reason}")
+        triangles = fan_triangulate(counts, indices)
+        if not len(triangles):
+            raise self._error(f"{where} has no faces with 3 or more corners")
+        times = points.GetTimeSamples()
+        return {"path": str(prim.GetPath()), "points": rest, "triangles": triangles,
+                "has_uv": UsdGeom.PrimvarsAPI(prim).HasPrimvar("st"), "samples": samples, "prim": prim,
+                "times": (times[0], times[-1])}
 
     @property
     def frame_count(self) -> int:
@@ -567,8 +964,14 @@ class CacheReader:
             return self._npz["positions"][frame - self.start_frame]
         from pxr import UsdGeom
 
-        attr = UsdGeom.Mesh(self.meshes[mesh]["prim"]).GetPointsAttr()
-        return np.asarray(attr.Get(frame), np.float32)
+        m = self.meshes[mesh]
+        with usd_errors(self.path, f"corrupt USD: {m['path']} points at frame {frame}: "):
+            value = UsdGeom.Mesh(m["prim"]).GetPointsAttr().Get(frame)
+        x = np.asarray(value if value is not None else [], np.float32)
+        if x.shape != m["points"].shape:
+            raise self._error(f"mesh {m['path']} has {x.shape[0] if x.ndim else 0} points at frame {frame}, "
+                              f"{len(m['points'])} at rest")
+        return x
 
     def diagnostics(self, mesh: int = 0) -> dict:
         """Per-frame diagnostics as {name: (time codes, values)}."""
@@ -578,17 +981,22 @@ class CacheReader:
             return {k: (tc, self._npz[k]) for k in DIAGNOSTICS if k in self._npz}
         prim = self.meshes[mesh]["prim"]
         out = {}
-        for k in DIAGNOSTICS:
-            attr = prim.GetAttribute(f"clothWarp:{k}")
-            if attr and attr.GetNumTimeSamples():
-                tc = np.array(attr.GetTimeSamples())
-                out[k] = (tc, np.array([attr.Get(t) for t in tc], np.float64))
+        with usd_errors(self.path, "corrupt USD: "):
+            for k in DIAGNOSTICS:
+                attr = prim.GetAttribute(f"clothWarp:{k}")
+                if attr and attr.GetNumTimeSamples():
+                    tc = np.array(attr.GetTimeSamples())
+                    try:
+                        out[k] = (tc, np.array([attr.Get(t) for t in tc], np.float64))
+                    except (TypeError, ValueError):  # not numbers: not ours, skip it
+                        log.warning("%s: diagnostic %s is not a number per frame; ignored", self.path, k)
         return out
 
     def summary(self) -> dict:
         """What `cloth-warp info` prints (JSON-able)."""
         diag = {}
         for k, (tc, v) in self.diagnostics().items():
+            v = np.asarray(v, np.float64).reshape(-1) if np.asarray(v).dtype.kind in "fiub" else np.zeros(0)
             finite = v[np.isfinite(v)]
             if len(finite):
                 diag[k] = {"min": float(finite.min()), "max": float(finite.max()), "mean": float(finite.mean())}

@@ -1,7 +1,7 @@
 """The cloth-warp command line (also ``python -m cloth_warp``).
 
     cloth-warp run SCENE [-o OUT] [--frames N] [--fps F] [--start-frame K] [--device cpu|cuda]
-                         [--set key.path=value ...] [--stats FILE.json] [--quiet] [-v]
+                         [--set key.path=value ...] [--stats FILE.json] [--resume] [--quiet] [-v]
     cloth-warp validate SCENE [--set ...]       check a scene without running it
     cloth-warp info CACHE [--json]              what a cache holds
     cloth-warp scenes                           the shipped scenes
@@ -10,8 +10,9 @@
                          [--iters N] [--lr X] [--frames N] [-o FITTED.toml] [--set ...] [--quiet]
                                                 (target and params default to the scene's [fit] table)
 
-Exit codes: 0 done, 2 bad input (scene key, mesh, missing file, unwritable output), 3 diverged (the cache
-keeps every good frame), 130 interrupted by Ctrl-C or SIGTERM (the cache of the frames done is valid).
+Exit codes: 0 done, 2 bad input (scene key, mesh, unreadable file, unwritable output, another live run on the
+same output, a failed save: the cache keeps the last good save), 3 diverged (the cache keeps every good
+frame), 130 interrupted by Ctrl-C or SIGTERM (the cache of the frames saved is valid; --resume continues it).
 """
 
 from __future__ import annotations
@@ -130,9 +131,12 @@ def format_summary(s: dict) -> str:
 
 def _write_stats(path, summary):
     if path:
-        from .cache import atomic_write_text
+        from .outputs import atomic_write_text
 
-        atomic_write_text(path, json.dumps(summary, indent=1, default=str) + "\n")
+        try:
+            atomic_write_text(path, json.dumps(summary, indent=1, default=str, allow_nan=False) + "\n")
+        except OSError as exc:
+            print(f"cloth-warp: error: cannot write the stats file {path}: {exc.strerror or exc}", file=sys.stderr)
 
 
 def _on_sigterm(signum, frame):
@@ -140,6 +144,7 @@ def _on_sigterm(signum, frame):
 
 
 def cmd_run(args) -> int:
+    from .outputs import CacheWriteError
     from .runner import run_scene
 
     overrides = parse_set(args.set)
@@ -148,7 +153,8 @@ def cmd_run(args) -> int:
     previous = signal.signal(signal.SIGTERM, _on_sigterm), signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         summary = run_scene(args.scene, overrides, output=args.output, frames=args.frames, fps=args.fps,
-                            device=args.device, start_frame=args.start_frame, progress=progress, argv=sys.argv)
+                            device=args.device, start_frame=args.start_frame, progress=progress, argv=sys.argv,
+                            resume=args.resume)
     except KeyboardInterrupt as exc:
         summary = getattr(exc, "summary", None)
         progress.finish()
@@ -157,8 +163,17 @@ def cmd_run(args) -> int:
             return EXIT_INTERRUPTED
         _write_stats(args.stats, summary)
         print(format_summary(summary), file=sys.stderr)
-        print(f"cloth-warp: interrupted; the cache holds the {summary['frames']} frames done", file=sys.stderr)
+        print(f"cloth-warp: interrupted; the cache holds frames {summary['start_frame']}..{summary['end_frame']} "
+              f"(continue with --resume)", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except CacheWriteError as exc:
+        summary = getattr(exc, "summary", None)
+        progress.finish()
+        if summary is not None:
+            _write_stats(args.stats, summary)
+            print(format_summary(summary), file=sys.stderr)
+        print(f"cloth-warp: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
     finally:
         signal.signal(signal.SIGTERM, previous[0])
         signal.signal(signal.SIGINT, previous[1])
@@ -334,6 +349,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--set", action="append", metavar="KEY.PATH=VALUE", help="override a scene key (TOML value); repeatable")
     run.add_argument("--stats", metavar="FILE.json", help="write the summary as JSON")
     run.add_argument("-q", "--quiet", action="store_true", help="no progress and no summary (errors still print)")
+    run.add_argument("--resume", action="store_true", help="continue an interrupted, failed or killed run of the same output "
+                     "from its last saved frame (same frames as an uninterrupted run)")
     run.set_defaults(func=cmd_run)
 
     val = sub.add_parser("validate", help="check a scene without running it")
@@ -383,23 +400,40 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv=None) -> int:
+def _check_device(device):
+    """A CUDA device asked for on a machine without a CUDA driver: a clear error before Warp starts (and
+    prints its own driver warnings)."""
+    import ctypes.util
+
+    if device and str(device).startswith("cuda") and ctypes.util.find_library("cuda") is None:
+        raise BadInput(f"--device {device}: no CUDA driver on this machine; use --device cpu")
+
+
+def _main(argv) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     level = logging.WARNING if args.verbose == 0 else logging.INFO if args.verbose == 1 else logging.DEBUG
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
-
-    import warp as wp
-
-    wp.config.log_level = wp.LOG_WARNING if args.verbose < 2 else wp.LOG_INFO
+    from .outputs import CacheWriteError
     from .scene import SceneError
     from .topology import MeshError
 
     try:
+        _check_device(getattr(args, "device", None))
+        import warp as wp
+
+        wp.config.log_level = wp.LOG_WARNING if args.verbose < 2 else wp.LOG_INFO
         return args.func(args)
-    except (SceneError, MeshError, BadInput, FileNotFoundError, IsADirectoryError, PermissionError) as exc:
+    except (SceneError, MeshError, BadInput, CacheWriteError, FileNotFoundError, IsADirectoryError, PermissionError) as exc:
         print(f"cloth-warp: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
+
+
+def main(argv=None) -> int:
+    """The command line; returns the exit code. Ctrl-C at any moment (also while modules load) exits 130
+    without a traceback."""
+    try:
+        return _main(argv)
     except KeyboardInterrupt:
         print("cloth-warp: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED

@@ -83,8 +83,67 @@ def default_output(scene: Scene) -> pathlib.Path:
     return scene.resolve(out) if out is not None else pathlib.Path("out") / f"{scene.name}.usdc"
 
 
+def _resume_source(out: pathlib.Path):
+    """The newest cache of `out` (its final file or a dead run's partial file) holding a resume checkpoint:
+    (path, frames, checkpoint, metadata), or None. Call while holding the output's lock."""
+    from .cache import read_checkpoint
+    from .outputs import stale_partials
+
+    candidates = ([out] if out.exists() else []) + stale_partials(out)
+    for path in sorted(candidates, key=lambda p: p.stat().st_mtime, reverse=True):
+        try:
+            return (path, *read_checkpoint(path))
+        except (ValueError, OSError, KeyError) as exc:
+            log.warning("--resume: skipping %s: %s", path, exc)
+    return None
+
+
+def _check_resumable(meta: dict, source, fps: float, start: int):
+    """Refuse to continue a cache written with another frame rate or start frame (the simulator's restore
+    checks the rest: particles, substeps, solver)."""
+    problems = []
+    if not math.isclose(float(meta.get("fps", fps)), fps):
+        problems.append(f"it was written at {meta.get('fps')} fps, this run asks {fps:g}")
+    if int(meta.get("start_frame", start)) != start:
+        problems.append(f"it starts at frame {meta.get('start_frame')}, this run at {start}")
+    if problems:
+        raise SceneError(f"--resume: cannot continue {source}: " + "; ".join(problems))
+
+
+def _finite(value):
+    """`value` with non-finite floats as None (summaries stay valid JSON)."""
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite(v) for v in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+class _DeferSignals:
+    """SIGINT/SIGTERM are held while the cache is closed (renamed) and delivered afterwards."""
+
+    def __enter__(self):
+        import signal
+        import threading
+
+        self.pending, self.previous = [], {}
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self.previous[sig] = signal.signal(sig, lambda s, f: self.pending.append(s))
+        return self
+
+    def __exit__(self, *exc):
+        import signal
+
+        for sig, handler in self.previous.items():
+            signal.signal(sig, handler)
+        return False
+
+
 def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int | None = None, fps: float | None = None,
-              device=None, start_frame: int | None = None, progress=None, argv=None) -> dict:
+              device=None, start_frame: int | None = None, progress=None, argv=None, resume: bool = False) -> dict:
     """Run a scene (a path, a shipped scene name or a :class:`Scene`) and write its cache.
 
     Args:
@@ -93,75 +152,118 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
         device: Warp device ("cpu", "cuda", "cuda:0"; default Warp's).
         progress: called after every frame as ``progress(frame, total, summary_so_far)``.
         argv: the command line, stamped into the cache.
+        resume: continue the newest cache of this output (its final file, or the partial file of a run that
+            was killed) from its last saved checkpoint: its frames are copied into the new cache and the
+            simulation goes on from there, giving the frames an uninterrupted run gives (bit-identical on
+            the CPU). A run that already has every frame is left as it is.
 
-    Returns the summary dict (JSON-able): status ``complete`` / ``diverged`` (with ``message`` and
-    ``diagnosis``) / ``interrupted``, frames, wall and compile time, ms/frame, max strain, dt range,
-    solver iterations, the cache path. A diverged or interrupted run still leaves a valid cache of the
-    frames done; an interruption re-raises KeyboardInterrupt after the cache is closed, with the summary
-    in the exception's ``summary`` attribute. Bad input raises :class:`SceneError` before anything runs.
+    Returns the summary dict (JSON-able, non-finite values as None): status ``complete`` / ``diverged``
+    (with ``message`` and ``diagnosis``) / ``interrupted``, frames, wall and compile time, ms/frame, max
+    strain, dt range, solver iterations, the cache path. A diverged or interrupted run still leaves a valid
+    cache of the frames done; an interruption re-raises KeyboardInterrupt after the cache is closed, with the
+    summary in the exception's ``summary`` attribute; a failed write (disk full, I/O error) raises
+    :class:`~cloth_warp.outputs.CacheWriteError` likewise, after renaming the last good save to the final
+    name. Bad input raises :class:`SceneError` before anything runs, an output that cannot be written or is
+    being written by another live run :class:`~cloth_warp.outputs.CacheWriteError`.
     """
 
     import warp as wp
 
-    from .cache import open_cache
+    from .cache import CACHE_SUFFIXES, open_cache
+    from .outputs import CacheWriteError, OutputLock, check_output
     from .simulator import Simulator
     from .solvers import SimulationDiverged
 
     if not isinstance(scene, Scene):
         scene = load_scene(find_scene(scene), overrides)
     fps = float(fps if fps is not None else scene.get("output.fps"))
-    if not (math.isfinite(fps) and fps > 0):
-        raise SceneError(f"fps: must be > 0, got {fps!r}")
+    if not (math.isfinite(fps) and 0.0 < fps <= 1.0e6):
+        raise SceneError(f"fps: must be in (0, 1e6], got {fps!r}")
     n_frames = int(frames if frames is not None else scene.get("output.frames"))
     if n_frames < 1:
         raise SceneError(f"frames: must be >= 1, got {n_frames!r}")
     start = int(start_frame if start_frame is not None else scene.get("output.start_frame"))
     out = pathlib.Path(output) if output is not None else default_output(scene)
-    from .cache import CACHE_SUFFIXES
-
     if out.suffix.lower() not in CACHE_SUFFIXES:
         raise SceneError(f"output: {out} has an unknown extension; allowed: {', '.join(CACHE_SUFFIXES)}")
+    check_output(out)  # before anything is built (the writer checks the room for its first saves too)
 
     if device is not None:
+        if str(device).startswith("cuda") and not wp.is_cuda_available():
+            raise SceneError(f"device: {device!r} asked for, but no CUDA device is available here "
+                             f"(available: {', '.join(str(d) for d in wp.get_devices())})")
         try:
             device = wp.get_device(device)
         except (ValueError, RuntimeError) as exc:
             raise SceneError(f"device: {exc} (available: {', '.join(str(d) for d in wp.get_devices())})") from exc
     t_start = time.perf_counter()
     model = build_model(scene, device)
-    solver = build_solver(scene, model)
-    substeps = int(scene.get("solver.substeps"))
-    compile_s = load_kernels(solver, model.device)
-    wind = build_wind(scene)
-    sim = Simulator(model, solver, fps=fps, substeps=substeps, adaptive=bool(scene.get("solver.adaptive")),
-                    dt_min=float(scene.get("solver.dt_min")), wind=wind)
+    lock = OutputLock(out).acquire()  # before reading what to resume and until the writer closes
+    try:
+        source = _resume_source(out) if resume else None
+        if resume and source is None:
+            raise SceneError(f"--resume: no cache of an earlier run of {out} with a resume checkpoint (its final file "
+                             f"or a partial file of a killed run)")
+        if source is not None:
+            _check_resumable(source[3], source[0], fps, start)
+            if source[1] - 1 > n_frames:
+                raise SceneError(f"--resume: {source[0]} already holds {source[1] - 1} frames, more than the {n_frames} asked")
+        solver = build_solver(scene, model)
+        substeps = int(scene.get("solver.substeps"))
+        compile_s = load_kernels(solver, model.device)
+        wind = build_wind(scene)
+        sim = Simulator(model, solver, fps=fps, substeps=substeps, adaptive=bool(scene.get("solver.adaptive")),
+                        dt_min=float(scene.get("solver.dt_min")), wind=wind)
+        if source is not None:
+            try:
+                sim.restore(source[2])
+            except ValueError as exc:
+                raise SceneError(f"--resume: cannot continue {source[0]}: {exc}") from None
+        metadata = {"scene_path": str(scene.path) if scene.path else None, "scene_sha256": scene.sha256,
+                    "scene_text": scene.text, "resolved_scene": json.dumps(scene.resolved(), sort_keys=True),
+                    "overrides": json.dumps(scene.overrides), "argv": json.dumps(list(argv) if argv is not None else sys.argv),
+                    "device": str(model.device), "integrator": solver.name, "substeps": substeps,
+                    "description": scene.get("scene.description"), "frames_requested": n_frames}
+        if source is not None:
+            metadata["resumed_from"] = {"path": str(source[0]), "frames": source[1]}
+        writer = open_cache(out, model, fps=fps, start_frame=start, save_every=int(scene.get("output.save_every")),
+                            normals=bool(scene.get("output.normals")), velocities=bool(scene.get("output.velocities")),
+                            metadata=metadata, lock=lock)
+    except BaseException:
+        lock.release()
+        raise
     lo, hi = model.rest_positions.min(0), model.rest_positions.max(0)
     summary = {
-        "scene": str(scene.path) if scene.path else None, "status": "running", "frames": 0, "frames_requested": n_frames,
+        "scene": metadata["scene_path"], "status": "running", "frames": 0, "frames_requested": n_frames,
         "fps": fps, "start_frame": start, "device": str(model.device), "particles": model.particle_count,
         "springs": model.spring_count, "triangles": model.tri_count, "integrator": solver.name,
         "substeps": substeps, "dt_nominal": 1.0 / (fps * substeps), "bounds_m": [lo.tolist(), hi.tolist()],
         "output": str(out),
     }
-    metadata = {"scene_path": summary["scene"], "scene_sha256": scene.sha256, "scene_text": scene.text,
-                "resolved_scene": json.dumps(scene.resolved(), sort_keys=True), "overrides": json.dumps(scene.overrides),
-                "argv": json.dumps(list(argv) if argv is not None else sys.argv), "device": summary["device"],
-                "integrator": solver.name, "substeps": substeps, "description": scene.get("scene.description")}
-    writer = open_cache(out, model, fps=fps, start_frame=start, save_every=int(scene.get("output.save_every")),
-                        normals=bool(scene.get("output.normals")), velocities=bool(scene.get("output.velocities")),
-                        metadata=metadata)
     max_strain, dt_min, dt_max, iterations, rejected, contacts = 0.0, math.inf, 0.0, [], 0, {}
     t_loop = time.perf_counter()
-    interrupted = None
+    interrupted = write_error = None
     try:
-        writer.write(sim.state.particle_q.numpy(), sim.state.particle_qd.numpy())
-        for f in range(n_frames):
+        first = 0
+        if source is not None:  # the earlier run's frames, then its state at the last of them
+            from .cache import read_frames
+
+            done = min(source[1], n_frames + 1)
+            for k, (q, qd, diag) in enumerate(read_frames(source[0], model, done)):
+                writer.write(q, qd, diag, checkpoint=source[2] if k == done - 1 and writer.save_due else None)
+                max_strain = max(max_strain, float(diag.get("maxStrain") or 0.0))
+            first = summary["frames"] = summary["resumed_frames"] = done - 1
+        else:
+            writer.write(sim.state.particle_q.numpy(), sim.state.particle_qd.numpy(),
+                         checkpoint=sim.checkpoint() if writer.save_due else None)
+        for f in range(first, n_frames):
             stats = sim.step_frame()
             info = sim.frame_info
             diag = {"maxStrain": stats.max_strain, "dt": info["dt_min"], "solverIterations": info["iterations"],
                     "solverResidual": info["residual"]}
             diag.update({attr: info.get(key) for attr, key in COUNTER_DIAGNOSTICS.items()})
-            writer.write(sim.state.particle_q.numpy(), sim.state.particle_qd.numpy(), diag)
+            writer.write(sim.state.particle_q.numpy(), sim.state.particle_qd.numpy(), diag,
+                         checkpoint=sim.checkpoint() if writer.save_due else None)
             for key in COLLISION_COUNTERS:
                 if key in info:
                     contacts[key] = contacts.get(key, 0) + info[key]
@@ -181,6 +283,9 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
         summary.update(status="diverged", message=str(exc),
                        diagnosis={"frame": start + summary["frames"] + 1, "time_s": exc.time, "reason": exc.reason,
                                   "max_strain": exc.max_strain, "last_dt": exc.dt, "suggested_dt": exc.suggested_dt})
+    except CacheWriteError as exc:
+        summary.update(status="failed", message=str(exc))
+        write_error = exc
     except KeyboardInterrupt as exc:
         summary["status"] = "interrupted"
         interrupted = exc
@@ -190,18 +295,36 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
     finally:
         wall = time.perf_counter() - t_loop
         done = summary["frames"]
+        new = done - summary.get("resumed_frames", 0)
         summary.update(
             wall_s=wall, total_s=time.perf_counter() - t_start, compile_s=compile_s,
-            ms_per_frame=1e3 * wall / done if done else None, max_strain=max_strain,
-            dt_min=dt_min if done else None, dt_max=dt_max if done else None, rejected_steps=rejected,
+            ms_per_frame=1e3 * wall / new if new else None, max_strain=max_strain,
+            dt_min=dt_min if iterations else None, dt_max=dt_max if iterations else None, rejected_steps=rejected,
             solver_iterations={"mean": float(np.mean(iterations)), "max": int(np.max(iterations))} if iterations else None,
-            frames_written=writer.frames_written, end_frame=start + writer.frames_written - 1,
             colliders=model.collider_count, self_collision=bool(model.self_collision), contacts=contacts,
         )
-        writer.close(summary["status"], {k: summary[k] for k in ("frames", "wall_s", "max_strain", "compile_s", "drape_coefficient")
-                                         if k in summary})
-        summary["output_bytes"] = out.stat().st_size if out.exists() else 0
-    if interrupted is not None:
-        interrupted.summary = summary
-        raise interrupted
+        info = {k: summary[k] for k in ("frames", "wall_s", "max_strain", "compile_s", "drape_coefficient", "message", "diagnosis")
+                if k in summary}
+        with _DeferSignals() as deferred:
+            try:
+                # the last frame's state, when it is whole (an interruption or a divergence may have stopped a
+                # step half way: --resume then continues from the last periodic save's checkpoint)
+                checkpoint = sim.checkpoint() if summary["status"] == "complete" and writer.broken is None else None
+                writer.close(summary["status"], info, checkpoint=checkpoint)
+            except CacheWriteError as exc:
+                if write_error is None:
+                    summary.update(status="failed", message=str(exc))
+                    write_error = exc
+        if source is not None and source[0] != out and writer.saved_frames > source[1] - 1:
+            source[0].unlink(missing_ok=True)  # the dead run's partial file, now continued in the cache
+        summary.update(frames_written=writer.saved_frames, end_frame=start + writer.saved_frames - 1,
+                       output_bytes=out.stat().st_size if out.exists() else 0)
+        if deferred.pending and interrupted is None:
+            summary["status"] = "interrupted"
+            interrupted = KeyboardInterrupt()
+    summary = _finite(summary)
+    for exc in (write_error, interrupted):
+        if exc is not None:
+            exc.summary = summary
+            raise exc
     return summary

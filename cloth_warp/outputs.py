@@ -1,0 +1,215 @@
+"""Writing outputs without losing them: one live writer per output, partial names per run, checks before
+simulating, atomic replacement and crate saves that roll back when they fail.
+
+* :class:`OutputLock` -- a run holds an exclusive ``flock`` on ``.<name>.lock`` beside its output for as long
+  as it writes; a second run on the same output is refused (:class:`OutputBusy`, naming the holder's pid)
+  instead of deleting the first one's partial file. The kernel drops the lock when a process dies (SIGKILL
+  included), so a stale lock file never blocks a later run.
+* :func:`partial_path` -- a run authors ``<stem>.partial-<pid><ext>``; :func:`stale_partials` lists those
+  left by runs that died (what ``--resume`` continues from).
+* :func:`check_output` -- before anything is simulated: the output is not a folder, its folder exists or
+  can be made and is writable, and the file system has room for the first frames.
+* :class:`CrateRollback` -- a crate (``.usdc``) save appends to the file in place: it writes the new samples
+  over the old structural sections (tokens, fields, paths, specs and the table of contents at the end of
+  the file), then the new structural sections and rewrites the 88-byte bootstrap at offset 0. A save that
+  fails half way (disk full, I/O error) leaves a bootstrap pointing past the end of the file. Before each
+  save the bootstrap and the structural tail (a few kB) are copied; after a failed save they are written
+  back and the file is truncated to its old length, so it is byte for byte the last good save.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import fcntl
+import os
+import pathlib
+import re
+import shutil
+import struct
+
+
+class CacheWriteError(OSError):
+    """An output could not be written (disk full, I/O error, permission, a folder in the way); the message
+    names the file and the error, and says what the last good save holds."""
+
+
+class OutputBusy(CacheWriteError):
+    """Another live run writes the same output."""
+
+
+def usd_error_text(exc: BaseException) -> str:
+    """The first message of a ``pxr.Tf.ErrorException`` (the root cause; later ones repeat it), without the
+    C++ location."""
+    msgs = [m for m in re.findall(r": '(.*)'\s*$", str(exc), flags=re.MULTILINE) if m]
+    return msgs[0] if msgs else str(exc).strip() or type(exc).__name__
+
+
+@contextlib.contextmanager
+def atomic_path(path):
+    """Yield a temporary name next to `path` to write to; rename it to `path` when the block succeeds
+    (and remove it when it fails), so a file under the final name is always complete."""
+    path = pathlib.Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def atomic_write_text(path, text: str):
+    """Write a text file atomically (see :func:`atomic_path`)."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+
+
+def partial_path(path, pid: int | None = None) -> pathlib.Path:
+    """Where run `pid` (default: this process) authors the cache that becomes `path` when it closes."""
+    path = pathlib.Path(path)
+    return path.with_name(f"{path.stem}.partial-{os.getpid() if pid is None else pid}{path.suffix}")
+
+
+def stale_partials(path) -> list[pathlib.Path]:
+    """Partial files of `path` left by runs that are no longer alive (oldest first); a live run holds the
+    output's lock, so call this while holding it."""
+    path = pathlib.Path(path)
+    found = [p for p in path.parent.glob(f"{glob_escape(path.stem)}.partial-*{glob_escape(path.suffix)}")
+             if re.fullmatch(rf"{re.escape(path.stem)}\.partial-\d+{re.escape(path.suffix)}", p.name)
+             and p != partial_path(path)]
+    return sorted(found, key=lambda p: p.stat().st_mtime)
+
+
+def glob_escape(text: str) -> str:
+    return re.sub(r"([*?\[])", r"[\1]", text)
+
+
+def check_output(path, bytes_needed: int = 0) -> pathlib.Path:
+    """Check before simulating that `path` can be written: not a folder, a folder that exists (or can be
+    made) and is writable, `bytes_needed` free. Raises :class:`CacheWriteError` naming the problem."""
+    path = pathlib.Path(path)
+    if path.is_dir():
+        raise CacheWriteError(f"{path}: is a folder; give a file name such as {path / 'cache.usdc'}")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):
+        raise CacheWriteError(f"{path}: a parent of it is a file, not a folder") from None
+    except OSError as exc:
+        raise CacheWriteError(f"{path}: cannot make its folder: {exc.strerror or exc}") from None
+    folder = path.parent
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise CacheWriteError(f"{path}: the folder {folder} is not writable")
+    if path.exists() and not os.access(path, os.W_OK) and not os.access(folder, os.W_OK):
+        raise CacheWriteError(f"{path}: exists and cannot be replaced")
+    if bytes_needed:
+        free = shutil.disk_usage(folder).free
+        if free < bytes_needed:
+            raise CacheWriteError(f"{path}: {free / 1e6:.1f} MB free on its file system, the first frames need about "
+                                  f"{bytes_needed / 1e6:.1f} MB")
+    return path
+
+
+class OutputLock:
+    """An exclusive lock on an output for the lifetime of one writer (see the module docstring)."""
+
+    def __init__(self, path):
+        self.path = pathlib.Path(path)
+        self.lock_path = self.path.with_name(f".{self.path.name}.lock")
+        self.fd = None
+
+    def acquire(self) -> "OutputLock":
+        while True:
+            fd = os.open(self.lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError as exc:
+                holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "?"
+                os.close(fd)
+                if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                    raise OutputBusy(f"{self.path}: another live run (pid {holder}) is writing this output; give a different "
+                                     f"-o, or wait for it to finish") from None
+                raise
+            # The file may have been unlinked by the previous holder between our open and flock: retry on a fresh one.
+            try:
+                same = os.stat(self.lock_path).st_ino == os.fstat(fd).st_ino
+            except FileNotFoundError:
+                same = False
+            if same:
+                os.ftruncate(fd, 0)
+                os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+                self.fd = fd
+                return self
+            os.close(fd)
+
+    def release(self):
+        if self.fd is None:
+            return
+        with contextlib.suppress(OSError):
+            self.lock_path.unlink()
+        os.close(self.fd)
+        self.fd = None
+
+    def __enter__(self):
+        return self.acquire()
+
+    def __exit__(self, *exc):
+        self.release()
+        return False
+
+
+_CRATE_MAGIC = b"PXR-USDC"
+_BOOTSTRAP = 88  # ident[8], version[8], tocOffset int64, reserved int64[8]
+_SECTION = struct.Struct("<16sqq")  # name[16], start, size
+
+
+class CrateRollback:
+    """What a crate save may overwrite, copied before the save (see the module docstring); :meth:`restore`
+    puts it back. A file that is not a crate (or not there yet) is copied whole."""
+
+    def __init__(self, path):
+        self.path = pathlib.Path(path)
+        self.exists = self.path.exists()
+        self.boot = self.tail = self.whole = None
+        self.start = self.size = 0
+        if not self.exists:
+            return
+        with open(self.path, "rb") as fh:
+            self.size = os.fstat(fh.fileno()).st_size
+            try:
+                self.boot = fh.read(_BOOTSTRAP)
+                if self.boot[:8] != _CRATE_MAGIC:
+                    raise ValueError("not a crate file")
+                (toc,) = struct.unpack_from("<q", self.boot, 16)
+                fh.seek(toc)
+                (count,) = struct.unpack("<Q", fh.read(8))
+                if not 0 < count < 1000:
+                    raise ValueError("implausible table of contents")
+                starts = [_SECTION.unpack(fh.read(_SECTION.size))[1] for _ in range(count)]
+                self.start = min(min(starts), toc)
+                if not _BOOTSTRAP <= self.start <= self.size:
+                    raise ValueError("section outside the file")
+                fh.seek(self.start)
+                self.tail = fh.read()
+            except (ValueError, struct.error):
+                fh.seek(0)
+                self.whole, self.boot, self.tail = fh.read(), None, None
+
+    def restore(self):
+        """Make the file what it was when this rollback was taken (remove it if it did not exist)."""
+        if not self.exists:
+            self.path.unlink(missing_ok=True)
+            return
+        with open(self.path, "r+b") as fh:
+            if self.whole is not None:
+                fh.seek(0)
+                fh.write(self.whole)
+            else:
+                fh.seek(self.start)
+                fh.write(self.tail)
+                fh.truncate(self.size)
+                fh.seek(0)
+                fh.write(self.boot)
+            fh.truncate(self.size)
+            fh.flush()
+            os.fsync(fh.fileno())
