@@ -34,6 +34,7 @@ _EXPORTS = {
     "solvers": ["AdaptiveStepper", "LinearSolver", "SimulationDiverged", "SolverExplicitEuler", "SolverImplicitEuler",
                 "SolverMidpoint", "SolverRK4", "SolverSymplecticEuler", "StepCheck", "StrainLimiter", "make_solver"],
     "topology": ["MeshError", "SpringKind", "SpringLaw", "SpringModel"],
+    "validation": ["InvalidValue", "LIMITS"],
     "wind": ["GustyWind"],
 }
 _WHERE = {name: module for module, names in _EXPORTS.items() for name in names}
@@ -70,6 +71,8 @@ __all__ = [
     "CacheWriteError",
     "OutputBusy",
     "GustyWind",
+    "InvalidValue",
+    "LIMITS",
     "SceneError",
     "UsdCacheWriter",
     "load_scene",

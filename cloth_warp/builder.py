@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -15,6 +16,17 @@ from .colliders import Collider, rotation_to_axis
 from .materials import FabricMaterial, preset
 from .model import ClothInfo, Handle, Keyframe, Model
 from .topology import ClothTopology, MeshError, SpringKind, SpringLaw, SpringModel
+from .validation import (
+    LIMITS,
+    check_direction,
+    check_float32,
+    check_float32_resolution,
+    check_keyframes,
+    check_number,
+    check_points,
+    check_rotation,
+    check_vector,
+)
 
 log = logging.getLogger(__name__)
 
@@ -81,6 +93,7 @@ class ClothRef:
 
     def select_box(self, lower, upper) -> np.ndarray:
         """Global indices of particles whose initial world position lies inside an axis-aligned box [m]."""
+        lower, upper = check_vector("lower", lower, LIMITS["position"]), check_vector("upper", upper, LIMITS["position"])
         p = self.builder.particle_positions[self.particle_start : self.particle_start + self.particle_count]
         inside = np.all((p >= np.asarray(lower)) & (p <= np.asarray(upper)), axis=1)
         return self.indices(np.flatnonzero(inside))
@@ -98,25 +111,16 @@ class ClothRef:
         return self.indices(local)
 
 
-def rotation_matrix(rotation) -> np.ndarray:
-    """3x3 rotation from None, a quaternion (x, y, z, w), or a 3x3 matrix."""
-    if rotation is None:
-        return np.eye(3)
-    r = np.asarray(rotation, float)
-    if r.shape == (3, 3):
-        return r
-    if r.shape == (4,):
-        from .model import quat_to_matrix
-
-        return quat_to_matrix(r)
-    raise ValueError(f"rotation must be a quaternion (x, y, z, w) or a 3x3 matrix, got shape {r.shape}")
+def rotation_matrix(rotation, name: str = "rotation") -> np.ndarray:
+    """3x3 rotation from None, a unit quaternion (x, y, z, w), or a proper rotation matrix (checked:
+    :func:`cloth_warp.validation.check_rotation`)."""
+    return check_rotation(name, rotation)
 
 
 def quat_from_axis_angle(axis, angle_deg: float) -> tuple[float, float, float, float]:
-    """Quaternion (x, y, z, w) for a rotation of `angle_deg` degrees about `axis`."""
-    a = np.asarray(axis, float)
-    a = a / np.linalg.norm(a)
-    h = math.radians(angle_deg) / 2.0
+    """Quaternion (x, y, z, w) for a rotation of `angle_deg` degrees about `axis` (any non-zero length)."""
+    a = check_direction("axis", axis)
+    h = math.radians(check_number("angle_deg", angle_deg, LIMITS["angle"])) / 2.0
     s = math.sin(h)
     return (a[0] * s, a[1] * s, a[2] * s, math.cos(h))
 
@@ -134,10 +138,8 @@ class ModelBuilder:
         if up_axis not in UP_AXES:
             raise ValueError(f"up_axis must be one of {sorted(UP_AXES)}, got {up_axis!r}")
         self.up_axis = up_axis
-        self.gravity = tuple(float(g) for g in (gravity if gravity is not None else UP_AXES[up_axis]))
-        if not math.isfinite(global_damping) or global_damping < 0.0:
-            raise ValueError(f"global_damping must be >= 0 [1/s], got {global_damping!r}")
-        self.global_damping = float(global_damping)
+        self.gravity = check_vector("gravity", gravity if gravity is not None else UP_AXES[up_axis], LIMITS["gravity"])
+        self.global_damping = check_number("global_damping", global_damping, LIMITS["global_damping"])
         self.particle_positions = np.zeros((0, 3))
         self.particle_velocities = np.zeros((0, 3))
         self.particle_mass = np.zeros(0)
@@ -172,13 +174,11 @@ class ModelBuilder:
     # -- low level -------------------------------------------------------------------------
     def add_particle(self, position, velocity=(0.0, 0.0, 0.0), mass: float = 1.0, pinned: bool = False) -> int:
         """Add one particle (mass [kg]); returns its index."""
-        p = np.asarray(position, float).reshape(1, 3)
-        if not np.all(np.isfinite(p)):
-            raise ValueError(f"particle position must be finite, got {position}")
-        if not (math.isfinite(mass) and mass > 0.0):
-            raise ValueError(f"particle mass must be positive [kg], got {mass!r}")
+        p = np.asarray(check_vector("position", position, LIMITS["position"])).reshape(1, 3)
+        v = np.asarray(check_vector("velocity", velocity, LIMITS["velocity"])).reshape(1, 3)
+        mass = check_number("mass", mass, LIMITS["mass"])
         self.particle_positions = np.concatenate([self.particle_positions, p])
-        self.particle_velocities = np.concatenate([self.particle_velocities, np.asarray(velocity, float).reshape(1, 3)])
+        self.particle_velocities = np.concatenate([self.particle_velocities, v])
         self.particle_mass = np.append(self.particle_mass, mass)
         self.particle_pinned = np.append(self.particle_pinned, np.int32(pinned))
         self.particle_pin_stiffness = np.append(self.particle_pin_stiffness, 0.0)
@@ -203,12 +203,11 @@ class ModelBuilder:
             raise IndexError(f"spring endpoints must be two different particles in [0, {n}), got ({i}, {j})")
         if rest_length is None:
             rest_length = float(np.linalg.norm(self.particle_positions[i] - self.particle_positions[j]))
-        if not (rest_length > 0.0 and math.isfinite(rest_length)):
-            raise ValueError(f"spring rest length must be positive [m], got {rest_length!r}")
+        rest_length = check_number("rest_length", rest_length, LIMITS["rest_length"])
         if law == SpringLaw.BUCKLING:
             raise ValueError("buckling (Choi-Ko bend) springs need a middle particle; add them through a cloth")
-        if not (math.isfinite(stiffness) and stiffness >= 0.0) or not (math.isfinite(damping) and damping >= 0.0):
-            raise ValueError(f"spring stiffness and damping must be finite and >= 0, got {stiffness!r}, {damping!r}")
+        stiffness = check_number("stiffness", stiffness, LIMITS["spring_stiffness"])
+        damping = check_number("damping", damping, LIMITS["spring_damping"])
         self._append_springs(
             np.array([[i, j]]), np.array([rest_length]), np.array([stiffness]), np.array([damping]),
             np.array([int(law)]), np.array([int(kind)]), np.array([-1]),
@@ -266,9 +265,9 @@ class ModelBuilder:
         each with a warning (rules in :func:`cloth_warp.topology.mesh_topology`).
         """
         v, tri = topo.validate_mesh(vertices, triangles)
-        if not (math.isfinite(scale) and scale > 0.0):
-            raise ValueError(f"mesh scale must be positive, got {scale!r}")
-        t = topo.mesh_topology(v * scale, tri, SpringModel(spring_model), uvs=uvs)
+        scale = check_number("scale", scale, LIMITS["scale"])
+        v = check_points("vertices (x scale)", v * scale)
+        t = topo.mesh_topology(v, tri, SpringModel(spring_model), uvs=uvs)
         return self._add_cloth(t, position, rotation, velocity, material, name or f"cloth{len(self.cloths)}")
 
     def add_cloth_disc(self, *, radius: float, rings: int = 16, **kwargs) -> ClothRef:
@@ -287,7 +286,7 @@ class ModelBuilder:
         Mesh at `prim_path` (default: the first one) is read (see :func:`read_usd_mesh`). UVs are kept
         when present (as face-varying corner UVs after welding), so textures survive seams.
         """
-        if os.fspath(path).lower().endswith((".usd", ".usda", ".usdc")):
+        if os.fspath(path).lower().endswith(USD_SUFFIXES):
             vertices, triangles, uvs = read_usd_mesh(path, prim_path)
         else:
             vertices, triangles, uvs = load_mesh_file(path)
@@ -297,10 +296,14 @@ class ModelBuilder:
     def _add_cloth(self, t: ClothTopology, position, rotation, velocity, material, name) -> ClothRef:
         if isinstance(material, str):
             material = preset(material)
+        if not isinstance(material, FabricMaterial):
+            raise TypeError(f"material must be a FabricMaterial or a preset name, got {material!r}")
         if any(ref.name == name for ref, _, _ in self.cloths):
             raise ValueError(f"a cloth named {name!r} already exists")
         r = rotation_matrix(rotation)
-        world = t.positions @ r.T + np.asarray(position, float)
+        position = check_vector("position", position, LIMITS["position"])
+        velocity = check_vector("velocity", velocity, LIMITS["velocity"])
+        world = check_points(f"cloth {name!r}: positions (rotated, then moved by position)", t.positions @ r.T + np.asarray(position))
         start = self.particle_count
         n = t.particle_count
         area = t.particle_area.copy()
@@ -332,9 +335,7 @@ class ModelBuilder:
         if stiffness is None:
             self.particle_pinned[idx] = 1
         else:
-            if not (math.isfinite(stiffness) and stiffness > 0.0):
-                raise ValueError(f"soft pin stiffness must be positive [N/m], got {stiffness!r}")
-            self.particle_pin_stiffness[idx] = stiffness
+            self.particle_pin_stiffness[idx] = check_number("stiffness", stiffness, LIMITS["pin_stiffness"])
         return idx
 
     def add_handle(self, indices, keyframes, *, pivot=None, name: str | None = None) -> Handle:
@@ -346,12 +347,10 @@ class ModelBuilder:
         idx = self._check_indices(indices)
         kfs = _keyframes(keyframes)
         if not kfs:
-            raise ValueError("a handle needs at least one keyframe")
-        times = [k.time for k in kfs]
-        if any(b <= a for a, b in zip(times, times[1:])):
-            raise ValueError(f"handle keyframe times must increase strictly, got {times}")
+            raise ValueError("keyframes: a handle needs at least one keyframe")
         p = self.particle_positions[idx]
-        h = Handle(name or f"handle{len(self.handles)}", idx, kfs, np.asarray(pivot, float) if pivot is not None else p.mean(0))
+        pivot = np.asarray(check_vector("pivot", pivot, LIMITS["position"])) if pivot is not None else p.mean(0)
+        h = Handle(name or f"handle{len(self.handles)}", idx, kfs, pivot)
         self.particle_pinned[idx] = 1
         self.handles.append(h)
         return h
@@ -367,13 +366,13 @@ class ModelBuilder:
 
     def _collider(self, shape: str, name, position, rotation, thickness, friction, static_friction, kinetic_friction,
                   keyframes, **geometry) -> Collider:
-        mu_s = friction if static_friction is None else static_friction
+        # Collider checks every value; the defaults below need friction and mu_s to be numbers first.
+        friction = check_number("friction", friction, LIMITS["friction"])
+        mu_s = friction if static_friction is None else check_number("static_friction", static_friction, LIMITS["friction"])
         mu_k = min(friction, mu_s) if kinetic_friction is None else kinetic_friction
-        q = (0.0, 0.0, 0.0, 1.0) if rotation is None else tuple(np.asarray(rotation, float).tolist())
-        kfs = _keyframes(keyframes or [])
-        col = Collider(name or f"{shape}{len(self.colliders)}", shape, position=tuple(position), rotation=q,
-                       thickness=float(thickness), static_friction=float(mu_s), kinetic_friction=float(mu_k), keyframes=kfs,
-                       **geometry)
+        q = (0.0, 0.0, 0.0, 1.0) if rotation is None else rotation
+        col = Collider(name or f"{shape}{len(self.colliders)}", shape, position=position, rotation=q, thickness=thickness,
+                       static_friction=mu_s, kinetic_friction=mu_k, keyframes=keyframes or [], **geometry)
         return self.add_collider(col)
 
     def add_ground(self, height: float = 0.0, **common) -> Collider:
@@ -388,14 +387,14 @@ class ModelBuilder:
         coefficient, both static and kinetic) or `static_friction` / `kinetic_friction`, `keyframes`
         (rigid animation: (time, translation[, quaternion]) or Keyframe), `name`.
         """
-        q = rotation_to_axis(self.up_vector if normal is None else normal)
+        q = rotation_to_axis(self.up_vector if normal is None else normal, "normal")
         return self._collider("plane", name, point, q, thickness, friction, static_friction, kinetic_friction, keyframes)
 
     def add_sphere(self, center, radius: float, *, name=None, thickness=0.004, friction=0.3, static_friction=None,
                    kinetic_friction=None, keyframes=None) -> Collider:
         """A solid sphere of `radius` [m] about `center` [m]."""
         return self._collider("sphere", name, center, None, thickness, friction, static_friction, kinetic_friction, keyframes,
-                              radius=float(radius))
+                              radius=radius)
 
     def add_capsule(self, center, radius: float, height: float, axis=None, *, name=None, thickness=0.004, friction=0.3,
                     static_friction=None, kinetic_friction=None, keyframes=None) -> Collider:
@@ -403,13 +402,13 @@ class ModelBuilder:
         (default: up) through `center` (height excludes the caps, as UsdGeom.Capsule)."""
         q = rotation_to_axis(self.up_vector if axis is None else axis)
         return self._collider("capsule", name, center, q, thickness, friction, static_friction, kinetic_friction, keyframes,
-                              radius=float(radius), height=float(height))
+                              radius=radius, height=height)
 
     def add_box(self, center, size, rotation=None, *, name=None, thickness=0.004, friction=0.3, static_friction=None,
                 kinetic_friction=None, keyframes=None) -> Collider:
         """A solid box with edge lengths `size` [m] centred at `center`, turned by `rotation` (x, y, z, w)."""
         return self._collider("box", name, center, rotation, thickness, friction, static_friction, kinetic_friction, keyframes,
-                              size=tuple(map(float, size)))
+                              size=size)
 
     def add_cylinder(self, center, radius: float, height: float, axis=None, *, name=None, thickness=0.004, friction=0.3,
                      static_friction=None, kinetic_friction=None, keyframes=None) -> Collider:
@@ -417,7 +416,7 @@ class ModelBuilder:
         (default: up) centred at `center`."""
         q = rotation_to_axis(self.up_vector if axis is None else axis)
         return self._collider("cylinder", name, center, q, thickness, friction, static_friction, kinetic_friction, keyframes,
-                              radius=float(radius), height=float(height))
+                              radius=radius, height=height)
 
     def add_collider_mesh(self, vertices, triangles, position=(0.0, 0.0, 0.0), rotation=None, scale: float = 1.0, *, name=None,
                           thickness=0.004, friction=0.3, static_friction=None, kinetic_friction=None, keyframes=None,
@@ -425,8 +424,9 @@ class ModelBuilder:
         """A triangle-mesh collider (vertices [m] x `scale` in its local frame, then rotated and placed).
         A watertight mesh is solid; an open one is solid behind its triangles (right-hand winding).
         `point_cache` (samples, vertices, 3) at `point_cache_times` [s] makes it deform (x `scale` too)."""
-        v = np.asarray(vertices, float) * float(scale)
-        pc = None if point_cache is None else np.asarray(point_cache, float) * float(scale)
+        scale = check_number("scale", scale, LIMITS["scale"])
+        v = np.asarray(vertices, float) * scale
+        pc = None if point_cache is None else np.asarray(point_cache, float) * scale
         return self._collider("mesh", name, position, rotation, thickness, friction, static_friction, kinetic_friction, keyframes,
                               vertices=v, triangles=np.asarray(triangles), point_cache=pc, point_cache_times=point_cache_times)
 
@@ -458,16 +458,10 @@ class ModelBuilder:
         """Keep non-adjacent parts of the cloth(s) at least `thickness` [m] apart (cloth-cloth contact,
         :mod:`cloth_warp.selfcollision`), with Coulomb `friction` between layers and repulsion
         `stiffness` [N/m] (default: the median stretch stiffness of the cloth's structural springs)."""
-        if not (math.isfinite(thickness) and thickness > 0.0):
-            raise ValueError(f"self-collision thickness must be positive [m], got {thickness!r}")
-        if not (math.isfinite(friction) and friction >= 0.0):
-            raise ValueError(f"self-collision friction must be >= 0, got {friction!r}")
-        if stiffness is not None and not (math.isfinite(stiffness) and stiffness > 0.0):
-            raise ValueError(f"self-collision stiffness must be positive [N/m], got {stiffness!r}")
+        self.cloth_thickness = check_number("thickness", thickness, LIMITS["thickness"])
+        self.cloth_friction = check_number("friction", friction, LIMITS["friction"])
+        self.self_collision_stiffness = None if stiffness is None else check_number("stiffness", stiffness, LIMITS["pin_stiffness"])
         self.self_collision = True
-        self.cloth_thickness = float(thickness)
-        self.cloth_friction = float(friction)
-        self.self_collision_stiffness = stiffness
 
     def _check_indices(self, indices) -> np.ndarray:
         idx = np.unique(np.asarray(indices, np.int64).ravel())
@@ -482,6 +476,7 @@ class ModelBuilder:
         """Build the :class:`Model` on `device`; Model arrays get `requires_grad` here and only here."""
         if self.particle_count == 0:
             raise ValueError("the model has no particles")
+        self._check_float32()
         device = wp.get_device(device)
         m = Model()
         m.device = device
@@ -565,6 +560,18 @@ class ModelBuilder:
         m.self_collision_stiffness = k
         return m
 
+    def _check_float32(self):
+        """Refuse what leaves float32 after the unit conversions (a mass is areal density x area, a spring constant
+        a material value x a geometric weight) or what float32 positions cannot resolve."""
+        check_float32("particle masses (areal_density x area) [kg]", self.particle_mass, positive=True,
+                      hint=": raise the areal density or use larger cells")
+        check_float32("spring constants (material stiffness x geometric weight)", self.spring_stiffness,
+                      hint=": lower the stiffness or use fewer cells")
+        check_float32("spring damping (material damping x spring constant)", self.spring_damping, hint=": lower the damping")
+        check_float32("spring rest lengths [m]", self.spring_rest_length, positive=True)
+        check_float32("triangle drag coefficients", self.tri_drag)
+        check_float32_resolution("springs", self.particle_positions, self.spring_rest_length)
+
     def _finalize_colliders(self, m: Model, arr):
         from .colliders import SHAPE_IDS
 
@@ -605,11 +612,9 @@ class ModelBuilder:
         m.collider_mesh_max_distance = float(10.0 * (max(extent, default=1.0) + np.linalg.norm(hi - lo) + 1.0))
 
 
-def _keyframes(keyframes) -> list[Keyframe]:
-    """Keyframe objects from Keyframes or (time, translation[, quaternion]) tuples."""
-    return [k if isinstance(k, Keyframe) else
-            Keyframe(float(k[0]), tuple(map(float, k[1])), tuple(map(float, k[2])) if len(k) > 2 else (0.0, 0.0, 0.0, 1.0))
-            for k in keyframes]
+def _keyframes(keyframes, name: str = "keyframes") -> list[Keyframe]:
+    """Checked Keyframe objects (unit quaternions, increasing times) from Keyframes or (time, translation[, quaternion])."""
+    return [Keyframe(t, tr, q) for t, tr, q in check_keyframes(name, keyframes)]
 
 
 def clamp_boundary_bending(stiffness, springs, middle, law, pinned) -> np.ndarray:
@@ -642,21 +647,87 @@ def spring_constants(t: ClothTopology, material: FabricMaterial) -> tuple[np.nda
     return k, c
 
 
-def load_mesh_file(path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """Read a triangle mesh with trimesh; returns (vertices, triangles, uvs or None) without merging.
+USD_SUFFIXES = (".usd", ".usda", ".usdc")
+# What each mesh format's bytes look like: (name, first bytes or "text"). Random bytes are refused here with what
+# is wrong, before a reader that could only say "missing module" or fail deep inside its parser.
+MESH_FORMATS = {
+    ".obj": ("Wavefront OBJ", "text"), ".off": ("OFF", "text"), ".gltf": ("glTF (JSON)", "text"), ".xyz": ("XYZ", "text"),
+    ".dxf": ("DXF", "text"), ".dae": ("COLLADA (XML)", "text"), ".step": ("STEP", "text"), ".stp": ("STEP", "text"),
+    ".ply": ("PLY", (b"ply",)), ".glb": ("binary glTF", (b"glTF",)), ".stl": ("STL", "stl"),
+    ".3mf": ("3MF (zip)", (b"PK\x03\x04",)), ".zip": ("zip", (b"PK\x03\x04",)), ".gz": ("gzip", (b"\x1f\x8b",)),
+    ".bz2": ("bzip2", (b"BZh",)), ".usdc": ("USD crate", (b"PXR-USDC",)), ".usda": ("USD text", (b"#usda",)),
+    ".usd": ("USD", (b"PXR-USDC", b"#usda")),
+}
 
-    Vertices are kept as in the file (seam duplicates included) so that UVs stay correct; welding for
-    simulation happens in :func:`cloth_warp.topology.mesh_topology`.
-    """
+
+def _mesh_suffix(path: str) -> str:
+    name = os.path.basename(path).lower()
+    return ".tar" + os.path.splitext(name)[1] if name.endswith((".tar.gz", ".tar.bz2")) else os.path.splitext(name)[1]
+
+
+def check_mesh_file(path) -> str:
+    """The format suffix of a readable mesh file; MeshError naming the file and what is wrong (unknown format,
+    empty, bytes that are not that format, a truncated binary STL), FileNotFoundError when it is missing."""
     import trimesh
 
     path = os.fspath(path)
     if not os.path.exists(path):
         raise FileNotFoundError(f"mesh file not found: {path}")
+    if os.path.isdir(path):
+        raise IsADirectoryError(f"mesh file {path} is a folder")
+    suffix = _mesh_suffix(path)
+    readable = sorted({f".{f}" for f in trimesh.available_formats() if "_" not in f} | set(USD_SUFFIXES))
+    known = suffix.removeprefix(".tar")
+    if known not in MESH_FORMATS and suffix not in readable:
+        raise MeshError(f"{path}: unknown mesh format {suffix or '(no extension)'!r}; readable here: {', '.join(readable)}")
+    size = os.path.getsize(path)
+    if size == 0:
+        raise MeshError(f"{path}: the file is empty (0 bytes)")
+    with open(path, "rb") as f:
+        head = f.read(65536)
+    name, signature = MESH_FORMATS.get(known, (known, None))
+    problem = None
+    if signature == "text" and not _looks_like_text(head):
+        problem = "that format is text, this file is binary data"
+    elif signature == "stl" and not (head.startswith(b"solid") and _looks_like_text(head)):
+        count = int.from_bytes(head[80:84], "little") if len(head) >= 84 else -1
+        if count < 0:
+            problem = f"{size} bytes is shorter than a binary STL header (84 bytes), and it is not ASCII STL"
+        elif size != 84 + 50 * count:
+            problem = (f"not ASCII STL, and as binary STL its header counts {count} triangles ({84 + 50 * count} bytes) but "
+                       f"the file has {size} bytes (truncated, or not STL)")
+    elif isinstance(signature, tuple) and not head.startswith(signature):
+        problem = f"it should start with {' or '.join(repr(m) for m in signature)}, it starts with {head[:8]!r}"
+    if problem:
+        raise MeshError(f"{path}: not a valid {name} file: {problem}")
+    return suffix
+
+
+def _looks_like_text(head: bytes) -> bool:
+    """No NUL byte and under 1 % control characters (random bytes have about 12 %)."""
+    if b"\x00" in head:
+        return False
+    control = sum(head.count(bytes([c])) for c in range(32) if c not in (9, 10, 12, 13))
+    return control <= 0.01 * len(head)
+
+
+def load_mesh_file(path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Read a triangle mesh with trimesh; returns (vertices, triangles, uvs or None) without merging.
+
+    Vertices are kept as in the file (seam duplicates included) so that UVs stay correct; welding for
+    simulation happens in :func:`cloth_warp.topology.mesh_topology`. The file is checked first
+    (:func:`check_mesh_file`): errors name it and what is wrong.
+    """
+    import trimesh
+
+    path = os.fspath(path)
+    suffix = check_mesh_file(path)
     try:
         loaded = trimesh.load(path, process=False)
+    except ImportError as exc:  # the format's optional reader is missing (the bytes looked right)
+        raise MeshError(f"{path}: reading {suffix} files needs an optional Python package that is not installed ({exc})") from exc
     except Exception as exc:  # trimesh raises many types for unreadable files
-        raise MeshError(f"cannot read mesh {path}: {exc}") from exc
+        raise MeshError(f"cannot read mesh {path} ({MESH_FORMATS.get(suffix, (suffix,))[0]}): {type(exc).__name__}: {exc}") from exc
     if isinstance(loaded, trimesh.Scene):
         geoms = [g for g in loaded.dump() if isinstance(g, trimesh.Trimesh)] if loaded.geometry else []
         if not geoms:
@@ -670,6 +741,8 @@ def load_mesh_file(path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
             uvs.append(None if uv is None or len(uv) != len(g.vertices) else np.asarray(uv))
         uv_all = np.concatenate(uvs) if all(u is not None for u in uvs) else None
         return np.concatenate(verts), np.concatenate(tris), uv_all
+    if isinstance(loaded, trimesh.PointCloud):
+        raise MeshError(f"mesh file {path} has {len(loaded.vertices)} points but no faces (truncated, or a point cloud)")
     if not isinstance(loaded, trimesh.Trimesh):
         raise MeshError(f"mesh file {path} is not a triangle mesh (trimesh returned {type(loaded).__name__})")
     uv = getattr(getattr(loaded, "visual", None), "uv", None)
@@ -681,9 +754,11 @@ def _usd_mesh_prim(path: str, prim_path: str | None):
     """(stage, the UsdGeom.Mesh prim at `prim_path` or the first one) of a USD file."""
     from pxr import Usd, UsdGeom
 
-    if not os.path.exists(path):
-        raise FileNotFoundError(f"mesh file not found: {path}")
-    stage = Usd.Stage.Open(path)
+    check_mesh_file(path)
+    try:
+        stage = Usd.Stage.Open(path)
+    except Exception as exc:  # pxr.Tf.ErrorException: the layer does not parse
+        raise MeshError(f"cannot open {path} as USD: {_usd_error_text(exc)}") from exc
     if stage is None:
         raise MeshError(f"cannot open {path} as USD")
     if prim_path is not None:
@@ -696,6 +771,14 @@ def _usd_mesh_prim(path: str, prim_path: str | None):
     if prim is None:
         raise MeshError(f"{path} holds no UsdGeom.Mesh")
     return stage, prim
+
+
+def _usd_error_text(exc) -> str:
+    """The messages inside a pxr Tf.ErrorException, without file/line prefixes and internal namespaces."""
+    text = str(exc)
+    reasons = re.findall(r"Error in '[^']*' at line \d+ in file [^:]* : '(.*?)'\s*(?=\n\s*Error in|$)", text, flags=re.DOTALL)
+    text = "; ".join(r.strip() for r in reasons) or text.strip()
+    return re.sub(r"pxrInternal_v\d+_\d+_\d+__pxrReserved___?(::)?", "", text)
 
 
 def read_usd_point_cache(path, prim_path: str | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

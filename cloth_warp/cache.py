@@ -323,10 +323,10 @@ class CacheWriter:
 
     def _begin(self, path, model, fps, start_frame, save_every, bytes_per_frame, metadata, lock):
         self.path = pathlib.Path(path)
-        fps = float(fps)
-        if not (math.isfinite(fps) and 0.0 < fps <= 1.0e6):
-            raise ValueError(f"fps: must be in (0, 1e6] frames per second, got {fps!r}")
-        self.fps, self.start_frame = fps, int(start_frame)
+        from .validation import LIMITS, check_number
+
+        self.fps = float(check_number("fps", fps, LIMITS["fps"]))
+        self.start_frame = int(check_number("start_frame", start_frame, LIMITS["start_frame"]))
         self.save_every = max(1, int(save_every))
         self.particle_count = int(model.particle_count)
         self.frames_written, self.saved_frames, self.closed, self.broken = 0, 0, False, None

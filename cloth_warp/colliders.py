@@ -14,12 +14,22 @@ axis, a centre).
 
 from __future__ import annotations
 
-import math
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from .model import Keyframe, interpolate_keyframes, quat_multiply
+from .validation import (
+    LIMITS,
+    InvalidValue,
+    check_direction,
+    check_keyframes,
+    check_number,
+    check_points,
+    check_quaternion,
+    check_vector,
+)
 
 SHAPES = ("plane", "sphere", "capsule", "box", "cylinder", "mesh")
 SHAPE_IDS = {name: i for i, name in enumerate(SHAPES)}  # the kernels' SHAPE_* constants
@@ -67,49 +77,58 @@ class Collider:
         if self.shape not in SHAPES:
             raise ValueError(f"collider {self.name!r}: unknown shape {self.shape!r}; allowed: {', '.join(SHAPES)}")
         where = f"collider {self.name!r}"
-        for key in ("radius", "height", "thickness", "static_friction", "kinetic_friction"):
-            v = getattr(self, key)
-            if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0.0):
-                raise ValueError(f"{where}: {key} must be a finite number >= 0, got {v!r}")
-        if self.shape in ("sphere", "capsule", "cylinder") and not self.radius > 0.0:
-            raise ValueError(f"{where}: a {self.shape} needs radius > 0 [m], got {self.radius!r}")
-        if self.shape == "cylinder" and not self.height > 0.0:
-            raise ValueError(f"{where}: a cylinder needs height > 0 [m], got {self.height!r}")
-        if self.shape == "box":
-            s = np.asarray(self.size, float)
-            if s.shape != (3,) or not np.all(np.isfinite(s)) or np.any(s <= 0.0):
-                raise ValueError(f"{where}: a box needs three positive edge lengths [m], got {self.size!r}")
+
+        def arg(key):
+            return f"{where} {key}"
+
+        self.thickness = check_number(arg("thickness"), self.thickness, LIMITS["thickness"])
+        self.static_friction = check_number(arg("static_friction"), self.static_friction, LIMITS["friction"])
+        self.kinetic_friction = check_number(arg("kinetic_friction"), self.kinetic_friction, LIMITS["friction"])
+        try:
+            if self.shape in ("sphere", "capsule", "cylinder"):
+                need = "radius > 0"
+                self.radius = check_number(arg("radius"), self.radius, LIMITS["length"])
+            if self.shape == "capsule":
+                need = "height >= 0 (the straight part)"
+                self.height = check_number(arg("height"), self.height, LIMITS["height"])
+            if self.shape == "cylinder":
+                need = "height > 0"
+                self.height = check_number(arg("height"), self.height, LIMITS["length"])
+            if self.shape == "box":
+                need = "three positive edge lengths"
+                self.size = check_vector(arg("size"), self.size, LIMITS["length"])
+        except InvalidValue as exc:
+            raise InvalidValue(f"{exc}; a {self.shape} needs {need}") from None
         if self.shape == "mesh":
             self._check_mesh(where)
         if self.point_cache is not None:
             self._check_point_cache(where)
         if self.kinetic_friction > self.static_friction:
             raise ValueError(f"{where}: kinetic_friction {self.kinetic_friction} exceeds static_friction {self.static_friction}")
-        q = np.asarray(self.rotation, float)
-        if q.shape != (4,) or not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-12:
-            raise ValueError(f"{where}: rotation must be a quaternion (x, y, z, w), got {self.rotation!r}")
-        self.rotation = tuple((q / np.linalg.norm(q)).tolist())
-        p = np.asarray(self.position, float)
-        if p.shape != (3,) or not np.all(np.isfinite(p)):
-            raise ValueError(f"{where}: position must be 3 finite numbers [m], got {self.position!r}")
-        self.position = tuple(p.tolist())
-        times = [k.time for k in self.keyframes]
-        if any(b <= a for a, b in zip(times, times[1:])):
-            raise ValueError(f"{where}: keyframe times must increase strictly, got {times}")
+        self.rotation = check_quaternion(arg("rotation"), self.rotation)
+        self.position = check_vector(arg("position"), self.position, LIMITS["position"])
+        self.keyframes = [Keyframe(t, tr, q) for t, tr, q in check_keyframes(arg("keyframes"), self.keyframes)]
 
     def _check_mesh(self, where: str):
         if self.vertices is None or self.triangles is None:
             raise ValueError(f"{where}: a mesh collider needs vertices and triangles")
-        v = np.asarray(self.vertices, np.float64)
+        from .topology import orient_triangles
+
+        v = check_points(f"{where} vertices", self.vertices)
         t = np.asarray(self.triangles)
-        if v.ndim != 2 or v.shape[1] != 3 or len(v) < 3:
-            raise ValueError(f"{where}: vertices must be an (n >= 3, 3) array, got shape {v.shape}")
-        if not np.all(np.isfinite(v)):
-            raise ValueError(f"{where}: {int((~np.isfinite(v)).any(1).sum())} vertices have non-finite coordinates")
+        if len(v) < 3:
+            raise ValueError(f"{where} vertices: a mesh needs at least 3 vertices, got {len(v)}")
         if t.ndim != 2 or t.shape[1] != 3 or len(t) == 0 or not np.issubdtype(t.dtype, np.integer):
-            raise ValueError(f"{where}: triangles must be a non-empty (m, 3) integer array, got shape {t.shape}")
+            raise ValueError(f"{where} triangles: must be a non-empty (m, 3) integer array, got shape {t.shape}")
         if t.min() < 0 or t.max() >= len(v):
-            raise ValueError(f"{where}: triangle index out of range [0, {len(v)}): {t.min()}..{t.max()}")
+            raise ValueError(f"{where} triangles: index out of range [0, {len(v)}): {t.min()}..{t.max()}")
+        issues = []
+        flip = orient_triangles(v, t, issues=issues)
+        if flip.any():
+            t = t.copy()
+            t[flip] = t[flip][:, [0, 2, 1]]
+        for msg in issues:
+            warnings.warn(f"{where}: {msg}", stacklevel=4)
         self.vertices = v
         self.triangles = t.astype(np.int32)
 
@@ -122,8 +141,9 @@ class Collider:
             raise ValueError(f"{where}: point_cache must have shape (samples, {len(self.vertices)}, 3), got {pc.shape}")
         if len(times) != len(pc) or len(pc) == 0:
             raise ValueError(f"{where}: point_cache_times needs one time per sample ({len(pc)}), got {len(times)}")
-        if not (np.all(np.isfinite(pc)) and np.all(np.isfinite(times))):
-            raise ValueError(f"{where}: point_cache has non-finite values")
+        if not np.all(np.isfinite(times)):
+            raise ValueError(f"{where} point_cache_times: must be finite, got {times.tolist()}")
+        check_points(f"{where} point_cache", pc.reshape(-1, 3))
         if np.any(np.diff(times) <= 0.0):
             raise ValueError(f"{where}: point_cache_times must increase strictly")
         self.point_cache, self.point_cache_times = pc, times
@@ -193,13 +213,10 @@ class Collider:
         return mesh_signed_distance(self.vertices, self.triangles, p)
 
 
-def rotation_to_axis(axis) -> tuple[float, float, float, float]:
-    """Quaternion (x, y, z, w) of the shortest rotation taking local +z onto `axis`."""
-    a = np.asarray(axis, float)
-    n = np.linalg.norm(a)
-    if a.shape != (3,) or not np.isfinite(n) or n < 1e-12:
-        raise ValueError(f"axis must be a non-zero 3-vector, got {axis!r}")
-    a = a / n
+def rotation_to_axis(axis, name: str = "axis") -> tuple[float, float, float, float]:
+    """Quaternion (x, y, z, w) of the shortest rotation taking local +z onto `axis` (non-zero; `name` is the
+    argument named in the error)."""
+    a = check_direction(name, axis)
     z = np.array([0.0, 0.0, 1.0])
     c = float(np.dot(z, a))
     if c < -1.0 + 1e-9:

@@ -38,6 +38,7 @@ import warp as wp
 from .cache import CacheError
 from .gradients import CentroidLoss, ChamferLoss, ChordAngleLoss, Loss, PositionLoss, Rollout, model_grad_arrays
 from .scene import FIT_LOSSES, Scene, SceneError, build_material, build_model, build_solver, scene_selection, with_values
+from .validation import LIMITS
 
 MATERIAL_VALUES = ("areal_density", "stretch_stiffness", "shear_stiffness", "bend_stiffness", "damping", "drag_coefficient")
 LOSSES = FIT_LOSSES
@@ -83,6 +84,12 @@ class FitParameter:
     def encoded_gradient(self, grad: np.ndarray, value: np.ndarray) -> np.ndarray:
         """dL/dtheta from dL/dvalue."""
         return grad * value if self.log else grad * self.scale
+
+
+# the validation.LIMITS entry of each fittable value (colliders' friction otherwise)
+_LIMIT_OF = {"damping": "damping_time", "wind": "velocity", "velocity": "velocity", "areal_density": "areal_density",
+             "stretch_stiffness": "stretch_stiffness", "shear_stiffness": "shear_stiffness", "bend_stiffness": "bend_stiffness",
+             "drag_coefficient": "drag_coefficient"}
 
 
 def parse_parameter(spec: str) -> tuple[str, float | None, float | None]:
@@ -138,8 +145,15 @@ def make_parameter(scene: Scene, spec: str) -> FitParameter:
     else:
         lo = np.full_like(value, -np.inf if lower is None else lower)
         hi = np.full_like(value, np.inf if upper is None else upper)
+    allowed = LIMITS[_LIMIT_OF.get(key.split(".")[-1], "friction")]  # the gate's range bounds every fit too
+    if allowed.norm:  # a vector's length: each component within hi / sqrt(n) keeps the length inside
+        cap = allowed.hi / math.sqrt(len(value))
+        lo, hi = np.maximum(lo, -cap), np.minimum(hi, cap)
+    else:
+        lo = lo if allowed.lo is None else np.maximum(lo, allowed.lo)
+        hi = hi if allowed.hi is None else np.minimum(hi, allowed.hi)
     if (lo > hi).any():
-        raise SceneError(f"--param {spec}: lower bound above upper bound")
+        raise SceneError(f"--param {spec}: lower bound above upper bound (allowed: {allowed})")
     scale = 1.0 if log else max(float(np.abs(value).max()), 1.0)
     return FitParameter(key, np.clip(value, lo, hi), lo, hi, log, scale)
 

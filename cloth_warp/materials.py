@@ -8,11 +8,18 @@ with the geometric weights of :mod:`cloth_warp.topology`, so the same material g
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
+
+from .validation import LIMITS, check_number
 
 GRAVITY = 9.81
 """Standard gravity used by the presets' derived quantities [m/s^2]."""
+
+
+# Each value's allowed range (cloth_warp.validation.LIMITS: the same ranges as the scene's [material] keys).
+_LIMITS = {"areal_density": LIMITS["areal_density"], "stretch_stiffness": LIMITS["stretch_stiffness"],
+           "shear_stiffness": LIMITS["shear_stiffness"], "bend_stiffness": LIMITS["bend_stiffness"],
+           "damping": LIMITS["damping_time"], "drag_coefficient": LIMITS["drag_coefficient"]}
 
 
 @dataclass(frozen=True)
@@ -38,14 +45,8 @@ class FabricMaterial:
     drag_coefficient: float = 0.0
 
     def __post_init__(self):
-        for f in ("areal_density", "stretch_stiffness"):
-            value = getattr(self, f)
-            if not (math.isfinite(value) and value > 0.0):
-                raise ValueError(f"material {self.name!r}: {f} must be a positive finite number, got {value!r}")
-        for f in ("shear_stiffness", "bend_stiffness", "damping", "drag_coefficient"):
-            value = getattr(self, f)
-            if not (math.isfinite(value) and value >= 0.0):
-                raise ValueError(f"material {self.name!r}: {f} must be a finite number >= 0, got {value!r}")
+        for f, limits in _LIMITS.items():
+            object.__setattr__(self, f, check_number(f"material {self.name!r} {f}", getattr(self, f), limits))
 
     def replace(self, **changes) -> FabricMaterial:
         """A copy with some values changed (validated again)."""

@@ -176,13 +176,16 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
 
     if not isinstance(scene, Scene):
         scene = load_scene(find_scene(scene), overrides)
-    fps = float(fps if fps is not None else scene.get("output.fps"))
-    if not (math.isfinite(fps) and 0.0 < fps <= 1.0e6):
-        raise SceneError(f"fps: must be in (0, 1e6], got {fps!r}")
-    n_frames = int(frames if frames is not None else scene.get("output.frames"))
-    if n_frames < 1:
-        raise SceneError(f"frames: must be >= 1, got {n_frames!r}")
-    start = int(start_frame if start_frame is not None else scene.get("output.start_frame"))
+    from .validation import LIMITS, InvalidValue, check_number, check_run_length
+
+    try:  # the arguments that override the scene's (already checked) values go through the same gate
+        fps = float(check_number("fps", fps if fps is not None else scene.get("output.fps"), LIMITS["fps"]))
+        n_frames = int(check_number("frames", frames if frames is not None else scene.get("output.frames"), LIMITS["frames"]))
+        start = int(check_number("start_frame", start_frame if start_frame is not None else scene.get("output.start_frame"),
+                                 LIMITS["start_frame"]))
+        check_run_length("frames x solver.substeps", n_frames, int(scene.get("solver.substeps")))
+    except InvalidValue as exc:
+        raise SceneError(str(exc)) from None
     out = pathlib.Path(output) if output is not None else default_output(scene)
     if out.suffix.lower() not in CACHE_SUFFIXES:
         raise SceneError(f"output: {out} has an unknown extension; allowed: {', '.join(CACHE_SUFFIXES)}")

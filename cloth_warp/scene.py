@@ -7,12 +7,13 @@ Paths in a scene resolve relative to the scene file.
 
 from __future__ import annotations
 
+import contextlib
 import copy
+import dataclasses
 import difflib
 import hashlib
 import json
 import logging
-import math
 import pathlib
 import re
 import tomllib
@@ -20,6 +21,17 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from .materials import PRESETS as MATERIAL_PRESETS
+from .validation import (
+    BUILD_BYTES_PER_PARTICLE,
+    LIMITS,
+    MAX_STEPS,
+    InvalidValue,
+    Range,
+    check_number,
+    check_run_length,
+    check_vector,
+    format_number,
+)
 
 log = logging.getLogger(__name__)
 
@@ -30,18 +42,22 @@ class SceneError(ValueError):
 
 @dataclass(frozen=True)
 class Key:
-    """One scene key: its type, default, unit, allowed values / range and a line of documentation.
+    """One scene key: its type, default, a line of documentation, its allowed range (unit included) or values.
 
-    kind: "float", "int", "bool", "str", "path", "vec2", "vec3", "ivec2", "ints" (array of integers).
+    kind: "float", "int", "bool", "str", "path", "vec2", "vec3", "ivec2", "ints" (array of integers), "strs".
+    limits: the :class:`~cloth_warp.validation.Range` its numbers must lie in (per component, or the length
+    of a vector for a norm range): an entry of :data:`cloth_warp.validation.LIMITS`, shared with the Python API.
     """
 
     kind: str
     default: Any = None
     doc: str = ""
-    unit: str = ""
-    minimum: float | None = None
-    exclusive_minimum: bool = False
+    limits: Range | None = None
     allowed: tuple = ()
+
+    @property
+    def unit(self) -> str:
+        return self.limits.unit if self.limits is not None else ""
 
 
 @dataclass(frozen=True)
@@ -52,6 +68,7 @@ class Tables:
     doc: str = ""
 
 
+L = LIMITS
 SPRING_MODELS = ("choi_ko", "provot")
 UP_AXES = ("Y", "Z")
 LINEAR_SOLVERS = ("cg", "jacobi")
@@ -69,188 +86,192 @@ COLLIDER_REQUIRED = {"sphere": ("radius",), "capsule": ("radius", "height"), "bo
 SELECTION = {
     "select": Key("str", None, 'named selection of a grid: "corners", "corner:top_left" (top_right, bottom_left, '
                   'bottom_right), "edge:top" (bottom, left, right)'),
-    "indices": Key("ints", None, "particle indices of the cloth (after seam welding)"),
-    "box": {"min": Key("vec3", None, "lower corner of an axis-aligned box around initial positions", "m"),
-            "max": Key("vec3", None, "upper corner", "m")},
+    "indices": Key("ints", None, "particle indices of the cloth (after seam welding)", L["index"]),
+    "box": {"min": Key("vec3", None, "lower corner of an axis-aligned box around initial positions", L["position"]),
+            "max": Key("vec3", None, "upper corner", L["position"])},
 }
-ROTATION = {"axis": Key("vec3", [0.0, 0.0, 1.0], "rotation axis (need not be unit length)"),
-            "angle": Key("float", 0.0, "rotation angle (right-handed about the axis)", "deg")}
+ROTATION = {"axis": Key("vec3", [0.0, 0.0, 1.0], "rotation axis (need not be unit length, must not be zero)", L["axis"]),
+            "angle": Key("float", 0.0, "rotation angle (right-handed about the axis)", L["angle"])}
+KEYFRAME_TIME = Key("float", None, "time of the keyframe (strictly increasing)", L["time"])
 
 SCHEMA: dict = {
     "scene": {
         "description": Key("str", "", "one line shown by `cloth-warp scenes` and stored in the cache"),
-        "seed": Key("int", 0, "seed of every random choice (gusts)"),
+        "seed": Key("int", 0, "seed of every random choice (gusts, jitter)", L["seed"]),
     },
     "cloth": {
         "name": Key("str", "cloth", "prim name of the cloth in the cache"),
         "grid": {
-            "resolution": Key("ivec2", [32, 32], "cells along the grid's local x and y", minimum=1),
-            "size": Key("vec2", [1.0, 1.0], "extent along local x and y", "m", minimum=0.0, exclusive_minimum=True),
+            "resolution": Key("ivec2", [32, 32], "cells along the grid's local x and y (bounded by memory: about "
+                              f"{BUILD_BYTES_PER_PARTICLE / 1e3:g} kB per particle to build)", L["resolution"]),
+            "size": Key("vec2", [1.0, 1.0], "extent along local x and y", L["length"]),
         },
         "disc": {
             "radius": Key("float", None, "a circular cloth instead of a grid (e.g. a Cusick specimen), in the local xy-plane "
-                          "centred at the origin", "m", 0.0, True),
-            "rings": Key("int", 16, "concentric rings of the disc mesh (edge length about radius / rings)", minimum=1),
+                          "centred at the origin", L["length"]),
+            "rings": Key("int", 16, "concentric rings of the disc mesh (edge length about radius / rings; 3 rings^2 "
+                         "particles)", L["rings"]),
         },
         "mesh": Key("path", None, "triangle mesh file instead of a grid: OBJ, PLY, STL, GLB, OFF (trimesh) or "
-                    "USD (.usd/.usda/.usdc); UV seams are welded for simulation and kept in the cache"),
+                    "USD (.usd/.usda/.usdc); UV seams are welded for simulation and kept in the cache; inconsistent "
+                    "winding is repaired with a warning"),
         "mesh_prim": Key("str", None, "prim path of the mesh inside a USD file (default: the first Mesh)"),
-        "scale": Key("float", 1.0, "mesh units to metres (e.g. 0.01 for a centimetre mesh)", minimum=0.0, exclusive_minimum=True),
-        "position": Key("vec3", [0.0, 0.0, 0.0], "translation applied after the rotation", "m"),
+        "scale": Key("float", 1.0, "mesh units to metres (e.g. 0.01 for a centimetre mesh)", L["scale"]),
+        "position": Key("vec3", [0.0, 0.0, 0.0], "translation applied after the rotation", L["position"]),
         "rotation": ROTATION,
-        "velocity": Key("vec3", [0.0, 0.0, 0.0], "initial velocity of every particle", "m/s"),
+        "velocity": Key("vec3", [0.0, 0.0, 0.0], "initial velocity of every particle", L["velocity"]),
         "jitter": Key("float", 0.0, "random offset of the free particles' initial positions along the surface normal "
-                      "(uniform in +-jitter, seeded by scene.seed): breaks perfect symmetry so folds can form", "m", 0.0),
+                      "(uniform in +-jitter, seeded by scene.seed): breaks perfect symmetry so folds can form", L["jitter"]),
         "spring_model": Key("str", "choi_ko", "spring set: Choi-Ko (stiff stretch/shear, buckling bend) or Provot",
                             allowed=SPRING_MODELS),
     },
     "material": {
         "preset": Key("str", "cotton", "fabric preset; the keys below override its values", allowed=PRESETS),
-        "areal_density": Key("float", None, "mass per area (default: the preset's)", "kg/m^2", 0.0, True),
-        "stretch_stiffness": Key("float", None, "stretch stiffness E h (default: the preset's)", "N/m", 0.0, True),
-        "shear_stiffness": Key("float", None, "in-plane shear stiffness G h (default: the preset's)", "N/m", 0.0),
-        "bend_stiffness": Key("float", None, "bending rigidity per unit width (default: the preset's)", "N m", 0.0),
-        "damping": Key("float", None, "Kelvin-Voigt spring damping time: c = damping x k (default: the preset's)", "s", 0.0),
+        "areal_density": Key("float", None, "mass per area (default: the preset's)", L["areal_density"]),
+        "stretch_stiffness": Key("float", None, "stretch stiffness E h (default: the preset's)", L["stretch_stiffness"]),
+        "shear_stiffness": Key("float", None, "in-plane shear stiffness G h (default: the preset's)", L["shear_stiffness"]),
+        "bend_stiffness": Key("float", None, "bending rigidity per unit width (default: the preset's)", L["bend_stiffness"]),
+        "damping": Key("float", None, "Kelvin-Voigt spring damping time: c = damping x k (default: the preset's)",
+                       L["damping_time"]),
         "drag_coefficient": Key("float", None, "air drag per area and normal relative speed (default: the preset's)",
-                                "N s/m^3", 0.0),
+                                L["drag_coefficient"]),
     },
     "pins": Tables({**SELECTION, "stiffness": Key("float", None, "soft pin spring to the initial position "
-                                                  "(omit for a hard pin)", "N/m", 0.0, True)},
+                                                  "(omit for a hard pin)", L["pin_stiffness"])},
                    "pinned particles: exactly one of select, indices, box per entry"),
     "handles": Tables({**SELECTION, "keyframes": Tables(
-        {"time": Key("float", None, "time of the keyframe", "s", 0.0),
-         "translation": Key("vec3", [0.0, 0.0, 0.0], "offset from the rest position", "m"),
+        {"time": KEYFRAME_TIME,
+         "translation": Key("vec3", [0.0, 0.0, 0.0], "offset from the rest position", L["position"]),
          "rotation": ROTATION},
         "rigid transforms about the selection's centroid; linear / slerp between keyframes, held outside")},
         "animated pins: particles that follow keyframed rigid transforms"),
     "forces": {
         "up_axis": Key("str", "Y", "the up axis of the scene and of the cache (points are never rotated)", allowed=UP_AXES),
-        "gravity": Key("vec3", None, "gravitational acceleration (default: 9.81 down the up axis)", "m/s^2"),
-        "wind": Key("vec3", [0.0, 0.0, 0.0], "mean wind velocity", "m/s"),
+        "gravity": Key("vec3", None, "gravitational acceleration (default: 9.81 down the up axis)", L["gravity"]),
+        "wind": Key("vec3", [0.0, 0.0, 0.0], "mean wind velocity", L["velocity"]),
         "gusts": {
-            "strength": Key("float", 0.0, "gust amplitude as a fraction of the mean wind speed", minimum=0.0),
-            "period": Key("float", 1.0, "typical time between gusts", "s", 0.0, True),
-            "turn": Key("float", 0.0, "amplitude of the gusts' change of direction", "deg", 0.0),
+            "strength": Key("float", 0.0, "gust amplitude as a fraction of the mean wind speed", L["gust_strength"]),
+            "period": Key("float", 1.0, "typical time between gusts", L["gust_period"]),
+            "turn": Key("float", 0.0, "amplitude of the gusts' change of direction", L["gust_turn"]),
         },
-        "global_damping": Key("float", 0.0, "mass-proportional damping rate", "1/s", 0.0),
+        "global_damping": Key("float", 0.0, "mass-proportional damping rate", L["global_damping"]),
     },
     "colliders": Tables({
         "type": Key("str", None, "collider shape (required); a plane with no position/axis is the ground", allowed=COLLIDER_SHAPES),
         "name": Key("str", None, "prim name in the cache (default: type and number)"),
-        "position": Key("vec3", [0.0, 0.0, 0.0], "centre (plane: a point on it; mesh: where its origin goes)", "m"),
-        "radius": Key("float", None, "sphere / capsule / cylinder radius", "m", 0.0, True),
-        "height": Key("float", None, "capsule: length of the straight part (caps excluded); cylinder: full height", "m", 0.0),
-        "size": Key("vec3", None, "box edge lengths along its local x, y, z", "m", 0.0, True),
-        "axis": Key("vec3", None, "capsule / cylinder axis or plane normal (out of the solid; default: the up axis)"),
+        "position": Key("vec3", [0.0, 0.0, 0.0], "centre (plane: a point on it; mesh: where its origin goes)", L["position"]),
+        "radius": Key("float", None, "sphere / capsule / cylinder radius", L["length"]),
+        "height": Key("float", None, "capsule: length of the straight part (caps excluded); cylinder: full height (> 0)",
+                      L["height"]),
+        "size": Key("vec3", None, "box edge lengths along its local x, y, z", L["length"]),
+        "axis": Key("vec3", None, "capsule / cylinder axis or plane normal (out of the solid; default: the up axis)", L["axis"]),
         "rotation": ROTATION,
-        "mesh": Key("path", None, "mesh collider file: OBJ, PLY, STL, GLB, OFF or USD; watertight = solid, open = solid "
-                    "behind its triangles"),
+        "mesh": Key("path", None, "mesh collider file: OBJ, PLY, STL, GLB, OFF or USD; watertight = solid (its winding is "
+                    "made consistent and outward), open = solid behind its triangles"),
         "mesh_prim": Key("str", None, "prim path of the mesh inside a USD file (default: the first Mesh)"),
-        "scale": Key("float", 1.0, "mesh units to metres", minimum=0.0, exclusive_minimum=True),
+        "scale": Key("float", 1.0, "mesh units to metres", L["scale"]),
         "deforming": Key("bool", False, "mesh: follow the USD mesh's time-sampled points (a point cache, e.g. an animated "
                          "body; its start time code is t = 0, timeCodesPerSecond its rate), linear between samples"),
-        "thickness": Key("float", 0.004, "contact offset: cloth vertices stay this far from the surface", "m", 0.0, True),
-        "friction": Key("float", 0.3, "Coulomb friction coefficient (static and kinetic)", minimum=0.0),
-        "static_friction": Key("float", None, "static coefficient mu_s (default: friction)", minimum=0.0),
-        "kinetic_friction": Key("float", None, "kinetic coefficient mu_k <= mu_s (default: friction, at most mu_s)", minimum=0.0),
+        "thickness": Key("float", 0.004, "contact offset: cloth vertices stay this far from the surface", L["thickness"]),
+        "friction": Key("float", 0.3, "Coulomb friction coefficient (static and kinetic)", L["friction"]),
+        "static_friction": Key("float", None, "static coefficient mu_s (default: friction)", L["friction"]),
+        "kinetic_friction": Key("float", None, "kinetic coefficient mu_k <= mu_s (default: friction, at most mu_s)", L["friction"]),
         "keyframes": Tables(
-            {"time": Key("float", None, "time of the keyframe", "s", 0.0),
-             "translation": Key("vec3", [0.0, 0.0, 0.0], "offset from the initial position", "m"),
+            {"time": KEYFRAME_TIME,
+             "translation": Key("vec3", [0.0, 0.0, 0.0], "offset from the initial position", L["position"]),
              "rotation": ROTATION},
             "rigid animation: rotation about the collider's own centre, applied after its initial orientation")},
         "rigid colliders the cloth rests on, slides over and is pushed by"),
     "collision": {
         "self_collision": Key("bool", False, "cloth-cloth contact (hash-grid broad phase, proximity, CCD, rigid impact zones)"),
-        "thickness": Key("float", 0.004, "distance kept between non-adjacent parts of the cloth", "m", 0.0, True),
-        "friction": Key("float", 0.3, "Coulomb friction between cloth layers", minimum=0.0),
-        "stiffness": Key("float", None, "repulsion stiffness of the proximity pass (default: the cloth's stretch stiffness)", "N/m",
-                         0.0, True),
+        "thickness": Key("float", 0.004, "distance kept between non-adjacent parts of the cloth", L["thickness"]),
+        "friction": Key("float", 0.3, "Coulomb friction between cloth layers", L["friction"]),
+        "stiffness": Key("float", None, "repulsion stiffness of the proximity pass (default: the cloth's stretch stiffness)",
+                         L["pin_stiffness"]),
     },
     "solver": {
         "integrator": Key("str", "implicit_euler", "time integrator", allowed=INTEGRATORS),
         "linear_solver": Key("str", "cg", "implicit Euler's linear solver", allowed=LINEAR_SOLVERS),
-        "substeps": Key("int", 1, "steps per frame: dt = 1 / (fps x substeps)", minimum=1),
-        "strain_limit": Key("float", 0.1, "Provot strain limit on stretch/shear springs (0 disables)", minimum=0.0),
-        "strain_limit_iterations": Key("int", 128, "maximum strain-limit sweeps per step", minimum=1),
-        "tolerance": Key("float", 1e-3, "relative residual at which the linear solve stops", minimum=0.0, exclusive_minimum=True),
-        "max_iterations": Key("int", 1000, "linear-solver iteration cap per step", minimum=1),
+        "substeps": Key("int", 1, "steps per frame: dt = 1 / (fps x substeps); output.frames x substeps is at most "
+                        f"{format_number(MAX_STEPS)} steps", L["substeps"]),
+        "strain_limit": Key("float", 0.1, "Provot strain limit on stretch/shear springs (0 disables)", L["strain_limit"]),
+        "strain_limit_iterations": Key("int", 128, "maximum strain-limit sweeps per step", L["iterations"]),
+        "tolerance": Key("float", 1e-3, "relative residual at which the linear solve stops", L["tolerance"]),
+        "max_iterations": Key("int", 1000, "linear-solver iteration cap per step", L["iterations"]),
         "adaptive": Key("bool", False, "check every step and halve dt on divergence (grows back after good steps)"),
-        "dt_min": Key("float", 1e-6, "adaptive floor: below it the run stops with a diagnosis", "s", 0.0, True),
+        "dt_min": Key("float", 1e-6, "adaptive floor: below it the run stops with a diagnosis", L["dt_min"]),
     },
     "measure": {
         "cusick": {
             "pedestal_radius": Key("float", None, "report the Cusick drape coefficient of the last frame, "
                                    "(A_shadow - A_pedestal) / (A_disc - A_pedestal), for a specimen on a pedestal of this radius",
-                                   "m", 0.0, True),
-            "disc_radius": Key("float", None, "specimen radius (default: cloth.disc.radius)", "m", 0.0, True),
+                                   L["length"]),
+            "disc_radius": Key("float", None, "specimen radius (default: cloth.disc.radius)", L["length"]),
         },
     },
     "fit": {
         "params": Key("strs", None, "scene keys `cloth-warp fit` fits when no --param is given: \"KEY\" or \"KEY=LOWER:UPPER\""),
         "loss": Key("str", "positions", "what a target cache is matched by: every frame's positions, the last frame's, or "
                     "the Chamfer distance (a target on another mesh)", allowed=FIT_LOSSES),
-        "frames": Key("int", None, "frames simulated and fitted (default: all of the target cache, else output.frames)", minimum=1),
-        "iterations": Key("int", 50, "Adam iterations", minimum=1),
+        "frames": Key("int", None, "frames simulated and fitted (default: all of the target cache, else output.frames)",
+                      L["frames"]),
+        "iterations": Key("int", 50, "Adam iterations", L["fit_iterations"]),
         "learning_rate": Key("float", 0.1, "Adam step: a relative change for positive values, relative to the start's "
-                             "magnitude (at least 1 m/s) for vectors", minimum=0.0, exclusive_minimum=True),
+                             "magnitude (at least 1 m/s) for vectors", L["learning_rate"]),
         "betas": Key("vec2", [0.9, 0.999], "Adam's decay rates of the gradient's first and second moments (lower: less "
-                     "momentum, less overshoot)", minimum=0.0),
+                     "momentum, less overshoot)", L["adam_beta"]),
         "target": {
             "cache": Key("path", None, "target animation cache (what --target gives); its frame k is the scene's frame k"),
             "centroid": Key("vec3", None, "where the cloth's centre of mass must be at the last fitted frame (a throw's "
-                            "landing spot)", "m"),
+                            "landing spot)", L["position"]),
             "chord_angle": Key("float", None, "angle below horizontal of the chord from chord_origin to the tip's centroid at "
-                               "the last fitted frame (ASTM D1388 cantilever: 41.5)", "deg"),
-            "chord_origin": Key("vec3", [0.0, 0.0, 0.0], "start of the chord (a cantilever's clamp edge)", "m"),
+                               "the last fitted frame (ASTM D1388 cantilever: 41.5)", L["chord_angle"]),
+            "chord_origin": Key("vec3", [0.0, 0.0, 0.0], "start of the chord (a cantilever's clamp edge)", L["position"]),
             "tip": SELECTION,  # the particles whose centroid ends the chord (one of select, indices, box)
         },
     },
     "output": {
         "path": Key("path", None, "cache file: .usdc (default), .usda, .usd or .npz; default out/<scene name>.usdc "
                     "in the working directory"),
-        "frames": Key("int", 60, "frames to simulate (the cache also holds the initial state)", minimum=1),
-        "fps": Key("float", 60.0, "frames per second (time codes per second of the cache)", "1/s", 0.0, True),
-        "start_frame": Key("int", 1, "time code of the initial state (e.g. 1001 for film pipelines)"),
+        "frames": Key("int", 60, "frames to simulate (the cache also holds the initial state)", L["frames"]),
+        "fps": Key("float", 60.0, "frames per second (time codes per second of the cache)", L["fps"]),
+        "start_frame": Key("int", 1, "time code of the initial state (e.g. 1001 for film pipelines)", L["start_frame"]),
         "normals": Key("bool", True, "write vertex normals every frame"),
         "velocities": Key("bool", True, "write velocities [m/s] every frame (motion blur)"),
-        "save_every": Key("int", 25, "save the crate file every so many frames (bounds memory)", minimum=1),
+        "save_every": Key("int", 25, "save the crate file every so many frames (bounds memory)", L["save_every"]),
     },
 }
 
 
 # -- validation ----------------------------------------------------------------------------------------------
 
-def _number(v) -> bool:
-    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
-
-
-def _integer(v) -> bool:
-    return isinstance(v, int) and not isinstance(v, bool)
+_SIZES = {"float": None, "int": None, "vec2": 2, "vec3": 3, "ivec2": 2}
 
 
 def _check_key(value, key: Key, path: str):
     kind = key.kind
-    if kind == "float":
-        if not _number(value):
-            raise SceneError(f"{path}: expected a finite number{_unit(key)}, got {value!r}")
-    elif kind == "int":
-        if not _integer(value):
-            raise SceneError(f"{path}: expected an integer, got {value!r}")
+    if kind in _SIZES:  # numbers: type, finiteness, float32 and range in one place (cloth_warp.validation)
+        try:
+            if _SIZES[kind] is None:
+                check_number(path, value, key.limits)
+            else:
+                check_vector(path, value, key.limits, size=_SIZES[kind])
+        except InvalidValue as exc:
+            raise SceneError(str(exc)) from None
     elif kind == "bool":
         if not isinstance(value, bool):
             raise SceneError(f"{path}: expected true or false, got {value!r}")
     elif kind in ("str", "path"):
         if not isinstance(value, str):
             raise SceneError(f"{path}: expected a string, got {value!r}")
-    elif kind in ("vec2", "vec3", "ivec2"):
-        n = 2 if kind in ("vec2", "ivec2") else 3
-        ok = _integer if kind == "ivec2" else _number
-        if not isinstance(value, list) or len(value) != n or not all(ok(c) for c in value):
-            what = "integers" if kind == "ivec2" else "finite numbers"
-            raise SceneError(f"{path}: expected {n} {what}{_unit(key)}, got {value!r}")
     elif kind == "ints":
-        if not isinstance(value, list) or not all(_integer(c) for c in value):
+        if not isinstance(value, list) or not all(isinstance(c, int) and not isinstance(c, bool) for c in value):
             raise SceneError(f"{path}: expected an array of integers, got {value!r}")
+        try:
+            for i, v in enumerate(value):
+                check_number(f"{path}[{i}]", v, key.limits)
+        except InvalidValue as exc:
+            raise SceneError(str(exc)) from None
     elif kind == "strs":
         if not isinstance(value, list) or not all(isinstance(c, str) for c in value):
             raise SceneError(f"{path}: expected an array of strings, got {value!r}")
@@ -258,16 +279,6 @@ def _check_key(value, key: Key, path: str):
         close = difflib.get_close_matches(str(value), [str(a) for a in key.allowed], n=1)
         hint = f" (did you mean {close[0]!r}?)" if close else ""
         raise SceneError(f"{path}: {value!r} is not allowed{hint}; allowed: {', '.join(map(str, key.allowed))}")
-    if key.minimum is not None:
-        values = value if isinstance(value, list) else [value]
-        for v in values:
-            if v < key.minimum or (key.exclusive_minimum and v == key.minimum):
-                op = ">" if key.exclusive_minimum else ">="
-                raise SceneError(f"{path}: must be {op} {key.minimum:g}{_unit(key)}, got {value!r}")
-
-
-def _unit(key: Key) -> str:
-    return f" [{key.unit}]" if key.unit else ""
 
 
 def _check(value, schema, path: str):
@@ -401,7 +412,10 @@ def parse_scene(text: str, path=None, overrides: dict | None = None) -> Scene:
         _set_key(data, key, copy.deepcopy(value))
     scene = Scene(data, pathlib.Path(path) if path else None, dict(overrides or {}), text)
     _check(data, SCHEMA, "")
-    _check_values(scene)
+    try:
+        _check_values(scene)
+    except InvalidValue as exc:
+        raise SceneError(str(exc)) from None
     return scene
 
 
@@ -411,7 +425,20 @@ def load_scene(path, overrides: dict | None = None) -> Scene:
     path = pathlib.Path(path)
     if not path.is_file():
         raise SceneError(f"scene file not found: {path}")
-    return parse_scene(path.read_text(), path, overrides)
+    return parse_scene(read_scene_text(path), path, overrides)
+
+
+def read_scene_text(path) -> str:
+    """A scene file's text: UTF-8 (a leading byte-order mark is allowed); a SceneError names the file, the byte
+    offset, line and column of the first byte that is not UTF-8."""
+    data = pathlib.Path(path).read_bytes()
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = data.count(b"\n", 0, exc.start) + 1
+        column = exc.start - (data.rfind(b"\n", 0, exc.start) + 1) + 1
+        raise SceneError(f"{path}: not UTF-8 text (TOML files are UTF-8): byte 0x{data[exc.start]:02x} at offset {exc.start} "
+                         f"(line {line}, column {column}) {exc.reason}; save the file as UTF-8") from None
 
 
 def _check_values(scene: Scene):
@@ -431,6 +458,19 @@ def _check_values(scene: Scene):
             raise SceneError("measure.cusick.disc_radius: give the specimen radius [m] (or use a cloth.disc)")
         if radius <= cusick["pedestal_radius"]:
             raise SceneError(f"measure.cusick: the specimen radius {radius} m must exceed the pedestal radius {cusick['pedestal_radius']} m")
+    from .topology import check_disc_size, check_grid_size
+
+    if disc is not None:
+        check_disc_size("cloth.disc.rings", int(scene.get("cloth.disc.rings")))
+    elif not shapes or shapes == ["grid"]:
+        check_grid_size("cloth.grid.resolution", *scene.get("cloth.grid.resolution"))
+    check_run_length("output.frames x solver.substeps", scene.get("output.frames"), scene.get("solver.substeps"))
+    dt = 1.0 / (scene.get("output.fps") * scene.get("solver.substeps"))
+    if scene.get("solver.adaptive") and scene.get("solver.dt_min") >= dt:
+        raise SceneError(f"solver.dt_min: {scene.get('solver.dt_min')!r} s must be below the step 1 / (output.fps x solver.substeps) "
+                         f"= {dt:.4g} s, which the adaptive stepper halves down to it")
+    if scene.data.get("fit", {}).get("frames") is not None:
+        check_run_length("fit.frames x solver.substeps", scene.get("fit.frames"), scene.get("solver.substeps"))
     mesh = scene.data.get("cloth", {}).get("mesh")
     if mesh is not None and not scene.resolve(mesh).is_file():
         raise SceneError(f"cloth.mesh: file not found: {scene.resolve(mesh)} (paths are relative to the scene file)")
@@ -491,9 +531,6 @@ def _check_values(scene: Scene):
         mesh = col.get("mesh")
         if mesh is not None and not scene.resolve(mesh).is_file():
             raise SceneError(f"{where}.mesh: file not found: {scene.resolve(mesh)} (paths are relative to the scene file)")
-        axis = col.get("axis")
-        if axis is not None and math.sqrt(sum(a * a for a in axis)) < 1e-12:
-            raise SceneError(f"{where}.axis: must not be the zero vector")
         times = [k.get("time") for k in col.get("keyframes", [])]
         if any(t is None for t in times):
             raise SceneError(f"{where}.keyframes: every keyframe needs a time [s]")
@@ -549,31 +586,44 @@ def build_model(scene: Scene, device=None, requires_grad: bool = False):
                      global_damping=float(scene.get("forces.global_damping")))
     cloth = _add_cloth(b, scene)
     for i, pin in enumerate(scene.data.get("pins", [])):
-        b.pin(_selection(cloth, pin, f"pins[{i}]"), stiffness=pin.get("stiffness"))
+        with _scene_key(f"pins[{i}]"):
+            b.pin(_selection(cloth, pin, f"pins[{i}]"), stiffness=pin.get("stiffness"))
     for i, h in enumerate(scene.data.get("handles", [])):
         kfs = [Keyframe(float(k["time"]), tuple(map(float, k.get("translation", [0.0, 0.0, 0.0]))), _rotation_q(k.get("rotation")))
                for k in h["keyframes"]]
-        b.add_handle(_selection(cloth, h, f"handles[{i}]"), kfs, name=f"handle{i}")
+        with _scene_key(f"handles[{i}]"):
+            b.add_handle(_selection(cloth, h, f"handles[{i}]"), kfs, name=f"handle{i}")
     for i, col in enumerate(scene.data.get("colliders", [])):
         _add_collider(b, scene, col, i)
     if scene.get("collision.self_collision"):
-        b.enable_self_collision(float(scene.get("collision.thickness")), float(scene.get("collision.friction")),
-                                scene.get("collision.stiffness"))
+        with _scene_key("collision"):
+            b.enable_self_collision(float(scene.get("collision.thickness")), float(scene.get("collision.friction")),
+                                    scene.get("collision.stiffness"))
     jitter = float(scene.get("cloth.jitter"))
     if jitter > 0.0:
         _jitter(b, cloth, jitter, int(scene.get("scene.seed")))
-    return b.finalize(device, requires_grad=requires_grad)
+    with _scene_key("cloth"):
+        return b.finalize(device, requires_grad=requires_grad)
+
+
+@contextlib.contextmanager
+def _scene_key(path: str):
+    """Re-raise an API refusal (InvalidValue, MeshError) met while building as a SceneError under `path`."""
+    from .topology import MeshError
+
+    try:
+        yield
+    except (InvalidValue, MeshError) as exc:
+        raise SceneError(f"{path}: {exc}") from exc
 
 
 def _add_cloth(b, scene: Scene):
     """Add the scene's cloth (grid, disc or mesh) to builder `b`; returns its handle."""
-    from .topology import MeshError
-
     common = dict(position=tuple(scene.get("cloth.position")), rotation=_rotation_q(scene.data.get("cloth", {}).get("rotation")),
                   velocity=tuple(scene.get("cloth.velocity")), material=build_material(scene),
                   spring_model=scene.get("cloth.spring_model"), name=scene.get("cloth.name"))
     mesh = scene.data.get("cloth", {}).get("mesh")
-    try:
+    with _scene_key("cloth.mesh" if mesh is not None else "cloth"):
         if scene.data.get("cloth", {}).get("disc") is not None:
             cloth = b.add_cloth_disc(radius=float(scene.get("cloth.disc.radius")), rings=int(scene.get("cloth.disc.rings")), **common)
         elif mesh is not None:
@@ -582,8 +632,6 @@ def _add_cloth(b, scene: Scene):
         else:
             cloth = b.add_cloth_grid(resolution=tuple(scene.get("cloth.grid.resolution")), size=tuple(scene.get("cloth.grid.size")),
                                      **common)
-    except MeshError as exc:
-        raise SceneError(f"cloth.mesh: {exc}") from exc
     return cloth
 
 
@@ -674,9 +722,7 @@ def _rows(schema, prefix):
         path = f"{prefix}.{name}" if prefix else name
         if isinstance(sub, Key):
             allowed = " \\| ".join(f"`{a}`" for a in sub.allowed)
-            rng = ""
-            if sub.minimum is not None:
-                rng = f"{'>' if sub.exclusive_minimum else '>='} {sub.minimum:g}"
+            rng = "" if sub.limits is None else str(dataclasses.replace(sub.limits, unit=""))
             default = "—" if sub.default is None else f"`{json.dumps(sub.default)}`"
             yield f"| `{path}` | {_kind_text(sub)} | {sub.unit or ''} | {default} | {allowed or rng} | {sub.doc} |"
         elif isinstance(sub, Tables):
@@ -709,6 +755,13 @@ def schema_markdown() -> str:
         "",
         "Notes:",
         "",
+        "- Ranges: every number must lie in its `allowed` range (per component for vectors; `length` bounds a vector's",
+        "  length) and be representable in float32, the kernels' precision (nothing that float32 rounds to 0 or inf).",
+        "  The ranges are generous (no real cloth needs more) and live in one table, `LIMITS` in",
+        "  cloth_warp/validation.py, which the Python API uses too.",
+        f"- Size and run length are bounded before anything is allocated: building takes about {BUILD_BYTES_PER_PARTICLE / 1e3:g} kB per",
+        "  particle (a grid of nx x ny cells has (nx + 1)(ny + 1) particles, a disc 1 + 3 rings (rings + 1)), at most this",
+        f"  machine's memory; a run takes at most {format_number(MAX_STEPS)} steps (output.frames x solver.substeps).",
         "- Material: a preset gives every value (sources in cloth_warp/materials.py); the other keys override it.",
         "- Grid: the cloth lies in its local xy-plane from (0, 0) to `size`; `rotation` then `position` place it.",
         "  UVs span [0, 1]^2 over the grid. Named selections refer to the grid's local axes (`top` = local +y).",

@@ -26,6 +26,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .validation import LIMITS, MESH_SECONDS_PER_PARTICLE, check_build_size, check_number, check_vector
+
 log = logging.getLogger(__name__)
 
 
@@ -179,12 +181,9 @@ def grid_topology(
       the diagonal weight 4 s A_v / (c0 cos^4 phi d) (A_v = ax ay, d = diagonal segment length); those
       nodes use the plate modulus B / (1 - s^2) (see PLATE_FROM_STRIP).
     """
-    nx, ny = (int(resolution[0]), int(resolution[1]))
-    sx, sy = (float(size[0]), float(size[1]))
-    if nx < 1 or ny < 1:
-        raise ValueError(f"grid resolution must be at least 1 x 1 cells, got {resolution}")
-    if not (np.isfinite(sx) and np.isfinite(sy)) or sx <= 0.0 or sy <= 0.0:
-        raise ValueError(f"grid size must be positive and finite [m], got {size}")
+    nx, ny = check_vector("resolution", resolution, LIMITS["resolution"], size=2)
+    sx, sy = check_vector("size", size, LIMITS["length"], size=2)
+    check_grid_size("resolution", nx, ny)
     ax, ay = sx / nx, sy / ny
     xs, ys = np.meshgrid(np.linspace(0.0, sx, nx + 1), np.linspace(0.0, sy, ny + 1))
     positions = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], axis=1)
@@ -253,6 +252,16 @@ def grid_topology(
                          corner_uv=corner_uv, corner_weights=corner_weights)
 
 
+def check_grid_size(name: str, nx: int, ny: int):
+    """Refuse a grid of nx x ny cells that would not fit in memory (estimated before allocating)."""
+    check_build_size(name, f"a {nx} x {ny} grid", (nx + 1) * (ny + 1))
+
+
+def check_disc_size(name: str, rings: int):
+    """Refuse a disc of `rings` rings (1 + 3 rings (rings + 1) particles) that would not fit in memory."""
+    check_build_size(name, f"a disc of {rings} rings", 1 + 3 * rings * (rings + 1), MESH_SECONDS_PER_PARTICLE)
+
+
 def _add_bend(sl: _SpringList, i: int, j: int, middle: int, weight_b: float, span: float, choi_ko: bool):
     if choi_ko:
         sl.add(i, j, SpringKind.BEND, SpringLaw.BUCKLING, weight_b, middle)
@@ -268,11 +277,9 @@ def disc_mesh(radius: float, rings: int) -> tuple[np.ndarray, np.ndarray]:
     """A disc of `radius` [m] in the local xy-plane centred at the origin, meshed in `rings` concentric
     rings (ring k has 6k vertices evenly spaced, so every triangle has edges close to radius / rings).
     Returns (vertices (1 + 3 rings (rings + 1), 3), triangles) with counter-clockwise winding (+z normal)."""
-    if not (np.isfinite(radius) and radius > 0.0):
-        raise ValueError(f"disc radius must be positive [m], got {radius!r}")
-    if int(rings) < 1:
-        raise ValueError(f"disc needs at least 1 ring, got {rings!r}")
-    rings = int(rings)
+    radius = check_number("radius", radius, LIMITS["length"])
+    rings = check_number("rings", rings, LIMITS["rings"])
+    check_disc_size("rings", rings)
     verts = [np.zeros(3)]
     starts = [0]
     for k in range(1, rings + 1):
@@ -386,6 +393,83 @@ def edge_triangles(triangles: np.ndarray):
     return edges, splits
 
 
+def orient_triangles(vertices: np.ndarray, triangles: np.ndarray, corner_uv: np.ndarray | None = None,
+                     issues: list[str] | None = None) -> np.ndarray:
+    """Which triangles to flip (a boolean mask) so that every connected piece of the mesh is wound consistently.
+
+    Two triangles sharing a manifold edge must traverse it in opposite directions. Each piece then faces the
+    way that best matches the data: a closed piece outward (positive enclosed volume: a collider's solid side,
+    the cache's normals); an open piece with UVs the way its UV layout turns (counter-clockwise in uv, as a grid
+    is built); otherwise the way most of its area was already wound. Flips and non-orientable pieces (a
+    Moebius band: no consistent choice) are recorded in `issues`.
+    """
+    t = np.asarray(triangles, np.int64)
+    n = len(t)
+    flip = np.zeros(n, bool)
+    if n == 0:
+        return flip
+    src, dst = t.ravel(), np.roll(t, -1, axis=1).ravel()
+    tri_of = np.repeat(np.arange(n), 3)
+    key = np.minimum(src, dst) * (int(t.max()) + 1) + np.maximum(src, dst)
+    order = np.argsort(key, kind="stable")
+    k = key[order]
+    starts = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
+    counts = np.diff(np.r_[starts, len(k)])
+    pairs = starts[counts == 2]
+    t1, t2 = tri_of[order[pairs]], tri_of[order[pairs + 1]]
+    # Same direction along the shared edge means one of the two must flip (parity 1).
+    parity = (src[order[pairs]] < dst[order[pairs]]) == (src[order[pairs + 1]] < dst[order[pairs + 1]])
+    open_tri = np.zeros(n, bool)
+    open_tri[tri_of[order[np.repeat(counts, counts) != 2]]] = True  # on a boundary or non-manifold edge
+    adjacency = [[] for _ in range(n)]
+    for a, b, p in zip(t1.tolist(), t2.tolist(), parity.tolist()):
+        adjacency[a].append((b, p))
+        adjacency[b].append((a, p))
+    x = np.asarray(vertices, np.float64)[t]
+    cross = np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0])
+    area = 0.5 * np.linalg.norm(cross, axis=1)
+    volume = np.einsum("ij,ij->i", x[:, 0], cross) / 6.0
+    uv_turn = None
+    if corner_uv is not None:
+        e1, e2 = corner_uv[:, 1] - corner_uv[:, 0], corner_uv[:, 2] - corner_uv[:, 0]
+        uv_turn = np.sign(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+    # Walk each piece, fixing every triangle's flip relative to the piece's first one; count contradictions.
+    piece_of, flip_of, conflicts = [-1] * n, [False] * n, []
+    for seed in range(n):
+        if piece_of[seed] >= 0:
+            continue
+        c = len(conflicts)
+        conflicts.append(0)
+        piece_of[seed], stack = c, [seed]
+        while stack:
+            a = stack.pop()
+            for b, p in adjacency[a]:
+                if piece_of[b] < 0:
+                    piece_of[b], flip_of[b] = c, flip_of[a] ^ p
+                    stack.append(b)
+                elif flip_of[b] != flip_of[a] ^ p:
+                    conflicts[c] += 1  # each contradicting edge is met from both sides
+    piece, flip, conflicts = np.asarray(piece_of), np.asarray(flip_of), np.asarray(conflicts) // 2
+    count = len(conflicts)
+    sign = np.where(flip, -1.0, 1.0)
+    closed = (np.bincount(piece, open_tri, count) == 0) & (conflicts == 0)
+    uv_area = np.bincount(piece, sign * uv_turn * area, count) if uv_turn is not None else np.zeros(count)
+    majority = np.bincount(piece, area * flip, count) > 0.5 * np.bincount(piece, area, count)
+    invert = np.where(closed, np.bincount(piece, sign * volume, count) < 0.0, np.where(uv_area != 0.0, uv_area < 0.0, majority))
+    flip ^= invert[piece]
+    if issues is not None:
+        if flip.any():
+            basis = np.where(closed, 0, np.where(uv_area != 0.0, 1, 2))[np.unique(piece[flip])]
+            reasons = [r for k, r in enumerate(("outward on closed surfaces", "following the UV layout", "following the majority"))
+                       if k in basis]
+            issues.append(f"reoriented {int(flip.sum())} of {n} triangle(s) so the winding is consistent "
+                          f"({', '.join(reasons)}; first: triangle {int(np.flatnonzero(flip)[0])})")
+        if conflicts.any():
+            issues.append(f"the mesh is not orientable (a Moebius-like band): {int(conflicts.sum())} edge(s) join triangles "
+                          "of opposite winding whatever the choice; normals flip across them")
+    return flip
+
+
 # Bend springs on general meshes join two neighbours a, b of a vertex v when the angle a-v-b is at
 # least this (degrees): the discrete "straight line through v" of the two-ring.
 MESH_BEND_MIN_ANGLE_DEG = 150.0
@@ -416,12 +500,15 @@ def mesh_topology(
     are reported. Degenerate and duplicate triangles are dropped and reported.
     """
     v, t = validate_mesh(vertices, triangles)
+    check_build_size("vertices", f"a mesh of {len(v)} vertices", len(v), MESH_SECONDS_PER_PARTICLE)
     issues: list[str] = []
     corner_uv = None
     if uvs is not None:
         uv = np.asarray(uvs, np.float64)
         if uv.shape != (len(v), 2):
             raise MeshError(f"mesh uvs must have shape ({len(v)}, 2), got {uv.shape}")
+        if not np.all(np.isfinite(uv)):
+            raise MeshError(f"mesh uvs: {int((~np.isfinite(uv)).any(1).sum())} texture coordinate(s) are not finite")
     render_to_particle = None
     if weld:
         particles, t_welded, render_to_particle = weld_vertices(v, t)
@@ -435,6 +522,13 @@ def mesh_topology(
         # Face-varying UVs per corner of the surviving triangles (seams survive in the cache).
         idx = _surviving_triangle_rows(keep_tri, t_clean)
         corner_uv = uv[t[idx]]
+    flip = orient_triangles(particles, t_clean, corner_uv, issues)
+    if flip.any():
+        t_clean = t_clean.copy()
+        t_clean[flip] = t_clean[flip][:, [0, 2, 1]]
+        if corner_uv is not None:
+            corner_uv = corner_uv.copy()
+            corner_uv[flip] = corner_uv[flip][:, [0, 2, 1]]
     used = np.zeros(len(particles), bool)
     used[t_clean.ravel()] = True
     if not used.all():

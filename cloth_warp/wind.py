@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .validation import LIMITS, check_direction, check_number, check_vector
+
 
 class GustyWind:
     """Wind velocity w(t) [m/s]: the mean wind scaled by 1 + strength g(t) and turned about the up axis by
@@ -23,12 +25,12 @@ class GustyWind:
 
     def __init__(self, mean=(0.0, 0.0, 0.0), *, strength: float = 0.0, period: float = 1.0, turn: float = 0.0,
                  up=(0.0, 1.0, 0.0), seed: int = 0):
-        self.mean = np.asarray(mean, np.float64).reshape(3)
-        self.strength, self.period, self.turn = float(strength), float(period), float(turn)
-        if self.period <= 0.0:
-            raise ValueError(f"gust period must be positive [s], got {period!r}")
-        self.up = np.asarray(up, np.float64) / np.linalg.norm(up)
-        rng = np.random.default_rng(seed)
+        self.mean = np.asarray(check_vector("mean", mean, LIMITS["velocity"]), np.float64)
+        self.strength = check_number("strength", strength, LIMITS["gust_strength"])
+        self.period = check_number("period", period, LIMITS["gust_period"])
+        self.turn = check_number("turn", turn, LIMITS["gust_turn"])
+        self.up = check_direction("up", up)
+        rng = np.random.default_rng(check_number("seed", seed, LIMITS["seed"]))
         self._freq = rng.uniform(0.5, 2.0, size=(2, 4)) / self.period
         self._phase = rng.uniform(0.0, 2.0 * np.pi, size=(2, 4))
 

@@ -58,9 +58,9 @@ def test_scene_reference_page_is_current():
         ({"pins": {"select": "corners"}}, "pins: expected an array of tables"),
         # out-of-range values
         ({"solver.substeps": 0}, "solver.substeps: must be >= 1, got 0"),
-        ({"material.stretch_stiffness": 0.0}, "material.stretch_stiffness: must be > 0 [N/m]"),
-        ({"output.fps": -24}, "output.fps: must be > 0"),
-        ({"cloth.grid.size": [1.0, 0.0]}, "cloth.grid.size: must be > 0 [m]"),
+        ({"material.stretch_stiffness": 0.0}, "material.stretch_stiffness: must be >= 0.001 N/m, got 0.0 (allowed: [0.001, 1e9] N/m)"),
+        ({"output.fps": -24}, "output.fps: must be >= 0.01 1/s"),
+        ({"cloth.grid.size": [1.0, 0.0]}, "cloth.grid.size[1]: must be >= 1e-5 m"),
         # values outside a fixed set
         ({"solver.integrator": "verlet"}, "solver.integrator: 'verlet' is not allowed; allowed: implicit_euler"),
         ({"material.preset": "velvet"}, "material.preset: 'velvet' is not allowed; allowed: cotton, denim, silk"),
@@ -79,7 +79,7 @@ def test_scene_reference_page_is_current():
          "colliders[0].kinetic_friction: 0.4 exceeds the static coefficient 0.2"),
         ({"colliders": [{"type": "mesh", "mesh": "nowhere.obj"}]}, "colliders[0].mesh: file not found"),
         ({"colliders": [{"type": "plane", "axis": [0, 0, 0]}]}, "colliders[0].axis: must not be the zero vector"),
-        ({"colliders": [{"type": "sphere", "radius": -1.0}]}, "colliders[0].radius: must be > 0 [m]"),
+        ({"colliders": [{"type": "sphere", "radius": -1.0}]}, "colliders[0].radius: must be >= 1e-5 m"),
         ({"colliders": [{"type": "plane"}, {"type": "plane", "name": "plane0"}]}, "colliders[1].name: 'plane0' is used"),
         ({"collision.friction": -0.1}, "collision.friction: must be >= 0"),
         ({"cloth.disc": {"rings": 4}}, "cloth.disc.radius: a disc cloth needs its radius"),
