@@ -272,6 +272,35 @@ class SelfCollisionGrid:
             return self.fresh["triangles"], self.fresh["points"]
         return self.fresh["edges"], self.fresh["edges"]
 
+    # -- checkpoints ---------------------------------------------------------------------------------------------
+    def checkpoint_state(self) -> dict:
+        """Buffer capacities and counters (they grow and are kept from step to step; every step starts with a
+        full build, so nothing else carries over). Restoring them makes a restored run allocate, hash and
+        count exactly as the run it continues."""
+        out = {f"{name}_entry_capacity": s.entry_capacity for name, s in self.element_sets() if s.grid}
+        for name, buf in self.pair_buffers():
+            out[f"{name}_capacity"] = buf.capacity
+            out[f"{name}_grown"] = buf.grown
+        out.update(builds=self.builds, patches=self.patches)
+        return out
+
+    def restore_state(self, state: dict) -> None:
+        for name, s in self.element_sets():
+            key = f"{name}_entry_capacity"
+            if s.grid and key in state and int(state[key]) != s.entry_capacity:
+                s._allocate_entries(int(state[key]))
+        for name, buf in self.pair_buffers():
+            if int(state[f"{name}_capacity"]) != buf.capacity:
+                buf._allocate(int(state[f"{name}_capacity"]))
+            buf.grown = int(state[f"{name}_grown"])
+        self.builds, self.patches = int(state["builds"]), int(state["patches"])
+        self.invalidate()
+
+    def pair_buffers(self):
+        """(name, :class:`PairBuffer`) of the full and the patch searches."""
+        return (("vertex_face", self.vertex_face), ("edge_edge", self.edge_edge), ("patch_vertex_face", self.patch_vertex_face),
+                ("patch_edge_edge", self.patch_edge_edge))
+
     @property
     def reference_velocity(self) -> wp.array:
         """Per particle, the velocity [m/s] its registered trajectory was built with."""

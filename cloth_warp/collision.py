@@ -64,6 +64,22 @@ class CollisionHandler:
         if self.self_collision is not None:
             self.self_collision.reset_counts()
 
+    def checkpoint_state(self) -> dict:
+        """What carries from one frame to the next: with self-collision, its state (see
+        :meth:`SelfCollision.checkpoint_state <cloth_warp.selfcollision.SelfCollision.checkpoint_state>`); the
+        collider pass keeps nothing (poses come from the control, counters are per frame)."""
+        if self.self_collision is None:
+            return {}
+        return {f"self.{k}": v for k, v in self.self_collision.checkpoint_state().items()}
+
+    def restore_state(self, state: dict) -> None:
+        if self.self_collision is not None:
+            sub = {k[len("self."):]: v for k, v in state.items() if k.startswith("self.")}
+            if not sub:
+                raise ValueError("the checkpoint holds no self-collision state, this model has self-collision on")
+            self.self_collision.restore_state(sub)
+        self.reset_counts()
+
     def read_counts(self) -> dict:
         """The counters as ints (small device-to-host copies); with self-collision also its counters
         (see :class:`~cloth_warp.selfcollision.SelfCollision`)."""

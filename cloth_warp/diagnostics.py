@@ -1,9 +1,10 @@
-"""Step statistics: max strain, kinetic energy, max speed, non-finite values."""
+"""Step statistics: max strain, kinetic energy, max speed, non-finite values, work done by gravity."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import warp as wp
 
 from .kernels import diagnostics as kd
@@ -19,12 +20,16 @@ class StepStats:
         kinetic_energy: of the free (unpinned) particles [J].
         max_speed: of the free particles [m/s].
         nonfinite: number of particles with a NaN/Inf position or velocity.
+        gravity_work: the work gravity has done on the free particles since the model's initial
+            positions, sum m g . (x - x_initial) [J] (positive when the cloth has come down; the divergence
+            bounds use it, see :class:`~cloth_warp.solvers.adaptive.DivergenceBounds`).
     """
 
     max_strain: float
     kinetic_energy: float
     max_speed: float
     nonfinite: int
+    gravity_work: float = 0.0
 
     @property
     def finite(self) -> bool:
@@ -32,12 +37,23 @@ class StepStats:
 
 
 class Diagnostics:
-    """Measures :class:`StepStats` with one kernel launch and one 16-byte read."""
+    """Measures :class:`StepStats` with one kernel launch and one 20-byte read."""
 
     def __init__(self, model: Model):
         self.model = model
-        self.stats = wp.zeros(4, dtype=float, device=model.device)
-        self.total_mass_free = float(model.particle_mass.numpy()[model.particle_pinned.numpy() == 0].sum())
+        self.stats = wp.zeros(5, dtype=float, device=model.device)
+        mass = model.particle_mass.numpy().astype(np.float64)
+        free = model.particle_pinned.numpy() == 0
+        self.total_mass_free = float(mass[free].sum())
+        # gravity's potential is measured from the free particles' initial centre of mass (small float32 sums),
+        # and its initial value in float64 is subtracted on the host
+        x0 = model.particle_q.numpy().astype(np.float64)
+        g = np.asarray(model.gravity, np.float64)
+        origin = (mass[free, None] * x0[free]).sum(0) / self.total_mass_free if self.total_mass_free > 0.0 else np.zeros(3)
+        self._origin = wp.vec3(*origin.astype(np.float32))
+        self._gravity = wp.vec3(*g.astype(np.float32))
+        origin32 = origin.astype(np.float32).astype(np.float64)
+        self._potential0 = float((mass[free] * ((x0[free] - origin32) @ g)).sum()) if self.total_mass_free > 0.0 else 0.0
 
     def measure(self, state: State) -> StepStats:
         m = self.model
@@ -46,9 +62,10 @@ class Diagnostics:
             kd.eval_step_statistics,
             dim=m.particle_count,
             inputs=[m.particle_spring_offsets, m.particle_spring_ids, m.particle_spring_role, m.spring_indices, m.spring_rest_length,
-                    m.spring_limited, m.particle_mass, m.particle_pinned, state.particle_q, state.particle_qd],
+                    m.spring_limited, m.particle_mass, m.particle_pinned, state.particle_q, state.particle_qd, self._gravity,
+                    self._origin],
             outputs=[self.stats],
             device=m.device,
         )
         s = self.stats.numpy()
-        return StepStats(float(s[0]), float(s[1]), float(s[2]), int(s[3]))
+        return StepStats(float(s[0]), float(s[1]), float(s[2]), int(s[3]), float(s[4]) - self._potential0)

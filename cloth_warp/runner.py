@@ -283,9 +283,8 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
         if cusick is not None:
             summary["drape_coefficient"] = _drape_coefficient(scene, model, sim.positions())
     except SimulationDiverged as exc:
-        summary.update(status="diverged", message=str(exc),
-                       diagnosis={"frame": start + summary["frames"] + 1, "time_s": exc.time, "reason": exc.reason,
-                                  "max_strain": exc.max_strain, "last_dt": exc.dt, "suggested_dt": exc.suggested_dt})
+        # frame: the failing frame's time code in the cache (never written)
+        summary.update(status="diverged", message=str(exc), diagnosis={**exc.diagnosis(), "frame": start + summary["frames"] + 1})
     except CacheWriteError as exc:
         summary.update(status="failed", message=str(exc))
         write_error = exc

@@ -103,6 +103,21 @@ class SelfCollision:
         out["pair_buffer_growths"] = self.grid.vertex_face.grown + self.grid.edge_edge.grown - self._grown0
         return out
 
+    # -- checkpoints -----------------------------------------------------------------------------
+    def checkpoint_state(self) -> dict:
+        """What carries from one step to the next: the broad phase's buffer capacities and counters and the
+        patch double buffer's parity. (Each step starts afresh otherwise: :meth:`begin_step` drops the last
+        step's grid and resolved velocities; counters are per frame.)"""
+        out = {f"grid.{k}": v for k, v in self.grid.checkpoint_state().items()}
+        out["flip"] = bool(self._flip)
+        return out
+
+    def restore_state(self, state: dict) -> None:
+        self.grid.restore_state({k[len("grid."):]: v for k, v in state.items() if k.startswith("grid.")})
+        self._flip = bool(state["flip"])
+        self._resolved = None
+        self.reset_counts()
+
     # -- buffers ---------------------------------------------------------------------------------
     def _buffer(self, key: str, dtype, fresh: bool, shape=None) -> wp.array:
         shape = self.model.particle_count if shape is None else shape

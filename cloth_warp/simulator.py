@@ -3,17 +3,26 @@
 from __future__ import annotations
 
 import logging
+import math
 import time as _time
 
+import numpy as np
 import warp as wp
 
 from .diagnostics import Diagnostics, StepStats
 from .model import Model
-from .solvers.adaptive import AdaptiveStepper, SimulationDiverged, StepCheck
+from .solvers.adaptive import AdaptiveStepper, DivergenceBounds, SimulationDiverged, StepCheck
 from .solvers.base import SolverBase
 from .solvers.implicit import SolverImplicitEuler
 
 log = logging.getLogger(__name__)
+
+CHECKPOINT_VERSION = 1
+
+
+def _scalar(value):
+    """A checkpoint value as a Python scalar (a 0-d array from an .npz comes back as one)."""
+    return value.item() if isinstance(value, np.ndarray) and value.ndim == 0 else value
 
 
 class Simulator:
@@ -25,12 +34,22 @@ class Simulator:
     animated handles and colliders (their targets and poses are updated on the host each substep), for the implicit solver
     (its iterative solve checks convergence on the host) and for self-collision (its broad phase sizes buffers on the host).
 
+    Divergence: after every frame, on every path (captured or not, adaptive or not, any integrator), the new
+    state is checked against the scene's :class:`~cloth_warp.solvers.adaptive.DivergenceBounds` (non-finite
+    values, strain, speed and kinetic energy relative to what the scene can give; thresholds in
+    :class:`StepCheck`), and an implicit solve with a non-finite residual is caught after its step. Either
+    raises :class:`SimulationDiverged` before :meth:`step_frame` returns, naming the frame, time, reason, max
+    strain and a step smaller than the one that failed; `frame` and `time` then stay those of the last good
+    frame (the state arrays hold the failed step's result, or with adaptive stepping the last good step's:
+    :meth:`restore` a checkpoint to go on). The checks read the statistics measured every frame anyway.
+
     Args:
         model, solver: what to simulate and how.
         fps: frames per second of the output.
         substeps: steps per frame (dt = 1 / (fps * substeps)).
         adaptive: check steps and back off on divergence (raises SimulationDiverged when dt < dt_min).
         dt_min: the adaptive floor [s].
+        check: the thresholds (:class:`StepCheck`, defaults) of the divergence bounds and adaptive checks.
         capture: force graph capture on/off (default: when possible).
         wind: a :class:`~cloth_warp.wind.GustyWind` (or anything with ``at(time) -> vec3`` [m/s]); set on
             the control once per frame, at the frame's midpoint (a steady wind once).
@@ -38,6 +57,7 @@ class Simulator:
     After each frame, :attr:`frame_info` holds the smallest and largest step used [s], the solver
     iterations of its steps (summed) (with graph capture: the iterations are not read back, 0) and, with
     collisions, their counters summed over the frame's steps (``collider_contacts``, ``collider_ccd``).
+    :meth:`checkpoint` / :meth:`restore` save and restore everything a run carries from frame to frame.
     """
 
     def __init__(self, model: Model, solver: SolverBase, *, fps: float = 60.0, substeps: int = 1, adaptive: bool = False,
@@ -57,7 +77,9 @@ class Simulator:
         self.control = model.control(requires_grad=False)
         self.frame = 0
         self.time = 0.0
-        self.stepper = AdaptiveStepper(solver, self.dt, dt_min=dt_min, check=check) if adaptive else None
+        self.check = check or StepCheck()
+        self.bounds = DivergenceBounds(model, solver, self.check, wind=wind)
+        self.stepper = AdaptiveStepper(solver, self.dt, dt_min=dt_min, check=self.check, bounds=self.bounds) if adaptive else None
         self.diagnostics = self.stepper.diagnostics if adaptive else Diagnostics(model)
         possible = (not adaptive and not model.animated and not isinstance(solver, SolverImplicitEuler)
                     and not model.self_collision)
@@ -68,57 +90,85 @@ class Simulator:
         self.wind = wind
         if wind is not None and getattr(wind, "steady", False):
             self.control.set_wind(wind.at(0.0))
+        self.bounds.note_wind(self.control.wind.numpy()[0])
         self.frame_info = {"dt_min": self.dt, "dt_max": self.dt, "iterations": 0, "residual": 0.0}
 
     def _substeps(self):
         iterations = 0
+        checked = not self.model.device.is_capturing
         for k in range(self.substeps):
             src, dst = (self.state, self._other) if k % 2 == 0 else (self._other, self.state)
             if self.model.animated:
                 self.model.update_control(self.control, self.time + (k + 1) * self.dt, self.dt)
             self.solver.step(src, dst, self.control, self.dt)
             iterations += getattr(self.solver, "last_iterations", 0)
+            failure = getattr(self.solver, "last_failure", None) if checked else None
+            if failure is not None:
+                raise self._diverged(failure, f"{failure} in the linear solve of step {k + 1} of {self.substeps}",
+                                     self.diagnostics.measure(dst), self.time + (k + 1) * self.dt)
         self.frame_info = {"dt_min": self.dt, "dt_max": self.dt, "iterations": iterations,
                            "residual": float(getattr(self.solver, "last_residual", 0.0))}
         if self.substeps % 2 == 1:
             self.state.assign(self._other)
 
     def step_frame(self) -> StepStats:
-        """Advance one frame; returns the statistics of the new state."""
+        """Advance one frame; returns the statistics of the new state (raises :class:`SimulationDiverged`
+        instead when it is beyond the scene's divergence bounds, see the class)."""
         t0 = _time.perf_counter()
         collisions = getattr(self.solver, "collisions", None)
         if collisions is not None:
             collisions.reset_counts()
         if self.wind is not None and not getattr(self.wind, "steady", False):
-            self.control.set_wind(self.wind.at(self.time + 0.5 * self.frame_dt))
-        if self.stepper is not None:
-            self.stepper.advance(self.state, self.control, self.time, self.frame_dt)
-            r = self.stepper.interval
-            self.frame_info = {"dt_min": r.dt_min, "dt_max": r.dt_max, "iterations": r.iterations,
-                               "residual": float(getattr(self.solver, "last_residual", 0.0)), "rejected": r.rejected}
-        elif self.capture:
-            if self._graph is None:
-                with wp.ScopedCapture(device=self.model.device) as cap:
-                    self._substeps()
-                self._graph = cap.graph
-            wp.capture_launch(self._graph)
-            self.frame_info = {"dt_min": self.dt, "dt_max": self.dt, "iterations": 0, "residual": 0.0}
-        else:
-            self._substeps()
+            w = self.wind.at(self.time + 0.5 * self.frame_dt)
+            self.control.set_wind(w)
+            self.bounds.note_wind(w)
+        try:
+            if self.stepper is not None:
+                self.stepper.advance(self.state, self.control, self.time, self.frame_dt)
+                r = self.stepper.interval
+                self.frame_info = {"dt_min": r.dt_min, "dt_max": r.dt_max, "iterations": r.iterations,
+                                   "residual": float(getattr(self.solver, "last_residual", 0.0)), "rejected": r.rejected}
+            elif self.capture:
+                if self._graph is None:
+                    with wp.ScopedCapture(device=self.model.device) as cap:
+                        self._substeps()
+                    self._graph = cap.graph
+                wp.capture_launch(self._graph)
+                self.frame_info = {"dt_min": self.dt, "dt_max": self.dt, "iterations": 0, "residual": 0.0}
+            else:
+                self._substeps()
+        except SimulationDiverged as exc:
+            self.wall_time += _time.perf_counter() - t0
+            raise exc.in_frame(self.frame + 1) from None
         if collisions is not None:
             self.frame_info.update(collisions.read_counts())
-        self.frame += 1
-        self.time = self.frame * self.frame_dt
+        end = (self.frame + 1) * self.frame_dt
         stats = self.diagnostics.measure(self.state)
+        bad = self.bounds.violation(stats)
         self.wall_time += _time.perf_counter() - t0
-        if not stats.finite:
-            raise SimulationDiverged(
-                f"simulation diverged in frame {self.frame} (t = {self.time:.6g} s): {stats.nonfinite} particles non-finite; "
-                f"try adaptive stepping, more substeps or the implicit_euler integrator",
-                time=self.time, dt=self.dt, max_strain=stats.max_strain, reason="non-finite", suggested_dt=self.dt / 2,
-            )
+        if bad is not None:
+            raise self._diverged(bad[0], bad[1], stats, end).in_frame(self.frame + 1)
+        self.frame += 1
+        self.time = end
         self.last_stats = stats
         return stats
+
+    def _diverged(self, kind: str, reason: str, stats: StepStats, t: float) -> SimulationDiverged:
+        """The diagnosis of a fixed-step run that failed at time t: the step to try is a whole number of
+        substeps per frame, strictly smaller than the one that failed."""
+        suggested = self.bounds.suggest_dt(self.dt)
+        substeps = max(self.substeps + 1, math.ceil(self.frame_dt / suggested * (1.0 - 1e-12)))
+        suggested = self.frame_dt / substeps
+        if self.solver.name == "explicit_euler":
+            other = "; explicit Euler gains energy at any step: symplectic_euler or implicit_euler are the stable choices"
+        elif self.solver.stability is not None:
+            other = ", stronger strain limiting, adaptive stepping or the implicit_euler integrator"
+        else:
+            other = ", adaptive stepping or a tighter solver tolerance"
+        detail = (f"{reason}; max strain {stats.max_strain:.3g}, max speed {stats.max_speed:.3g} m/s, kinetic energy "
+                  f"{stats.kinetic_energy:.3g} J; dt {self.dt:.3g} s: try solver.substeps >= {substeps} (dt <= {suggested:.3g} s){other}")
+        return SimulationDiverged(time=t, dt=self.dt, max_strain=stats.max_strain, reason=reason, kind=kind, suggested_dt=suggested,
+                                  max_speed=stats.max_speed, kinetic_energy=stats.kinetic_energy, detail=detail)
 
     def positions(self):
         """A copy of the current particle positions [m], shape (particle_count, 3).
@@ -126,3 +176,103 @@ class Simulator:
         (On the CPU, ``wp.array.numpy()`` is a view that the next frame overwrites.)
         """
         return self.state.particle_q.numpy().copy()
+
+    # -- checkpoints ------------------------------------------------------------------------------------------------
+    def checkpoint(self) -> dict:
+        """Everything this run carries from one frame to the next, as numpy arrays and Python scalars (an
+        ``np.savez`` without pickling stores it exactly).
+
+        A fresh Simulator built the same way (same model, solver options, fps, substeps, adaptive, wind) and
+        :meth:`restore`\\ d from the checkpoint taken after frame K gives frames K+1, ... bit-identical to the
+        uninterrupted run on the CPU. Keys:
+
+        * ``version``, ``particle_count``, ``fps``, ``substeps``, ``adaptive``: what the checkpoint fits;
+        * ``frame``, ``time`` [s], ``wall_time`` [s]; ``particle_q`` [m] and ``particle_qd`` [m/s], (n, 3) float32;
+        * ``control.pin_target``, ``control.wind``, ``control.collider_transform_start`` / ``_end``,
+          ``control.time``: the control as the last step left it (handle targets and collider poses are set
+          again from the keyframes before every step, the gusty wind before every frame; they are kept so that
+          a control set by hand survives too);
+        * ``last_stats``: the last frame's statistics (5 numbers, when there is one);
+        * ``solver.*``: the solver's (:meth:`SolverBase.checkpoint_state`): its name; implicit Euler's warm
+          start (``solver.dv_previous``, ``solver.has_previous``); with self-collision the broad phase's
+          buffer capacities and counters (``solver.collisions.self.*``);
+        * ``stepper.*`` (adaptive only): the current dt, the good steps since the last change, the statistics of
+          the last accepted step, the run's report;
+        * ``bounds.wind_speed``: the strongest wind the divergence bounds have seen.
+
+        Nothing else persists: the strain limiter sweeps each step from the integrator's output, the collider
+        pass keeps no state, the gusty wind is a function of time, deforming colliders are set from their point
+        cache before each step, and the solvers' scratch buffers are written before they are read.
+        """
+        q = self.state.particle_q.numpy().copy()
+        qd = self.state.particle_qd.numpy().copy()
+        c = self.control
+        out = {
+            "version": CHECKPOINT_VERSION, "particle_count": int(self.model.particle_count), "fps": self.fps, "substeps": self.substeps,
+            "adaptive": self.stepper is not None, "frame": int(self.frame), "time": float(self.time), "wall_time": float(self.wall_time),
+            "particle_q": q, "particle_qd": qd,
+            "control.pin_target": c.pin_target.numpy().copy(), "control.wind": c.wind.numpy().copy(),
+            "control.collider_transform_start": c.collider_transform_start.numpy().copy(),
+            "control.collider_transform_end": c.collider_transform_end.numpy().copy(), "control.time": float(c.time),
+        }
+        if self.last_stats is not None:
+            s = self.last_stats
+            out["last_stats"] = np.array([s.max_strain, s.kinetic_energy, s.max_speed, s.nonfinite, s.gravity_work], np.float64)
+        out.update({f"solver.{k}": v for k, v in self.solver.checkpoint_state().items()})
+        if self.stepper is not None:
+            out.update({f"stepper.{k}": v for k, v in self.stepper.checkpoint_state().items()})
+        out.update({f"bounds.{k}": v for k, v in self.bounds.checkpoint_state().items()})
+        return out
+
+    def restore(self, checkpoint: dict) -> None:
+        """Continue from a :meth:`checkpoint` (of a run of the same scene: particle count, fps, substeps,
+        adaptive stepping and solver kind must match, else ValueError). The arrays are written in place, so a
+        captured frame graph stays valid."""
+        ck = {k: _scalar(v) for k, v in checkpoint.items()}
+        missing = [k for k in ("version", "particle_count", "fps", "substeps", "adaptive", "frame", "time", "particle_q", "particle_qd")
+                   if k not in ck]
+        if missing:
+            raise ValueError(f"not a simulator checkpoint: missing {', '.join(missing)}")
+        if int(ck["version"]) != CHECKPOINT_VERSION:
+            raise ValueError(f"checkpoint version {ck['version']} (this cloth_warp reads version {CHECKPOINT_VERSION})")
+        problems = []
+        if int(ck["particle_count"]) != self.model.particle_count:
+            problems.append(f"{ck['particle_count']} particles, this model has {self.model.particle_count}")
+        if float(ck["fps"]) != self.fps or int(ck["substeps"]) != self.substeps:
+            problems.append(f"{ck['fps']:g} fps x {ck['substeps']} substeps, this simulator {self.fps:g} x {self.substeps}")
+        if bool(ck["adaptive"]) != (self.stepper is not None):
+            problems.append(f"adaptive={bool(ck['adaptive'])}, this simulator adaptive={self.stepper is not None}")
+        solver_name = ck.get("solver.name", self.solver.name)
+        if solver_name != self.solver.name:
+            problems.append(f"the {solver_name} solver, this simulator uses {self.solver.name}")
+        if problems:
+            raise ValueError("checkpoint does not fit this simulator: " + "; ".join(problems))
+        n = self.model.particle_count
+
+        def vec3(key):
+            a = np.asarray(ck[key], np.float32)
+            if a.shape != (n, 3):
+                raise ValueError(f"checkpoint {key} has shape {a.shape}, expected {(n, 3)}")
+            return a
+
+        self.state.particle_q.assign(vec3("particle_q"))
+        self.state.particle_qd.assign(vec3("particle_qd"))
+        c = self.control
+        if "control.pin_target" in ck:
+            c.pin_target.assign(vec3("control.pin_target"))
+            c.wind.assign(np.asarray(ck["control.wind"], np.float32).reshape(1, 3))
+            for key in ("collider_transform_start", "collider_transform_end"):
+                arr = getattr(c, key)
+                arr.assign(np.asarray(ck[f"control.{key}"], np.float32).reshape(arr.shape[0], 7))
+            c.time = float(ck["control.time"])
+        self.solver.restore_state({k[len("solver."):]: v for k, v in ck.items() if k.startswith("solver.")})
+        if self.stepper is not None:
+            self.stepper.restore_state({k[len("stepper."):]: v for k, v in ck.items() if k.startswith("stepper.")})
+        if "bounds.wind_speed" in ck:
+            self.bounds.restore_state({"wind_speed": ck["bounds.wind_speed"]})
+        self.frame = int(ck["frame"])
+        self.time = float(ck["time"])
+        self.wall_time = float(ck.get("wall_time", 0.0))
+        s = ck.get("last_stats")
+        self.last_stats = None if s is None else StepStats(float(s[0]), float(s[1]), float(s[2]), int(s[3]), float(s[4]))
+        self.frame_info = {"dt_min": self.dt, "dt_max": self.dt, "iterations": 0, "residual": 0.0}

@@ -8,6 +8,7 @@ STAT_MAX_STRAIN = wp.constant(0)
 STAT_KINETIC_ENERGY = wp.constant(1)
 STAT_MAX_SPEED = wp.constant(2)
 STAT_NONFINITE = wp.constant(3)
+STAT_GRAVITY_POTENTIAL = wp.constant(4)
 
 
 @wp.kernel
@@ -24,10 +25,13 @@ def eval_step_statistics(
     # State
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
+    gravity: wp.vec3,
+    origin: wp.vec3,
     # outputs (zeroed by the caller)
     stats_out: wp.array(dtype=float),
 ):
-    """Max structural/shear strain, kinetic energy and max speed of free particles, non-finite count."""
+    """Max structural/shear strain, kinetic energy and max speed of free particles, non-finite count, and
+    sum over free particles of m g . (x - origin) (the work gravity did on them is its change) [J]."""
     i = wp.tid()
     xi = x[i]
     vi = v[i]
@@ -46,6 +50,7 @@ def eval_step_statistics(
         speed2 = wp.dot(vi, vi)
         wp.atomic_add(stats_out, STAT_KINETIC_ENERGY, 0.5 * particle_mass[i] * speed2)
         wp.atomic_max(stats_out, STAT_MAX_SPEED, wp.sqrt(speed2))
+        wp.atomic_add(stats_out, STAT_GRAVITY_POTENTIAL, particle_mass[i] * wp.dot(gravity, xi - origin))
 
 
 @wp.kernel

@@ -1,6 +1,6 @@
 """Integrators behind one interface: ``solver.step(state_in, state_out, control, dt)``."""
 
-from .adaptive import AdaptiveStepper, SimulationDiverged, StepCheck
+from .adaptive import AdaptiveStepper, DivergenceBounds, SimulationDiverged, StepCheck
 from .base import SolverBase, StrainLimiter
 from .explicit import (
     SolverExplicitEuler,
@@ -30,6 +30,7 @@ def make_solver(name: str, model, **options) -> SolverBase:
 
 __all__ = [
     "AdaptiveStepper",
+    "DivergenceBounds",
     "LinearSolver",
     "SOLVERS",
     "SimulationDiverged",

@@ -240,6 +240,7 @@ class SolverBase:
     """
 
     name = "base"
+    stability: float | None = None  # explicit integrators: the largest stable h omega_max
 
     def __init__(self, model: Model, *, strain_limit: float | None = 0.1, strain_limit_iterations: int = 4,
                  strain_limit_tolerance: float | None = 1.0e-3, collisions: bool = True, collision_rounds: int = 2):
@@ -255,10 +256,32 @@ class SolverBase:
             raise ValueError(f"collision_rounds must be >= 1, got {collision_rounds!r}")
         self.collision_rounds = int(collision_rounds)
         self._scratch: dict = {}
-        # Per-step solver report (iterative solvers fill these).
+        # Per-step solver report (iterative solvers fill these). last_failure names a failure that makes the
+        # step's result meaningless ("non-finite residual"), None otherwise.
         self.last_iterations = 0
         self.last_residual = 0.0
         self.converged = True
+        self.last_failure: str | None = None
+
+    # -- checkpoints ------------------------------------------------------------------------------------------
+    def checkpoint_state(self) -> dict:
+        """What this solver carries from one step to the next, as numpy arrays and scalars ({} when nothing).
+
+        The strain limiter carries nothing (each step sweeps from the integrator's output; its report is
+        per step); the collision handler's state is :meth:`CollisionHandler.checkpoint_state
+        <cloth_warp.collision.CollisionHandler.checkpoint_state>`. Scratch buffers are written before they are
+        read in every step."""
+        out = {"name": self.name}
+        if self.collisions is not None:
+            out.update({f"collisions.{k}": v for k, v in self.collisions.checkpoint_state().items()})
+        return out
+
+    def restore_state(self, state: dict) -> None:
+        """Inverse of :meth:`checkpoint_state` (on a solver of the same kind built for the same model)."""
+        if str(state.get("name", self.name)) != self.name:
+            raise ValueError(f"checkpoint of a {state.get('name')} solver, this one is {self.name}")
+        if self.collisions is not None:
+            self.collisions.restore_state({k[len("collisions."):]: v for k, v in state.items() if k.startswith("collisions.")})
 
     def scratch(self, key: str, dtype, requires_grad: bool, shape=None) -> wp.array:
         """A work array: reused across steps when not taped, fresh (and differentiable) when taped."""

@@ -20,6 +20,7 @@ from .base import SolverBase
 
 class _EulerBase(SolverBase):
     symplectic = 0
+    stability = 2.0  # h omega_max below this (physics.md 1(h))
 
     def integrate(self, state_in: State, x_out, v_out, control: Control, dt: float):
         m = self.model
@@ -92,6 +93,7 @@ class SolverMidpoint(_RungeKutta):
     """Explicit midpoint (RK2): y1 = y0 + h F(y0 + h/2 F(y0)). Energy factor 1 + z^4/4 per step."""
 
     name = "midpoint"
+    stability = 2.0
     stage_coeffs = (0.5, 0.0)
     weights = (0.0, 1.0)
 
@@ -100,5 +102,6 @@ class SolverRK4(_RungeKutta):
     """Classical fourth-order Runge-Kutta. Stable on the imaginary axis for h omega <= 2.83, slightly dissipative."""
 
     name = "rk4"
+    stability = 2.83
     stage_coeffs = (0.5, 0.5, 1.0, 0.0)
     weights = (1.0 / 6.0, 1.0 / 3.0, 1.0 / 3.0, 1.0 / 6.0)

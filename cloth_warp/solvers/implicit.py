@@ -5,6 +5,7 @@ from __future__ import annotations
 import enum
 import math
 
+import numpy as np
 import warp as wp
 
 from ..autodiff import paused_tape
@@ -34,7 +35,10 @@ class SolverImplicitEuler(SolverBase):
     constraints through the filter (velocity change prescribed, no Lagrange multipliers).
 
     Per step the solver reports `last_iterations`, `last_residual` (the relative residual
-    |r_k| / |r_0| of the filtered system) and `converged` (residual <= tolerance).
+    |r_k| / |r_0| of the filtered system), `converged` (residual <= tolerance) and `last_failure`
+    ("non-finite residual" when the system or an iterate is not finite: the step's result is meaningless;
+    the Simulator raises :class:`~cloth_warp.solvers.adaptive.SimulationDiverged`, the adaptive stepper
+    rejects the step; None otherwise).
 
     Args:
         model: the model.
@@ -172,7 +176,7 @@ class SolverImplicitEuler(SolverBase):
         scal = self.cg_scalars.numpy() if dev.is_cpu else None
         rr0 = self._reference_rr  # |S (b - A z)|^2: the zero-guess residual, also after a warm start
         iterations = 0
-        rel = math.sqrt(max(self._read(scal, 0), 0.0) / rr0) if rr0 > 1e-300 else 0.0
+        rel = self._start_residual(scal)
         stop = self._stop_residual(rel, warm)
         if rr0 > 1e-300 and rel > stop:
             bends = m.spring_count - m.linear_spring_count
@@ -218,7 +222,7 @@ class SolverImplicitEuler(SolverBase):
         rr0 = self._reference_rr
         src, dst = self.dv, self.dv_alt
         iterations = 0
-        rel = math.sqrt(max(self._read(scal, 0), 0.0) / rr0) if rr0 > 1e-300 else 0.0
+        rel = self._start_residual(scal)
         stop = self._stop_residual(rel, warm)
         if rr0 > 1e-300 and rel > stop:
             common = self._product_args()
@@ -249,6 +253,16 @@ class SolverImplicitEuler(SolverBase):
         self._report(iterations, rel)
         return src
 
+    def _start_residual(self, scal) -> float:
+        """The relative residual of the starting guess; NaN when the system is not finite (a NaN or inf
+        right-hand side, matrix or guess): the solve then does not iterate and reports a non-finite residual
+        (``last_failure``)."""
+        rr0 = self._reference_rr
+        start = self._read(scal, 0)
+        if not (math.isfinite(rr0) and math.isfinite(start)):
+            return math.nan
+        return math.sqrt(max(start, 0.0) / rr0) if rr0 > 1e-300 else 0.0
+
     def _stop_residual(self, rel_start: float, warm: bool) -> float:
         """The relative residual at which this solve stops (see `warm_start_reduction`)."""
         if not warm:
@@ -264,6 +278,22 @@ class SolverImplicitEuler(SolverBase):
         self.last_iterations = iterations
         self.last_residual = rel
         self.converged = bool(math.isfinite(rel) and rel <= self.tolerance)
+        self.last_failure = None if math.isfinite(rel) else "non-finite residual"
+
+    # -- checkpoints --------------------------------------------------------------------------
+    def checkpoint_state(self) -> dict:
+        """The warm start (the previous step's dv and whether there is one) on top of the base's state; every
+        other array is rebuilt by each step's assembly before it is read."""
+        out = super().checkpoint_state()
+        out["has_previous"] = bool(self._has_previous)
+        out["dv_previous"] = self.dv_previous.numpy().copy()
+        return out
+
+    def restore_state(self, state: dict) -> None:
+        super().restore_state(state)
+        dv = np.asarray(state["dv_previous"], np.float32).reshape(self.model.particle_count, 3)
+        self.dv_previous.assign(dv)
+        self._has_previous = bool(state["has_previous"])
 
     # -- the step ----------------------------------------------------------------------------
     def solve(self, state_in: State, control: Control, dt: float) -> wp.array:
@@ -274,9 +304,10 @@ class SolverImplicitEuler(SolverBase):
         if warm:
             self._restart_from_previous(dt)
         dv = self._iterate(dt, warm)
-        if self.warm_start:
-            wp.copy(self.dv_previous, dv)
-            self._has_previous = True
+        if self.warm_start:  # a non-finite solve is no start for the next (nor for a retry of this step)
+            if self.last_failure is None:
+                wp.copy(self.dv_previous, dv)
+            self._has_previous = self.last_failure is None
         return dv
 
     def _iterate(self, dt: float, warm: bool = False) -> wp.array:
@@ -368,7 +399,7 @@ class SolverImplicitEuler(SolverBase):
     def _adjoint_solve(self, state_in: State, control: Control, dt: float, dv: wp.array, residual: wp.array):
         """Backward of one taped step: solve S A S lam = S dL/d(dv) and add lam to dL/dr."""
         m = self.model
-        report = (self.last_iterations, self.last_residual, self.converged)
+        report = (self.last_iterations, self.last_residual, self.converged, self.last_failure)
         self.assemble(state_in, control, dt)  # the step's blocks and preconditioner (overwritten since)
         wp.copy(self.rhs, dv.grad)
         self.dv_alt.zero_()
@@ -377,5 +408,5 @@ class SolverImplicitEuler(SolverBase):
         lam = self._iterate(dt)
         self.adjoint_solves += 1
         self.adjoint_iterations += self.last_iterations
-        self.last_iterations, self.last_residual, self.converged = report
+        self.last_iterations, self.last_residual, self.converged, self.last_failure = report
         wp.launch(ki.add_vectors, dim=m.particle_count, inputs=[lam], outputs=[residual.grad], device=m.device)
