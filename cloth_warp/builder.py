@@ -5,7 +5,6 @@ from __future__ import annotations
 import logging
 import math
 import os
-import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -15,6 +14,7 @@ from . import topology as topo
 from .colliders import Collider, rotation_to_axis
 from .materials import FabricMaterial, preset
 from .model import ClothInfo, Handle, Keyframe, Model
+from .outputs import USD_SUFFIXES, usd_error_text
 from .topology import ClothTopology, MeshError, SpringKind, SpringLaw, SpringModel
 from .validation import (
     LIMITS,
@@ -647,7 +647,6 @@ def spring_constants(t: ClothTopology, material: FabricMaterial) -> tuple[np.nda
     return k, c
 
 
-USD_SUFFIXES = (".usd", ".usda", ".usdc")
 # What each mesh format's bytes look like: (name, first bytes or "text"). Random bytes are refused here with what
 # is wrong, before a reader that could only say "missing module" or fail deep inside its parser.
 MESH_FORMATS = {
@@ -758,7 +757,7 @@ def _usd_mesh_prim(path: str, prim_path: str | None):
     try:
         stage = Usd.Stage.Open(path)
     except Exception as exc:  # pxr.Tf.ErrorException: the layer does not parse
-        raise MeshError(f"cannot open {path} as USD: {_usd_error_text(exc)}") from exc
+        raise MeshError(f"cannot open {path} as USD: {usd_error_text(exc)}") from exc
     if stage is None:
         raise MeshError(f"cannot open {path} as USD")
     if prim_path is not None:
@@ -771,14 +770,6 @@ def _usd_mesh_prim(path: str, prim_path: str | None):
     if prim is None:
         raise MeshError(f"{path} holds no UsdGeom.Mesh")
     return stage, prim
-
-
-def _usd_error_text(exc) -> str:
-    """The messages inside a pxr Tf.ErrorException, without file/line prefixes and internal namespaces."""
-    text = str(exc)
-    reasons = re.findall(r"Error in '[^']*' at line \d+ in file [^:]* : '(.*?)'\s*(?=\n\s*Error in|$)", text, flags=re.DOTALL)
-    text = "; ".join(r.strip() for r in reasons) or text.strip()
-    return re.sub(r"pxrInternal_v\d+_\d+_\d+__pxrReserved___?(::)?", "", text)
 
 
 def read_usd_point_cache(path, prim_path: str | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -47,11 +47,10 @@ import platform
 import numpy as np
 
 from .outputs import (CacheWriteError, CrateRollback, OutputLock, atomic_path, atomic_write_text, check_output,  # noqa: F401
-                      partial_path, usd_error_text)
+                      partial_path, usd_error_text, USD_SUFFIXES)
 
 log = logging.getLogger(__name__)
 
-USD_SUFFIXES = (".usdc", ".usda", ".usd")
 CACHE_SUFFIXES = USD_SUFFIXES + (".npz",)
 DIAGNOSTICS = {  # per-frame custom attributes: name -> (USD type name, description)
     "maxStrain": ("float", "max structural/shear strain l/L - 1 at the end of the frame"),
@@ -268,34 +267,47 @@ def read_checkpoint(path) -> tuple[int, dict, dict]:
 def read_frames(path, model, count: int):
     """Yield (positions, velocities, diagnostics) of the first `count` frames of a cache of `model` written
     by cloth_warp (what ``--resume`` copies into the continued cache); velocities are zero where the cache
-    has none."""
+    has none. A cache that does not hold them raises :class:`CacheError`."""
     path = pathlib.Path(path)
     n = model.particle_count
     if path.suffix.lower() == ".npz":
-        with np.load(path, allow_pickle=False) as z:
+        with np.load(path, allow_pickle=False) as z:  # each z[key] decompresses the whole array: read once
+            q_all, qd_all = z["positions"], z["velocities"]
             diag = {k: z[k] for k in DIAGNOSTICS if k in z.files}
-            for k in range(count):
-                yield z["positions"][k], z["velocities"][k], {d: _diag_value(d, v[k]) for d, v in diag.items()}
+        if q_all.shape[0] < count or q_all.shape[1:] != (n, 3) or qd_all.shape != q_all.shape:
+            raise CacheError(f"{path}: holds {q_all.shape[0]} frames of shape {q_all.shape[1:]}, expected {count} of ({n}, 3)")
+        for k in range(count):
+            yield q_all[k], qd_all[k], {d: _diag_value(d, v[k]) for d, v in diag.items()}
         return
     from pxr import Usd
 
-    stage = Usd.Stage.Open(str(path), Usd.Stage.LoadAll)
-    start = int(stage.GetStartTimeCode())
-    prims = [(stage.GetPrimAtPath(f"/World/{name}"), particles) for name, particles, _, _ in _cloth_meshes(model)]
-    if not all(p.IsValid() for p, _ in prims):
-        raise ValueError(f"{path}: its meshes are not this scene's cloths")
-    diag_attrs = {d: prims[0][0].GetAttribute(f"clothWarp:{d}") for d in DIAGNOSTICS}
-    diag_times = {d: set(a.GetTimeSamples()) for d, a in diag_attrs.items() if a}
+    with usd_errors(path):
+        stage = Usd.Stage.Open(str(path), Usd.Stage.LoadAll)
+        start = int(stage.GetStartTimeCode())
+        prims = [(stage.GetPrimAtPath(f"/World/{name}"), particles) for name, particles, _, _ in _cloth_meshes(model)]
+        if not all(p.IsValid() for p, _ in prims):
+            raise CacheError(f"{path}: its meshes are not this scene's cloths")
+        diag_attrs = {d: prims[0][0].GetAttribute(f"clothWarp:{d}") for d in DIAGNOSTICS}
+        diag_times = {d: set(a.GetTimeSamples()) for d, a in diag_attrs.items() if a}
     for k in range(count):
         tc = start + k
         q, qd = np.zeros((n, 3), np.float32), np.zeros((n, 3), np.float32)
-        for prim, particles in prims:
-            q[particles] = np.asarray(prim.GetAttribute("points").Get(tc), np.float32)
-            v = prim.GetAttribute("velocities")
-            if v and v.HasAuthoredValue():
-                qd[particles] = np.asarray(v.Get(tc), np.float32)
-        diag = {d: _diag_value(d, diag_attrs[d].Get(tc)) for d, times in diag_times.items() if tc in times}
+        with usd_errors(path):
+            for prim, particles in prims:
+                q[particles] = _sample(path, prim.GetAttribute("points"), tc, len(q[particles]))
+                velocities = prim.GetAttribute("velocities")
+                if velocities and velocities.HasAuthoredValue():
+                    qd[particles] = _sample(path, velocities, tc, len(q[particles]))
+            diag = {d: _diag_value(d, diag_attrs[d].Get(tc)) for d, times in diag_times.items() if tc in times}
         yield q, qd, diag
+
+
+def _sample(path, attr, tc, rows: int) -> np.ndarray:
+    """A (rows, 3) float32 array attribute's value at time code tc, or CacheError naming what is wrong."""
+    value = np.asarray(attr.Get(tc), np.float32)
+    if value.shape != (rows, 3):
+        raise CacheError(f"{path}: {attr.GetPath()} at frame {tc} has shape {value.shape}, expected ({rows}, 3)")
+    return value
 
 
 def _diag_value(name, value):
@@ -332,6 +344,7 @@ class CacheWriter:
         self.frames_written, self.saved_frames, self.closed, self.broken = 0, 0, False, None
         first_save = min(self.save_every, 25) if not self.text_format else self.save_every
         check_output(self.path, bytes_needed=int(bytes_per_frame * first_save) + 256 * 1024)
+        self._owns_lock = lock is None  # a lock handed in is the caller's to release
         self.lock = lock if lock is not None else OutputLock(self.path).acquire()
         self.partial = partial_path(self.path)
         self.partial.unlink(missing_ok=True)  # a file of a dead process that had our pid
@@ -352,7 +365,8 @@ class CacheWriter:
 
     def write(self, q: np.ndarray, qd: np.ndarray, diagnostics: dict | None = None, checkpoint: dict | None = None) -> int:
         """Author one frame (positions [m], velocities [m/s] of all particles; diagnostics by name; the
-        simulator checkpoint of this frame, stored if the write saves); returns its time code."""
+        simulator checkpoint of this frame, which replaces the one kept and is written with the next save:
+        pass one whenever :attr:`save_due`); returns its time code."""
         if self.closed or self.broken:
             raise RuntimeError(f"cache {self.path} already {'closed' if self.closed else 'failed'}")
         q, qd = np.asarray(q, np.float32), np.asarray(qd, np.float32)
@@ -365,9 +379,9 @@ class CacheWriter:
         tc = self.next_time_code
         self._author(q, qd, diagnostics or {}, tc)
         self.frames_written += 1
+        if checkpoint is not None:  # kept (the latest only) and written with the next save
+            self._store_checkpoint(checkpoint, tc)
         if save:
-            if checkpoint is not None:
-                self._store_checkpoint(checkpoint, tc)
             self._save("partial")
         return tc
 
@@ -401,7 +415,8 @@ class CacheWriter:
                     raise
             self._finish()
         finally:
-            self.lock.release()
+            if self._owns_lock:
+                self.lock.release()
         log.info("wrote %s (%d frames, %s)", self.path, self.saved_frames, status)
         return self.path
 
@@ -409,17 +424,22 @@ class CacheWriter:
         """Rename the partial file (as of its last good save) to the final name; drop it if nothing was saved."""
         self._release()
         if self.saved_frames and self.partial.exists():
-            os.replace(self.partial, self.path)
+            try:
+                os.replace(self.partial, self.path)
+            except OSError as exc:
+                raise CacheWriteError(f"{self.path}: cannot rename {self.partial.name} to it: {exc.strerror or exc}; "
+                                      f"the frames are in {self.partial}") from None
         else:
             self.partial.unlink(missing_ok=True)
 
     def abort(self):
-        """Give up before any frame matters: remove the partial file and release the output."""
+        """Give up: remove the partial file (whatever it holds) and release the output."""
         if not self.closed:
             self.closed = True
             self._release()
             self.partial.unlink(missing_ok=True)
-            self.lock.release()
+            if self._owns_lock:
+                self.lock.release()
 
     def _release(self):
         pass
@@ -447,8 +467,8 @@ class UsdCacheWriter(CacheWriter):
             ``.usda`` saves at save_every x 1, 2, 4, ... frames (each text save rewrites the whole file).
         normals, velocities: author vertex normals / velocities per frame.
         metadata: JSON-able provenance merged into ``customLayerData["cloth_warp"]``.
-        lock: the output's :class:`~cloth_warp.outputs.OutputLock`, if the caller holds it already (the writer
-            releases it when it closes).
+        lock: the output's :class:`~cloth_warp.outputs.OutputLock`, if the caller holds it already (and
+            releases it after :meth:`close`); otherwise the writer takes it and releases it when it closes.
     """
 
     def __init__(self, path, model, *, fps: float, start_frame: int = 1, save_every: int = 25, normals: bool = True,
@@ -707,27 +727,6 @@ def _file_kind(head: bytes) -> str:
     return "unrecognised binary data"
 
 
-def _tf_message(exc) -> str:
-    """The first useful line of a ``pxr.Tf.ErrorException``, without USD's internal namespaces."""
-    import re
-
-    notes = [str(getattr(e, "commentary", e)).strip() for e in (exc.args or (exc,))]
-    notes = [n for n in notes if n and not n.startswith("Failed to open layer")]
-    if not notes:  # USD gave no reason
-        return "USD cannot read the layer (corrupt or truncated?)"
-    msg = re.sub(r"pxrInternal_v\w+?__pxrReserved__::", "", notes[0]).strip()
-    m = re.search(r":(\d+):(\d+): parse error matching .*? at '(.*?)'(?: in <(.*?)>)?", msg, re.S)
-    if m:
-        where = f" in <{m.group(4)}>" if m.group(4) else ""
-        cut = " (the file ends early: truncated?)" if m.group(3) == "" else ""
-        return f"USD text parse error at line {m.group(1)}, column {m.group(2)}{where}{cut}"
-    m = re.match(r"\S*?:(\d+):(\d+): (.*)", msg, re.S)  # "/abs/path.usda:4:2: Expected } at '...'"
-    if m:
-        msg = f"USD text error at line {m.group(1)}, column {m.group(2)}: {m.group(3)}"
-    msg = " ".join(msg.split())
-    return msg if len(msg) <= 300 else msg[:297] + "..."
-
-
 @contextlib.contextmanager
 def usd_errors(path, what: str = ""):
     """Turn USD errors raised inside the block into :class:`CacheError` naming `path`; USD warnings posted
@@ -739,7 +738,7 @@ def usd_errors(path, what: str = ""):
         try:
             yield
         except Tf.ErrorException as exc:
-            raise CacheError(f"{path}: {what}{_tf_message(exc)}") from exc
+            raise CacheError(f"{path}: {what}{usd_error_text(exc)}") from exc
         finally:
             if diagnostics is not None:
                 for w in diagnostics.GetWarnings():

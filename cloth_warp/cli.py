@@ -149,9 +149,7 @@ def cmd_run(args) -> int:
 
     overrides = parse_set(args.set)
     progress = Progress(quiet=args.quiet)
-    # Ctrl-C stops the run with a valid cache, also where SIGINT was ignored at start (background jobs).
-    previous = signal.signal(signal.SIGTERM, _on_sigterm), signal.signal(signal.SIGINT, signal.default_int_handler)
-    try:
+    try:  # Ctrl-C / SIGTERM (see main) stop the run with a valid cache
         summary = run_scene(args.scene, overrides, output=args.output, frames=args.frames, fps=args.fps,
                             device=args.device, start_frame=args.start_frame, progress=progress, argv=sys.argv,
                             resume=args.resume)
@@ -163,8 +161,11 @@ def cmd_run(args) -> int:
             return EXIT_INTERRUPTED
         _write_stats(args.stats, summary)
         print(format_summary(summary), file=sys.stderr)
-        print(f"cloth-warp: interrupted; the cache holds frames {summary['start_frame']}..{summary['end_frame']} "
-              f"(continue with --resume)", file=sys.stderr)
+        if summary["frames_written"]:
+            print(f"cloth-warp: interrupted; the cache holds frames {summary['start_frame']}..{summary['end_frame']} "
+                  f"(continue with --resume)", file=sys.stderr)
+        else:
+            print("cloth-warp: interrupted; no frame was saved", file=sys.stderr)
         return EXIT_INTERRUPTED
     except CacheWriteError as exc:
         summary = getattr(exc, "summary", None)
@@ -174,9 +175,6 @@ def cmd_run(args) -> int:
             print(format_summary(summary), file=sys.stderr)
         print(f"cloth-warp: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    finally:
-        signal.signal(signal.SIGTERM, previous[0])
-        signal.signal(signal.SIGINT, previous[1])
     _write_stats(args.stats, summary)
     if not args.quiet or summary["status"] != "complete":
         print(format_summary(summary), file=sys.stdout if summary["status"] == "complete" else sys.stderr)
@@ -306,15 +304,11 @@ def cmd_fit(args) -> int:
         print(f"cloth-warp fit: {scene.name}, {fit.frames} frames ({fit.rollout.steps} steps), {fit.loss_kind} loss, "
               f"{len(fit.parameters)} parameters, {iterations} iterations", file=sys.stderr)
     progress = FitProgress(quiet=args.quiet)
-    previous = signal.signal(signal.SIGTERM, _on_sigterm), signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         result = fit.run(iterations=iterations, learning_rate=learning_rate, progress=progress)
     except KeyboardInterrupt:
         print("cloth-warp: interrupted before the first iteration; nothing written", file=sys.stderr)
         return EXIT_INTERRUPTED
-    finally:
-        signal.signal(signal.SIGTERM, previous[0])
-        signal.signal(signal.SIGINT, previous[1])
     paths = write_fit_outputs(fit, result, output)
     if not args.quiet:
         if progress.tty and result.status != "complete":
@@ -403,10 +397,13 @@ def build_parser() -> argparse.ArgumentParser:
 def _check_device(device):
     """A CUDA device asked for on a machine without a CUDA driver: a clear error before Warp starts (and
     prints its own driver warnings)."""
-    import ctypes.util
+    import ctypes
 
-    if device and str(device).startswith("cuda") and ctypes.util.find_library("cuda") is None:
-        raise BadInput(f"--device {device}: no CUDA driver on this machine; use --device cpu")
+    if device and str(device).startswith("cuda"):
+        try:
+            ctypes.CDLL("libcuda.so.1")
+        except OSError:
+            raise BadInput(f"--device {device}: no CUDA driver on this machine (libcuda.so.1 not found); use --device cpu") from None
 
 
 def _main(argv) -> int:
@@ -414,14 +411,17 @@ def _main(argv) -> int:
     args = parser.parse_args(argv)
     level = logging.WARNING if args.verbose == 0 else logging.INFO if args.verbose == 1 else logging.DEBUG
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
-    from .outputs import CacheWriteError
-    from .scene import SceneError
-    from .topology import MeshError
+    from .outputs import CacheWriteError, DeferredSignals
 
+    with DeferredSignals(raise_after=True):  # a Ctrl-C while these load is raised after (trimesh swallows it)
+        import trimesh  # noqa: F401
+        import warp as wp
+        from pxr import Usd  # noqa: F401
+
+        from .scene import SceneError
+        from .topology import MeshError
     try:
         _check_device(getattr(args, "device", None))
-        import warp as wp
-
         wp.config.log_level = wp.LOG_WARNING if args.verbose < 2 else wp.LOG_INFO
         return args.func(args)
     except (SceneError, MeshError, BadInput, CacheWriteError, FileNotFoundError, IsADirectoryError, PermissionError) as exc:
@@ -430,13 +430,18 @@ def _main(argv) -> int:
 
 
 def main(argv=None) -> int:
-    """The command line; returns the exit code. Ctrl-C at any moment (also while modules load) exits 130
-    without a traceback."""
+    """The command line; returns the exit code. Ctrl-C or SIGTERM at any moment (also while modules load,
+    and where SIGINT was ignored at start, as in background jobs) exits 130 without a traceback; `run` and
+    `fit` first close what they write."""
+    previous = signal.signal(signal.SIGTERM, _on_sigterm), signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         return _main(argv)
     except KeyboardInterrupt:
         print("cloth-warp: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    finally:
+        signal.signal(signal.SIGTERM, previous[0])
+        signal.signal(signal.SIGINT, previous[1])
 
 
 if __name__ == "__main__":

@@ -5,8 +5,9 @@ simulating, atomic replacement and crate saves that roll back when they fail.
   as it writes; a second run on the same output is refused (:class:`OutputBusy`, naming the holder's pid)
   instead of deleting the first one's partial file. The kernel drops the lock when a process dies (SIGKILL
   included), so a stale lock file never blocks a later run.
-* :func:`partial_path` -- a run authors ``<stem>.partial-<pid><ext>``; :func:`stale_partials` lists those
-  left by runs that died (what ``--resume`` continues from).
+* :func:`partial_path` -- a run authors ``<stem>.partial-<pid>-<start ms><ext>`` (unique also where every
+  run has the same pid, as in containers); :func:`stale_partials` lists those left by runs that died (what
+  ``--resume`` continues from).
 * :func:`check_output` -- before anything is simulated: the output is not a folder, its folder exists or
   can be made and is writable, and the file system has room for the first frames.
 * :class:`CrateRollback` -- a crate (``.usdc``) save appends to the file in place: it writes the new samples
@@ -27,6 +28,10 @@ import pathlib
 import re
 import shutil
 import struct
+import time
+
+
+USD_SUFFIXES = (".usdc", ".usda", ".usd")  # files USD reads and writes (".usd": crate when written)
 
 
 class CacheWriteError(OSError):
@@ -39,10 +44,23 @@ class OutputBusy(CacheWriteError):
 
 
 def usd_error_text(exc: BaseException) -> str:
-    """The first message of a ``pxr.Tf.ErrorException`` (the root cause; later ones repeat it), without the
-    C++ location."""
-    msgs = [m for m in re.findall(r": '(.*)'\s*$", str(exc), flags=re.MULTILINE) if m]
-    return msgs[0] if msgs else str(exc).strip() or type(exc).__name__
+    """The first useful line of a ``pxr.Tf.ErrorException`` (the root cause), without USD's internal
+    namespaces; text-format parse errors as line and column."""
+    notes = [str(getattr(e, "commentary", e)).strip() for e in (exc.args or (exc,))]
+    notes = [n for n in notes if n and not n.startswith("Failed to open layer")]
+    if not notes:  # USD gave no reason
+        return "USD cannot read the layer (corrupt or truncated?)"
+    msg = re.sub(r"pxrInternal_v\w+?__pxrReserved__::", "", notes[0]).strip()
+    m = re.search(r":(\d+):(\d+): parse error matching .*? at '(.*?)'(?: in <(.*?)>)?", msg, re.S)
+    if m:
+        where = f" in <{m.group(4)}>" if m.group(4) else ""
+        cut = " (the file ends early: truncated?)" if m.group(3) == "" else ""
+        return f"USD text parse error at line {m.group(1)}, column {m.group(2)}{where}{cut}"
+    m = re.match(r"\S*?:(\d+):(\d+): (.*)", msg, re.S)  # "/abs/path.usda:4:2: Expected } at '...'"
+    if m:
+        msg = f"USD text error at line {m.group(1)}, column {m.group(2)}: {m.group(3)}"
+    msg = " ".join(msg.split())
+    return msg if len(msg) <= 300 else msg[:297] + "..."
 
 
 @contextlib.contextmanager
@@ -65,24 +83,22 @@ def atomic_write_text(path, text: str):
         tmp.write_text(text)
 
 
-def partial_path(path, pid: int | None = None) -> pathlib.Path:
-    """Where run `pid` (default: this process) authors the cache that becomes `path` when it closes."""
+RUN_TAG = f"{os.getpid()}-{time.time_ns() // 1_000_000}"  # this process: pid and start time [ms]
+
+
+def partial_path(path) -> pathlib.Path:
+    """Where this run authors the cache that becomes `path` when it closes."""
     path = pathlib.Path(path)
-    return path.with_name(f"{path.stem}.partial-{os.getpid() if pid is None else pid}{path.suffix}")
+    return path.with_name(f"{path.stem}.partial-{RUN_TAG}{path.suffix}")
 
 
 def stale_partials(path) -> list[pathlib.Path]:
     """Partial files of `path` left by runs that are no longer alive (oldest first); a live run holds the
     output's lock, so call this while holding it."""
     path = pathlib.Path(path)
-    found = [p for p in path.parent.glob(f"{glob_escape(path.stem)}.partial-*{glob_escape(path.suffix)}")
-             if re.fullmatch(rf"{re.escape(path.stem)}\.partial-\d+{re.escape(path.suffix)}", p.name)
-             and p != partial_path(path)]
+    pattern = re.compile(rf"{re.escape(path.stem)}\.partial-\d+-\d+{re.escape(path.suffix)}")
+    found = [p for p in path.parent.iterdir() if pattern.fullmatch(p.name) and p != partial_path(path)]
     return sorted(found, key=lambda p: p.stat().st_mtime)
-
-
-def glob_escape(text: str) -> str:
-    return re.sub(r"([*?\[])", r"[\1]", text)
 
 
 def check_output(path, bytes_needed: int = 0) -> pathlib.Path:
@@ -100,8 +116,6 @@ def check_output(path, bytes_needed: int = 0) -> pathlib.Path:
     folder = path.parent
     if not os.access(folder, os.W_OK | os.X_OK):
         raise CacheWriteError(f"{path}: the folder {folder} is not writable")
-    if path.exists() and not os.access(path, os.W_OK) and not os.access(folder, os.W_OK):
-        raise CacheWriteError(f"{path}: exists and cannot be replaced")
     if bytes_needed:
         free = shutil.disk_usage(folder).free
         if free < bytes_needed:
@@ -158,6 +172,36 @@ class OutputLock:
         return False
 
 
+class DeferredSignals:
+    """SIGINT and SIGTERM are held while the block runs and raised as KeyboardInterrupt when it ends (with
+    ``raise_after=True``) or left in :attr:`pending` for the caller. For closing a cache (a rename cut half
+    way loses nothing, but a close skipped does) and for third-party imports that swallow KeyboardInterrupt
+    (trimesh wraps its optional imports in ``except BaseException``). Main thread only; elsewhere a no-op."""
+
+    def __init__(self, raise_after: bool = False):
+        self.raise_after = raise_after
+        self.pending: list[int] = []
+        self.previous: dict = {}
+
+    def __enter__(self):
+        import signal
+        import threading
+
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self.previous[sig] = signal.signal(sig, lambda s, f: self.pending.append(s))
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        import signal
+
+        for sig, handler in self.previous.items():
+            signal.signal(sig, handler)
+        if self.pending and self.raise_after and exc_type is None:
+            raise KeyboardInterrupt
+        return False
+
+
 _CRATE_MAGIC = b"PXR-USDC"
 _BOOTSTRAP = 88  # ident[8], version[8], tocOffset int64, reserved int64[8]
 _SECTION = struct.Struct("<16sqq")  # name[16], start, size
@@ -165,7 +209,7 @@ _SECTION = struct.Struct("<16sqq")  # name[16], start, size
 
 class CrateRollback:
     """What a crate save may overwrite, copied before the save (see the module docstring); :meth:`restore`
-    puts it back. A file that is not a crate (or not there yet) is copied whole."""
+    puts it back. A file that is not a crate is copied whole; one that is not there yet is removed again."""
 
     def __init__(self, path):
         self.path = pathlib.Path(path)

@@ -98,10 +98,29 @@ def _resume_source(out: pathlib.Path):
     return None
 
 
-def _check_resumable(meta: dict, source, fps: float, start: int):
-    """Refuse to continue a cache written with another frame rate or start frame (the simulator's restore
-    checks the rest: particles, substeps, solver)."""
+def _changed_keys(a, b, prefix="") -> list[str]:
+    """Dotted key paths whose values differ between two nested dicts."""
+    if not (isinstance(a, dict) and isinstance(b, dict)):
+        return [] if a == b else [prefix or "(scene)"]
+    out = []
+    for key in sorted(set(a) | set(b)):
+        out += _changed_keys(a.get(key), b.get(key), f"{prefix}.{key}" if prefix else str(key))
+    return out
+
+
+def _check_resumable(meta: dict, source, scene: Scene, fps: float, start: int):
+    """Refuse to continue a cache written from another scene (other than its [output] table), frame rate or
+    start frame (the simulator's restore checks particles, substeps and solver too)."""
     problems = []
+    try:
+        earlier = json.loads(meta["resolved_scene"])
+    except (KeyError, TypeError, ValueError):
+        earlier = None
+    if earlier is not None:
+        changed = [k for k in _changed_keys(earlier, json.loads(json.dumps(scene.resolved()))) if not k.startswith("output")]
+        if changed:
+            problems.append(f"its scene differs in {', '.join(changed[:8])}{' ...' if len(changed) > 8 else ''} "
+                            f"(only [output] keys may change)")
     if not math.isclose(float(meta.get("fps", fps)), fps):
         problems.append(f"it was written at {meta.get('fps')} fps, this run asks {fps:g}")
     if int(meta.get("start_frame", start)) != start:
@@ -121,27 +140,6 @@ def _finite(value):
     return value
 
 
-class _DeferSignals:
-    """SIGINT/SIGTERM are held while the cache is closed (renamed) and delivered afterwards."""
-
-    def __enter__(self):
-        import signal
-        import threading
-
-        self.pending, self.previous = [], {}
-        if threading.current_thread() is threading.main_thread():
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                self.previous[sig] = signal.signal(sig, lambda s, f: self.pending.append(s))
-        return self
-
-    def __exit__(self, *exc):
-        import signal
-
-        for sig, handler in self.previous.items():
-            signal.signal(sig, handler)
-        return False
-
-
 def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int | None = None, fps: float | None = None,
               device=None, start_frame: int | None = None, progress=None, argv=None, resume: bool = False) -> dict:
     """Run a scene (a path, a shipped scene name or a :class:`Scene`) and write its cache.
@@ -153,9 +151,10 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
         progress: called after every frame as ``progress(frame, total, summary_so_far)``.
         argv: the command line, stamped into the cache.
         resume: continue the newest cache of this output (its final file, or the partial file of a run that
-            was killed) from its last saved checkpoint: its frames are copied into the new cache and the
+            was killed) from its last saved checkpoint: its frames are copied into a new cache and the
             simulation goes on from there, giving the frames an uninterrupted run gives (bit-identical on
-            the CPU). A run that already has every frame is left as it is.
+            the CPU); the scene must be the same but for its [output] keys (more frames may be asked).
+            Stopped while copying, the earlier cache is left as it was.
 
     Returns the summary dict (JSON-able, non-finite values as None): status ``complete`` / ``diverged``
     (with ``message`` and ``diagnosis``) / ``interrupted``, frames, wall and compile time, ms/frame, max
@@ -170,7 +169,8 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
     import warp as wp
 
     from .cache import CACHE_SUFFIXES, open_cache
-    from .outputs import CacheWriteError, OutputLock, check_output
+    from .cache import CacheError
+    from .outputs import CacheWriteError, DeferredSignals, OutputLock, check_output, stale_partials
     from .simulator import Simulator
     from .solvers import SimulationDiverged
 
@@ -208,7 +208,7 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
             raise SceneError(f"--resume: no cache of an earlier run of {out} with a resume checkpoint (its final file "
                              f"or a partial file of a killed run)")
         if source is not None:
-            _check_resumable(source[3], source[0], fps, start)
+            _check_resumable(source[3], source[0], scene, fps, start)
             if source[1] - 1 > n_frames:
                 raise SceneError(f"--resume: {source[0]} already holds {source[1] - 1} frames, more than the {n_frames} asked")
         solver = build_solver(scene, model)
@@ -251,14 +251,12 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
         if source is not None:  # the earlier run's frames, then its state at the last of them
             from .cache import read_frames
 
-            done = min(source[1], n_frames + 1)
-            for k, (q, qd, diag) in enumerate(read_frames(source[0], model, done)):
-                writer.write(q, qd, diag, checkpoint=source[2] if k == done - 1 and writer.save_due else None)
+            for k, (q, qd, diag) in enumerate(read_frames(source[0], model, source[1])):
+                writer.write(q, qd, diag, checkpoint=source[2] if k == source[1] - 1 else None)
                 max_strain = max(max_strain, float(diag.get("maxStrain") or 0.0))
-            first = summary["frames"] = summary["resumed_frames"] = done - 1
+            first = summary["frames"] = summary["resumed_frames"] = source[1] - 1
         else:
-            writer.write(sim.state.particle_q.numpy(), sim.state.particle_qd.numpy(),
-                         checkpoint=sim.checkpoint() if writer.save_due else None)
+            writer.write(sim.state.particle_q.numpy(), sim.state.particle_qd.numpy(), checkpoint=sim.checkpoint())
         for f in range(first, n_frames):
             stats = sim.step_frame()
             info = sim.frame_info
@@ -285,9 +283,9 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
     except SimulationDiverged as exc:
         # frame: the failing frame's time code in the cache (never written)
         summary.update(status="diverged", message=str(exc), diagnosis={**exc.diagnosis(), "frame": start + summary["frames"] + 1})
-    except CacheWriteError as exc:
+    except (CacheWriteError, CacheError) as exc:  # a failed save, or an earlier cache that cannot be read back
         summary.update(status="failed", message=str(exc))
-        write_error = exc
+        write_error = exc if isinstance(exc, CacheWriteError) else SceneError(f"--resume: {exc}")
     except KeyboardInterrupt as exc:
         summary["status"] = "interrupted"
         interrupted = exc
@@ -295,6 +293,7 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
         summary["status"] = "failed"
         raise
     finally:
+        deferred = DeferredSignals().__enter__()  # nothing stops the cache from closing (signals come after)
         wall = time.perf_counter() - t_loop
         done = summary["frames"]
         new = done - summary.get("resumed_frames", 0)
@@ -307,20 +306,28 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
         )
         info = {k: summary[k] for k in ("frames", "wall_s", "max_strain", "compile_s", "drape_coefficient", "message", "diagnosis")
                 if k in summary}
-        with _DeferSignals() as deferred:
-            try:
+        try:
+            if source is not None and writer.frames_written < source[1]:
+                writer.abort()  # stopped while copying the earlier frames: the earlier cache stays as it was
+            else:
                 # the last frame's state, when it is whole (an interruption or a divergence may have stopped a
-                # step half way: --resume then continues from the last periodic save's checkpoint)
+                # step half way: --resume then continues from the last save's checkpoint)
                 checkpoint = sim.checkpoint() if summary["status"] == "complete" and writer.broken is None else None
                 writer.close(summary["status"], info, checkpoint=checkpoint)
-            except CacheWriteError as exc:
-                if write_error is None:
-                    summary.update(status="failed", message=str(exc))
-                    write_error = exc
-        if source is not None and source[0] != out and writer.saved_frames > source[1] - 1:
+                if summary["status"] == "complete":  # killed runs' partial files, superseded by this cache
+                    for stale in stale_partials(out):
+                        stale.unlink(missing_ok=True)
+        except CacheWriteError as exc:
+            if write_error is None:
+                summary.update(status="failed", message=str(exc))
+                write_error = exc
+        finally:
+            lock.release()
+        if source is not None and source[0] != out and writer.saved_frames >= source[1]:
             source[0].unlink(missing_ok=True)  # the dead run's partial file, now continued in the cache
         summary.update(frames_written=writer.saved_frames, end_frame=start + writer.saved_frames - 1,
                        output_bytes=out.stat().st_size if out.exists() else 0)
+        deferred.__exit__(None, None, None)
         if deferred.pending and interrupted is None:
             summary["status"] = "interrupted"
             interrupted = KeyboardInterrupt()

@@ -62,10 +62,11 @@ class Simulator:
 
     def __init__(self, model: Model, solver: SolverBase, *, fps: float = 60.0, substeps: int = 1, adaptive: bool = False,
                  dt_min: float = 1.0e-6, check: StepCheck | None = None, capture: bool | None = None, wind=None):
-        if not (fps > 0.0):
-            raise ValueError(f"fps must be positive, got {fps!r}")
-        if int(substeps) < 1:
-            raise ValueError(f"substeps must be >= 1, got {substeps!r}")
+        from .validation import LIMITS, check_number
+
+        fps = check_number("fps", fps, LIMITS["fps"])
+        substeps = check_number("substeps", substeps, LIMITS["substeps"])
+        dt_min = check_number("dt_min", dt_min, LIMITS["dt_min"])
         self.model = model
         self.solver = solver
         self.fps = float(fps)

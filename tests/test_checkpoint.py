@@ -52,26 +52,32 @@ CONFIGS = {
 }
 
 
-@pytest.mark.parametrize("config", list(CONFIGS))
-def test_restored_run_is_bit_identical(config):
-    """Check N frames uninterrupted equal K frames, a checkpoint through .npz, a new model and Simulator restored
-    from it, and N - K more frames: positions and velocities bit for bit, frame counter and time too."""
-    name, overrides, n, k, holds = CONFIGS[config]
+def straight_and_resumed(name, overrides, n, k):
+    """Simulators of a scene: one run N frames straight, one run K frames (checkpointed there), and a new one
+    restored from that checkpoint through .npz and run the N - K frames left."""
     straight = make_sim(name, overrides)
     for _ in range(n):
         straight.step_frame()
     first = make_sim(name, overrides)
     for _ in range(k):
         first.step_frame()
-    assert holds(first), "the checkpoint is not taken where the state it must carry exists"
-    checkpoint = first.checkpoint()
-    for key, value in checkpoint.items():  # plain numpy arrays and Python scalars only
-        assert isinstance(value, np.ndarray | bool | int | float | str), (key, type(value))
     resumed = make_sim(name, overrides)
-    resumed.restore(through_npz(checkpoint))
+    resumed.restore(through_npz(first.checkpoint()))
     assert resumed.frame == k
     for _ in range(n - k):
         resumed.step_frame()
+    return straight, first, resumed
+
+
+@pytest.mark.parametrize("config", list(CONFIGS))
+def test_restored_run_is_bit_identical(config):
+    """Check N frames uninterrupted equal K frames, a checkpoint through .npz, a new model and Simulator restored
+    from it, and N - K more frames: positions and velocities bit for bit, frame counter and time too."""
+    name, overrides, n, k, holds = CONFIGS[config]
+    straight, first, resumed = straight_and_resumed(name, overrides, n, k)
+    assert holds(first), "the checkpoint is not taken where the state it must carry exists"
+    for key, value in first.checkpoint().items():  # plain numpy arrays and Python scalars only
+        assert isinstance(value, np.ndarray | bool | int | float | str), (key, type(value))
     q0, v0 = state(straight)
     q1, v1 = state(resumed)
     assert np.array_equal(q0, q1) and np.array_equal(v0, v1)
@@ -163,14 +169,5 @@ def test_two_runs_are_bit_identical():
 ])
 def test_restored_run_is_bit_identical_slow(name, overrides, n, k):
     """As test_restored_run_is_bit_identical on handles turning a strip into self-contact, and on a drape over a ball."""
-    straight = make_sim(name, overrides)
-    for _ in range(n):
-        straight.step_frame()
-    first = make_sim(name, overrides)
-    for _ in range(k):
-        first.step_frame()
-    resumed = make_sim(name, overrides)
-    resumed.restore(through_npz(first.checkpoint()))
-    for _ in range(n - k):
-        resumed.step_frame()
+    straight, _, resumed = straight_and_resumed(name, overrides, n, k)
     assert all(np.array_equal(a, b) for a, b in zip(state(straight), state(resumed)))

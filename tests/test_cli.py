@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from cloth_warp import __version__
-from cloth_warp.cache import CacheReader, partial_path
+from cloth_warp.cache import CacheReader
 from cloth_warp.cli import main
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -139,7 +139,7 @@ def test_ctrl_c_leaves_a_valid_cache(tmp_path):
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
     try:
         deadline = time.monotonic() + 120
-        while not partial_path(out, proc.pid).exists() and time.monotonic() < deadline:
+        while not list(tmp_path.glob('sigint.partial-*')) and time.monotonic() < deadline:
             time.sleep(0.2)
         time.sleep(2.0)  # let it simulate some frames
         proc.send_signal(signal.SIGINT)
@@ -152,4 +152,4 @@ def test_ctrl_c_leaves_a_valid_cache(tmp_path):
     assert reader.metadata["status"] == "interrupted" and reader.frame_count >= 2
     assert reader.metadata["frames_written"] == reader.frame_count
     assert np.isfinite(reader.points(reader.end_frame)).all()
-    assert not partial_path(out, proc.pid).exists()
+    assert not list(tmp_path.glob('sigint.partial-*'))

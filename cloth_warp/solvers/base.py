@@ -33,10 +33,15 @@ class StrainLimiter:
 
     def __init__(self, model: Model, max_strain: float = 0.1, iterations: int = 4, attachments: int = 4,
                  tolerance: float | None = 1.0e-3, max_iterations: int = 128, relaxation: float = 1.5):
-        if not (max_strain > 0.0):
-            raise ValueError(f"max_strain must be positive (0.1 = 10 %), got {max_strain!r}")
-        if iterations < 1:
-            raise ValueError(f"strain-limit iterations must be >= 1, got {iterations!r}")
+        from ..validation import LIMITS, check_number
+
+        max_strain = check_number("max_strain", max_strain, LIMITS["strain_limit"])
+        if max_strain <= 0.0:
+            raise ValueError(f"max_strain: must be > 0 (0.1 = 10 %), got {max_strain!r}")
+        iterations = check_number("iterations", iterations, LIMITS["iterations"])
+        max_iterations = check_number("max_iterations", max_iterations, LIMITS["iterations"])
+        if tolerance is not None:
+            tolerance = check_number("tolerance", tolerance, LIMITS["tolerance"])
         self.model = model
         self.max_strain = float(max_strain)
         self.iterations = int(iterations)

@@ -99,10 +99,10 @@ class SolverImplicitEuler(SolverBase):
         # Backward-pass report: adjoint solves run and their iterations (summed).
         self.adjoint_solves = 0
         self.adjoint_iterations = 0
-        if max_iterations < 1:
-            raise ValueError(f"max_iterations must be >= 1, got {max_iterations!r}")
-        if not (tolerance > 0.0 and math.isfinite(tolerance)):
-            raise ValueError(f"tolerance must be positive, got {tolerance!r}")
+        from ..validation import LIMITS, check_number
+
+        max_iterations = check_number("max_iterations", max_iterations, LIMITS["iterations"])
+        tolerance = check_number("tolerance", tolerance, LIMITS["tolerance"])
         self.max_iterations = int(max_iterations)
         self.tolerance = float(tolerance)
         self.check_every = max(1, int(check_every))
