@@ -115,6 +115,22 @@ def test_unwritable_outputs_fail_before_simulating(tmp_path, capsys):
     assert list(tmp_path.iterdir()) == [tmp_path / "afile", tmp_path / "folder.usdc"] or len(list(tmp_path.iterdir())) == 2
 
 
+def test_no_room_for_the_first_frames_fails_before_simulating(tmp_path, monkeypatch, capsys):
+    """Check a file system without room for the first saves exits 2 with the free and needed space, and leaves
+    nothing behind."""
+    import collections
+
+    from cloth_warp.cli import main
+
+    usage = collections.namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(10**9, 10**9 - 50_000, 50_000))
+    out = tmp_path / "x.usdc"
+    assert main(["run", str(HANG), "--set", "cloth.grid.resolution=[32, 32]", "--frames", "2", "-o", str(out), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "MB free" in err and "first frames need about" in err and str(out) in err
+    assert list(tmp_path.iterdir()) == []
+
+
 @pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only folders")
 def test_read_only_folder_fails_before_simulating(tmp_path, capsys):
     """Check a read-only output folder exits 2 naming it."""
@@ -170,20 +186,23 @@ def _wait_for(predicate, timeout=120.0):
 @pytest.mark.slow
 def test_two_runs_on_one_output(tmp_path):
     """Check that a second `cloth-warp run` on an output a live run is writing exits 2 naming the other run,
-    and that the first run finishes with all its frames."""
+    and that the first run's frames stay whole (stopped with Ctrl-C, its cache holds every frame it saved)."""
     out = tmp_path / "shared.usdc"
     args = ["run", str(HANG), "--set", "cloth.grid.resolution=[12, 12]", "--set", "output.save_every=2", "-o", str(out), "-q"]
-    first = _run(args + ["--frames", "60"])
+    first = _run(args + ["--frames", "100000"])
     try:
         _wait_for(lambda: any(tmp_path.glob("shared.partial-*.usdc")) or first.poll() is not None)
+        assert first.poll() is None, first.stderr.read()
         second = subprocess.run(CLI + args + ["--frames", "5"], capture_output=True, text=True, timeout=300)
         assert second.returncode == 2, second.stderr
         assert "another live run" in second.stderr and str(out) in second.stderr
-        assert first.wait(timeout=300) == 0, first.stderr.read()
+        assert first.poll() is None  # the second run neither stopped the first nor touched its file
+        first.send_signal(signal.SIGINT)
+        assert first.wait(timeout=300) == 130, first.stderr.read()
     finally:
         first.kill()
-    assert CacheReader(out).frame_count == 61
-    assert CacheReader(out).metadata["status"] == "complete"
+    reader = CacheReader(out)
+    assert reader.metadata["status"] == "interrupted" and reader.frame_count == reader.metadata["frames_written"] >= 3
 
 
 @pytest.mark.slow
@@ -232,8 +251,8 @@ def _assert_same_frames(a, b):
 
 RESUME_CASES = {
     "implicit": (HANG, ["cloth.grid.resolution=[10, 10]"], 30),
-    "adaptive_explicit": (HANG, ["cloth.grid.resolution=[8, 8]", "solver.integrator='symplectic_euler'", "solver.substeps=20",
-                                 "solver.adaptive=true"], 24),
+    "adaptive_explicit": (HANG, ["cloth.grid.resolution=[6, 6]", "solver.integrator='symplectic_euler'", "solver.substeps=16",
+                                 "solver.adaptive=true"], 20),
     "self_collision": (ROOT / "scenes" / "pile.toml", ["cloth.grid.resolution=[10, 10]"], 24),
 }
 
@@ -296,8 +315,7 @@ def test_resume_refuses_what_it_cannot_continue(tmp_path, capsys):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name,sets", [("hanging_cloth", ["cloth.grid.resolution=[12, 12]"]),
-                                       ("pile", ["cloth.grid.resolution=[12, 12]"]),
+@pytest.mark.parametrize("name,sets", [("pile", ["cloth.grid.resolution=[12, 12]"]),
                                        ("drape_sphere", ["cloth.grid.resolution=[12, 12]"])])
 def test_two_runs_give_bit_identical_caches(tmp_path, name, sets):
     """Check that a shipped scene (self-collision and colliders included) run twice on the CPU gives the same
