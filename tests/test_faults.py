@@ -115,6 +115,22 @@ def test_unwritable_outputs_fail_before_simulating(tmp_path, capsys):
     assert list(tmp_path.iterdir()) == [tmp_path / "afile", tmp_path / "folder.usdc"] or len(list(tmp_path.iterdir())) == 2
 
 
+def test_cuda_without_a_driver_is_a_clear_error(tmp_path):
+    """Check `--device cuda` on a machine without a CUDA driver exits 2 with one line saying so (Warp's own
+    driver warnings and errors do not come first)."""
+    import ctypes
+
+    try:
+        ctypes.CDLL("libcuda.so.1")
+        pytest.skip("this machine has a CUDA driver")
+    except OSError:
+        pass
+    r = subprocess.run(CLI + ["run", str(HANG), "--device", "cuda", "-o", str(tmp_path / "x.usdc")], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 2 and r.stderr.strip().splitlines() == [
+        "cloth-warp: error: --device cuda: no CUDA driver on this machine (libcuda.so.1 not found); use --device cpu"]
+
+
 def test_no_room_for_the_first_frames_fails_before_simulating(tmp_path, monkeypatch, capsys):
     """Check a file system without room for the first saves exits 2 with the free and needed space, and leaves
     nothing behind."""
