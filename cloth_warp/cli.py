@@ -78,7 +78,7 @@ class Progress:
         if self.quiet:
             return
         elapsed = summary.get("wall_s", 0.0)
-        ms = 1e3 * elapsed / frame
+        ms = 1e3 * elapsed / max(1, frame - (summary.get("resumed_frames") or 0))  # frames simulated by this run
         eta = ms * (total - frame) / 1e3
         text = f"{frame}/{total} frames  {ms:.1f} ms/frame  ETA {_fmt_time(eta)}"
         now = time.monotonic()
@@ -99,13 +99,17 @@ def format_summary(s: dict) -> str:
     """The end-of-run summary a person reads."""
     lines = [f"{s['status']}: {s['frames']}/{s['frames_requested']} frames of {s['particles']} particles "
              f"({s['integrator']}, {s['substeps']} substep{'s' if s['substeps'] != 1 else ''}/frame, {s['device']})"]
+    if s.get("resumed_frames") is not None:
+        lines.append(f"  resumed     from frame {s['start_frame'] + s['resumed_frames']} of an earlier run's cache")
     if s["frames"]:
-        lines.append(f"  time        {s['wall_s']:.2f} s simulating, {s['ms_per_frame']:.1f} ms/frame; "
+        per_frame = f"{s['ms_per_frame']:.1f} ms/frame" if s.get("ms_per_frame") is not None else "no new frame"
+        lines.append(f"  time        {s['wall_s']:.2f} s simulating, {per_frame}; "
                      f"kernels loaded in {s['compile_s']:.2f} s; {s['total_s']:.2f} s in all")
-        lines.append(f"  max strain  {s['max_strain']:.4f}")
-        dt = f"{s['dt_min']:.3g} s" if s["dt_min"] == s["dt_max"] else f"{s['dt_min']:.3g} .. {s['dt_max']:.3g} s"
-        extra = f" ({s['rejected_steps']} rejected steps)" if s.get("rejected_steps") else ""
-        lines.append(f"  dt          {dt}{extra}")
+        lines.append(f"  max strain  {s['max_strain']:.4f}" if s.get("max_strain") is not None else "  max strain  not finite")
+        if s.get("dt_min") is not None:
+            dt = f"{s['dt_min']:.3g} s" if s["dt_min"] == s["dt_max"] else f"{s['dt_min']:.3g} .. {s['dt_max']:.3g} s"
+            extra = f" ({s['rejected_steps']} rejected steps)" if s.get("rejected_steps") else ""
+            lines.append(f"  dt          {dt}{extra}")
         if s.get("solver_iterations") and s["solver_iterations"]["max"]:
             lines.append(f"  solver      {s['solver_iterations']['mean']:.0f} iterations/frame on average, "
                          f"{s['solver_iterations']['max']} at most")

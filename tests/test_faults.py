@@ -328,6 +328,9 @@ def test_resume_refuses_what_it_cannot_continue(tmp_path, capsys):
     assert CacheReader(out).frame_count == 7
     assert main(base + ["--frames", "8", "--resume", "--set", "output.save_every=2"]) == 0  # [output] keys may change
     assert CacheReader(out).frame_count == 9
+    capsys.readouterr()
+    assert main([a for a in base if a != "-q"] + ["--frames", "8", "--resume"]) == 0  # nothing left: a summary all the same
+    assert "no new frame" in capsys.readouterr().out and CacheReader(out).frame_count == 9
 
 
 @pytest.mark.slow
