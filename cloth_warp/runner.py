@@ -281,8 +281,8 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
         if cusick is not None:
             summary["drape_coefficient"] = _drape_coefficient(scene, model, sim.positions())
     except SimulationDiverged as exc:
-        # frame: the failing frame's time code in the cache (never written)
-        summary.update(status="diverged", message=str(exc), diagnosis={**exc.diagnosis(), "frame": start + summary["frames"] + 1})
+        # frame: the simulation's frame number (the initial state is 0); time_code: where it would be in the cache
+        summary.update(status="diverged", message=str(exc), diagnosis={**exc.diagnosis(), "time_code": start + summary["frames"] + 1})
     except (CacheWriteError, CacheError) as exc:  # a failed save, or an earlier cache that cannot be read back
         summary.update(status="failed", message=str(exc))
         write_error = exc if isinstance(exc, CacheWriteError) else SceneError(f"--resume: {exc}")
