@@ -293,41 +293,40 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
         summary["status"] = "failed"
         raise
     finally:
-        deferred = DeferredSignals().__enter__()  # nothing stops the cache from closing (signals come after)
-        wall = time.perf_counter() - t_loop
-        done = summary["frames"]
-        new = done - summary.get("resumed_frames", 0)
-        summary.update(
-            wall_s=wall, total_s=time.perf_counter() - t_start, compile_s=compile_s,
-            ms_per_frame=1e3 * wall / new if new else None, max_strain=max_strain,
-            dt_min=dt_min if iterations else None, dt_max=dt_max if iterations else None, rejected_steps=rejected,
-            solver_iterations={"mean": float(np.mean(iterations)), "max": int(np.max(iterations))} if iterations else None,
-            colliders=model.collider_count, self_collision=bool(model.self_collision), contacts=contacts,
-        )
-        info = {k: summary[k] for k in ("frames", "wall_s", "max_strain", "compile_s", "drape_coefficient", "message", "diagnosis")
-                if k in summary}
-        try:
-            if source is not None and writer.frames_written < source[1]:
-                writer.abort()  # stopped while copying the earlier frames: the earlier cache stays as it was
-            else:
-                # the last frame's state, when it is whole (an interruption or a divergence may have stopped a
-                # step half way: --resume then continues from the last save's checkpoint)
-                checkpoint = sim.checkpoint() if summary["status"] == "complete" and writer.broken is None else None
-                writer.close(summary["status"], info, checkpoint=checkpoint)
-                if summary["status"] == "complete":  # killed runs' partial files, superseded by this cache
-                    for stale in stale_partials(out):
-                        stale.unlink(missing_ok=True)
-        except CacheWriteError as exc:
-            if write_error is None:
-                summary.update(status="failed", message=str(exc))
-                write_error = exc
-        finally:
-            lock.release()
-        if source is not None and source[0] != out and writer.saved_frames >= source[1]:
-            source[0].unlink(missing_ok=True)  # the dead run's partial file, now continued in the cache
-        summary.update(frames_written=writer.saved_frames, end_frame=start + writer.saved_frames - 1,
-                       output_bytes=out.stat().st_size if out.exists() else 0)
-        deferred.__exit__(None, None, None)
+        with DeferredSignals() as deferred:  # nothing stops the cache from closing (signals come after)
+            wall = time.perf_counter() - t_loop
+            done = summary["frames"]
+            new = done - summary.get("resumed_frames", 0)
+            summary.update(
+                wall_s=wall, total_s=time.perf_counter() - t_start, compile_s=compile_s,
+                ms_per_frame=1e3 * wall / new if new else None, max_strain=max_strain,
+                dt_min=dt_min if iterations else None, dt_max=dt_max if iterations else None, rejected_steps=rejected,
+                solver_iterations={"mean": float(np.mean(iterations)), "max": int(np.max(iterations))} if iterations else None,
+                colliders=model.collider_count, self_collision=bool(model.self_collision), contacts=contacts,
+            )
+            info = {k: summary[k] for k in ("frames", "wall_s", "max_strain", "compile_s", "drape_coefficient", "message", "diagnosis")
+                    if k in summary}
+            try:
+                if source is not None and writer.frames_written < source[1]:
+                    writer.abort()  # stopped while copying the earlier frames: the earlier cache stays as it was
+                else:
+                    # the last frame's state, when it is whole (an interruption or a divergence may have stopped a
+                    # step half way: --resume then continues from the last save's checkpoint)
+                    checkpoint = sim.checkpoint() if summary["status"] == "complete" and writer.broken is None else None
+                    writer.close(summary["status"], info, checkpoint=checkpoint)
+                    if summary["status"] == "complete":  # killed runs' partial files, superseded by this cache
+                        for stale in stale_partials(out):
+                            stale.unlink(missing_ok=True)
+            except CacheWriteError as exc:
+                if write_error is None:
+                    summary.update(status="failed", message=str(exc))
+                    write_error = exc
+            finally:
+                lock.release()
+            if source is not None and source[0] != out and writer.saved_frames >= source[1]:
+                source[0].unlink(missing_ok=True)  # the dead run's partial file, now continued in the cache
+            summary.update(frames_written=writer.saved_frames, end_frame=start + writer.saved_frames - 1,
+                           output_bytes=out.stat().st_size if out.exists() else 0)
         if deferred.pending and interrupted is None:
             summary["status"] = "interrupted"
             interrupted = KeyboardInterrupt()

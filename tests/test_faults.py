@@ -383,3 +383,20 @@ def test_disk_full_keeps_the_last_good_save(small_filesystem, suffix):
     assert summary["status"] == "failed" and reader.frame_count == summary["frames_written"] >= 6
     assert np.isfinite(reader.points(reader.end_frame)).all()
     assert not list(small_filesystem.glob("*.partial-*"))
+
+
+def test_signal_handlers_restored_when_closing_fails(tmp_path, monkeypatch):
+    """Check run_scene hands SIGINT/SIGTERM back as it found them even when closing the cache raises something
+    unexpected (they are held while the cache closes; a script going on after the error must still see Ctrl-C)."""
+    from cloth_warp.runner import run_scene
+
+    before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+
+    def broken_close(self, *args, **kwargs):
+        raise RuntimeError("injected")
+
+    monkeypatch.setattr(UsdCacheWriter, "close", broken_close)
+    with pytest.raises(RuntimeError, match="injected"):
+        run_scene(HANG, {"cloth.grid.resolution": [4, 4]}, output=tmp_path / "x.usdc", frames=2)
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
+    OutputLock(tmp_path / "x.usdc").acquire().release()  # and the output's lock is free again
