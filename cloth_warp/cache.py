@@ -46,8 +46,8 @@ import platform
 
 import numpy as np
 
-from .outputs import (CacheWriteError, CrateRollback, OutputLock, atomic_path, atomic_write_text, check_output,  # noqa: F401
-                      partial_path, usd_error_text, USD_SUFFIXES)
+from .outputs import (USD_SUFFIXES, CacheWriteError, CrateRollback, OutputLock, atomic_path, check_output, partial_path,
+                      usd_error_text)
 
 log = logging.getLogger(__name__)
 

@@ -444,7 +444,7 @@ def loss_curve_png(losses: list[float], path, title: str = "fit loss", size=(640
     """A log-scale loss curve as a PNG (Pillow; no plotting library needed)."""
     from PIL import Image, ImageDraw
 
-    from .cache import atomic_path
+    from .outputs import atomic_path
 
     w, h = size
     img = Image.new("RGB", size, "white")
@@ -476,7 +476,7 @@ def loss_curve_png(losses: list[float], path, title: str = "fit loss", size=(640
 
 def write_fit_outputs(fit: SceneFit, result: FitResult, output) -> dict[str, pathlib.Path]:
     """fitted scene TOML at `output`, the JSON report and the loss-curve PNG beside it (atomic writes)."""
-    from .cache import atomic_write_text
+    from .outputs import atomic_write_text
 
     output = pathlib.Path(output)
     output.parent.mkdir(parents=True, exist_ok=True)

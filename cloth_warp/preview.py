@@ -12,7 +12,8 @@ import pathlib
 import numpy as np
 import warp as wp
 
-from .cache import CacheError, CacheReader, atomic_path, usd_errors, vertex_normals
+from .cache import CacheError, CacheReader, usd_errors, vertex_normals
+from .outputs import atomic_path
 from .kernels import render as kr
 
 log = logging.getLogger(__name__)

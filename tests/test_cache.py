@@ -10,7 +10,8 @@ import pytest
 from pxr import Sdf, Usd, UsdGeom, UsdPhysics, UsdValidation
 
 import cloth_warp as cw
-from cloth_warp.cache import CacheReader, UsdCacheWriter, partial_path, vertex_normals
+from cloth_warp.cache import CacheReader, UsdCacheWriter, vertex_normals
+from cloth_warp.outputs import partial_path
 from cloth_warp.runner import run_scene
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
