@@ -12,6 +12,7 @@ import warp as wp
 
 from . import topology as topo
 from .colliders import Collider, rotation_to_axis
+from .elasticity import TWISTS, membrane_tensor, plate_tensor
 from .materials import FabricMaterial, preset
 from .model import ClothInfo, Handle, Keyframe, Model
 from .outputs import USD_SUFFIXES, usd_error_text
@@ -234,14 +235,16 @@ class ModelBuilder:
         velocity=(0.0, 0.0, 0.0),
         material: FabricMaterial | str = "cotton",
         spring_model: SpringModel | str = SpringModel.CHOI_KO,
+        warp_angle: float = 0.0,
         name: str | None = None,
     ) -> ClothRef:
         """Add a grid cloth of resolution (nx, ny) cells and size (sx, sy) [m].
 
         The grid is built in its local xy-plane with corner (0, 0) at the origin, then rotated by
-        `rotation` (quaternion x, y, z, w or 3x3) and moved to `position` [m].
+        `rotation` (quaternion x, y, z, w or 3x3) and moved to `position` [m]. The material's warp runs
+        along the local x axis turned by `warp_angle` [deg] about the local z axis (45: a bias cut).
         """
-        t = topo.grid_topology(resolution, size, SpringModel(spring_model))
+        t = topo.grid_topology(resolution, size, SpringModel(spring_model), warp_angle)
         return self._add_cloth(t, position, rotation, velocity, material, name or f"cloth{len(self.cloths)}")
 
     def add_cloth_mesh(
@@ -256,9 +259,14 @@ class ModelBuilder:
         velocity=(0.0, 0.0, 0.0),
         material: FabricMaterial | str = "cotton",
         spring_model: SpringModel | str = SpringModel.CHOI_KO,
+        warp_direction=None,
         name: str | None = None,
     ) -> ClothRef:
         """Add a cloth from a triangle mesh (vertices [m] before `scale`); seams are welded.
+
+        The material's warp runs along `warp_direction` (the mesh's own coordinates) when given, else
+        along increasing texture u where `uvs` are given, else along the mesh's x axis
+        (:func:`~cloth_warp.topology.triangle_frames`).
 
         Raises :class:`~cloth_warp.topology.MeshError` for empty meshes, non-finite coordinates and
         out-of-range indices; degenerate/duplicate triangles are dropped and non-manifold edges kept,
@@ -267,7 +275,7 @@ class ModelBuilder:
         v, tri = topo.validate_mesh(vertices, triangles)
         scale = check_number("scale", scale, LIMITS["scale"])
         v = check_points("vertices (x scale)", v * scale)
-        t = topo.mesh_topology(v, tri, SpringModel(spring_model), uvs=uvs)
+        t = topo.mesh_topology(v, tri, SpringModel(spring_model), uvs=uvs, warp_direction=warp_direction)
         return self._add_cloth(t, position, rotation, velocity, material, name or f"cloth{len(self.cloths)}")
 
     def add_cloth_disc(self, *, radius: float, rings: int = 16, **kwargs) -> ClothRef:
@@ -635,15 +643,12 @@ def clamp_boundary_bending(stiffness, springs, middle, law, pinned) -> np.ndarra
 
 
 def spring_constants(t: ClothTopology, material: FabricMaterial) -> tuple[np.ndarray, np.ndarray]:
-    """Per-spring stiffness and damping from a topology's weights and a material (topology docstring)."""
-    k = np.zeros(t.spring_count)
-    kind, law, w = t.spring_kind, t.spring_law, t.spring_weight
-    k[kind == SpringKind.STRUCTURAL] = material.stretch_stiffness * w[kind == SpringKind.STRUCTURAL]
-    k[kind == SpringKind.SHEAR] = material.shear_stiffness * w[kind == SpringKind.SHEAR]
-    bend = kind == SpringKind.BEND
-    k[bend] = material.bend_stiffness * w[bend]
+    """Per-spring stiffness and damping: each region's springs fitted to the material's membrane and plate
+    tensors (:mod:`cloth_warp.elasticity`)."""
+    k = t.membrane.spring_constants(membrane_tensor(material), t.spring_count)
+    k += t.bending.spring_constants([plate_tensor(material, twist) for twist in TWISTS], t.spring_count)
     # Kelvin-Voigt damping c = tau k on linear springs; buckling springs carry no damping.
-    c = np.where(law == SpringLaw.LINEAR, material.damping * k, 0.0)
+    c = np.where(t.spring_law == SpringLaw.LINEAR, material.damping * k, 0.0)
     return k, c
 
 

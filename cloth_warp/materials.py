@@ -8,6 +8,7 @@ with the geometric weights of :mod:`cloth_warp.topology`, so the same material g
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 
 from .validation import LIMITS, check_number
@@ -18,20 +19,32 @@ GRAVITY = 9.81
 
 # Each value's allowed range (cloth_warp.validation.LIMITS: the same ranges as the scene's [material] keys).
 _LIMITS = {"areal_density": LIMITS["areal_density"], "stretch_stiffness": LIMITS["stretch_stiffness"],
-           "shear_stiffness": LIMITS["shear_stiffness"], "bend_stiffness": LIMITS["bend_stiffness"],
+           "stretch_stiffness_weft": LIMITS["stretch_stiffness"], "shear_stiffness": LIMITS["shear_stiffness"],
+           "bend_stiffness": LIMITS["bend_stiffness"], "bend_stiffness_weft": LIMITS["bend_stiffness"],
            "damping": LIMITS["damping_time"], "drag_coefficient": LIMITS["drag_coefficient"]}
 
 
 @dataclass(frozen=True)
 class FabricMaterial:
-    """A fabric in SI units.
+    """A fabric in SI units; woven fabrics differ along the warp (lengthwise grain) and the weft.
+
+    Where the warp lies on a cloth: the grid's x axis, a mesh's direction of increasing texture u, or an
+    explicit direction (:meth:`~cloth_warp.builder.ModelBuilder.add_cloth_mesh`); the weft is
+    perpendicular to it in the cloth's plane. Springs are fitted to these values on every cell shape
+    and mesh (:mod:`cloth_warp.elasticity`, docs/physics.md section M).
 
     Attributes:
         name: label used in scenes and caches.
         areal_density: mass per area rho_A [kg/m^2].
-        stretch_stiffness: membrane (in-plane) stiffness, tension per width per unit strain [N/m].
-        shear_stiffness: in-plane shear stiffness, shear force per width per radian [N/m].
-        bend_stiffness: flexural rigidity per unit width B [N m] (Peirce/ASTM D1388: B = w c^3).
+        stretch_stiffness: membrane stiffness along the warp, tension per width per unit strain with the
+            weft held [N/m] (a free strip measures stretch_stiffness (1 - G^2 / (C_warp C_weft)), within
+            0.1 % for cloth).
+        stretch_stiffness_weft: the same along the weft [N/m]; None: equal to the warp's.
+        shear_stiffness: in-plane shear stiffness G, shear force per width per radian [N/m]; with the
+            stretch values it sets the bias (45 deg) stiffness (:meth:`bias_stretch_stiffness`).
+        bend_stiffness: flexural rigidity per unit width of a strip cut along the warp, B [N m]
+            (Peirce/ASTM D1388: B = w c^3).
+        bend_stiffness_weft: the same for a strip cut along the weft [N m]; None: equal to the warp's.
         damping: Kelvin-Voigt relaxation time tau [s]; each stretch/shear spring gets c = tau k.
         drag_coefficient: linear air drag c_A [N s/m^3]: force per area per normal relative speed.
     """
@@ -43,10 +56,35 @@ class FabricMaterial:
     bend_stiffness: float = 1.0e-5
     damping: float = 0.0
     drag_coefficient: float = 0.0
+    stretch_stiffness_weft: float | None = None
+    bend_stiffness_weft: float | None = None
 
     def __post_init__(self):
         for f, limits in _LIMITS.items():
-            object.__setattr__(self, f, check_number(f"material {self.name!r} {f}", getattr(self, f), limits))
+            if getattr(self, f) is not None or not f.endswith("_weft"):
+                object.__setattr__(self, f, check_number(f"material {self.name!r} {f}", getattr(self, f), limits))
+
+    @property
+    def stretch_weft(self) -> float:
+        """Stretch stiffness along the weft [N/m]."""
+        return self.stretch_stiffness if self.stretch_stiffness_weft is None else self.stretch_stiffness_weft
+
+    @property
+    def bend_weft(self) -> float:
+        """Bending rigidity of a strip cut along the weft [N m]."""
+        return self.bend_stiffness if self.bend_stiffness_weft is None else self.bend_stiffness_weft
+
+    def stretch_stiffness_at(self, angle_deg: float) -> float:
+        """Tensile stiffness of a free strip cut at `angle_deg` from the warp [N/m] (45: the bias)."""
+        from .elasticity import membrane_tensor
+
+        return float(membrane_tensor(self).strip(math.radians(angle_deg)))
+
+    def bend_stiffness_at(self, angle_deg: float) -> float:
+        """Bending rigidity of a free strip cut at `angle_deg` from the warp [N m] (Huber plate, nu = 1/3)."""
+        from .elasticity import plate_tensor
+
+        return float(plate_tensor(self).strip(math.radians(angle_deg)))
 
     def replace(self, **changes) -> FabricMaterial:
         """A copy with some values changed (validated again)."""
@@ -54,13 +92,18 @@ class FabricMaterial:
 
     @property
     def bending_length(self) -> float:
-        """Peirce bending length c = (B / (rho_A g))^(1/3) [m]."""
+        """Peirce bending length along the warp c = (B / (rho_A g))^(1/3) [m]."""
         return (self.bend_stiffness / (self.areal_density * GRAVITY)) ** (1.0 / 3.0)
+
+    @property
+    def bending_length_weft(self) -> float:
+        """Peirce bending length along the weft [m]."""
+        return (self.bend_weft / (self.areal_density * GRAVITY)) ** (1.0 / 3.0)
 
 
 # Sources. Areal densities and bending rigidities: Wang, O'Brien & Ramamoorthi, "Data-driven elastic
 # models for cloth", SIGGRAPH 2011 (ArcSim materials/*.json; lowest-curvature bending sample, warp
-# direction, read as N m per width; see reference/physics.md 1(b)) and typical Kawabata (KES-FB2)
+# direction, read as N m per width; see docs/physics.md 1(b)) and typical Kawabata (KES-FB2)
 # values for woven shirting/suiting (1 gf cm^2/cm = 9.80665e-5 N m). Shear: KES-FB1 G of 0.5-2
 # gf/(cm deg) for wovens (1 gf/(cm deg) = 56.19 N/m per radian), lower for knits. Stretch: the
 # low-strain slope of KES-FB1 / strip tensile curves, which is of order 1e2 N/m for knits and 1e3 N/m

@@ -14,6 +14,7 @@ import difflib
 import hashlib
 import json
 import logging
+import math
 import pathlib
 import re
 import tomllib
@@ -124,13 +125,22 @@ SCHEMA: dict = {
                       "(uniform in +-jitter, seeded by scene.seed): breaks perfect symmetry so folds can form", L["jitter"]),
         "spring_model": Key("str", "choi_ko", "spring set: Choi-Ko (stiff stretch/shear, buckling bend) or Provot",
                             allowed=SPRING_MODELS),
+        "warp_angle": Key("float", None, "angle of the fabric's warp from the cloth's local x axis, about its local z "
+                          "(45: a bias cut); default: along x for grids, discs and meshes without UVs, along "
+                          "increasing texture u for meshes with UVs (given, it overrides the UVs)", L["angle"]),
     },
     "material": {
         "preset": Key("str", "cotton", "fabric preset; the keys below override its values", allowed=PRESETS),
         "areal_density": Key("float", None, "mass per area (default: the preset's)", L["areal_density"]),
-        "stretch_stiffness": Key("float", None, "stretch stiffness E h (default: the preset's)", L["stretch_stiffness"]),
+        "stretch_stiffness": Key("float", None, "stretch stiffness E h along the warp (default: the preset's)",
+                                 L["stretch_stiffness"]),
+        "stretch_stiffness_weft": Key("float", None, "stretch stiffness along the weft (default: the preset's; "
+                                      "isotropic presets: the warp value)", L["stretch_stiffness"]),
         "shear_stiffness": Key("float", None, "in-plane shear stiffness G h (default: the preset's)", L["shear_stiffness"]),
-        "bend_stiffness": Key("float", None, "bending rigidity per unit width (default: the preset's)", L["bend_stiffness"]),
+        "bend_stiffness": Key("float", None, "bending rigidity per unit width of a strip cut along the warp "
+                              "(default: the preset's)", L["bend_stiffness"]),
+        "bend_stiffness_weft": Key("float", None, "bending rigidity of a strip cut along the weft (default: the "
+                                   "preset's; isotropic presets: the warp value)", L["bend_stiffness"]),
         "damping": Key("float", None, "Kelvin-Voigt spring damping time: c = damping x k (default: the preset's)",
                        L["damping_time"]),
         "drag_coefficient": Key("float", None, "air drag per area and normal relative speed (default: the preset's)",
@@ -622,16 +632,19 @@ def _add_cloth(b, scene: Scene):
     common = dict(position=tuple(scene.get("cloth.position")), rotation=_rotation_q(scene.data.get("cloth", {}).get("rotation")),
                   velocity=tuple(scene.get("cloth.velocity")), material=build_material(scene),
                   spring_model=scene.get("cloth.spring_model"), name=scene.get("cloth.name"))
+    warp_angle = scene.get("cloth.warp_angle")
+    warp = None if warp_angle is None else (math.cos(math.radians(warp_angle)), math.sin(math.radians(warp_angle)), 0.0)
     mesh = scene.data.get("cloth", {}).get("mesh")
     with _scene_key("cloth.mesh" if mesh is not None else "cloth"):
         if scene.data.get("cloth", {}).get("disc") is not None:
-            cloth = b.add_cloth_disc(radius=float(scene.get("cloth.disc.radius")), rings=int(scene.get("cloth.disc.rings")), **common)
+            cloth = b.add_cloth_disc(radius=float(scene.get("cloth.disc.radius")), rings=int(scene.get("cloth.disc.rings")),
+                                     warp_direction=warp, **common)
         elif mesh is not None:
             cloth = b.add_cloth_mesh_file(scene.resolve(mesh), scale=float(scene.get("cloth.scale")),
-                                          prim_path=scene.data["cloth"].get("mesh_prim"), **common)
+                                          prim_path=scene.data["cloth"].get("mesh_prim"), warp_direction=warp, **common)
         else:
             cloth = b.add_cloth_grid(resolution=tuple(scene.get("cloth.grid.resolution")), size=tuple(scene.get("cloth.grid.size")),
-                                     **common)
+                                     warp_angle=warp_angle or 0.0, **common)
     return cloth
 
 

@@ -1,20 +1,22 @@
 """Cloth topology in pure numpy: grids, triangle meshes, spring sets, welding, adjacency.
 
-Nothing here touches Warp, so every rule can be unit-tested on its own. The builder turns a
-:class:`ClothTopology` plus a :class:`~cloth_warp.materials.FabricMaterial` into spring constants
-by multiplying each spring's *weight* (geometry only) with the material value of its category:
+Nothing here touches Warp, so every rule can be unit-tested on its own. A :class:`ClothTopology` holds
+the springs and, for each region of the cloth (a grid cell or a triangle for the membrane, a vertex's
+neighbourhood for bending), which springs carry its energy and in which direction from the warp; the
+spring constants come from fitting those springs to the material's continuum energy
+(:mod:`cloth_warp.elasticity`, docs/physics.md section M):
 
-================  ==============================  ===============================================
+================  ==============================  =================================================
 category          force law                       spring constant
-================  ==============================  ===============================================
-STRUCTURAL        linear spring                   k = stretch_stiffness [N/m] * weight [-]
-SHEAR             linear spring                   k = shear_stiffness [N/m] * weight [-]
-BEND (Choi-Ko)    immediate buckling, push only   k_b = bend_stiffness [N m] * weight [m]
-BEND (Provot)     linear span-2 "flexion" spring  k = bend_stiffness [N m] * weight [1/m^2]
-================  ==============================  ===============================================
+================  ==============================  =================================================
+STRUCTURAL        linear spring                   k = m / L^2 [N/m] (m: membrane modulus x area)
+SHEAR             linear spring                   k = m / L^2 [N/m]
+BEND (Choi-Ko)    immediate buckling, push only   k_b = m 4 L / (c0 a1 a2) [N m^2] (m: plate modulus x area)
+BEND (Provot)     linear span-2 "flexion" spring  k matched to k_b at 10 % chord compression [N/m]
+================  ==============================  =================================================
 
-Weights make the material mean the same thing at every resolution (membrane stiffness in N/m,
-flexural rigidity per unit width in N m); the derivations are in the functions below.
+So the material means the same at every resolution, cell shape and mesh (membrane stiffness in N/m,
+flexural rigidity per unit width in N m).
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .elasticity import SpringRegions
 from .validation import LIMITS, MESH_SECONDS_PER_PARTICLE, check_build_size, check_number, check_vector
 
 log = logging.getLogger(__name__)
@@ -63,14 +66,6 @@ BUCKLING_POLY = (-11.541, 34.193, -39.083, 23.116, -9.713)
 # Onset force factor c0 = 4 |P(1)| (the exact curve gives 12): f_b(L^-) = c0 k_b / L^2.
 BUCKLING_ONSET = 4.0 * abs(sum(BUCKLING_POLY))
 
-# Share s of a node's bending energy carried by its two span-2 diagonals (Choi-Ko set). The node then
-# stores (1/2) D [kx^2 + ky^2 + 2 s kx ky + 4 s kxy^2]: an isotropic plate needs 2 (1 - nu) = 4 s with
-# nu = s, so s = 1/3 (Poisson ratio 1/3).
-DIAGONAL_BEND_SHARE = 1.0 / 3.0
-# bend_stiffness B is the rigidity of a free strip (what the cantilever test measures): a strip bends
-# anticlastically, so the plate modulus of nodes with diagonals is D = B / (1 - nu^2).
-PLATE_FROM_STRIP = 1.0 / (1.0 - DIAGONAL_BEND_SHARE**2)
-
 # Provot flexion springs are linear and store energy ~ theta^4; their stiffness is matched to the
 # buckling spring of the same bending rigidity at 10 % chord compression: (1/2) k (0.1 L)^2 = c0 k_b/L^2 * 0.1 L.
 PROVOT_MATCH_COMPRESSION = 0.1
@@ -86,7 +81,8 @@ class ClothTopology:
         springs: spring endpoints, shape (s, 2).
         spring_kind: :class:`SpringKind` per spring, shape (s,).
         spring_law: :class:`SpringLaw` per spring, shape (s,).
-        spring_weight: geometric weight per spring (module docstring), shape (s,).
+        membrane: the cells/triangles and the stretch/shear springs that carry their membrane energy.
+        bending: the vertex neighbourhoods and the bend springs that carry their bending energy.
         spring_middle: for span-2 bend springs the particle between the two ends, else -1, shape (s,).
         particle_area: lumped (dual) area per particle [m^2], shape (n,).
         render_to_particle: for meshes loaded with seams, original vertex -> particle, shape (n_render,).
@@ -102,7 +98,8 @@ class ClothTopology:
     springs: np.ndarray
     spring_kind: np.ndarray
     spring_law: np.ndarray
-    spring_weight: np.ndarray
+    membrane: SpringRegions
+    bending: SpringRegions
     spring_middle: np.ndarray
     particle_area: np.ndarray
     render_to_particle: np.ndarray | None = None
@@ -121,16 +118,28 @@ class ClothTopology:
 
 
 class _SpringList:
-    def __init__(self):
-        self.i, self.j, self.kind, self.law, self.weight, self.middle = [], [], [], [], [], []
+    """Springs and, per region entry, (region, spring, angle from the warp [rad], factor k / m)."""
 
-    def add(self, i, j, kind, law, weight, middle=-1):
+    def __init__(self):
+        self.i, self.j, self.kind, self.law, self.middle = [], [], [], [], []
+        self.entries = {"membrane": [], "bending": []}
+
+    def add(self, i, j, kind, law, middle=-1) -> int:
         self.i.append(i)
         self.j.append(j)
         self.middle.append(int(middle))
         self.kind.append(int(kind))
         self.law.append(int(law))
-        self.weight.append(float(weight))
+        return len(self.i) - 1
+
+    def carry(self, which: str, region: int, spring: int, angle: float, factor: float):
+        """Spring `spring` carries part of `region`'s energy along `angle` from the warp."""
+        self.entries[which].append((region, spring, angle, factor))
+
+    def regions(self, which: str, area, fit_all: bool) -> SpringRegions:
+        e = self.entries[which]
+        cols = list(zip(*e)) if e else [[], [], [], []]
+        return SpringRegions.build(area, *cols, fit_all=fit_all)
 
     def arrays(self):
         springs = np.stack([np.asarray(self.i, np.int32), np.asarray(self.j, np.int32)], axis=1).reshape(-1, 2)
@@ -138,51 +147,41 @@ class _SpringList:
             springs,
             np.asarray(self.kind, np.int32),
             np.asarray(self.law, np.int32),
-            np.asarray(self.weight, np.float64),
             np.asarray(self.middle, np.int32),
         )
 
 
-def buckling_weight(width: float, span: float, a1: float, a2: float) -> float:
-    """Weight [m] of a span-2 buckling spring so that k_b = B * weight reproduces rigidity B.
+def bend_factor(span: float, a1: float, a2: float, law: SpringLaw) -> float:
+    """Spring constant per plate modulus m [N m^3] of a span-2 bend spring over segments a1, a2 (span L).
 
-    A span-2 spring over two segments a1, a2 (span L = a1 + a2) kinked by a small angle theta shortens
-    by delta = a1 a2 theta^2 / (2 L) and stores c0 k_b delta / L^2 (constant onset force). The continuum
-    strip of width w stores (1/2) B w theta^2 / (L/2) over the same hinge. Equating gives
-    k_b = 2 B w L^2 / (c0 a1 a2).
+    Kinked by a small angle theta = kappa L / 2 (uniform normal curvature kappa along it), the spring
+    shortens by delta = a1 a2 theta^2 / (2 L) and a buckling spring stores c0 k_b delta / L^2 (constant
+    onset force) = (1/2) (c0 k_b a1 a2 / (4 L)) kappa^2: so m = c0 k_b a1 a2 / (4 L), k_b = 4 L m / (c0 a1 a2).
+    A linear Provot spring is matched to that buckling spring at PROVOT_MATCH_COMPRESSION of its chord:
+    (1/2) k (c L)^2 = c0 k_b c L / L^2, so k = 2 c0 k_b / (c L^3).
     """
-    return 2.0 * width * span * span / (BUCKLING_ONSET * a1 * a2)
-
-
-def provot_weight_from_buckling(weight_b: float, span: float) -> float:
-    """Weight [1/m^2] of a linear flexion spring matched to a buckling spring (module constant)."""
-    c = PROVOT_MATCH_COMPRESSION
-    return 2.0 * BUCKLING_ONSET * weight_b / (c * span**3)
+    kb = 4.0 * span / (BUCKLING_ONSET * a1 * a2)
+    return kb if law == SpringLaw.BUCKLING else 2.0 * BUCKLING_ONSET * kb / (PROVOT_MATCH_COMPRESSION * span**3)
 
 
 def grid_topology(
     resolution: tuple[int, int],
     size: tuple[float, float],
     spring_model: SpringModel = SpringModel.CHOI_KO,
+    warp_angle: float = 0.0,
 ) -> ClothTopology:
     """A rectangular grid of nx x ny cells in the local xy-plane, corner (0, 0), extent size [m].
 
-    Vertex (i, j) has index j * (nx + 1) + i. Spring weights (ax, ay: cell size; w_j: width of row j,
-    ay inside and ay/2 on the two boundary rows):
-
-    * structural x-spring in row j: weight w_j / ax. A strip of width W stretched by strain e along x
-      carries sum_j k ax e = E e W: tension per width E e at any resolution. Same along y.
-    * shear diagonals (both in every cell): weight d^2 / (2 ax ay), d the diagonal. Under simple shear
-      gamma the two diagonals of a cell store k gamma^2 ax^2 ay^2 / d^2 = (1/2) G gamma^2 ax ay.
-    * span-2 x/y springs centred on node (i, j) carry that node's bending energy for curvature along
-      their axis (weight from :func:`buckling_weight` with the node's dual width). With the Choi-Ko
-      set, interior nodes give a share s = DIAGONAL_BEND_SHARE to their two span-2 diagonals: under
-      curvature kappa along x a diagonal at angle phi sees normal curvature kappa cos^2 phi, which gives
-      the diagonal weight 4 s A_v / (c0 cos^4 phi d) (A_v = ax ay, d = diagonal segment length); those
-      nodes use the plate modulus B / (1 - s^2) (see PLATE_FROM_STRIP).
+    Vertex (i, j) has index j * (nx + 1) + i. The warp runs along x turned by `warp_angle` [deg] about z
+    (45: a bias-cut piece). Springs: x and y edges and both diagonals of every cell (stretch/shear), span-2
+    x and y bend springs through every node and, with the Choi-Ko set, span-2 diagonals through interior
+    nodes. Each cell's membrane energy is carried by its four edges (half of each: a neighbour has the other
+    half) and two diagonals; each node's bending energy (over its dual area) by the bend springs centred on
+    it; their constants are fitted to the material (module docstring), exact for any cell aspect ratio.
     """
     nx, ny = check_vector("resolution", resolution, LIMITS["resolution"], size=2)
     sx, sy = check_vector("size", size, LIMITS["length"], size=2)
+    warp = np.radians(check_number("warp_angle", warp_angle, LIMITS["angle"]))
     check_grid_size("resolution", nx, ny)
     ax, ay = sx / nx, sy / ny
     xs, ys = np.meshgrid(np.linspace(0.0, sx, nx + 1), np.linspace(0.0, sy, ny + 1))
@@ -191,43 +190,39 @@ def grid_topology(
     def vid(i, j):
         return j * (nx + 1) + i
 
-    def row_width(j, n, a):  # dual width of row j among n+1 rows spaced a
-        return 0.5 * a if (j == 0 or j == n) else a
-
     sl = _SpringList()
-    for j in range(ny + 1):
-        for i in range(nx):
-            sl.add(vid(i, j), vid(i + 1, j), SpringKind.STRUCTURAL, SpringLaw.LINEAR, row_width(j, ny, ay) / ax)
-    for i in range(nx + 1):
-        for j in range(ny):
-            sl.add(vid(i, j), vid(i, j + 1), SpringKind.STRUCTURAL, SpringLaw.LINEAR, row_width(i, nx, ax) / ay)
+    x_edge = {(i, j): sl.add(vid(i, j), vid(i + 1, j), SpringKind.STRUCTURAL, SpringLaw.LINEAR) for j in range(ny + 1) for i in range(nx)}
+    y_edge = {(i, j): sl.add(vid(i, j), vid(i, j + 1), SpringKind.STRUCTURAL, SpringLaw.LINEAR) for i in range(nx + 1) for j in range(ny)}
     d2 = ax * ax + ay * ay
+    phi = np.arctan2(ay, ax)  # the rising diagonal's angle from x
     for j in range(ny):
         for i in range(nx):
-            w = d2 / (2.0 * ax * ay)
-            sl.add(vid(i, j), vid(i + 1, j + 1), SpringKind.SHEAR, SpringLaw.LINEAR, w)
-            sl.add(vid(i + 1, j), vid(i, j + 1), SpringKind.SHEAR, SpringLaw.LINEAR, w)
+            cell = j * nx + i
+            for e in (x_edge[i, j], x_edge[i, j + 1]):
+                sl.carry("membrane", cell, e, -warp, 1.0 / (ax * ax))
+            for e in (y_edge[i, j], y_edge[i + 1, j]):
+                sl.carry("membrane", cell, e, 0.5 * np.pi - warp, 1.0 / (ay * ay))
+            rising = sl.add(vid(i, j), vid(i + 1, j + 1), SpringKind.SHEAR, SpringLaw.LINEAR)
+            falling = sl.add(vid(i + 1, j), vid(i, j + 1), SpringKind.SHEAR, SpringLaw.LINEAR)
+            sl.carry("membrane", cell, rising, phi - warp, 1.0 / d2)
+            sl.carry("membrane", cell, falling, np.pi - phi - warp, 1.0 / d2)
 
-    choi_ko = spring_model == SpringModel.CHOI_KO
+    law = SpringLaw.BUCKLING if spring_model == SpringModel.CHOI_KO else SpringLaw.LINEAR
     d = np.sqrt(d2)
     for j in range(ny + 1):
         for i in range(nx + 1):
-            interior = 0 < i < nx and 0 < j < ny
-            share = DIAGONAL_BEND_SHARE if (choi_ko and interior) else 0.0
-            plate = PLATE_FROM_STRIP if share > 0.0 else 1.0
+            node = vid(i, j)
             if 0 < i < nx:  # x-span-2 centred on (i, j)
-                wb = plate * (1.0 - share) * buckling_weight(row_width(j, ny, ay), 2 * ax, ax, ax)
-                _add_bend(sl, vid(i - 1, j), vid(i + 1, j), vid(i, j), wb, 2 * ax, choi_ko)
+                sl.carry("bending", node, sl.add(vid(i - 1, j), vid(i + 1, j), SpringKind.BEND, law, node), -warp,
+                         bend_factor(2 * ax, ax, ax, law))
             if 0 < j < ny:  # y-span-2
-                wb = plate * (1.0 - share) * buckling_weight(row_width(i, nx, ax), 2 * ay, ay, ay)
-                _add_bend(sl, vid(i, j - 1), vid(i, j + 1), vid(i, j), wb, 2 * ay, choi_ko)
-            if share > 0.0:
-                # Under curvature along x each diagonal sees kappa cos^2(phi); weight so that each of the
-                # two carries share/2 of the node's energy for x-bending (and, by symmetry, y-bending).
-                cos2 = ax * ax / d2
-                wd = plate * 4.0 * share * (ax * ay) / (BUCKLING_ONSET * cos2 * cos2 * d)
-                sl.add(vid(i - 1, j - 1), vid(i + 1, j + 1), SpringKind.BEND, SpringLaw.BUCKLING, wd, vid(i, j))
-                sl.add(vid(i + 1, j - 1), vid(i - 1, j + 1), SpringKind.BEND, SpringLaw.BUCKLING, wd, vid(i, j))
+                sl.carry("bending", node, sl.add(vid(i, j - 1), vid(i, j + 1), SpringKind.BEND, law, node), 0.5 * np.pi - warp,
+                         bend_factor(2 * ay, ay, ay, law))
+            if law == SpringLaw.BUCKLING and 0 < i < nx and 0 < j < ny:  # span-2 diagonals (Choi-Ko)
+                sl.carry("bending", node, sl.add(vid(i - 1, j - 1), vid(i + 1, j + 1), SpringKind.BEND, law, node), phi - warp,
+                         bend_factor(2 * d, d, d, law))
+                sl.carry("bending", node, sl.add(vid(i + 1, j - 1), vid(i - 1, j + 1), SpringKind.BEND, law, node),
+                         np.pi - phi - warp, bend_factor(2 * d, d, d, law))
 
     tris = []
     for j in range(ny):
@@ -245,11 +240,13 @@ def grid_topology(
     wy = np.full(ny + 1, ay)
     wy[[0, -1]] *= 0.5
     particle_area = np.outer(wy, wx).ravel()
-    springs, kind, law, weight, middle = sl.arrays()
+    membrane = sl.regions("membrane", np.full(nx * ny, ax * ay), fit_all=True)
+    bending = sl.regions("bending", particle_area, fit_all=False)
+    springs, kind, law, middle = sl.arrays()
     # Texture coordinates span [0, 1]^2 over the grid (u along x, v along y), per triangle corner.
     corner_uv = (positions[:, :2] / np.array([sx, sy]))[triangles]
-    return ClothTopology(positions, triangles, springs, kind, law, weight, middle, particle_area, grid_shape=(nx, ny),
-                         corner_uv=corner_uv, corner_weights=corner_weights)
+    return ClothTopology(positions, triangles, springs, kind, law, membrane, bending, middle, particle_area,
+                         grid_shape=(nx, ny), corner_uv=corner_uv, corner_weights=corner_weights)
 
 
 def check_grid_size(name: str, nx: int, ny: int):
@@ -260,13 +257,6 @@ def check_grid_size(name: str, nx: int, ny: int):
 def check_disc_size(name: str, rings: int):
     """Refuse a disc of `rings` rings (1 + 3 rings (rings + 1) particles) that would not fit in memory."""
     check_build_size(name, f"a disc of {rings} rings", 1 + 3 * rings * (rings + 1), MESH_SECONDS_PER_PARTICLE)
-
-
-def _add_bend(sl: _SpringList, i: int, j: int, middle: int, weight_b: float, span: float, choi_ko: bool):
-    if choi_ko:
-        sl.add(i, j, SpringKind.BEND, SpringLaw.BUCKLING, weight_b, middle)
-    else:
-        sl.add(i, j, SpringKind.BEND, SpringLaw.LINEAR, provot_weight_from_buckling(weight_b, span))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -481,21 +471,22 @@ def mesh_topology(
     spring_model: SpringModel = SpringModel.CHOI_KO,
     uvs=None,
     weld: bool = True,
+    warp_direction=None,
 ) -> ClothTopology:
     """Springs for an arbitrary triangle mesh (after validation, seam welding and clean-up).
 
     Rules (general meshes have no grid lines, so the two-ring stands in for them):
 
-    * stretch: every mesh edge; weight (A_1 + A_2) / L^2 over its (one or two) triangles. On a mesh of
-      equilateral triangles this gives an isotropic membrane with Young's modulus * thickness exactly
-      stretch_stiffness (Poisson ratio 1/3; the edge lattice also carries shear G = 3E/8).
-    * shear: for each interior manifold edge, a spring between the two vertices opposite it; weight
-      (A_1 + A_2) / (2 L^2). Approximate: it adds shear resistance on top of the edge lattice's.
+    * membrane: every edge (stretch) and, across each interior manifold edge, a spring between the two
+      opposite vertices (shear); each triangle's membrane energy is carried by its three edges and the
+      cross springs over them.
     * bend: for each vertex v and neighbour a, the neighbour b of v that makes the straightest line
-      a-v-b (angle >= MESH_BEND_MIN_ANGLE_DEG) gives a span-2 spring a-b (deduplicated). Its weight
-      gives each of the n_v bend springs at v a share 8/(3 n_v) of the vertex's bending energy (the
-      average of cos^4 over n_v evenly spread directions is 3/8), with :func:`buckling_weight`-style
-      kink geometry: k_b = 32 B A_v L / (3 n_v c0 a1 a2).
+      a-v-b (angle >= MESH_BEND_MIN_ANGLE_DEG) gives a span-2 spring a-b (deduplicated); it carries part of
+      v's bending energy (over v's dual area).
+    Spring constants are fitted per region to the material in the region's warp/weft frame
+    (:mod:`cloth_warp.elasticity`). The warp (:func:`triangle_warp`): the direction of increasing texture u
+    where `uvs` are given, else `warp_direction` (local coordinates), else the local x axis, projected onto
+    each triangle.
     Non-manifold edges (three or more triangles) keep their stretch spring but get no shear spring and
     are reported. Degenerate and duplicate triangles are dropped and reported.
     """
@@ -542,23 +533,43 @@ def mesh_topology(
     for c in range(3):
         np.add.at(particle_area, t_clean[:, c], area / 3.0)
 
+    law = SpringLaw.BUCKLING if spring_model == SpringModel.CHOI_KO else SpringLaw.LINEAR
+    normal, warp = triangle_frames(particles, t_clean, corner_uv, warp_direction)
+    weft = np.cross(normal, warp)
+
+    def angle_in(frame_w, frame_f, vec):
+        return float(np.arctan2(vec @ frame_f, vec @ frame_w))
+
     sl = _SpringList()
     edges, edge_tris = edge_triangles(t_clean)
     nonmanifold = 0
     for (a, b), tris in zip(edges, edge_tris):
-        length2 = float(np.sum((particles[a] - particles[b]) ** 2))
-        sl.add(a, b, SpringKind.STRUCTURAL, SpringLaw.LINEAR, float(area[tris].sum()) / length2)
+        e = particles[b] - particles[a]
+        spring = sl.add(a, b, SpringKind.STRUCTURAL, SpringLaw.LINEAR)
+        for k in tris:
+            sl.carry("membrane", int(k), spring, angle_in(warp[k], weft[k], e), 1.0 / float(e @ e))
         if len(tris) > 2:
             nonmanifold += 1
         elif len(tris) == 2:
             o = [int(np.setdiff1d(t_clean[k], (a, b))[0]) for k in tris]
             if o[0] != o[1]:
-                l2 = float(np.sum((particles[o[0]] - particles[o[1]]) ** 2))
-                sl.add(o[0], o[1], SpringKind.SHEAR, SpringLaw.LINEAR, float(area[tris].sum()) / (2.0 * l2))
+                c = particles[o[1]] - particles[o[0]]
+                spring = sl.add(o[0], o[1], SpringKind.SHEAR, SpringLaw.LINEAR)
+                for k in tris:
+                    sl.carry("membrane", int(k), spring, angle_in(warp[k], weft[k], c), 1.0 / float(c @ c))
     if nonmanifold:
         issues.append(f"{nonmanifold} non-manifold edge(s) (shared by 3+ triangles): kept as stretch springs, no shear/bend across them")
 
-    # Bend springs through each vertex along its straightest neighbour pairs.
+    # Bend springs through each vertex along its straightest neighbour pairs, in the vertex's frame.
+    v_normal = np.zeros_like(particles)
+    v_warp = np.zeros_like(particles)
+    for c in range(3):
+        np.add.at(v_normal, t_clean[:, c], normal * area[:, None])
+        np.add.at(v_warp, t_clean[:, c], warp * area[:, None])
+    v_normal /= np.maximum(np.linalg.norm(v_normal, axis=1, keepdims=True), 1e-300)
+    v_warp -= np.sum(v_warp * v_normal, axis=1, keepdims=True) * v_normal
+    v_warp /= np.maximum(np.linalg.norm(v_warp, axis=1, keepdims=True), 1e-300)
+    v_weft = np.cross(v_normal, v_warp)
     neighbours = [set() for _ in range(len(particles))]
     for a, b in edges:
         neighbours[a].add(int(b))
@@ -577,17 +588,16 @@ def mesh_topology(
             if cosines[ia, ib] <= cos_min:
                 key = (min(nb[ia], nb[ib]), max(nb[ia], nb[ib]))
                 pairs.setdefault(key, vtx)
-    per_vertex = np.bincount(np.fromiter(pairs.values(), dtype=np.int64, count=len(pairs)), minlength=len(particles)) if pairs else np.zeros(len(particles), int)
-    choi_ko = spring_model == SpringModel.CHOI_KO
     for (a, b), vtx in pairs.items():
         a1 = float(np.linalg.norm(particles[a] - particles[vtx]))
         a2 = float(np.linalg.norm(particles[b] - particles[vtx]))
-        span = a1 + a2
-        n_v = max(int(per_vertex[vtx]), 3)
-        wb = 32.0 * particle_area[vtx] * span / (3.0 * n_v * BUCKLING_ONSET * a1 * a2)
-        _add_bend(sl, a, b, vtx, wb, span, choi_ko)
+        spring = sl.add(a, b, SpringKind.BEND, law, vtx)
+        sl.carry("bending", vtx, spring, angle_in(v_warp[vtx], v_weft[vtx], particles[b] - particles[a]),
+                 bend_factor(a1 + a2, a1, a2, law))
 
-    springs, kind, law, weight, middle = sl.arrays()
+    membrane = sl.regions("membrane", area, fit_all=True)
+    bending = sl.regions("bending", particle_area, fit_all=False)
+    springs, kind, law, middle = sl.arrays()
     for msg in issues:
         warnings.warn(f"cloth mesh: {msg}", stacklevel=3)
     return ClothTopology(
@@ -596,13 +606,54 @@ def mesh_topology(
         springs,
         kind,
         law,
-        weight,
+        membrane,
+        bending,
         middle,
         particle_area,
         render_to_particle=render_to_particle,
         corner_uv=corner_uv,
         warnings=issues,
     )
+
+
+def triangle_frames(positions: np.ndarray, triangles: np.ndarray, corner_uv: np.ndarray | None = None,
+                    warp_direction=None) -> tuple[np.ndarray, np.ndarray]:
+    """Per triangle, the unit normal and the unit warp direction in its plane, shapes (t, 3).
+
+    The warp is `warp_direction` (local coordinates) projected onto the triangle when given; else the
+    direction in which the texture coordinate u increases (dx/du, from the triangle's UV Jacobian) where
+    `corner_uv` (t, 3, 2) is given and not degenerate; else the local x axis projected, or the local y axis
+    where the triangle's plane is within 30 deg of facing along x.
+    """
+    x = positions[triangles]
+    e1, e2 = x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]
+    normal = np.cross(e1, e2)
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
+
+    def project(v):
+        v = np.broadcast_to(np.asarray(v, float), normal.shape)
+        p = v - np.sum(v * normal, axis=1, keepdims=True) * normal
+        return p, np.linalg.norm(p, axis=1)
+
+    if warp_direction is not None:
+        d = check_vector("warp_direction", warp_direction, LIMITS["position"])
+        if np.linalg.norm(d) == 0.0:
+            raise ValueError("warp_direction must not be zero")
+        warp, length = project(d / np.linalg.norm(d))
+        fallback, _ = project(np.cross(d, [0.0, 0.0, 1.0]) if abs(d[2]) < 0.9 * np.linalg.norm(d) else [1.0, 0.0, 0.0])
+    else:
+        warp, length = project([1.0, 0.0, 0.0])
+        fallback, _ = project([0.0, 1.0, 0.0])
+    warp = np.where((length < 0.5)[:, None], fallback, warp)
+    if corner_uv is not None and warp_direction is None:
+        du1, dv1 = corner_uv[:, 1, 0] - corner_uv[:, 0, 0], corner_uv[:, 1, 1] - corner_uv[:, 0, 1]
+        du2, dv2 = corner_uv[:, 2, 0] - corner_uv[:, 0, 0], corner_uv[:, 2, 1] - corner_uv[:, 0, 1]
+        det = du1 * dv2 - du2 * dv1
+        ok = np.abs(det) > 1e-12 * np.maximum(du1 * du1 + dv1 * dv1 + du2 * du2 + dv2 * dv2, 1e-300)
+        tangent = (e1 * dv2[:, None] - e2 * dv1[:, None]) / np.where(ok, det, 1.0)[:, None]
+        warp = np.where(ok[:, None], tangent, warp)
+    warp -= np.sum(warp * normal, axis=1, keepdims=True) * normal
+    return normal, warp / np.maximum(np.linalg.norm(warp, axis=1, keepdims=True), 1e-300)
 
 
 def _surviving_triangle_rows(before: np.ndarray, after: np.ndarray) -> np.ndarray:
