@@ -125,9 +125,10 @@ class _SpringList:
         self.entries = {"membrane": [], "bending": []}
 
     def add(self, i, j, kind, law, middle=-1) -> int:
+        """Append a spring; `middle` is kept for buckling triples only (linear springs have none)."""
         self.i.append(i)
         self.j.append(j)
-        self.middle.append(int(middle))
+        self.middle.append(int(middle) if law == SpringLaw.BUCKLING else -1)
         self.kind.append(int(kind))
         self.law.append(int(law))
         return len(self.i) - 1
