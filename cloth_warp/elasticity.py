@@ -47,11 +47,6 @@ class Orthotropic:
     weft: float
     coupling: float
 
-    def energy(self, angle) -> np.ndarray:
-        """W(n) for n at `angle` [rad] from the warp direction."""
-        c, s = np.cos(angle), np.sin(angle)
-        return self.warp * c**4 + 6.0 * self.coupling * c * c * s * s + self.weft * s**4
-
     def voigt(self) -> np.ndarray:
         """The 3x3 Voigt matrix (w, f, engineering shear): [[warp, coupling, 0], [coupling, weft, 0], [0, 0, coupling]]."""
         return np.array([[self.warp, self.coupling, 0.0], [self.coupling, self.weft, 0.0], [0.0, 0.0, self.coupling]])
@@ -126,12 +121,8 @@ class SpringRegions:
     def spring_constants(self, tensors, spring_count: int) -> np.ndarray:
         """Per-spring constants (k or k_b) that make every region store the tensor (a list: the first each
         region fits, see :func:`fit_moduli`), summed over the regions."""
-        m, _ = fit_moduli(self, tensors)
+        m = fit_moduli(self, tensors)
         return np.bincount(self.spring, m * self.factor, minlength=spring_count)
-
-    def fit_error(self, tensors) -> np.ndarray:
-        """Per region, the relative error of the fitted tensor in the fit's norm (0 = exact), shape (r,)."""
-        return fit_moduli(self, tensors)[1]
 
 
 def _group(keys: np.ndarray, values: np.ndarray, count: int):
@@ -172,20 +163,18 @@ def _region_system(angle: np.ndarray, plate: bool, tensor: Orthotropic):
     return (np.cos(angle[:, None] - angle[None, :]) ** 4) * w[:, None], strip * w
 
 
-def fit_moduli(regions: SpringRegions, tensors) -> tuple[np.ndarray, np.ndarray]:
-    """Per entry, the modulus m >= 0 [N m or N m^3] of the regions' springs that best store a tensor x area,
-    and per region the relative error of the fit.
+def fit_moduli(regions: SpringRegions, tensors) -> np.ndarray:
+    """Per entry, the modulus m >= 0 [N m or N m^3] of the regions' springs that best store a tensor x area.
 
     `tensors` is an Orthotropic or a list of them in order of preference: a plate region takes the first one
     it stores within PLATE_FIT (else the one it stores best); a strip region always fits the first.
     """
     tensors = [tensors] if isinstance(tensors, Orthotropic) else list(tensors)
     m = np.zeros(len(regions.region))
-    error = np.zeros(len(regions.area))
     if max(tensors[0].warp, tensors[0].weft) <= 0.0:
-        return m, error
+        return m
     # Regions of the same shape (same directions, same kind) share a solution per unit area: solve once.
-    solved: dict[tuple, tuple[np.ndarray, float]] = {}
+    solved: dict[tuple, np.ndarray] = {}
     for r, idx in _group(regions.region, np.arange(len(regions.region)), len(regions.area)):
         ang = regions.angle[idx]
         plate = bool(regions.plate[r])
@@ -200,11 +189,9 @@ def fit_moduli(regions: SpringRegions, tensors) -> tuple[np.ndarray, np.ndarray]
                     best = (x, err)
                 if err <= PLATE_FIT:
                     break
-            solved[key] = best
-        x, err = solved[key]
-        m[idx] = x * regions.area[r]
-        error[r] = err
-    return m, error
+            solved[key] = best[0]
+        m[idx] = solved[key] * regions.area[r]
+    return m
 
 
 def _ridge_nnls(a: np.ndarray, b: np.ndarray) -> np.ndarray:
