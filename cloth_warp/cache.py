@@ -12,7 +12,8 @@ A USD cache is what DCC tools (usdview, Houdini, Blender, Maya, Omniverse) play:
 * per-frame diagnostics as custom attributes on each cloth prim (``clothWarp:maxStrain``,
   ``clothWarp:dt`` [s], ``clothWarp:solverIterations``, ``clothWarp:solverResidual``,
   ``clothWarp:colliderContacts``, ``clothWarp:colliderCcd`` and, with self-collision, ``clothWarp:selfProximity``,
-  ``selfCcd``, ``selfSweeps``, ``impactZones``, ``selfUnresolved``);
+  ``selfCcd``, ``selfSweeps``, ``impactZones``, ``selfUnresolved`` and, with strain limiting,
+  ``strainExcessStructural``, ``strainExcessShear``, ``strainLimitSweeps``, ``strainLimitMissed``);
 * colliders under ``/World/colliders`` as UsdGeom Sphere / Capsule / Cylinder (axis Z) / Cube (scaled) /
   Plane / Mesh prims with a translate and an orient op (time-sampled per frame when animated), grey
   ``displayColor``, and their shape, thickness and friction in the prim's customData;
@@ -64,10 +65,17 @@ DIAGNOSTICS = {  # per-frame custom attributes: name -> (USD type name, descript
     "selfSweeps": ("int", "CCD sweeps with impulses run in the frame's steps"),
     "impactZones": ("int", "rigid impact zones formed in the frame's steps (Provot's fail-safe)"),
     "selfUnresolved": ("int", "steps that ended with cloth-cloth impacts left (should be 0)"),
+    "strainExcessStructural": ("float", "worst strain above the strain limit on structural springs after limiting, in the frame's steps"),
+    "strainExcessShear": ("float", "worst strain above the strain limit on shear springs after limiting, in the frame's steps"),
+    "strainLimitSweeps": ("int", "strain-limit sweeps run in the frame's steps (summed)"),
+    "strainLimitMissed": ("int", "steps whose strain limiting stopped at its cap above its tolerance (should be 0)"),
 }
 # per-frame diagnostic attribute <- collision counter (cloth_warp.collision / cloth_warp.selfcollision)
 COUNTER_DIAGNOSTICS = {"colliderContacts": "collider_contacts", "colliderCcd": "collider_ccd", "selfProximity": "self_proximity",
                        "selfCcd": "self_ccd", "selfSweeps": "self_sweeps", "impactZones": "impact_zones", "selfUnresolved": "unresolved"}
+# per-frame diagnostic attribute <- the Simulator's strain-limit report (Simulator.frame_info)
+STRAIN_LIMIT_DIAGNOSTICS = {"strainExcessStructural": "strain_excess_structural", "strainExcessShear": "strain_excess_shear",
+                            "strainLimitSweeps": "strain_limit_sweeps", "strainLimitMissed": "strain_limit_missed"}
 COLLIDER_SCOPE = "colliders"  # colliders are written under /World/colliders
 
 

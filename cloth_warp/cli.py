@@ -24,6 +24,7 @@ import signal
 import sys
 import time
 import tomllib
+import warnings
 
 from . import __version__
 
@@ -110,6 +111,17 @@ def format_summary(s: dict) -> str:
             dt = f"{s['dt_min']:.3g} s" if s["dt_min"] == s["dt_max"] else f"{s['dt_min']:.3g} .. {s['dt_max']:.3g} s"
             extra = f" ({s['rejected_steps']} rejected steps)" if s.get("rejected_steps") else ""
             lines.append(f"  dt          {dt}{extra}")
+        limit = s.get("strain_limit")
+        if limit and limit.get("frames"):
+            sweeps = limit.get("sweeps_per_step")
+            effort = f"; {sweeps['mean']:.1f} sweeps/step on average, {sweeps['max']} at most (cap {limit['max_sweeps']})" if sweeps else ""
+            if limit["missed_frames"]:
+                lines.append(f"  limiter     {100 * limit['limit']:g} % strain limit MISSED in {limit['missed_frames']}/{limit['frames']} "
+                             f"frames: up to {100 * limit['excess_structural']:.3g} % over on structural, "
+                             f"{100 * limit['excess_shear']:.3g} % on shear springs{effort}")
+            else:
+                lines.append(f"  limiter     {100 * limit['limit']:g} % strain limit held in every frame (to "
+                             f"{100 * limit['tolerance']:.3g} %){effort}")
         if s.get("solver_iterations") and s["solver_iterations"]["max"]:
             lines.append(f"  solver      {s['solver_iterations']['mean']:.0f} iterations/frame on average, "
                          f"{s['solver_iterations']['max']} at most")
@@ -147,6 +159,19 @@ def _on_sigterm(signum, frame):
     raise KeyboardInterrupt
 
 
+def _show_warning(show):
+    """warnings.showwarning that prints a StrainLimitWarning as one `cloth-warp: warning:` line."""
+    from .solvers.strain_limit import StrainLimitWarning
+
+    def shown(message, category, *args, **kwargs):
+        if issubclass(category, StrainLimitWarning):
+            print(f"cloth-warp: warning: {message}", file=sys.stderr)
+        else:
+            show(message, category, *args, **kwargs)
+
+    return shown
+
+
 def cmd_run(args) -> int:
     from .outputs import CacheWriteError
     from .runner import run_scene
@@ -154,9 +179,11 @@ def cmd_run(args) -> int:
     overrides = parse_set(args.set)
     progress = Progress(quiet=args.quiet)
     try:  # Ctrl-C / SIGTERM (see main) stop the run with a valid cache
-        summary = run_scene(args.scene, overrides, output=args.output, frames=args.frames, fps=args.fps,
-                            device=args.device, start_frame=args.start_frame, progress=progress, argv=sys.argv,
-                            resume=args.resume)
+        with warnings.catch_warnings():
+            warnings.showwarning = _show_warning(warnings.showwarning)
+            summary = run_scene(args.scene, overrides, output=args.output, frames=args.frames, fps=args.fps,
+                                device=args.device, start_frame=args.start_frame, progress=progress, argv=sys.argv,
+                                resume=args.resume)
     except KeyboardInterrupt as exc:
         summary = getattr(exc, "summary", None)
         progress.finish()
@@ -323,6 +350,9 @@ def cmd_fit(args) -> int:
             lines.append(f"  {key:<28} {_fmt_value(result.initial_values[key])} -> {_fmt_value(result.final_values[key])}")
         for key, value in result.measured.items():
             lines.append(f"  {key:<28} {_fmt_value(value)}")
+        tol = result.solver_tolerance
+        if tol is not None:
+            lines.append(f"  solver tolerance {'none' if tol.tolerance is None else f'{tol.tolerance:g}'} ({tol.reason})")
         lines.append(f"  fitted scene  {paths['scene']}")
         lines.append(f"  report        {paths['report']}")
         lines.append(f"  loss curve    {paths['loss_curve']}")

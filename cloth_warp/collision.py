@@ -54,6 +54,12 @@ class CollisionHandler:
     def active(self) -> bool:
         return self.model.collider_count > 0 or self.self_collision is not None
 
+    def notify_model_changed(self, flags: int) -> None:
+        """Model fields changed (:class:`~cloth_warp.model.ModelFlags`): the collider pass reads the model at every
+        step; self-collision refreshes its inverse masses."""
+        if self.self_collision is not None:
+            self.self_collision.notify_model_changed(flags)
+
     def begin_step(self):
         """A new step starts (its passes share the start state; caches of the previous step are stale)."""
         if self.self_collision is not None:

@@ -1,4 +1,5 @@
-"""Step statistics: max strain, kinetic energy, max speed, non-finite values, work done by gravity."""
+"""Step statistics (max strain, kinetic energy, max speed, non-finite values, work done by gravity) and the
+strain limiter's report."""
 
 from __future__ import annotations
 
@@ -69,3 +70,55 @@ class Diagnostics:
         )
         s = self.stats.numpy()
         return StepStats(float(s[0]), float(s[1]), float(s[2]), int(s[3]), float(s[4]) - self._potential0)
+
+
+@dataclass(frozen=True)
+class StrainLimitReport:
+    """What the strain limiter left over some steps (a frame, or a whole run when reports are added up).
+
+    Excesses are strains above the limit, l / L - 1 - max_strain, after the limiter's last pass of a step
+    (before any collision pass that follows it), the worst over the steps, floored at 0.
+
+    Attributes:
+        max_strain: the limit (0.1 = 10 %); tolerance: the excess above which a step counts as missed.
+        max_sweeps: the cap of sweeps per step (``strain_limit_iterations``).
+        structural_excess, shear_excess: worst excess left on structural / shear springs.
+        initial_excess: worst excess of the integrator's output, before limiting.
+        steps: steps limited; missed_steps: of those, steps that ended above the tolerance.
+        sweeps: sweeps run, summed over the steps; most_sweeps: the most in one step.
+        frames, missed_frames: frames covered, and frames with a missed step.
+    """
+
+    max_strain: float
+    tolerance: float
+    max_sweeps: int
+    structural_excess: float
+    shear_excess: float
+    initial_excess: float
+    steps: int
+    missed_steps: int
+    sweeps: int
+    most_sweeps: int
+    frames: int = 1
+    missed_frames: int = 0
+
+    @property
+    def held(self) -> bool:
+        """Every step met the tolerance."""
+        return self.missed_steps == 0
+
+    @property
+    def excess(self) -> float:
+        return max(self.structural_excess, self.shear_excess)
+
+    @property
+    def mean_sweeps(self) -> float:
+        return self.sweeps / self.steps if self.steps else 0.0
+
+    def __add__(self, other: StrainLimitReport) -> StrainLimitReport:
+        """The report of both stretches of steps."""
+        return StrainLimitReport(
+            self.max_strain, self.tolerance, self.max_sweeps, max(self.structural_excess, other.structural_excess),
+            max(self.shear_excess, other.shear_excess), max(self.initial_excess, other.initial_excess), self.steps + other.steps,
+            self.missed_steps + other.missed_steps, self.sweeps + other.sweeps, max(self.most_sweeps, other.most_sweeps),
+            self.frames + other.frames, self.missed_frames + other.missed_frames)

@@ -9,15 +9,23 @@ fits chosen scene keys so the cloth matches a target cache, with Warp's Adam opt
 
 Parameters (scene key paths):
 
-* ``material.<value>``: areal_density, stretch_stiffness, shear_stiffness, bend_stiffness, damping,
+* ``material.<value>``: areal_density, stretch_stiffness(_weft), shear_stiffness, bend_stiffness(_weft), damping,
   drag_coefficient; positive, optimized in log space;
 * ``forces.wind`` [m/s] and ``cloth.velocity`` (the initial velocity) [m/s]: vectors, optimized as they are;
 * ``colliders[i].friction``: a collider's Coulomb coefficient (static and kinetic), log space.
 
 Each model array depends linearly on each parameter alone (a stiffness, a mass, a damping c = tau k), so
 the chain rule from the arrays' gradients to a parameter uses the difference of two host-side model
-builds, which is exact; the model is rebuilt from the scene at every iteration. Bounds clip the
-parameter after every step (default: 1/100 to 100 times the start for log-space parameters).
+builds, which is exact; the model is rebuilt from the scene at every iteration and its values are written
+into the fit's model, whose solver (and loss) are then told which fields changed
+(``notify_model_changed(flags)``, :class:`~cloth_warp.model.ModelFlags`): the fit simulates exactly what a
+fresh build of the scene with those values simulates, and after :meth:`SceneFit.run` its model and solver
+hold the best values. Bounds clip the parameter after every step (default: 1/100 to 100 times the start for
+log-space parameters).
+
+Gradients are only as good as the implicit solve: the adjoint is exact up to the linear solve's tolerance, and
+a loose solve makes the simulated map itself jagged. A fit therefore runs the implicit solve at
+:data:`FIT_TOLERANCE` (or the scene's, when tighter); :class:`FitResult` reports the tolerance and why.
 
 Losses: ``positions`` (mean squared vertex distance over every target frame), ``final`` (the last frame
 only) and ``chamfer`` (symmetric Chamfer distance per frame: targets on a different mesh).
@@ -37,12 +45,30 @@ import warp as wp
 
 from .cache import CacheError
 from .gradients import CentroidLoss, ChamferLoss, ChordAngleLoss, Loss, PositionLoss, Rollout, model_grad_arrays
+from .model import FIELD_FLAGS, ModelFlags
 from .scene import FIT_LOSSES, Scene, SceneError, build_material, build_model, build_solver, scene_selection, with_values
-from .validation import LIMITS
+from .validation import LIMITS, check_number
 
-MATERIAL_VALUES = ("areal_density", "stretch_stiffness", "shear_stiffness", "bend_stiffness", "damping", "drag_coefficient")
+MATERIAL_VALUES = ("areal_density", "stretch_stiffness", "stretch_stiffness_weft", "shear_stiffness", "bend_stiffness",
+                   "bend_stiffness_weft", "damping", "drag_coefficient")
 LOSSES = FIT_LOSSES
-VECTOR_EPS = 0.1  # a vector parameter's Adam eps, relative to its first gradient's norm (see SceneFit.run)
+CHAIN_STEP = 1.0e-2
+"""Relative step of the central difference that carries the model arrays' gradients to a material value."""
+VECTOR_NOISE_FLOOR = 3.0e-2
+"""A vector parameter's Adam eps relative to its gradient's running norm (see :meth:`SceneFit.run`): a component
+whose gradient stays below this share of the vector's takes steps of at most (share / floor) x the learning rate.
+Measured on scenes/fit_flag.toml (wind [0, 0, 1.5] -> [0, 1, 3] m/s): the along-pole component's share is
+0.5-1.6e-4, float32 noise; in 30 iterations it moved 3 mm/s (plain Adam: 1.5 m/s) while the felt y component (share
+2.6 % at the start) came within 7 % (the old first-gradient eps left it 62 % off). In 60 iterations a floor of 1e-2
+let the along-pole wind drift 4 cm/s and left y 13 % off, 5e-2 left y 6 % off, 3e-2 1 %."""
+FIT_TOLERANCE = 1.0e-6
+"""Relative residual of the implicit linear solve (forward and adjoint) during a fit; a scene's tighter value is
+kept. The adjoint is exact only up to the solve's tolerance, and a loose solve also biases the simulated map: on a
+16^2 cotton cloth at one step per frame, d loss / d stretch_stiffness at the default 1e-3 is 23 % off the slope of
+the map (an independent check found 24 %), 0.6 % at 1e-6 (tests/test_fits_converge.py); on scenes/fit_hanging.toml
+the scene keys' gradients were 7 % off at 1e-4, within 1 % at 1e-6. The error grows with the system's
+conditioning (h^2 k / m), so a fit takes float32 CG's floor, 1e-6 (WARM_START_FLOOR in solvers/implicit.py):
+about 1.5x the CG iterations of 1e-4, 2x those of 1e-3."""
 _COLLIDER_FRICTION = re.compile(r"colliders\[(\d+)\]\.friction$")
 
 
@@ -88,7 +114,8 @@ class FitParameter:
 
 # the validation.LIMITS entry of each fittable value (colliders' friction otherwise)
 _LIMIT_OF = {"damping": "damping_time", "wind": "velocity", "velocity": "velocity", "areal_density": "areal_density",
-             "stretch_stiffness": "stretch_stiffness", "shear_stiffness": "shear_stiffness", "bend_stiffness": "bend_stiffness",
+             "stretch_stiffness": "stretch_stiffness", "stretch_stiffness_weft": "stretch_stiffness", "shear_stiffness": "shear_stiffness",
+             "bend_stiffness": "bend_stiffness", "bend_stiffness_weft": "bend_stiffness",
              "drag_coefficient": "drag_coefficient"}
 
 
@@ -113,7 +140,11 @@ def _current_value(scene: Scene, key: str) -> tuple[np.ndarray, bool]:
         name = key.split(".", 1)[1]
         if name not in MATERIAL_VALUES:
             raise SceneError(f"--param {key}: not a fittable material value; allowed: {', '.join(allowed_parameters())}")
-        value = float(getattr(build_material(scene), name))
+        material = build_material(scene)
+        value = getattr(material, name)
+        if value is None:  # a weft value not set is the warp's
+            value = getattr(material, name.removesuffix("_weft"))
+        value = float(value)
         if value <= 0.0:
             raise SceneError(f"--param {key}: the start value must be positive to fit in log space, got {value}")
         return np.array([value]), True
@@ -178,6 +209,19 @@ def read_targets(target, substeps: int, frames: int | None) -> dict[int, np.ndar
 
 
 @dataclasses.dataclass
+class FitSolverTolerance:
+    """The implicit solve's tolerance during a fit, and why."""
+
+    tolerance: float | None
+    """Relative residual at which the fit's linear solves (forward and adjoint) stop; None: an explicit
+    integrator (no linear solve, gradients exact up to float32)."""
+    scene_tolerance: float | None
+    """The scene's ``solver.tolerance`` (None for explicit integrators)."""
+    reason: str
+    """Why this tolerance."""
+
+
+@dataclasses.dataclass
 class FitResult:
     """What a fit did: loss and values per iteration, the best values found, and timings."""
 
@@ -195,9 +239,32 @@ class FitResult:
     status: str = "complete"
     measured: dict = dataclasses.field(default_factory=dict)
     """What the loss measures at the best values (a throw's landing distance, a chord angle), if it reports it."""
+    solver_tolerance: FitSolverTolerance | None = None
+    """The implicit solve's tolerance during the fit and why (:data:`FIT_TOLERANCE`)."""
 
     def report(self) -> dict:
         return dataclasses.asdict(self)
+
+
+def fit_tolerance(scene: Scene, tolerance: float | None = None) -> FitSolverTolerance:
+    """The implicit solve's tolerance for a fit of `scene`: `tolerance` when given, else :data:`FIT_TOLERANCE`
+    or the scene's when tighter (explicit integrators have none)."""
+    if scene.get("solver.integrator") != "implicit_euler":
+        return FitSolverTolerance(None, None, f"{scene.get('solver.integrator')}: no linear solve")
+    own = float(scene.get("solver.tolerance"))
+    if tolerance is not None:
+        tolerance = float(check_number("solver_tolerance", tolerance, LIMITS["tolerance"]))
+        return FitSolverTolerance(tolerance, own, "set by the caller")
+    if own <= FIT_TOLERANCE:
+        return FitSolverTolerance(own, own, f"the scene's, at least as tight as the fit's default {FIT_TOLERANCE:g}")
+    return FitSolverTolerance(FIT_TOLERANCE, own, f"tightened from the scene's {own:g}: the adjoint gradient is exact only up "
+                              "to the solve's tolerance (d loss / d stretch stiffness up to 23 % off the slope of the simulated "
+                              f"map at 1e-3, 0.6 % at {FIT_TOLERANCE:g})")
+
+
+# Model scalars a build derives from fitted values (not differentiated): the default self-collision stiffness is
+# the median structural spring constant, so it follows material.stretch_stiffness.
+_DERIVED_SCALARS = ("self_collision_stiffness", "cloth_thickness", "cloth_friction", "global_damping", "gravity")
 
 
 def scene_target(scene: Scene, frames: int):
@@ -237,10 +304,12 @@ class SceneFit:
         checkpoint_every: passed to :class:`Rollout`; default: every state kept up to 240 steps, about
             sqrt(steps) of them beyond (one extra forward pass, memory ~sqrt(T)).
         device: Warp device.
+        solver_tolerance: relative residual of the implicit solve during the fit (default: :data:`FIT_TOLERANCE`,
+            or the scene's ``solver.tolerance`` when tighter); reported in :attr:`FitResult.solver_tolerance`.
     """
 
     def __init__(self, scene: Scene, target=None, parameters: list[str] | None = None, *, loss: str | None = None,
-                 frames: int | None = None, checkpoint_every=None, device=None):
+                 frames: int | None = None, checkpoint_every=None, device=None, solver_tolerance: float | None = None):
         loss = scene.get("fit.loss") if loss is None else loss
         parameters = scene.get("fit.params") if parameters is None else parameters
         frames = scene.get("fit.frames") if frames is None else frames
@@ -300,7 +369,9 @@ class SceneFit:
                 raise SceneError(f"target: frame {bad[0]} has {targets[bad[0]].shape[0]} points, the scene's cloth {n}; "
                                  "use --loss chamfer for a target on a different mesh")
             self.loss = PositionLoss(steps, device=self.device)
-        self.solver = build_solver(scene, self.model)
+        self.tolerance = fit_tolerance(scene, solver_tolerance)
+        tight = self.tolerance.tolerance
+        self.solver = build_solver(scene if tight is None else with_values(scene, {"solver.tolerance": tight}), self.model)
         steps = self.frames * self.substeps
         if checkpoint_every is None and steps > 240:
             checkpoint_every = "auto"
@@ -316,25 +387,47 @@ class SceneFit:
     def _scene_with(self, values: dict) -> Scene:
         return with_values(self.scene, values)
 
-    def _arrays(self, values: dict) -> dict[str, np.ndarray]:
-        m = build_model(self._scene_with(values), "cpu", requires_grad=True)
+    def _arrays(self, values: dict, model=None) -> dict[str, np.ndarray]:
+        m = build_model(self._scene_with(values), "cpu", requires_grad=True) if model is None else model
         return {name: a.numpy().astype(np.float64) for name, a in model_grad_arrays(m).items() if name != "particle_q"}
 
-    def _apply(self, values: dict, arrays: dict[str, np.ndarray]):
-        grad_arrays = model_grad_arrays(self.model)
+    def _apply(self, values: dict) -> dict[str, np.ndarray]:
+        """Write what a fresh build of the scene with `values` holds into the fit's model (its differentiable arrays
+        and the values derived from them, such as the default self-collision stiffness, which follows the stretch
+        stiffness), tell the solver and the loss which fields changed, and set the wind. Returns the build's
+        differentiable arrays (float64, for the chain rule)."""
+        fresh = build_model(self._scene_with(values), "cpu", requires_grad=True)
+        arrays = self._arrays(values, fresh)
+        flags = ModelFlags(0)
         for name, a in arrays.items():
-            if name != "particle_qd":
-                grad_arrays[name].assign(a.astype(np.float32))
+            new = a.astype(np.float32)
+            target = getattr(self.model, name)
+            if not np.array_equal(target.numpy(), new):
+                target.assign(new)
+                flags |= FIELD_FLAGS[name]
+        for name in _DERIVED_SCALARS:
+            if getattr(fresh, name) != getattr(self.model, name):
+                setattr(self.model, name, getattr(fresh, name))
+                flags |= FIELD_FLAGS[name]
+        for mine, theirs in zip(self.model.cloths, fresh.cloths):
+            mine.material = theirs.material  # the host-side description, for reports
+        if flags:
+            self.rollout.notify_model_changed(flags)  # the solver and its passes
+            self.loss.notify_model_changed(flags)
         wind = values.get("forces.wind", self.scene.get("forces.wind"))
         self.rollout.control.wind.assign(np.asarray(wind, np.float32).reshape(1, 3))
+        return arrays
+
+    def set_values(self, values: list[np.ndarray]):
+        """Put parameter values (one array per parameter, as :attr:`parameters` orders them) into the fit's model
+        and solver, as :meth:`loss_and_gradient` does before it simulates."""
+        self._apply(self._values(values))
 
     def loss_and_gradient(self, values: list[np.ndarray]) -> tuple[float, list[np.ndarray]]:
         """The loss at parameter values and its gradient with respect to each of them."""
         named = self._values(values)
-        base = self._arrays(named)
-        self._apply(named, base)
-        state0 = self.model.state(requires_grad=True)
-        state0.particle_qd.assign(base["particle_qd"].astype(np.float32))
+        base = self._apply(named)
+        state0 = self.model.state(requires_grad=True)  # the model's initial velocity is the fitted one
         loss = self.rollout.gradient(self.loss, state0)
         self.evaluations += 1
         measure = getattr(self.loss, "measure", None)
@@ -348,27 +441,36 @@ class SceneFit:
                 continue
             g = np.zeros(p.size)
             for k in range(p.size):
-                step = abs(float(v[k])) if abs(float(v[k])) > 0.0 else 1.0
-                moved = [x.copy() for x in values]
-                moved[self.parameters.index(p)][k] += step
-                other = self._arrays(self._values(moved))
-                g[k] = sum(float(np.sum(grads[name] * (other[name] - base[name]))) for name in base) / step
+                # d array / d value by a central difference of two builds (CHAIN_STEP of the value apart): exact
+                # for the values the arrays are linear in, second order for the twist terms of a weft bending
+                # rigidity set apart from the warp's (sqrt(B_warp B_weft), cloth_warp/elasticity.py).
+                step = CHAIN_STEP * (abs(float(v[k])) if abs(float(v[k])) > 0.0 else 1.0)
+                ends = []
+                for sign in (1.0, -1.0):
+                    moved = [x.copy() for x in values]
+                    moved[self.parameters.index(p)][k] += sign * step
+                    ends.append(self._arrays(self._values(moved)))
+                g[k] = sum(float(np.sum(grads[name] * (ends[0][name] - ends[1][name]))) for name in base) / (2.0 * step)
             out.append(g)
         return loss, out
 
     # -- the optimization --------------------------------------------------------------------
     def run(self, iterations: int = 50, learning_rate: float = 0.05, decay: float = 0.1, progress=None,
             betas: tuple[float, float] | None = None) -> FitResult:
-        """Adam on the encoded parameters (log space for positive ones); keeps the best values seen.
+        """Adam on the encoded parameters (log space for positive ones); keeps the best values seen and leaves
+        them in the fit's model and solver (:attr:`model`, :attr:`solver`).
 
         The step size decays geometrically from `learning_rate` to `decay` times it over the iterations
-        (damps Adam's overshoot near the optimum). Each parameter has its own Warp Adam; a vector's one
-        has eps = VECTOR_EPS x its first gradient's norm, so a component whose gradient is negligible
-        next to the others (wind along a banner's pole, which a normal-only drag cannot feel) does not
-        take full-size steps from noise, as plain per-component Adam would. `progress(iteration,
-        iterations, loss, values)` is called after every evaluation. `betas`: Adam's moment decay rates
-        (default: the scene's fit.betas, (0.9, 0.999)); a one-parameter fit settles with less overshoot at
-        lower ones. Ctrl-C ends the fit early with the best values so far (status ``interrupted``)."""
+        (damps Adam's overshoot near the optimum). Each parameter has its own Warp Adam. A vector's Adam has
+        eps = VECTOR_NOISE_FLOOR x R_t, R_t the running RMS of its gradient's norm with the memory of Adam's
+        first moment (beta1), so eps follows the gradient as the loss falls: a component the loss feels moves
+        as in plain Adam, while one whose gradient stays a share rho of the vector's (wind along a banner's
+        pole, which a normal-only drag cannot feel: rho ~ 1e-4, float32 noise) steps at most rho /
+        VECTOR_NOISE_FLOOR of the learning rate. (An eps fixed by the first gradient stalls a vector once its
+        gradient has fallen: a 3-D wind stopped 50 % off.) `progress(iteration, iterations, loss, values)` is
+        called after every evaluation. `betas`: Adam's moment decay rates (default: the scene's fit.betas,
+        (0.9, 0.999)); a one-parameter fit settles with less overshoot at lower ones. Ctrl-C ends the fit
+        early with the best values so far (status ``interrupted``)."""
         from warp.optim import Adam
 
         if iterations < 1:
@@ -382,7 +484,7 @@ class SceneFit:
         self._best = (math.inf, [p.value for p in self.parameters], {})
         status = "complete"
         try:
-            self._iterate(thetas, optimizers, iterations, learning_rate, decay, losses, history, progress)
+            self._iterate(thetas, optimizers, iterations, learning_rate, decay, losses, history, progress, betas[0])
         except KeyboardInterrupt:
             status = "interrupted"
         best = self._best
@@ -390,11 +492,13 @@ class SceneFit:
             raise KeyboardInterrupt
         for p, v in zip(self.parameters, best[1]):
             p.value = v
+        self.set_values(best[1])  # the model and solver handed back simulate the best values
         final = {p.key: p.scene_value() for p in self.parameters}
         return FitResult([p.key for p in self.parameters], initial, final, losses[0], best[0], len(losses), losses, history,
-                         time.perf_counter() - t0, self.loss_kind, self.frames, status, best[2])
+                         time.perf_counter() - t0, self.loss_kind, self.frames, status, best[2], self.tolerance)
 
-    def _iterate(self, thetas, optimizers, iterations, learning_rate, decay, losses, history, progress):
+    def _iterate(self, thetas, optimizers, iterations, learning_rate, decay, losses, history, progress, beta1):
+        norm_sq = [0.0] * len(self.parameters)  # per vector parameter: the running mean of |gradient|^2 (memory beta1)
         for it in range(iterations):
             values = [p.decode(theta.numpy().astype(np.float64)) for p, theta in zip(self.parameters, thetas)]
             loss, grads = self.loss_and_gradient(values)
@@ -407,12 +511,14 @@ class SceneFit:
                 self._best = (loss, values, self.last_measured)
             if progress is not None:
                 progress(it + 1, iterations, loss, named)
-            for p, g, v, theta, opt in zip(self.parameters, grads, values, thetas, optimizers):
+            for k, (p, g, v, theta, opt) in enumerate(zip(self.parameters, grads, values, thetas, optimizers)):
                 g_theta = p.encoded_gradient(g, v)
                 if not np.isfinite(g_theta).all():
                     raise FloatingPointError(f"fit: non-finite gradient of {p.key} at iteration {it} with {named}")
-                if it == 0 and p.size > 1:
-                    opt.eps = max(VECTOR_EPS * float(np.linalg.norm(g_theta)), opt.eps)
+                if p.size > 1:
+                    norm_sq[k] = beta1 * norm_sq[k] + (1.0 - beta1) * float(np.dot(g_theta, g_theta))
+                    running = math.sqrt(norm_sq[k] / (1.0 - beta1 ** (it + 1)))  # bias-corrected, as Adam's moments
+                    opt.eps = max(VECTOR_NOISE_FLOOR * running, 1.0e-30)
                 opt.lr = learning_rate * decay ** (it / max(iterations - 1, 1))
                 opt.step([wp.array(g_theta.astype(np.float32), dtype=float, device="cpu")])
                 theta.assign(p.encode(p.decode(theta.numpy().astype(np.float64))).astype(np.float32))  # clip to the bounds
@@ -437,6 +543,8 @@ class SceneFit:
             rebase(col)
         header = (f"# Fitted by cloth-warp fit from {scene.path.name if scene.path else 'a scene'}: "
                   + ", ".join(f"{p.key} = {p.scene_value()}" for p in self.parameters) + "\n")
+        if self.tolerance.tolerance is not None:
+            header += f"# The fit ran the implicit solve at tolerance {self.tolerance.tolerance:g}: {self.tolerance.reason}\n"
         return header + tomli_w.dumps(data)
 
 

@@ -27,7 +27,7 @@ import numpy as np
 import warp as wp
 
 from .kernels import losses as kl
-from .model import Control, Model, State
+from .model import Control, Model, ModelFlags, State
 from .solvers.base import SolverBase
 
 
@@ -39,6 +39,9 @@ class Loss:
     def evaluate(self, step: int, state: State, out: wp.array):
         """Add the terms of `step` to `out` (one float) with kernel launches."""
         raise NotImplementedError
+
+    def notify_model_changed(self, flags: int) -> None:
+        """Refresh what the loss derived from the model when it was built (:class:`~cloth_warp.model.ModelFlags`)."""
 
 
 class PositionLoss(Loss):
@@ -94,8 +97,19 @@ class CentroidLoss(Loss):
     def __init__(self, target, step: int, model: Model):
         self.steps = frozenset([int(step)])
         self.target = wp.vec3(*np.asarray(target, float))
-        m = model.particle_mass.numpy().astype(np.float64)
-        self.weights = wp.array((m / m.sum()).astype(np.float32), dtype=float, device=model.device)
+        self.model = model
+        self.weights = wp.zeros(model.particle_count, dtype=float, device=model.device)
+        """m_i / sum_j m_j, shape (n,): held fixed under the tape (no gradient to the masses through them)."""
+        self._read_weights()
+
+    def _read_weights(self):
+        m = self.model.particle_mass.numpy().astype(np.float64)
+        self.weights.assign((m / m.sum()).astype(np.float32))
+
+    def notify_model_changed(self, flags: int) -> None:
+        """New masses (PARTICLE_PROPERTIES): new centroid weights."""
+        if flags & ModelFlags.PARTICLE_PROPERTIES:
+            self._read_weights()
 
     def centroid(self, x: wp.array) -> wp.array:
         return _weighted_sum(x, self.weights)
@@ -200,6 +214,14 @@ class Rollout:
         """Per handle name, d loss / d keyframe translation [per m], shape (keyframes, 3) (after gradient())."""
         self.final_state: State | None = None
         self.peak_states = 0
+
+    def notify_model_changed(self, flags: int) -> None:
+        """Model fields changed (:class:`~cloth_warp.model.ModelFlags`): tell the solver (and the passes it
+        built), and re-derive the static control's pin targets from new initial positions."""
+        self.solver.notify_model_changed(flags)
+        if flags & ModelFlags.PARTICLE_INITIAL_STATE:
+            wp.copy(self.control.pin_target, self.model.particle_q)
+            self.model.update_control(self.control, 0.0, force=True)
 
     # -- pieces ---------------------------------------------------------------------------------
     def control_at(self, step: int) -> Control:

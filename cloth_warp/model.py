@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import enum
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -180,57 +181,192 @@ class Control:
         self.wind.assign(np.asarray(wind, np.float32).reshape(1, 3))
 
 
-class Model:
-    """Immutable description of the simulated cloth(s); created by :meth:`ModelBuilder.finalize`.
+class ModelFlags(enum.IntFlag):
+    """Which Model fields were changed after a solver was built (``notify_model_changed(flags)``, Newton's
+    ``SolverNotifyFlags`` pattern).
 
-    Attributes (Warp arrays, float32 unless noted):
-        particle_q, particle_qd: initial positions [m] / velocities [m/s] (vec3).
-        particle_mass: lumped mass [kg] = areal density x dual area.
-        particle_pinned: 1 where the particle is hard-pinned (int32).
-        particle_pin_stiffness: soft-pin stiffness toward Control.pin_target [N/m] (0 = none).
-        spring_indices: endpoints (spring_count, 2) int32; spring_rest_length [m];
-        spring_stiffness: k [N/m] (linear law) or k_b [N m^2] (buckling law);
-        spring_damping: c [N s/m]; spring_law / spring_kind: int32 enums (topology.SpringLaw / SpringKind);
-        spring_middle: middle particle of span-2 bend triples, -1 otherwise. Springs are ordered linear
-            first (`linear_spring_count` of them), bend triples after.
-        spring_ends (vec2i per spring), bend_triples ((end a, middle, end b) vec3i per bend triple, in
-            spring order from `linear_spring_count`), tri_vertices (vec3i): the same indices as vector rows.
-        tri_indices: (tri_count, 3) int32; tri_drag: c_A per triangle [N s/m^3];
-        tri_corner_weights: share of each triangle's drag per corner (vec3, sums to 1).
-        particle_spring_offsets / _ids / _role, particle_tri_offsets / _ids: incidence lists (gather); the
-            role is 0 / 1 for a spring's first / second endpoint and 2 for a bend triple's middle.
-        strain_limit_colors: (colors, particle_count) int32: per colour, the structural/shear spring at
-            each particle or -1 (Gauss-Seidel strain-limit passes).
-        gravity: (3,) [m/s^2]; global_damping: mass-proportional damping rate [1/s].
-        colliders: the :class:`~cloth_warp.colliders.Collider` descriptions; per collider the arrays
-            collider_shape (int32, SHAPES index), collider_size (vec3, kernel convention),
-            collider_mesh (uint64 wp.Mesh id, 0 for analytic shapes), collider_deforming (int32, 1 for a
-            mesh following a point cache: its wp.Mesh carries vertex velocities), collider_thickness [m],
-            collider_static_friction, collider_kinetic_friction (Coulomb coefficients).
-        self_collision: cloth-cloth contact on (see :mod:`~cloth_warp.selfcollision`);
-            cloth_thickness: the distance [m] kept between non-adjacent cloth elements;
-            cloth_friction: Coulomb coefficient between cloth layers; self_collision_stiffness: the
-            repulsion stiffness [N/m] of the proximity pass.
+    Whatever derives data from the model when it is built (self-collision's inverse masses, a loss's mass
+    weights) refreshes it when told; everything else reads the model at every step. Topology (indices,
+    counts, colours, pinned sets) is not a flag: a changed topology needs a new model and solver.
+    """
+
+    PARTICLE_PROPERTIES = 1 << 0
+    """particle_mass, particle_pin_stiffness (and what derives from them: inverse masses)."""
+    PARTICLE_INITIAL_STATE = 1 << 1
+    """particle_q, particle_qd: the state :meth:`Model.state` starts from."""
+    SPRING_PROPERTIES = 1 << 2
+    """spring_rest_length, spring_stiffness, spring_damping."""
+    TRIANGLE_PROPERTIES = 1 << 3
+    """tri_drag."""
+    COLLIDER_PROPERTIES = 1 << 4
+    """collider_thickness, collider_static_friction, collider_kinetic_friction."""
+    SELF_COLLISION_PROPERTIES = 1 << 5
+    """cloth_thickness, cloth_friction, self_collision_stiffness."""
+    MODEL_PROPERTIES = 1 << 6
+    """gravity, global_damping."""
+    ALL = (PARTICLE_PROPERTIES | PARTICLE_INITIAL_STATE | SPRING_PROPERTIES | TRIANGLE_PROPERTIES | COLLIDER_PROPERTIES
+           | SELF_COLLISION_PROPERTIES | MODEL_PROPERTIES)
+    """Every field a flag covers."""
+
+
+FIELD_FLAGS: dict[str, ModelFlags] = {
+    "particle_mass": ModelFlags.PARTICLE_PROPERTIES,
+    "particle_pin_stiffness": ModelFlags.PARTICLE_PROPERTIES,
+    "particle_q": ModelFlags.PARTICLE_INITIAL_STATE,
+    "particle_qd": ModelFlags.PARTICLE_INITIAL_STATE,
+    "spring_rest_length": ModelFlags.SPRING_PROPERTIES,
+    "spring_stiffness": ModelFlags.SPRING_PROPERTIES,
+    "spring_damping": ModelFlags.SPRING_PROPERTIES,
+    "tri_drag": ModelFlags.TRIANGLE_PROPERTIES,
+    "collider_thickness": ModelFlags.COLLIDER_PROPERTIES,
+    "collider_static_friction": ModelFlags.COLLIDER_PROPERTIES,
+    "collider_kinetic_friction": ModelFlags.COLLIDER_PROPERTIES,
+    "cloth_thickness": ModelFlags.SELF_COLLISION_PROPERTIES,
+    "cloth_friction": ModelFlags.SELF_COLLISION_PROPERTIES,
+    "self_collision_stiffness": ModelFlags.SELF_COLLISION_PROPERTIES,
+    "gravity": ModelFlags.MODEL_PROPERTIES,
+    "global_damping": ModelFlags.MODEL_PROPERTIES,
+}
+"""The :class:`ModelFlags` member that covers each changeable Model field."""
+
+
+class Model:
+    """Description of the simulated cloth(s), created by :meth:`ModelBuilder.finalize`; solvers never write it.
+
+    Every field is declared below with its unit and shape (Warp arrays are float32 unless noted; n =
+    particle_count, s = spring_count, t = tri_count, c = max(collider_count, 1)). The fields listed in
+    :data:`FIELD_FLAGS` may be changed between runs (a fit does); whoever changes them then calls
+    ``notify_model_changed(flags)`` on what was built from the model (see :class:`ModelFlags`).
     """
 
     def __init__(self):
         self.device = None
+        """Warp device of the arrays."""
         self.requires_grad = False
-        self.particle_count = 0
-        self.spring_count = 0
-        self.tri_count = 0
-        self.gravity = (0.0, -9.81, 0.0)
+        """Whether the differentiable arrays (see :func:`~cloth_warp.gradients.model_grad_arrays`) carry .grad."""
         self.up_axis = "Y"
-        self.global_damping = 0.0
-        self.cloths: list[ClothInfo] = []
-        self.handles: list[Handle] = []
+        """The up axis, "Y" or "Z"."""
+
+        # -- particles ---------------------------------------------------------------------------
+        self.particle_count = 0
+        """n, the number of particles."""
+        self.particle_q: wp.array | None = None
+        """Initial positions [m], shape (n,), vec3 (differentiable)."""
+        self.particle_qd: wp.array | None = None
+        """Initial velocities [m/s], shape (n,), vec3 (differentiable)."""
+        self.particle_mass: wp.array | None = None
+        """Lumped mass [kg] = areal density x dual area, shape (n,) (differentiable)."""
+        self.particle_pinned: wp.array | None = None
+        """1 where the particle is hard-pinned, shape (n,), int32."""
+        self.particle_pin_stiffness: wp.array | None = None
+        """Soft-pin stiffness toward Control.pin_target [N/m], shape (n,) (0 = none)."""
         self.rest_positions = np.zeros((0, 3))
+        """Positions at rest [m], numpy (n, 3) float64 (handles' targets and the broad phase's voxel size)."""
+
+        # -- springs and bend triples -------------------------------------------------------------
+        self.spring_count = 0
+        """s, the number of springs (linear springs first, then bend triples)."""
+        self.linear_spring_count = 0
+        """The number of linear springs (the first of the s)."""
+        self.spring_indices: wp.array | None = None
+        """Endpoints, shape (s, 2), int32."""
+        self.spring_ends: wp.array | None = None
+        """The same endpoints as rows, shape (s,), vec2i."""
+        self.spring_rest_length: wp.array | None = None
+        """Rest length [m], shape (s,) (differentiable)."""
+        self.spring_stiffness: wp.array | None = None
+        """k [N/m] of linear springs, k_b [N m^2] of buckling (bend) springs, shape (s,) (differentiable)."""
+        self.spring_damping: wp.array | None = None
+        """Kelvin-Voigt damping c [N s/m], shape (s,) (0 for buckling springs; differentiable)."""
+        self.spring_law: wp.array | None = None
+        """:class:`~cloth_warp.topology.SpringLaw` per spring, shape (s,), int32."""
+        self.spring_kind: wp.array | None = None
+        """:class:`~cloth_warp.topology.SpringKind` per spring, shape (s,), int32."""
+        self.spring_middle: wp.array | None = None
+        """Middle particle of a span-2 bend triple, -1 otherwise, shape (s,), int32."""
+        self.bend_triples: wp.array | None = None
+        """(end a, middle, end b) of each bend triple, shape (s - linear_spring_count,), vec3i."""
+        self.spring_limited: wp.array | None = None
+        """1 for the structural/shear linear springs the strain limiter keeps, shape (s,), int32."""
+
+        # -- triangles -----------------------------------------------------------------------------
+        self.tri_count = 0
+        """t, the number of triangles."""
+        self.tri_indices: wp.array | None = None
+        """Corners, shape (t, 3), int32."""
+        self.tri_vertices: wp.array | None = None
+        """The same corners as rows, shape (t,), vec3i."""
+        self.tri_drag: wp.array | None = None
+        """Linear air drag c_A [N s/m^3] (force per area per normal relative speed; the kernel multiplies by
+        the triangle's current area), shape (t,) (differentiable)."""
+        self.tri_corner_weights: wp.array | None = None
+        """Share of a triangle's drag per corner, shape (t,), vec3 (sums to 1)."""
+
+        # -- incidence lists (gather) and strain-limit colouring ------------------------------------
+        self.particle_spring_offsets: wp.array | None = None
+        """Start of each particle's springs in particle_spring_ids, shape (n + 1,), int32."""
+        self.particle_spring_ids: wp.array | None = None
+        """Springs incident to each particle, int32."""
+        self.particle_spring_role: wp.array | None = None
+        """0 / 1 for a spring's first / second endpoint, 2 for a bend triple's middle, int32."""
+        self.particle_tri_offsets: wp.array | None = None
+        """Start of each particle's triangles in particle_tri_ids, shape (n + 1,), int32."""
+        self.particle_tri_ids: wp.array | None = None
+        """Triangles incident to each particle, int32."""
+        self.strain_limit_color_count = 0
+        """The number of spring colours (no two springs of a colour share a particle)."""
+        self.strain_limit_colors: wp.array | None = None
+        """Per colour, the limited spring at each particle or -1, shape (colours, n), int32 (taped sweeps)."""
+        self.strain_limit_color_offsets = np.zeros(1, int)
+        """Start of each colour in strain_limit_color_springs, numpy (colours + 1,) int (forward sweeps)."""
+        self.strain_limit_color_springs: wp.array | None = None
+        """Limited springs ordered by colour, int32."""
+
+        # -- cloths and handles ---------------------------------------------------------------------
+        self.cloths: list[ClothInfo] = []
+        """Where each cloth lives in the flat arrays, with its material and topology (host-side, as built)."""
+        self.handles: list[Handle] = []
+        """Keyframed groups of hard-pinned particles (their targets go to Control.pin_target)."""
+
+        # -- forces ----------------------------------------------------------------------------------
+        self.gravity = (0.0, -9.81, 0.0)
+        """Gravitational acceleration [m/s^2], 3 floats."""
+        self.global_damping = 0.0
+        """Mass-proportional damping rate [1/s]."""
+
+        # -- colliders ----------------------------------------------------------------------------------
         self.colliders: list = []
+        """The :class:`~cloth_warp.colliders.Collider` descriptions (host-side)."""
         self.collider_count = 0
+        """The number of colliders (the arrays below have c = max(collider_count, 1) rows)."""
+        self.collider_shape: wp.array | None = None
+        """Index into colliders.SHAPES, shape (c,), int32."""
+        self.collider_size: wp.array | None = None
+        """Shape dimensions in the kernels' convention [m], shape (c,), vec3."""
+        self.collider_mesh: wp.array | None = None
+        """wp.Mesh id (0 for analytic shapes), shape (c,), uint64."""
+        self.collider_meshes: dict = {}
+        """Collider index -> wp.Mesh (keeps the meshes and their BVHs alive)."""
+        self.collider_deforming: wp.array | None = None
+        """1 for a mesh following a point cache (its wp.Mesh carries vertex velocities), shape (c,), int32."""
+        self.collider_thickness: wp.array | None = None
+        """Distance [m] the cloth keeps from each collider, shape (c,)."""
+        self.collider_static_friction: wp.array | None = None
+        """Static Coulomb coefficient, shape (c,) (differentiable)."""
+        self.collider_kinetic_friction: wp.array | None = None
+        """Kinetic Coulomb coefficient, shape (c,) (differentiable)."""
+        self.collider_mesh_max_distance = 0.0
+        """How far [m] mesh distance queries look."""
+
+        # -- self-collision ---------------------------------------------------------------------------
         self.self_collision = False
+        """Cloth-cloth contact on (see :mod:`~cloth_warp.selfcollision`)."""
         self.cloth_thickness = 0.0
+        """Distance [m] kept between non-adjacent cloth elements."""
         self.cloth_friction = 0.0
+        """Coulomb coefficient between cloth layers."""
         self.self_collision_stiffness = 0.0
+        """Repulsion stiffness [N/m] of the proximity pass (default: the median structural spring constant)."""
 
     @property
     def animated(self) -> bool:

@@ -13,10 +13,11 @@ import math
 import pathlib
 import sys
 import time
+import warnings
 
 import numpy as np
 
-from .cache import COUNTER_DIAGNOSTICS
+from .cache import COUNTER_DIAGNOSTICS, STRAIN_LIMIT_DIAGNOSTICS
 from .collision import ALL_COUNTERS as COLLISION_COUNTERS
 from .scene import Scene, SceneError, build_model, build_solver, build_wind, load_scene
 
@@ -140,6 +141,42 @@ def _finite(value):
     return value
 
 
+def strain_limit_summary(sim, resumed: list[dict] = ()) -> dict | None:
+    """What the strain limiter left over a run (None without one): ``limit``, ``tolerance`` (excess strain
+    counted as a miss), ``max_sweeps`` (the cap per step), ``frames``, ``missed_frames`` and ``missed_steps``
+    (left above the tolerance), the worst excess after limiting ``excess_structural`` / ``excess_shear``,
+    ``sweeps_per_step`` (mean and max over this run's steps). `resumed`: the cache diagnostics of the frames
+    copied from an earlier run, counted in frames, misses and excess."""
+    limiter = sim.strain_limiter
+    if limiter is None:
+        return None
+    total = sim.strain_limit_total
+    out = {"limit": limiter.max_strain, "tolerance": limiter.report_tolerance, "max_sweeps": limiter.iterations,
+           "frames": total.frames if total else 0, "missed_frames": total.missed_frames if total else 0,
+           "missed_steps": total.missed_steps if total else 0,
+           "excess_structural": total.structural_excess if total else 0.0, "excess_shear": total.shear_excess if total else 0.0,
+           "sweeps_per_step": {"mean": total.mean_sweeps, "max": total.most_sweeps} if total and total.steps else None}
+    for diag in resumed:
+        missed = int(diag.get("strainLimitMissed") or 0)
+        out["frames"] += 1
+        out["missed_frames"] += int(missed > 0)
+        out["missed_steps"] += missed
+        for key, attr in (("excess_structural", "strainExcessStructural"), ("excess_shear", "strainExcessShear")):
+            value = diag.get(attr)
+            if value is not None and math.isfinite(value):
+                out[key] = max(out[key], float(value))
+    return out
+
+
+def strain_limit_message(limit: dict) -> str:
+    """The one-line warning of a run whose strain limiting missed its tolerance (a :func:`strain_limit_summary`)."""
+    kind = "shear" if limit["excess_shear"] > limit["excess_structural"] else "structural"
+    worst = max(limit["excess_structural"], limit["excess_shear"])
+    return (f"strain limit {100 * limit['limit']:g} % missed in {limit['missed_frames']} of {limit['frames']} frames "
+            f"({limit['missed_steps']} steps stopped at the cap of {limit['max_sweeps']} sweeps; worst {100 * worst:.3g} % "
+            f"strain above the limit, on {kind} springs): raise solver.strain_limit_iterations or solver.substeps")
+
+
 def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int | None = None, fps: float | None = None,
               device=None, start_frame: int | None = None, progress=None, argv=None, resume: bool = False) -> dict:
     """Run a scene (a path, a shipped scene name or a :class:`Scene`) and write its cache.
@@ -158,9 +195,12 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
 
     Returns the summary dict (JSON-able, non-finite values as None): status ``complete`` / ``diverged``
     (with ``message`` and ``diagnosis``) / ``interrupted``, frames, wall and compile time, ms/frame, max
-    strain, dt range, solver iterations, the cache path. A diverged or interrupted run still leaves a valid
-    cache of the frames done; an interruption re-raises KeyboardInterrupt after the cache is closed, with the
-    summary in the exception's ``summary`` attribute; a failed write (disk full, I/O error) raises
+    strain, dt range, solver iterations, the cache path and, with strain limiting, ``strain_limit`` (see
+    :func:`strain_limit_summary`); when the limiter missed its tolerance in some frames, a
+    :class:`~cloth_warp.solvers.StrainLimitWarning` says in how many (once per run). A diverged or
+    interrupted run still leaves a valid cache of the frames done; an interruption re-raises
+    KeyboardInterrupt after the cache is closed, with the summary in the exception's ``summary``
+    attribute; a failed write (disk full, I/O error) raises
     :class:`~cloth_warp.outputs.CacheWriteError` likewise, after renaming the last good save to the final
     name. Bad input raises :class:`SceneError` before anything runs, an output that cannot be written or is
     being written by another live run :class:`~cloth_warp.outputs.CacheWriteError`.
@@ -244,6 +284,7 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
         "output": str(out),
     }
     max_strain, dt_min, dt_max, iterations, rejected, contacts = 0.0, math.inf, 0.0, [], 0, {}
+    resumed_limit: list[dict] = []  # the per-frame diagnostics of frames copied from an earlier run
     t_loop = time.perf_counter()
     interrupted = write_error = None
     try:
@@ -254,6 +295,8 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
             for k, (q, qd, diag) in enumerate(read_frames(source[0], model, source[1])):
                 writer.write(q, qd, diag, checkpoint=source[2] if k == source[1] - 1 else None)
                 max_strain = max(max_strain, float(diag.get("maxStrain") or 0.0))
+                if k > 0:
+                    resumed_limit.append(diag)
             first = summary["frames"] = summary["resumed_frames"] = source[1] - 1
         else:
             writer.write(sim.state.particle_q.numpy(), sim.state.particle_qd.numpy(), checkpoint=sim.checkpoint())
@@ -263,6 +306,7 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
             diag = {"maxStrain": stats.max_strain, "dt": info["dt_min"], "solverIterations": info["iterations"],
                     "solverResidual": info["residual"]}
             diag.update({attr: info.get(key) for attr, key in COUNTER_DIAGNOSTICS.items()})
+            diag.update({attr: info.get(key) for attr, key in STRAIN_LIMIT_DIAGNOSTICS.items()})
             writer.write(sim.state.particle_q.numpy(), sim.state.particle_qd.numpy(), diag,
                          checkpoint=sim.checkpoint() if writer.save_due else None)
             for key in COLLISION_COUNTERS:
@@ -303,6 +347,7 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
                 dt_min=dt_min if iterations else None, dt_max=dt_max if iterations else None, rejected_steps=rejected,
                 solver_iterations={"mean": float(np.mean(iterations)), "max": int(np.max(iterations))} if iterations else None,
                 colliders=model.collider_count, self_collision=bool(model.self_collision), contacts=contacts,
+                strain_limit=strain_limit_summary(sim, resumed_limit),
             )
             info = {k: summary[k] for k in ("frames", "wall_s", "max_strain", "compile_s", "drape_coefficient", "message", "diagnosis")
                     if k in summary}
@@ -331,6 +376,11 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
             summary["status"] = "interrupted"
             interrupted = KeyboardInterrupt()
     summary = _finite(summary)
+    limit = summary.get("strain_limit")
+    if limit and limit["missed_frames"]:
+        from .solvers.strain_limit import StrainLimitWarning
+
+        warnings.warn(strain_limit_message(limit), StrainLimitWarning, stacklevel=2)
     for exc in (write_error, interrupted):
         if exc is not None:
             exc.summary = summary

@@ -205,7 +205,7 @@ SCHEMA: dict = {
         "substeps": Key("int", 1, "steps per frame: dt = 1 / (fps x substeps); output.frames x substeps is at most "
                         f"{format_number(MAX_STEPS)} steps", L["substeps"]),
         "strain_limit": Key("float", 0.1, "Provot strain limit on stretch/shear springs (0 disables)", L["strain_limit"]),
-        "strain_limit_iterations": Key("int", 128, "maximum strain-limit sweeps per step", L["iterations"]),
+        "strain_limit_iterations": Key("int", 128, "the most strain-limit sweeps per step (sweeping stops earlier once no structural/shear spring exceeds the limit by more than 1e-3; frames left above it are reported)", L["iterations"]),
         "tolerance": Key("float", 1e-3, "relative residual at which the linear solve stops", L["tolerance"]),
         "max_iterations": Key("int", 1000, "linear-solver iteration cap per step", L["iterations"]),
         "adaptive": Key("bool", False, "check every step and halve dt on divergence (grows back after good steps)"),

@@ -32,6 +32,7 @@ import warp as wp
 from .broadphase import SelfCollisionGrid
 from .kernels import broadphase as kbp
 from .kernels import selfcollide as ksc
+from .model import ModelFlags
 
 log = logging.getLogger(__name__)
 
@@ -44,7 +45,8 @@ class SelfCollision:
     """Self-collision of a model's cloth(s), run by :class:`~cloth_warp.collision.CollisionHandler`.
 
     Args:
-        model: its ``cloth_thickness`` [m], ``cloth_friction`` and ``self_collision_stiffness`` [N/m] are used.
+        model: its ``cloth_thickness`` [m], ``cloth_friction`` and ``self_collision_stiffness`` [N/m] are read at
+            every use, its masses when built and on :meth:`notify_model_changed`.
         sweeps: CCD passes with impulses before rigid impact zones take over.
         zone_iterations: the most detection / merge rounds of impact zones per step.
 
@@ -63,20 +65,14 @@ class SelfCollision:
         self.grid = SelfCollisionGrid(tris, model.particle_count, dev, rest_positions=model.rest_positions)
         self.edge_indices = self.grid.edges.elements  # (E, 3) rows, -1 padded: columns 0, 1 used
         self.tri_indices = model.tri_indices
-        mass = model.particle_mass.numpy().astype(np.float64)
-        pinned = model.particle_pinned.numpy() != 0
-        inv = np.where(pinned | (mass <= 0.0), 0.0, 1.0 / np.maximum(mass, 1e-30))
-        self.mass = mass
-        self.inv_mass_np = inv
-        self.inv_mass = wp.array(inv.astype(np.float32), dtype=float, device=dev)
-        self.thickness = float(model.cloth_thickness)
-        self.friction = float(model.cloth_friction)
-        self.stiffness = float(model.self_collision_stiffness)
+        self.mass = np.zeros(0)
+        """Particle masses [kg], numpy (n,) float64: a copy of model.particle_mass (impact zones' momentum)."""
+        self.inv_mass_np = np.zeros(0)
+        """Inverse masses [1/kg], numpy (n,) float64, 0 for pinned particles."""
+        self.inv_mass = wp.zeros(model.particle_count, dtype=float, device=dev)
+        """The same inverse masses on the device, shape (n,) (the impulse kernels' weights)."""
+        self._read_masses()
         self.sweeps = int(sweeps)
-        # how far [m] a corrected end point may move before its elements are registered again (boxes grow by this).
-        # Measured on the pile at 64^2 and 128^2 with 1-4 mm thickness: a margin of ~4 % of a voxel (8 % of an edge)
-        # balances close pairs (grow with it) against patches and rebuilds (shrink with it)
-        self.margin = max(0.04 * self.grid.cell_size, 0.125 * self.thickness)
         self.zone_iterations = int(zone_iterations)
         self.counts = wp.zeros(2, dtype=wp.int32, device=dev)
         self.no_zone = wp.full(model.particle_count, -1, dtype=wp.int32, device=dev)
@@ -86,6 +82,45 @@ class SelfCollision:
         self._close: dict = {}
         self._flip = False
         self.reset_counts()
+
+    # -- the model's values ----------------------------------------------------------------------
+    # Thickness, friction and stiffness are read from the model at every use; the inverse masses are derived
+    # once and refreshed by notify_model_changed, so a fit that writes new masses simulates them.
+    @property
+    def thickness(self) -> float:
+        """The distance [m] kept between non-adjacent elements (model.cloth_thickness)."""
+        return float(self.model.cloth_thickness)
+
+    @property
+    def friction(self) -> float:
+        """Coulomb coefficient between layers (model.cloth_friction)."""
+        return float(self.model.cloth_friction)
+
+    @property
+    def stiffness(self) -> float:
+        """Repulsion stiffness [N/m] of the proximity pass (model.self_collision_stiffness)."""
+        return float(self.model.self_collision_stiffness)
+
+    @property
+    def margin(self) -> float:
+        """How far [m] a corrected end point may move before its elements are registered again (boxes grow by
+        this). Measured on the pile at 64^2 and 128^2 with 1-4 mm thickness: ~4 % of a voxel (8 % of an edge)
+        balances close pairs (grow with it) against patches and rebuilds (shrink with it)."""
+        return max(0.04 * self.grid.cell_size, 0.125 * self.thickness)
+
+    def notify_model_changed(self, flags: int) -> None:
+        """Refresh what is derived from the model after its fields changed (:class:`~cloth_warp.model.ModelFlags`):
+        the inverse masses on PARTICLE_PROPERTIES. (Thickness, friction and stiffness are read at every use.)"""
+        if flags & ModelFlags.PARTICLE_PROPERTIES:
+            self._read_masses()
+
+    def _read_masses(self):
+        m = self.model
+        mass = m.particle_mass.numpy().astype(np.float64)
+        pinned = m.particle_pinned.numpy() != 0
+        self.mass = mass
+        self.inv_mass_np = np.where(pinned | (mass <= 0.0), 0.0, 1.0 / np.maximum(mass, 1e-30))
+        self.inv_mass.assign(self.inv_mass_np.astype(np.float32))  # in place: launches keep reading this array
 
     # -- counters --------------------------------------------------------------------------------
     def reset_counts(self):

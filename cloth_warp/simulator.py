@@ -9,7 +9,7 @@ import time as _time
 import numpy as np
 import warp as wp
 
-from .diagnostics import Diagnostics, StepStats
+from .diagnostics import Diagnostics, StepStats, StrainLimitReport
 from .model import Model
 from .solvers.adaptive import AdaptiveStepper, DivergenceBounds, SimulationDiverged, StepCheck
 from .solvers.base import SolverBase
@@ -32,7 +32,9 @@ class Simulator:
     replayed, so per-launch overhead is paid once; with ``adaptive=True`` every step is checked and
     bad steps are retried with half the step (see :class:`AdaptiveStepper`). Capture is skipped for
     animated handles and colliders (their targets and poses are updated on the host each substep), for the implicit solver
-    (its iterative solve checks convergence on the host) and for self-collision (its broad phase sizes buffers on the host).
+    (its iterative solve checks convergence on the host), for self-collision (its broad phase sizes buffers on the host)
+    and, with strain limiting on CUDA, where the driver lacks conditional graph nodes (CUDA < 12.4: the limiter's sweeps
+    loop on the device until they converge).
 
     Divergence: after every frame, on every path (captured or not, adaptive or not, any integrator), the new
     state is checked against the scene's :class:`~cloth_warp.solvers.adaptive.DivergenceBounds` (non-finite
@@ -55,8 +57,14 @@ class Simulator:
             the control once per frame, at the frame's midpoint (a steady wind once).
 
     After each frame, :attr:`frame_info` holds the smallest and largest step used [s], the solver
-    iterations of its steps (summed) (with graph capture: the iterations are not read back, 0) and, with
-    collisions, their counters summed over the frame's steps (``collider_contacts``, ``collider_ccd``).
+    iterations of its steps (summed) (with graph capture: the iterations are not read back, 0), with
+    collisions their counters summed over the frame's steps (``collider_contacts``, ``collider_ccd``) and,
+    with strain limiting, what the limiter left (``strain_excess_structural`` / ``strain_excess_shear``: the
+    worst excess strain l / L - 1 - limit after limiting, ``strain_limit_sweeps``, ``strain_limit_missed``:
+    steps left above the tolerance), read from the device once per frame on every path (captured too).
+    :attr:`strain_limit_frame` is that frame's :class:`~cloth_warp.diagnostics.StrainLimitReport` and
+    :attr:`strain_limit_total` the sum over the frames this Simulator ran (``missed_frames`` counts the
+    frames that missed the limit).
     :meth:`checkpoint` / :meth:`restore` save and restore everything a run carries from frame to frame.
     """
 
@@ -82,8 +90,11 @@ class Simulator:
         self.bounds = DivergenceBounds(model, solver, self.check, wind=wind)
         self.stepper = AdaptiveStepper(solver, self.dt, dt_min=dt_min, check=self.check, bounds=self.bounds) if adaptive else None
         self.diagnostics = self.stepper.diagnostics if adaptive else Diagnostics(model)
+        limiting = solver.strain_limiter is not None and solver.strain_limiter.active
         possible = (not adaptive and not model.animated and not isinstance(solver, SolverImplicitEuler)
-                    and not model.self_collision)
+                    and not model.self_collision
+                    # the strain limiter's sweeps loop on the device (wp.capture_while): CUDA graphs need conditional nodes
+                    and not (limiting and model.device.is_cuda and not wp.is_conditional_graph_supported()))
         self.capture = possible if capture is None else (capture and possible)
         self._graph = None
         self.last_stats: StepStats | None = None
@@ -93,6 +104,26 @@ class Simulator:
             self.control.set_wind(wind.at(0.0))
         self.bounds.note_wind(self.control.wind.numpy()[0])
         self.frame_info = {"dt_min": self.dt, "dt_max": self.dt, "iterations": 0, "residual": 0.0}
+        limiter = solver.strain_limiter
+        self.strain_limiter = limiter if limiter is not None and limiter.active else None  # the solver's, when it limits
+        self.strain_limit_frame: StrainLimitReport | None = None
+        self.strain_limit_total: StrainLimitReport | None = None
+
+    def notify_model_changed(self, flags: int) -> None:
+        """Model fields changed (:class:`~cloth_warp.model.ModelFlags`) between frames: the solver and its passes
+        refresh what they derived, the divergence bounds and the diagnostics are measured again from the model,
+        and a recorded frame is recorded again. The current state is kept (set it with ``state.assign`` to start
+        over from the model's new initial state)."""
+        self.solver.notify_model_changed(flags)
+        self.bounds = DivergenceBounds(self.model, self.solver, self.check, wind=self.wind)
+        self.bounds.note_wind(self.control.wind.numpy()[0])
+        if self.stepper is not None:
+            self.stepper.bounds = self.bounds
+            self.stepper.diagnostics = Diagnostics(self.model)
+            self.diagnostics = self.stepper.diagnostics
+        else:
+            self.diagnostics = Diagnostics(self.model)
+        self._graph = None
 
     def _substeps(self):
         iterations = 0
@@ -119,6 +150,8 @@ class Simulator:
         collisions = getattr(self.solver, "collisions", None)
         if collisions is not None:
             collisions.reset_counts()
+        if self.strain_limiter is not None:
+            self.strain_limiter.reset_report()
         if self.wind is not None and not getattr(self.wind, "steady", False):
             w = self.wind.at(self.time + 0.5 * self.frame_dt)
             self.control.set_wind(w)
@@ -143,6 +176,8 @@ class Simulator:
             raise exc.in_frame(self.frame + 1) from None
         if collisions is not None:
             self.frame_info.update(collisions.read_counts())
+        if self.strain_limiter is not None:
+            self._note_strain_limit(self.strain_limiter.read_report())
         end = (self.frame + 1) * self.frame_dt
         stats = self.diagnostics.measure(self.state)
         bad = self.bounds.violation(stats)
@@ -153,6 +188,12 @@ class Simulator:
         self.time = end
         self.last_stats = stats
         return stats
+
+    def _note_strain_limit(self, report: StrainLimitReport):
+        self.strain_limit_frame = report
+        self.strain_limit_total = report if self.strain_limit_total is None else self.strain_limit_total + report
+        self.frame_info.update(strain_excess_structural=report.structural_excess, strain_excess_shear=report.shear_excess,
+                               strain_limit_sweeps=report.sweeps, strain_limit_missed=report.missed_steps)
 
     def _diverged(self, kind: str, reason: str, stats: StepStats, t: float) -> SimulationDiverged:
         """The diagnosis of a fixed-step run that failed at time t: the step to try is a whole number of

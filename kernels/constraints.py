@@ -1,8 +1,10 @@
-"""Provot strain limiting (deformation constraints) as colour-wise Gauss-Seidel passes."""
+"""Provot strain limiting (deformation constraints) as colour-wise Gauss-Seidel passes, and the device-side
+convergence check and per-step record of the limiter (so graph-captured runs check and report too)."""
 
 import warp as wp
 
 LENGTH_EPS = wp.constant(1.0e-9)
+ATTACHMENT_MAX = wp.constant(4)  # long-range attachments per particle
 
 
 @wp.kernel
@@ -80,13 +82,15 @@ def apply_attachment_limit(
 
     g_ip is the shortest rest length along limited springs from i to p, so any state whose springs all
     satisfy the strain limit satisfies these too; projecting onto them removes in one pass the global
-    stretch that local passes would need O(n^2) sweeps for.
+    stretch that local passes would need O(n^2) sweeps for. At most ATTACHMENT_MAX attachments per particle.
     """
     i = wp.tid()
     xi = x_in[i]
     if particle_pinned[i] == 0:
-        for a in range(attachment_particle.shape[1]):
-            p = attachment_particle[i, a]
+        for a in range(ATTACHMENT_MAX):  # a constant range is unrolled: xi stays differentiable from one to the next
+            p = -1
+            if a < attachment_particle.shape[1]:
+                p = attachment_particle[i, a]
             if p >= 0:
                 d = xi - x_in[p]
                 length = wp.length(d)
@@ -131,3 +135,140 @@ def apply_strain_limit_springs(
     corr = (excess / ((wa + wb) * length)) * d
     x_out[a] = x_out[a] - wa * corr
     x_out[b] = x_out[b] + wb * corr
+
+
+# -- convergence bookkeeping (on the device, so a captured graph checks too) ---------------------------------
+# status: [excess before limiting, structural excess, shear excess] of the last apply (l / L - 1 - max_strain);
+# loop: [continue (the capture_while condition), sweeps done]; record: see StrainLimiter.read_report.
+EXCESS_FLOOR = wp.constant(-1.0e30)
+RECORD_STRUCTURAL = wp.constant(0)
+RECORD_SHEAR = wp.constant(1)
+RECORD_INITIAL = wp.constant(2)
+RECORD_STEPS = wp.constant(3)
+RECORD_MISSED = wp.constant(4)
+RECORD_SWEEPS = wp.constant(5)
+RECORD_MOST_SWEEPS = wp.constant(6)
+
+
+@wp.kernel(enable_backward=False)
+def reset_strain_excess(excess_out: wp.array(dtype=float)):
+    """Empty the per-kind excess accumulator (before eval_strain_excess_kinds)."""
+    excess_out[0] = EXCESS_FLOOR
+    excess_out[1] = EXCESS_FLOOR
+
+
+@wp.kernel(enable_backward=False)
+def eval_strain_excess_kinds(
+    # Model
+    spring_indices: wp.array2d(dtype=wp.int32),
+    spring_rest_length: wp.array(dtype=float),
+    spring_limited: wp.array(dtype=wp.int32),
+    spring_kind: wp.array(dtype=wp.int32),
+    # State
+    x: wp.array(dtype=wp.vec3),
+    max_strain: float,
+    # outputs (reset by the caller)
+    excess_out: wp.array(dtype=float),
+):
+    """excess_out[k] = max over limited springs of kind k (0 structural, 1 shear) of l / L - 1 - max_strain."""
+    s = wp.tid()
+    if spring_limited[s] == 0:
+        return
+    slot = wp.min(spring_kind[s], 1)
+    length = wp.length(x[spring_indices[s, 0]] - x[spring_indices[s, 1]])
+    wp.atomic_max(excess_out, slot, length / spring_rest_length[s] - 1.0 - max_strain)
+
+
+@wp.func
+def take_strain_excess(excess_out: wp.array(dtype=float), status_out: wp.array(dtype=float)):
+    """Move the accumulated per-kind excess into status_out[1:3] and empty the accumulator."""
+    status_out[1] = excess_out[0]
+    status_out[2] = excess_out[1]
+    excess_out[0] = EXCESS_FLOOR
+    excess_out[1] = EXCESS_FLOOR
+
+
+@wp.kernel(enable_backward=False)
+def begin_strain_limit(
+    max_sweeps: int,
+    tolerance: float,
+    check: int,
+    # outputs
+    excess_out: wp.array(dtype=float),
+    status_out: wp.array(dtype=float),
+    loop_out: wp.array(dtype=wp.int32),
+):
+    """Read the excess before limiting, empty the accumulator and decide whether to sweep at all (with `check`,
+    only when the excess is above the tolerance)."""
+    e = wp.max(excess_out[0], excess_out[1])
+    status_out[0] = e
+    take_strain_excess(excess_out, status_out)
+    loop_out[1] = 0
+    go = max_sweeps > 0
+    if check != 0 and e <= tolerance:
+        go = False
+    loop_out[0] = wp.where(go, 1, 0)
+
+
+@wp.kernel(enable_backward=False)
+def end_strain_limit_sweep(
+    max_sweeps: int,
+    tolerance: float,
+    check: int,
+    # outputs
+    excess_out: wp.array(dtype=float),
+    status_out: wp.array(dtype=float),
+    loop_out: wp.array(dtype=wp.int32),
+):
+    """Count a sweep; with `check`, take the excess it left (and empty the accumulator): sweep on while it is
+    above the tolerance and fewer than max_sweeps sweeps were done."""
+    n = loop_out[1] + 1
+    loop_out[1] = n
+    go = n < max_sweeps
+    if check != 0:
+        take_strain_excess(excess_out, status_out)
+        if wp.max(status_out[1], status_out[2]) <= tolerance:
+            go = False
+    loop_out[0] = wp.where(go, 1, 0)
+
+
+@wp.kernel(enable_backward=False)
+def finish_strain_limit(
+    # outputs
+    excess_out: wp.array(dtype=float),
+    status_out: wp.array(dtype=float),
+):
+    """Take the excess measured after the last sweep (fixed-sweep runs measure once, at the end)."""
+    take_strain_excess(excess_out, status_out)
+
+
+@wp.kernel(enable_backward=False)
+def record_strain_limit(
+    status: wp.array(dtype=float),
+    loop: wp.array(dtype=wp.int32),
+    tolerance: float,
+    # outputs
+    record_out: wp.array(dtype=float),
+    backup_out: wp.array(dtype=float),
+):
+    """Add the last step to the record (kept first in backup_out, so a rejected step can be taken back):
+    worst excess after limiting per kind and before it (floored at 0), steps, steps left above the
+    tolerance, sweeps and the most sweeps in one step."""
+    for k in range(record_out.shape[0]):
+        backup_out[k] = record_out[k]
+    record_out[RECORD_STRUCTURAL] = wp.max(record_out[RECORD_STRUCTURAL], status[1])
+    record_out[RECORD_SHEAR] = wp.max(record_out[RECORD_SHEAR], status[2])
+    record_out[RECORD_INITIAL] = wp.max(record_out[RECORD_INITIAL], status[0])
+    record_out[RECORD_STEPS] = record_out[RECORD_STEPS] + 1.0
+    if wp.max(status[1], status[2]) > tolerance:
+        record_out[RECORD_MISSED] = record_out[RECORD_MISSED] + 1.0
+    sweeps = float(loop[1])
+    record_out[RECORD_SWEEPS] = record_out[RECORD_SWEEPS] + sweeps
+    record_out[RECORD_MOST_SWEEPS] = wp.max(record_out[RECORD_MOST_SWEEPS], sweeps)
+
+
+@wp.kernel(enable_backward=False)
+def accumulate_vectors(src: wp.array(dtype=wp.vec3), dst_out: wp.array(dtype=wp.vec3)):
+    """dst_out += src (hands the limiter's input gradient back to the tape)."""
+    i = wp.tid()
+    dst_out[i] = dst_out[i] + src[i]

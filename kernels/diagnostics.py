@@ -51,21 +51,3 @@ def eval_step_statistics(
         wp.atomic_add(stats_out, STAT_KINETIC_ENERGY, 0.5 * particle_mass[i] * speed2)
         wp.atomic_max(stats_out, STAT_MAX_SPEED, wp.sqrt(speed2))
         wp.atomic_add(stats_out, STAT_GRAVITY_POTENTIAL, particle_mass[i] * wp.dot(gravity, xi - origin))
-
-
-@wp.kernel
-def eval_strain_excess(
-    spring_indices: wp.array2d(dtype=wp.int32),
-    spring_rest_length: wp.array(dtype=float),
-    spring_limited: wp.array(dtype=wp.int32),
-    x: wp.array(dtype=wp.vec3),
-    max_strain: float,
-    # outputs (zeroed by the caller)
-    excess_out: wp.array(dtype=float),
-):
-    """max over limited springs of l / L - 1 - max_strain (how far the strain limit is violated)."""
-    s = wp.tid()
-    if spring_limited[s] == 0:
-        return
-    length = wp.length(x[spring_indices[s, 0]] - x[spring_indices[s, 1]])
-    wp.atomic_max(excess_out, 0, length / spring_rest_length[s] - 1.0 - max_strain)

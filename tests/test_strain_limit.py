@@ -1,17 +1,28 @@
-"""Provot strain limiting: the limit holds after every step, for every integrator, without adding momentum."""
+"""Provot strain limiting: the limit holds on structural and shear springs after every frame, for every integrator
+and path (eager, graph-captured, taped), or the per-frame report says it did not; the cap of sweeps is a cap."""
+
+import warnings
 
 import numpy as np
 import pytest
 import warp as wp
 
 import cloth_warp as cw
+from cloth_warp.solvers.strain_limit import StrainLimitWarning
 from conftest import run_steps
 
 LIMIT = 0.1
-# The limiter sweeps until no spring exceeds the limit by more than its tolerance (1e-3 strain).
+# The limiter sweeps until no limited spring exceeds the limit by more than its tolerance (1e-3 strain).
 TOLERANCE = 1.0e-3
+# float32 lengths of ~4 cm springs: the measured strain carries ~1e-6 of round-off
+ROUND_OFF = 1.0e-5
 
 HEAVY_SOFT = cw.FabricMaterial(name="heavy-soft", areal_density=0.5, stretch_stiffness=30.0, shear_stiffness=3.0, bend_stiffness=1e-6)
+
+# Steps per frame at which every integrator holds the heavy cloth within 128 sweeps per step (at fewer, rk4
+# and implicit Euler leave shear springs above the tolerance in some frames: see test_capped_sweeps_are_flagged).
+SUBSTEPS = {"symplectic_euler": 20, "explicit_euler": 40, "midpoint": 20, "rk4": 20, "implicit_euler": 16}
+PATHS = ("eager", "captured", "taped")
 
 
 def hanging_cloth(device, resolution=24):
@@ -22,29 +33,314 @@ def hanging_cloth(device, resolution=24):
     return b.finalize(device)
 
 
-def structural_strain(model, state):
+def strain_excess(model, x, limit=LIMIT):
+    """Max over structural and over shear springs of l / L - 1 - limit, measured in float64 from positions."""
     sp = model.spring_indices.numpy()
     kind = model.spring_kind.numpy()
-    x = state.particle_q.numpy()
-    s = sp[kind == cw.SpringKind.STRUCTURAL]
-    return float((np.linalg.norm(x[s[:, 0]] - x[s[:, 1]], axis=1) / model.spring_rest_length.numpy()[kind == cw.SpringKind.STRUCTURAL] - 1.0).max())
+    rest = model.spring_rest_length.numpy().astype(np.float64)
+    x = np.asarray(x, np.float64)
+    out = []
+    for k in (cw.SpringKind.STRUCTURAL, cw.SpringKind.SHEAR):
+        s = kind == k
+        length = np.linalg.norm(x[sp[s, 0]] - x[sp[s, 1]], axis=1)
+        out.append(float((length / rest[s] - 1.0 - limit).max()))
+    return tuple(out)
 
 
-@pytest.mark.parametrize(
-    "name, substeps",
-    [("symplectic_euler", 20), ("explicit_euler", 40), ("midpoint", 20), ("rk4", 10), ("implicit_euler", 8)],
-)
-def test_strain_limit_holds_after_every_step(device, name, substeps):
-    """Check max structural strain <= limit + 1e-3 after every step of a heavy cloth hanging from two corners."""
+def structural_strain(model, state):
+    return strain_excess(model, state.particle_q.numpy())[0] + LIMIT
+
+
+def run_frames(device, name, path, frames, substeps=None, limit=LIMIT, **options):
+    """[(measured structural excess, measured shear excess, StrainLimitReport)] after each frame of the heavy cloth."""
     model = hanging_cloth(device)
-    solver = cw.make_solver(name, model, strain_limit=LIMIT)
-    worst = []
-    frames = 20
-    run_steps(solver, model, frames * substeps, 1.0 / (60 * substeps), record=lambda k, s: worst.append(structural_strain(model, s)))
-    assert max(worst) <= LIMIT + TOLERANCE, max(worst)
-    # The set-up is meaningful: without the limiter the same cloth stretches far beyond the limit.
-    free = run_steps(cw.make_solver(name, model, strain_limit=None), model, frames * substeps, 1.0 / (60 * substeps))
+    solver = cw.make_solver(name, model, strain_limit=limit, **options)
+    substeps = substeps or SUBSTEPS[name]
+    out = []
+    if path in ("eager", "captured"):
+        sim = cw.Simulator(model, solver, fps=60.0, substeps=substeps, capture=path == "captured")
+        assert sim.capture == (path == "captured")
+        for _ in range(frames):
+            sim.step_frame()
+            out.append((*strain_excess(model, sim.state.particle_q.numpy(), limit), sim.strain_limit_frame))
+        return out
+    # taped: one State per step under a wp.Tape, as a differentiable rollout runs
+    limiter = solver.strain_limiter
+    control = model.control()
+    states = [model.state(requires_grad=True)]
+    tape = wp.Tape()
+    with tape:
+        for _ in range(frames):
+            limiter.reset_report()
+            for _ in range(substeps):
+                states.append(model.state(requires_grad=True))
+                solver.step(states[-2], states[-1], control, 1.0 / (60.0 * substeps))
+            out.append((*strain_excess(model, states[-1].particle_q.numpy(), limit), limiter.read_report()))
+    return out
+
+
+def check_reports(frames, limit=LIMIT):
+    """Every frame's measured excess is at most what its report says (the report never hides a miss), and a
+    frame the report calls held is within the limit plus the tolerance on both spring kinds. Returns the
+    number of frames flagged."""
+    flagged = 0
+    for k, (structural, shear, report) in enumerate(frames):
+        assert report.steps > 0
+        assert structural <= report.structural_excess + ROUND_OFF, (k, structural, report)
+        assert shear <= report.shear_excess + ROUND_OFF, (k, shear, report)
+        if report.held:
+            assert max(structural, shear) <= TOLERANCE + ROUND_OFF, (k, structural, shear, report)
+        else:
+            assert report.excess > TOLERANCE
+            flagged += 1
+    return flagged
+
+
+@pytest.mark.parametrize("path", PATHS)
+@pytest.mark.parametrize("name", list(SUBSTEPS))
+def test_strain_limit_holds_in_every_frame(device, name, path):
+    """Check structural and shear strain <= limit + 1e-3 after every frame of a heavy cloth hanging from two corners,
+    and that every frame's report says so, for each integrator on each path."""
+    if path == "captured" and name == "implicit_euler":
+        pytest.skip("the Simulator does not capture implicit Euler (its linear solve checks convergence on the host)")
+    frames = run_frames(device, name, path, 20)
+    assert check_reports(frames) == 0
+    assert max(r.most_sweeps for *_, r in frames) > 1  # the set-up makes the limiter work
+
+
+def test_unlimited_cloth_stretches_far_beyond_the_limit(device):
+    """Check the set-up is meaningful: without the limiter the same cloth stretches beyond 3x the limit."""
+    model = hanging_cloth(device)
+    free = run_steps(cw.make_solver("symplectic_euler", model, strain_limit=None), model, 20 * 20, 1.0 / (60 * 20))
     assert structural_strain(model, free) > 3 * LIMIT
+
+
+@pytest.mark.parametrize("path", PATHS)
+@pytest.mark.parametrize("name", list(SUBSTEPS))
+def test_capped_sweeps_are_flagged(device, name, path):
+    """Check a cap of 2 sweeps per step leaves the heavy cloth above the limit and every such frame is flagged in
+    its report (per spring kind, never below what is measured), and no step ran more than 2 sweeps."""
+    if path == "captured" and name == "implicit_euler":
+        pytest.skip("the Simulator does not capture implicit Euler")
+    frames = run_frames(device, name, path, 8, strain_limit_iterations=2)
+    assert check_reports(frames) > 0
+    assert max(r.most_sweeps for *_, r in frames) == 2
+
+
+def test_captured_frames_check_convergence_on_the_device(device):
+    """Check a graph-captured run decides when to stop sweeping as the eager run does (same positions, bit for bit
+    on the CPU): a 5 % limit holds in every frame (the four fixed sweeps captured frames used to run end at 5.8 %),
+    with far fewer sweeps than the cap."""
+    limit, frames = 0.05, 15
+    runs = {}
+    for path in ("eager", "captured"):
+        model = hanging_cloth(device)
+        solver = cw.SolverSymplecticEuler(model, strain_limit=limit)
+        sim = cw.Simulator(model, solver, fps=60.0, substeps=20, capture=path == "captured")
+        assert sim.capture == (path == "captured")
+        positions, reports = [], []
+        for _ in range(frames):
+            sim.step_frame()
+            positions.append(sim.positions())
+            reports.append(sim.strain_limit_frame)
+            assert max(strain_excess(model, positions[-1], limit)) <= TOLERANCE + ROUND_OFF
+        runs[path] = positions, reports, sim
+    (x_eager, r_eager, _), (x_captured, r_captured, sim) = runs["eager"], runs["captured"]
+    tol = 0.0 if wp.get_device(device).is_cpu else 1e-5
+    for a, b in zip(x_eager, x_captured):
+        np.testing.assert_allclose(b, a, atol=tol, rtol=0.0)
+    assert [r.sweeps for r in r_captured] == [r.sweeps for r in r_eager] or tol > 0.0
+    total = sim.strain_limit_total
+    assert total.frames == frames and total.missed_frames == 0
+    assert total.most_sweeps > 8  # more than a fixed handful of sweeps where needed ...
+    assert total.mean_sweeps < 0.25 * total.max_sweeps  # ... and far fewer than the cap elsewhere
+
+
+def test_iterations_cap_the_sweeps(device):
+    """Check strain_limit_iterations is the most sweeps a step runs (eager, captured and scene-built solvers), and
+    that a step within the tolerance runs none."""
+    for path in ("eager", "captured"):
+        frames = run_frames(device, "symplectic_euler", path, 8, strain_limit_iterations=3)
+        assert max(r.most_sweeps for *_, r in frames) == 3
+        assert all(r.sweeps <= 3 * r.steps for *_, r in frames)
+    # a cloth at rest meets the limit: no sweep at all
+    model = hanging_cloth(device)
+    solver = cw.SolverSymplecticEuler(model, strain_limit=LIMIT, strain_limit_iterations=7)
+    solver.strain_limiter.reset_report()
+    solver.step(model.state(), model.state(), model.control(), 1e-6)
+    assert solver.strain_limiter.read_report().sweeps == 0
+    # the scene key is the same cap
+    from cloth_warp.scene import build_model, build_solver, load_scene
+    from cloth_warp.runner import find_scene
+
+    scene = load_scene(find_scene("hanging_cloth"), {"cloth.grid.resolution": [8, 8], "solver.strain_limit_iterations": 9})
+    assert build_solver(scene, build_model(scene, device)).strain_limiter.iterations == 9
+
+
+def test_adaptive_steps_keep_accepted_steps_in_the_record(device):
+    """Check the adaptive stepper rejects steps whose limiting stopped at the cap (halving dt) and keeps them out of
+    the frame's record: the frames are held although the first try of the step was not."""
+    model = hanging_cloth(device)
+    solver = cw.SolverImplicitEuler(model, strain_limit=LIMIT, strain_limit_iterations=12)
+    sim = cw.Simulator(model, solver, fps=60.0, substeps=1, adaptive=True)
+    for _ in range(10):
+        sim.step_frame()
+        assert sim.strain_limit_frame.held, sim.strain_limit_frame
+        assert sim.strain_limit_frame.steps == sim.stepper.interval.steps
+    assert sim.stepper.report.reasons.get("limiter", 0) > 0  # steps at the cap were rejected, not recorded
+
+
+def test_run_summary_cache_and_warning_report_misses(tmp_path):
+    """Check a scene run whose limiting stops at its cap says so: once per run as a StrainLimitWarning with the count
+    of frames, in the summary (and --stats JSON) and per frame in the cache; a run that holds says nothing."""
+    from cloth_warp.cache import CacheReader
+    from cloth_warp.cli import format_summary
+    from cloth_warp.runner import run_scene
+
+    heavy = {"cloth.grid.resolution": [16, 16], "material.areal_density": 0.5, "material.stretch_stiffness": 30.0,
+             "material.shear_stiffness": 3.0, "material.bend_stiffness": 1e-6, "output.frames": 12}
+    out = tmp_path / "heavy.npz"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        summary = run_scene("hanging_cloth", {**heavy, "solver.strain_limit_iterations": 3}, output=out, device="cpu")
+    limit = summary["strain_limit"]
+    assert limit["max_sweeps"] == 3 and limit["frames"] == 12
+    assert 0 < limit["missed_frames"] <= 12 and limit["sweeps_per_step"]["max"] == 3
+    assert max(limit["excess_structural"], limit["excess_shear"]) > limit["tolerance"]
+    mine = [w for w in caught if issubclass(w.category, StrainLimitWarning)]
+    assert len(mine) == 1 and f"in {limit['missed_frames']} of 12 frames" in str(mine[0].message)
+    assert "MISSED" in format_summary(summary)
+    # per frame in the cache (frame 0 is the initial state): the frames flagged are the frames counted
+    assert set(CacheReader(out).summary()["diagnostics"]) >= {"strainExcessStructural", "strainExcessShear", "strainLimitSweeps",
+                                                              "strainLimitMissed"}
+    data = np.load(out)
+    assert int((data["strainLimitMissed"][1:] > 0).sum()) == limit["missed_frames"]
+    assert np.nanmax(data["strainLimitSweeps"]) <= 3  # one step per frame, at most 3 sweeps
+    # the default cap holds this cloth at 4 steps per frame: no warning
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        summary = run_scene("hanging_cloth", {**heavy, "solver.substeps": 4}, output=tmp_path / "held.npz", device="cpu")
+    assert summary["strain_limit"]["missed_frames"] == 0, summary["strain_limit"]
+    assert not [w for w in caught if issubclass(w.category, StrainLimitWarning)]
+    assert "held in every frame" in format_summary(summary)
+
+
+def test_cli_prints_the_miss_as_one_warning_line(tmp_path, capsys):
+    """Check `cloth-warp run` prints a run's strain-limit misses as one `cloth-warp: warning:` line (also with -q), and
+    writes them to the --stats JSON."""
+    import json
+
+    from cloth_warp.cli import main
+
+    sets = ["cloth.grid.resolution=[16, 16]", "material.areal_density=0.5", "material.stretch_stiffness=30",
+            "material.shear_stiffness=3", "material.bend_stiffness=1e-6", "solver.strain_limit_iterations=3"]
+    args = ["run", "hanging_cloth", *[a for v in sets for a in ("--set", v)], "--frames", "12", "-o", str(tmp_path / "c.npz"),
+            "--stats", str(tmp_path / "s.json"), "-q"]
+    assert main(args) == 0
+    err = capsys.readouterr().err
+    stats = json.loads((tmp_path / "s.json").read_text())["strain_limit"]
+    assert stats["missed_frames"] > 0
+    lines = [ln for ln in err.splitlines() if "strain limit" in ln]
+    assert len(lines) == 1 and lines[0].startswith("cloth-warp: warning: strain limit 10 % missed in"), err
+
+
+def test_taped_step_records_a_handful_of_launches(device):
+    """Check a taped step records a fixed handful of launches however many sweeps it runs (it keeps the positions
+    at the start of every ceil(sqrt(cap))-th sweep for its backward pass, no per-pass arrays or gradients)."""
+    model = hanging_cloth(device, resolution=12)
+    x = model.particle_q.numpy()
+    pinned = model.particle_pinned.numpy() != 0
+    moved = x * np.array([1.0, 1.4, 1.0], np.float32)  # stretched 40 % down the cloth
+    moved[pinned] = x[pinned]
+    solver = cw.SolverSymplecticEuler(model, strain_limit=LIMIT, collisions=False)
+    limiter = solver.strain_limiter
+    x_in = wp.array(moved, dtype=wp.vec3, device=device, requires_grad=True)
+    out = model.state(requires_grad=True)
+    tape = wp.Tape()
+    with tape:
+        limiter.apply(solver, x_in, wp.zeros_like(x_in), out, 0.01)
+    assert limiter.last_iterations > 5 and limiter.converged
+    assert len(tape.launches) <= 3  # the backward hook, the velocity correction (and nothing per sweep)
+    assert max(strain_excess(model, out.particle_q.numpy())) <= TOLERANCE + ROUND_OFF
+
+
+def test_taped_limiter_gradient_matches_tape_and_finite_differences(device, rng):
+    """Check the limiter's backward hook (recomputing each sweep from the one array it kept) gives the gradients
+    the tape gives through every pass of every sweep (to x_in, rest lengths and masses), and a central difference
+    along a random direction (through attachments and colours with active constraints)."""
+    from cloth_warp.kernels import constraints as kc
+
+    b = cw.ModelBuilder()
+    c = b.add_cloth_grid(resolution=(6, 6), size=(1.0, 1.0), material=HEAVY_SOFT)
+    b.pin(c.select("corner:top_left"))
+    b.pin(c.select("corner:top_right"))
+    model = b.finalize(device, requires_grad=True)
+    x = model.particle_q.numpy()
+    pinned = model.particle_pinned.numpy() != 0
+    moved = (x * np.array([1.0, 1.3, 1.0], np.float32) + rng.normal(scale=0.01, size=x.shape)).astype(np.float32)
+    moved[pinned] = x[pinned]
+    sweeps = 5
+    solver = cw.SolverSymplecticEuler(model, strain_limit=LIMIT, strain_limit_iterations=sweeps, strain_limit_tolerance=None)
+    lim = solver.strain_limiter
+    assert lim.attachment_count == 2
+    w = wp.array(rng.normal(size=x.shape).astype(np.float32), dtype=wp.vec3, device=device)
+
+    def hook(x_np):
+        x_in = wp.array(x_np, dtype=wp.vec3, device=device, requires_grad=True)
+        out = model.state(requires_grad=True)
+        tape = wp.Tape()
+        with tape:
+            lim.apply(solver, x_in, wp.zeros_like(x_in), out, 0.01)
+        return tape, x_in, out.particle_q
+
+    def taped_passes(x_np):  # every pass on the tape, a fresh array each (what the limiter avoids keeping)
+        m = model
+        x_in = wp.array(x_np, dtype=wp.vec3, device=device, requires_grad=True)
+        x_k = x_in
+        tape = wp.Tape()
+        with tape:
+            for _ in range(sweeps):
+                y = wp.zeros_like(x_k, requires_grad=True)
+                wp.launch(kc.apply_attachment_limit, dim=m.particle_count, inputs=[lim.attachment_particle, lim.attachment_rest_distance,
+                                                                                   m.particle_pinned, x_k, LIMIT], outputs=[y], device=device)
+                x_k = y
+                for color in range(m.strain_limit_color_count):
+                    y = wp.zeros_like(x_k, requires_grad=True)
+                    wp.launch(kc.apply_strain_limit_color, dim=m.particle_count,
+                              inputs=[m.strain_limit_colors, m.spring_indices, m.spring_rest_length, m.particle_mass, m.particle_pinned,
+                                      x_k, color, LIMIT, lim.relaxation], outputs=[y], device=device)
+                    x_k = y
+        return tape, x_in, x_k
+
+    grads = []
+    for run in (hook, taped_passes):
+        model.spring_rest_length.grad.zero_()
+        model.particle_mass.grad.zero_()
+        tape, x_in, x_out = run(moved)
+        tape.backward(grads={x_out: w})
+        grads.append((x_out.numpy().copy(), x_in.grad.numpy().copy(), model.spring_rest_length.grad.numpy().copy(),
+                      model.particle_mass.grad.numpy().copy()))
+    for a, b_ in zip(*grads):
+        np.testing.assert_allclose(a, b_, rtol=0.0, atol=1e-6 * max(1.0, np.abs(b_).max()))
+    assert np.abs(grads[0][2]).max() > 0.0  # the rest lengths of active springs have a gradient
+
+    d = rng.normal(size=x.shape)
+    d[pinned] = 0.0
+    d /= np.linalg.norm(d)
+    eps = 3e-4  # float32 positions of ~1 m: round-off ~1e-3 relative; active-set changes beyond ~1e-3
+    # one sweep moves particles by both attachments at once (a dynamic loop there lost the first one's
+    # derivative: 30 % off); five sweeps chain the colours
+    for n in (1, sweeps):
+        lim.iterations = n
+
+        def value(x_np):
+            return float((hook(x_np.astype(np.float32))[2].numpy().astype(np.float64) * w.numpy()).sum())
+
+        tape, x_in, x_out = hook(moved)
+        tape.backward(grads={x_out: w})
+        ad = float((x_in.grad.numpy() * d).sum())
+        fd = (value(moved + eps * d) - value(moved - eps * d)) / (2 * eps)
+        assert abs(ad - fd) <= 5e-2 * abs(fd), (n, ad, fd)
 
 
 def test_strain_limit_keeps_center_of_mass_motion(device, rng):
@@ -65,7 +361,7 @@ def test_strain_limit_keeps_center_of_mass_motion(device, rng):
         x = s.particle_q.numpy()
         com[limit] = ((m * x).sum(0) / m.sum(), (m * s.particle_qd.numpy()).sum(0) / m.sum())
         if limit:
-            assert structural_strain(model, s) <= LIMIT + TOLERANCE
+            assert max(strain_excess(model, x)) <= TOLERANCE + ROUND_OFF
     np.testing.assert_allclose(com[LIMIT][0], com[None][0], atol=1e-5)
     np.testing.assert_allclose(com[LIMIT][1], com[None][1], atol=1e-4)
 
@@ -83,5 +379,6 @@ def test_forward_and_taped_limiter_paths_agree(device, rng):
         x_in = wp.array(moved, dtype=wp.vec3, device=device, requires_grad=taped)
         out = model.state(requires_grad=taped)
         solver.strain_limiter.apply(solver, x_in, wp.zeros_like(x_in), out, 0.01)
+        assert solver.strain_limiter.last_iterations == 6
         results.append(out.particle_q.numpy())
     np.testing.assert_allclose(results[0], results[1], atol=1e-6)

@@ -1,7 +1,7 @@
 """Integrators behind one interface: ``solver.step(state_in, state_out, control, dt)``."""
 
 from .adaptive import AdaptiveStepper, DivergenceBounds, SimulationDiverged, StepCheck
-from .base import SolverBase, StrainLimiter
+from .base import SolverBase
 from .explicit import (
     SolverExplicitEuler,
     SolverMidpoint,
@@ -9,6 +9,7 @@ from .explicit import (
     SolverSymplecticEuler,
 )
 from .implicit import LinearSolver, SolverImplicitEuler
+from .strain_limit import StrainLimiter, StrainLimitWarning
 
 SOLVERS = {
     "explicit_euler": SolverExplicitEuler,
@@ -41,6 +42,7 @@ __all__ = [
     "SolverRK4",
     "SolverSymplecticEuler",
     "StepCheck",
+    "StrainLimitWarning",
     "StrainLimiter",
     "make_solver",
 ]

@@ -496,6 +496,8 @@ class AdaptiveStepper:
             bad = self._rejection(stats, self._stats, h)
             if bad is not None:
                 kind, reason = bad
+                if self.solver.strain_limiter is not None and self.solver.strain_limiter.active:
+                    self.solver.strain_limiter.discard_step()  # the frame's record keeps accepted steps only
                 r.rejected += 1
                 interval.rejected += 1
                 r.reasons[kind] = r.reasons.get(kind, 0) + 1

@@ -12,6 +12,7 @@ from ..autodiff import paused_tape
 from ..kernels import implicit as ki
 from ..model import Control, Model, State
 from .base import SolverBase
+from .strain_limit import DEFAULT_SWEEPS
 
 WARM_START_FLOOR = 1.0e-6  # the smallest relative residual a warm-started float32 solve is asked for
 
@@ -79,7 +80,7 @@ class SolverImplicitEuler(SolverBase):
         warm_start: bool = True,
         warm_start_reduction: float = 0.01,
         strain_limit: float | None = 0.1,
-        strain_limit_iterations: int = 4,
+        strain_limit_iterations: int = DEFAULT_SWEEPS,
         strain_limit_tolerance: float | None = 1.0e-3,
         collisions: bool = True,
         collision_rounds: int = 2,
@@ -128,6 +129,12 @@ class SolverImplicitEuler(SolverBase):
         self.search = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.product = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.cg_scalars = wp.zeros((self.max_iterations + 2, 3), dtype=wp.float64, device=dev)
+
+    def notify_model_changed(self, flags: int) -> None:
+        """Model fields changed: besides the passes (:meth:`SolverBase.notify_model_changed`), the previous step's
+        velocity change no longer predicts this one, so the next solve starts cold."""
+        super().notify_model_changed(flags)
+        self._has_previous = False
 
     # -- the linear system -------------------------------------------------------------------
     def assemble(self, state_in: State, control: Control, dt: float):

@@ -1,0 +1,392 @@
+"""Provot (1995) strain limiting with its convergence check on the device and a per-step record.
+
+The limiter sweeps until no structural or shear spring is longer than (1 + max_strain) L by more than its
+tolerance, or until its cap of sweeps; the check runs on the device after every sweep
+(``wp.capture_while``), so eager, graph-captured and taped steps stop at the same sweep. What each step
+left is recorded on the device (:meth:`StrainLimiter.record_step`) and read once per frame
+(:meth:`StrainLimiter.read_report`, a :class:`~cloth_warp.diagnostics.StrainLimitReport`).
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+
+import numpy as np
+import warp as wp
+
+from ..autodiff import paused_tape
+from ..diagnostics import StrainLimitReport
+from ..kernels import constraints as kc
+from ..model import Model, ModelFlags, State
+
+DEFAULT_SWEEPS = 128
+"""Cap of Gauss-Seidel sweeps per step (API and scene default)."""
+REPORT_TOLERANCE = 1.0e-3
+"""Excess strain counted as a miss when the limiter runs a fixed number of sweeps (tolerance None)."""
+RECORD_SIZE = 7
+
+
+class StrainLimitWarning(UserWarning):
+    """The strain limit was not reached within the cap of sweeps in some steps of a run."""
+
+
+class StrainLimiter:
+    """Provot (1995) deformation constraints: no structural/shear spring longer than (1 + max_strain) L.
+
+    Each sweep starts with long-range attachments (Kim, Chentanez & Mueller 2012): every particle stays
+    within (1 + max_strain) times its shortest rest path along limited springs from the nearest
+    `attachments` groups of hard-pinned particles (a bound every state within the spring limits meets; it
+    removes the global stretch of a cloth hanging from a few points). Then it visits the springs colour by
+    colour (no two springs of a colour share a particle), moving the endpoints of over-stretched springs
+    toward each other by `relaxation` times the excess (never below the rest length), split by inverse
+    mass (all of it to the free end when the other is pinned). Velocities are then corrected by the
+    position change over dt (Provot's "inverse dynamics"), so the limiter adds no momentum: the centre of
+    mass of a free sheet moves as without it.
+
+    Sweeps stop when no limited spring exceeds the limit by more than `tolerance` (strain; checked on the
+    device after every sweep, also inside a captured graph and under the tape) or after `iterations`
+    sweeps (the cap); a step whose integrator output already meets the tolerance runs none. With
+    ``tolerance=None`` every step runs exactly `iterations` sweeps. A step that ends above the tolerance is
+    counted in the record (:meth:`read_report`), never silently.
+
+    Forward steps sweep in place, one thread per spring of a colour. Taped steps (``x_in.requires_grad``)
+    sweep out of place through reused buffers and keep the positions at the start of every
+    :attr:`snapshot_every`-th sweep (no gradient arrays: 10 arrays for 128 sweeps); their backward pass
+    recomputes the sweeps in between and each sweep's passes, and runs their adjoints (one extra forward
+    pass of the sweeps). Gradients flow through the active (clamped) constraints only: the clamp is
+    piecewise. Taped steps cannot be captured.
+
+    Args:
+        model: the model (its structural/shear springs and their colouring).
+        max_strain: the limit (0.1 = 10 %).
+        iterations: the most sweeps per step (default :data:`DEFAULT_SWEEPS`).
+        attachments: pinned groups each particle is attached to (0: none; at most 4).
+        tolerance: excess strain at which sweeping stops; None for exactly `iterations` sweeps.
+        relaxation: over-relaxation of each correction, in [1, 2).
+    """
+
+    def __init__(self, model: Model, max_strain: float = 0.1, iterations: int = DEFAULT_SWEEPS, attachments: int = 4,
+                 tolerance: float | None = 1.0e-3, relaxation: float = 1.5):
+        from ..validation import LIMITS, check_number
+
+        max_strain = check_number("max_strain", max_strain, LIMITS["strain_limit"])
+        if max_strain <= 0.0:
+            raise ValueError(f"max_strain: must be > 0 (0.1 = 10 %), got {max_strain!r}")
+        iterations = check_number("iterations", iterations, LIMITS["iterations"])
+        if tolerance is not None:
+            tolerance = check_number("tolerance", tolerance, LIMITS["tolerance"])
+        if not (1.0 <= relaxation < 2.0):
+            raise ValueError(f"strain-limit relaxation must be in [1, 2), got {relaxation!r}")
+        self.model = model
+        self.max_strain = float(max_strain)
+        self.iterations = int(iterations)
+        self.tolerance = None if tolerance is None else float(tolerance)
+        self.relaxation = float(relaxation)
+        dev = model.device
+        self._excess = wp.zeros(2, dtype=float, device=dev)  # per-kind accumulator, empty between uses
+        self._status = wp.zeros(3, dtype=float, device=dev)  # [before, structural, shear] excess of the last step
+        self._loop = wp.zeros(2, dtype=wp.int32, device=dev)  # [continue, sweeps]
+        self.record = wp.zeros(RECORD_SIZE, dtype=float, device=dev)
+        self._record_backup = wp.zeros(RECORD_SIZE, dtype=float, device=dev)
+        self._buffers: dict = {}  # taped steps' work arrays (see the taped path)
+        if not (0 <= int(attachments) <= kc.ATTACHMENT_MAX):
+            raise ValueError(f"attachments: must be in [0, {kc.ATTACHMENT_MAX}], got {attachments!r}")
+        self._attachments = int(attachments)
+        ids, dist = attachment_table(model, self._attachments)
+        self.attachment_count = ids.shape[1]
+        if self.attachment_count:
+            self.attachment_particle = wp.array(ids, dtype=wp.int32, device=dev)
+            self.attachment_rest_distance = wp.array(dist.astype(np.float32), dtype=float, device=dev)
+        wp.launch(kc.reset_strain_excess, dim=1, outputs=[self._excess], device=dev)
+
+    def notify_model_changed(self, flags: int) -> None:
+        """Model fields changed (:class:`~cloth_warp.model.ModelFlags`): new rest lengths give new attachment
+        distances (rewritten in place: captured graphs keep reading the same arrays). Masses and rest lengths
+        are otherwise read at every sweep; which particles are pinned is topology."""
+        if flags & ModelFlags.SPRING_PROPERTIES and self.attachment_count:
+            ids, dist = attachment_table(self.model, self._attachments)
+            self.attachment_particle.assign(ids)
+            self.attachment_rest_distance.assign(dist.astype(np.float32))
+
+    @property
+    def active(self) -> bool:
+        return self.model.strain_limit_color_count > 0
+
+    @property
+    def report_tolerance(self) -> float:
+        """The excess [strain] above which a step counts as missed."""
+        return self.tolerance if self.tolerance is not None else REPORT_TOLERANCE
+
+    # -- the last step (each reads the device) ------------------------------------------------------------------
+    @property
+    def last_iterations(self) -> int:
+        """Sweeps run by the last apply()."""
+        return int(self._loop.numpy()[1])
+
+    @property
+    def last_initial_excess(self) -> float:
+        """Excess strain of the integrator's output in the last apply(), before limiting."""
+        return float(self._status.numpy()[0])
+
+    @property
+    def last_excess(self) -> float:
+        """Excess strain left after the last apply() (structural and shear)."""
+        s = self._status.numpy()
+        return float(max(s[1], s[2]))
+
+    @property
+    def converged(self) -> bool:
+        """Whether the last apply() met the tolerance (:attr:`report_tolerance`)."""
+        return self.last_excess <= self.report_tolerance
+
+    # -- the record of steps --------------------------------------------------------------------------------------
+    def record_step(self):
+        """Add the last apply() to the record (a solver calls it once per step, after its last round)."""
+        with paused_tape():
+            wp.launch(kc.record_strain_limit, dim=1, inputs=[self._status, self._loop, self.report_tolerance],
+                      outputs=[self.record, self._record_backup], device=self.model.device)
+
+    def discard_step(self):
+        """Take the last recorded step back out of the record (a rejected adaptive step)."""
+        wp.copy(self.record, self._record_backup)
+
+    def reset_report(self):
+        self.record.zero_()
+
+    def read_report(self) -> StrainLimitReport:
+        """The record since the last :meth:`reset_report` (one read of 7 numbers)."""
+        r = self.record.numpy().astype(np.float64)
+        missed = int(r[kc.RECORD_MISSED])
+        return StrainLimitReport(
+            max_strain=self.max_strain, tolerance=self.report_tolerance, max_sweeps=self.iterations,
+            structural_excess=float(r[kc.RECORD_STRUCTURAL]), shear_excess=float(r[kc.RECORD_SHEAR]),
+            initial_excess=float(r[kc.RECORD_INITIAL]), steps=int(r[kc.RECORD_STEPS]), missed_steps=missed,
+            sweeps=int(r[kc.RECORD_SWEEPS]), most_sweeps=int(r[kc.RECORD_MOST_SWEEPS]), frames=1, missed_frames=int(missed > 0))
+
+    # -- limiting -----------------------------------------------------------------------------------------------------
+    def apply(self, solver, x_in: wp.array, v_in: wp.array, state_out: State, dt: float):
+        """Limit x_in into state_out.particle_q and correct v_in into state_out.particle_qd (see the class)."""
+        if x_in.requires_grad:
+            self._apply_taped(x_in, v_in, state_out, dt)
+        else:
+            self._apply_forward(x_in, v_in, state_out, dt)
+
+    @property
+    def _check(self) -> int:
+        return int(self.tolerance is not None)
+
+    def _begin(self, x):
+        m = self.model
+        wp.launch(kc.reset_strain_excess, dim=1, outputs=[self._excess], device=m.device)
+        self._measure(x)
+        wp.launch(kc.begin_strain_limit, dim=1, inputs=[self.iterations, self.report_tolerance, self._check],
+                  outputs=[self._excess, self._status, self._loop], device=m.device)
+
+    def _end_sweep(self, x):
+        if self._check:
+            self._measure(x)
+        wp.launch(kc.end_strain_limit_sweep, dim=1, inputs=[self.iterations, self.report_tolerance, self._check],
+                  outputs=[self._excess, self._status, self._loop], device=self.model.device)
+
+    def _finish(self, x):
+        if not self._check:  # fixed sweeps: measure what they left, once
+            self._measure(x)
+            wp.launch(kc.finish_strain_limit, dim=1, outputs=[self._excess, self._status], device=self.model.device)
+
+    def _measure(self, x):
+        m = self.model
+        wp.launch(kc.eval_strain_excess_kinds, dim=m.spring_count,
+                  inputs=[m.spring_indices, m.spring_rest_length, m.spring_limited, m.spring_kind, x, self.max_strain],
+                  outputs=[self._excess], device=m.device)
+
+    def _apply_forward(self, x_in, v_in, state_out: State, dt: float):
+        """Forward-only path: sweeps in place on state_out, one thread per spring of a colour."""
+        m = self.model
+        x = state_out.particle_q
+        wp.copy(x, x_in)
+        self._begin(x)
+        wp.capture_while(self._loop, self._sweep_in_place, x=x)
+        self._finish(x)
+        wp.launch(kc.correct_velocity, dim=m.particle_count, inputs=[x_in, x, v_in, dt], outputs=[state_out.particle_qd], device=m.device)
+
+    def _sweep_in_place(self, x):
+        m = self.model
+        if self.attachment_count:
+            self._attach(x, x)  # reads only pinned neighbours, writes its own particle: safe in place
+        offsets = m.strain_limit_color_offsets
+        for c in range(m.strain_limit_color_count):
+            wp.launch(
+                kc.apply_strain_limit_springs,
+                dim=int(offsets[c + 1] - offsets[c]),
+                inputs=[m.strain_limit_color_springs, int(offsets[c]), m.spring_indices, m.spring_rest_length,
+                        m.particle_mass, m.particle_pinned, self.max_strain, self.relaxation],
+                outputs=[x],
+                device=m.device,
+            )
+        self._end_sweep(x)
+
+    # -- taped path -----------------------------------------------------------------------------------------------
+    # Buffers (particle_count vec3 each, no gradients, allocated once): one per pass of a sweep, the running
+    # positions, two adjoints and `snapshot_every` sweep starts of one segment (recomputed in the backward pass).
+    @property
+    def snapshot_every(self) -> int:
+        """Taped steps keep the positions at the start of every this-many-th sweep (ceil(sqrt(iterations)))."""
+        return max(1, math.ceil(math.sqrt(self.iterations)))
+
+    def _apply_taped(self, x_in, v_in, state_out: State, dt: float):
+        m = self.model
+        if m.device.is_capturing:
+            raise RuntimeError("taped strain limiting cannot be captured into a graph: its sweeps are counted on the host "
+                               "so that the backward pass knows them")
+        x_out = state_out.particle_q
+        every = self.snapshot_every
+        with paused_tape() as tape:
+            snapshots = [x_in]  # the positions at the start of sweeps 0, every, 2 every, ...
+            run = self._buffer("run")
+            x = x_in
+            sweeps = 0
+            self._begin(x_in)
+            while self._loop.numpy()[0]:
+                if sweeps and sweeps % every == 0:
+                    snapshots.append(wp.clone(x))
+                wp.copy(run, self._sweep(x))
+                x = run
+                sweeps += 1
+                self._end_sweep(x)
+            self._finish(x)
+            wp.copy(x_out, x)
+        if tape is not None:
+            grads = [a for a in (x_in, x_out, m.spring_rest_length, m.particle_mass) if a.grad is not None]
+            tape.record_func(lambda: self._backward(snapshots, sweeps, x_in, x_out), grads)
+        wp.launch(kc.correct_velocity, dim=m.particle_count, inputs=[x_in, x_out, v_in, dt], outputs=[state_out.particle_qd], device=m.device)
+
+    def _passes(self):
+        """One sweep as out-of-place passes (thread per particle): (kernel, the inputs before x, the inputs after x)."""
+        m = self.model
+        out = []
+        if self.attachment_count:
+            out.append((kc.apply_attachment_limit, [self.attachment_particle, self.attachment_rest_distance, m.particle_pinned],
+                        [self.max_strain]))
+        for c in range(m.strain_limit_color_count):
+            out.append((kc.apply_strain_limit_color, [m.strain_limit_colors, m.spring_indices, m.spring_rest_length,
+                                                      m.particle_mass, m.particle_pinned], [c, self.max_strain, self.relaxation]))
+        return out
+
+    def _buffer(self, key):
+        buf = self._buffers.get(key)
+        if buf is None:
+            buf = self._buffers[key] = wp.zeros(self.model.particle_count, dtype=wp.vec3, device=self.model.device)
+        return buf
+
+    def _sweep(self, x_src, record: list | None = None) -> wp.array:
+        """One sweep out of place through the pass buffers; returns the last pass's (a buffer: copy it to keep it).
+        `record` gets the input of every pass."""
+        m = self.model
+        for k, (kernel, before, after) in enumerate(self._passes()):
+            dst = self._buffer(("pass", k))
+            wp.launch(kernel, dim=m.particle_count, inputs=[*before, x_src, *after], outputs=[dst], device=m.device)
+            if record is not None:
+                record.append(x_src)
+            x_src = dst
+        return x_src
+
+    def _backward(self, snapshots: list, sweeps: int, x_in: wp.array, x_out: wp.array):
+        """Adjoint of a taped apply(): d/dx_out -> d/dx_in (and the rest lengths and masses, when they have gradients).
+
+        Segment by segment from the last: the sweep starts of the segment are recomputed from its snapshot, then
+        each sweep's passes from its start (bit-identical to the forward run) and their adjoints run in reverse."""
+        m = self.model
+        passes = self._passes()
+        every = self.snapshot_every
+        adj, spare = self._buffer("adjoint0"), self._buffer("adjoint1")
+        wp.copy(adj, x_out.grad)
+        if not x_out.retain_grad:  # consumed, as a kernel's adjoint consumes its outputs' (Warp's final-write-wins)
+            x_out.grad.zero_()
+        grad_of = {id(a): a.grad for a in (m.spring_rest_length, m.particle_mass) if a.grad is not None}
+        for first in range(every * ((sweeps - 1) // every) if sweeps else -1, -1, -every):
+            starts = [snapshots[first // every]]
+            for k in range(first + 1, min(first + every, sweeps)):
+                seg = self._buffer(("segment", k - first))
+                wp.copy(seg, self._sweep(starts[-1]))
+                starts.append(seg)
+            for start in reversed(starts):
+                sources: list = []
+                self._sweep(start, sources)
+                for j in range(len(passes) - 1, -1, -1):
+                    kernel, before, after = passes[j]
+                    spare.zero_()
+                    wp.launch(kernel, dim=m.particle_count, inputs=[*before, sources[j], *after], outputs=[self._buffer(("pass", j))],
+                              adj_inputs=[grad_of.get(id(a)) for a in before] + [spare] + [None] * len(after), adj_outputs=[adj],
+                              adjoint=True, device=m.device)
+                    adj, spare = spare, adj
+        wp.launch(kc.accumulate_vectors, dim=m.particle_count, inputs=[adj], outputs=[x_in.grad], device=m.device)
+
+    def _attach(self, x_src, x_dst):
+        m = self.model
+        wp.launch(
+            kc.apply_attachment_limit,
+            dim=m.particle_count,
+            inputs=[self.attachment_particle, self.attachment_rest_distance, m.particle_pinned, x_src, self.max_strain],
+            outputs=[x_dst],
+            device=m.device,
+        )
+
+
+def attachment_table(model: Model, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per particle, the nearest pinned particle of up to `count` pinned groups and the rest path length.
+
+    Groups are connected components of pinned particles (a pinned edge is one group, each pinned corner
+    another). Shortest paths run along the limited (structural/shear) springs with their rest lengths
+    (Dijkstra from each group). Returns (ids, distances) of shape (particle_count, k), -1 / 0 padded.
+    """
+    n = model.particle_count
+    pinned = model.particle_pinned.numpy() != 0
+    if count <= 0 or not pinned.any():
+        return np.zeros((n, 0), np.int32), np.zeros((n, 0))
+    springs = model.spring_indices.numpy().reshape(-1, 2)
+    limited = model.spring_limited.numpy() != 0
+    rest = model.spring_rest_length.numpy().astype(np.float64)
+    adj: list[list[tuple[int, float]]] = [[] for _ in range(n)]
+    for (a, b), r, use in zip(springs.tolist(), rest.tolist(), limited.tolist()):
+        if use:
+            adj[a].append((b, r))
+            adj[b].append((a, r))
+    # Pinned groups: connected components of pinned particles through limited springs.
+    group = np.full(n, -1)
+    groups = []
+    for p in np.flatnonzero(pinned):
+        if group[p] >= 0:
+            continue
+        stack, members = [p], []
+        group[p] = len(groups)
+        while stack:
+            q = stack.pop()
+            members.append(q)
+            for r, _ in adj[q]:
+                if pinned[r] and group[r] < 0:
+                    group[r] = len(groups)
+                    stack.append(r)
+        groups.append(members)
+    dist = np.full((len(groups), n), np.inf)
+    source = np.full((len(groups), n), -1, np.int64)
+    for g, members in enumerate(groups):
+        heap = [(0.0, int(p), int(p)) for p in members]
+        heapq.heapify(heap)
+        d_g, s_g = dist[g], source[g]
+        while heap:
+            d, q, src = heapq.heappop(heap)
+            if d >= d_g[q]:
+                continue
+            d_g[q], s_g[q] = d, src
+            for r, w in adj[q]:
+                if d + w < d_g[r]:
+                    heapq.heappush(heap, (d + w, r, src))
+    k = min(count, len(groups))
+    order = np.argsort(dist, axis=0)[:k]  # nearest groups per particle
+    cols = np.arange(n)
+    ids = source[order, cols].T.astype(np.int32)
+    dd = dist[order, cols].T
+    ids[~np.isfinite(dd)] = -1
+    dd[~np.isfinite(dd)] = 0.0
+    return ids, dd
