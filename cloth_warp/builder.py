@@ -12,11 +12,11 @@ import warp as wp
 
 from . import topology as topo
 from .colliders import Collider, rotation_to_axis
-from .elasticity import TWISTS, membrane_tensor, plate_tensor
+from .elasticity import TWISTS, membrane_element_stiffness, membrane_tensor, plate_tensor
 from .materials import FabricMaterial, preset
 from .model import ClothInfo, Handle, Keyframe, Model
 from .outputs import USD_SUFFIXES, usd_error_text
-from .topology import ClothTopology, MeshError, SpringKind, SpringLaw, SpringModel
+from .topology import ClothTopology, MembraneModel, MeshError, SpringKind, SpringLaw, SpringModel
 from .validation import (
     LIMITS,
     check_direction,
@@ -156,6 +156,13 @@ class ModelBuilder:
         self.triangles = np.zeros((0, 3), np.int64)
         self.tri_drag = np.zeros(0)
         self.tri_corner_weights = np.zeros((0, 3))
+        self.membrane_vertices = np.zeros((0, 3), np.int64)
+        self.membrane_rest_inverse = np.zeros((0, 2, 2))
+        self.membrane_rest_area = np.zeros(0)
+        self.membrane_stiffness = np.zeros((0, 4))
+        self.membrane_damping = np.zeros((0, 4))
+        # stretch constants the structural springs of element cloths would have had (default repulsion stiffness)
+        self._element_structural_stiffness: list[np.ndarray] = []
         self.cloths: list[tuple[ClothRef, FabricMaterial, int]] = []
         self.handles: list[Handle] = []
         self.colliders: list[Collider] = []
@@ -236,6 +243,7 @@ class ModelBuilder:
         material: FabricMaterial | str = "cotton",
         spring_model: SpringModel | str = SpringModel.CHOI_KO,
         warp_angle: float = 0.0,
+        membrane: MembraneModel | str | None = None,
         name: str | None = None,
     ) -> ClothRef:
         """Add a grid cloth of resolution (nx, ny) cells and size (sx, sy) [m].
@@ -243,9 +251,12 @@ class ModelBuilder:
         The grid is built in its local xy-plane with corner (0, 0) at the origin, then rotated by
         `rotation` (quaternion x, y, z, w or 3x3) and moved to `position` [m]. The material's warp runs
         along the local x axis turned by `warp_angle` [deg] about the local z axis (45: a bias cut).
+        `membrane` (:class:`~cloth_warp.topology.MembraneModel`): what carries stretch and shear; default
+        "springs", fitted exactly to the material on grids at any warp angle and cell shape (and cheaper than
+        the "element", which gives the same energy here).
         """
         t = topo.grid_topology(resolution, size, SpringModel(spring_model), warp_angle)
-        return self._add_cloth(t, position, rotation, velocity, material, name or f"cloth{len(self.cloths)}")
+        return self._add_cloth(t, position, rotation, velocity, material, name or f"cloth{len(self.cloths)}", membrane)
 
     def add_cloth_mesh(
         self,
@@ -260,6 +271,7 @@ class ModelBuilder:
         material: FabricMaterial | str = "cotton",
         spring_model: SpringModel | str = SpringModel.CHOI_KO,
         warp_direction=None,
+        membrane: MembraneModel | str | None = None,
         name: str | None = None,
     ) -> ClothRef:
         """Add a cloth from a triangle mesh (vertices [m] before `scale`); seams are welded.
@@ -267,6 +279,11 @@ class ModelBuilder:
         The material's warp runs along `warp_direction` (the mesh's own coordinates) when given, else
         along increasing texture u where `uvs` are given, else along the mesh's x axis
         (:func:`~cloth_warp.topology.triangle_frames`).
+
+        `membrane` (:class:`~cloth_warp.topology.MembraneModel`): what carries stretch and shear; default
+        "element", one orthotropic triangle element per triangle, which stores the material's shear on any
+        mesh (a spring net on triangles with edges at arbitrary angles obeys Cauchy's relation and shears
+        3.6x too stiffly at G/C = 0.02); "springs" keeps the fitted spring net (cheaper, exact stretch only).
 
         Raises :class:`~cloth_warp.topology.MeshError` for empty meshes, non-finite coordinates and
         out-of-range indices; degenerate/duplicate triangles are dropped and non-manifold edges kept,
@@ -276,7 +293,7 @@ class ModelBuilder:
         scale = check_number("scale", scale, LIMITS["scale"])
         v = check_points("vertices (x scale)", v * scale)
         t = topo.mesh_topology(v, tri, SpringModel(spring_model), uvs=uvs, warp_direction=warp_direction)
-        return self._add_cloth(t, position, rotation, velocity, material, name or f"cloth{len(self.cloths)}")
+        return self._add_cloth(t, position, rotation, velocity, material, name or f"cloth{len(self.cloths)}", membrane)
 
     def add_cloth_disc(self, *, radius: float, rings: int = 16, **kwargs) -> ClothRef:
         """Add a circular cloth of `radius` [m] meshed in `rings` concentric rings
@@ -301,7 +318,13 @@ class ModelBuilder:
         kwargs.setdefault("name", os.path.splitext(os.path.basename(str(path)))[0])
         return self.add_cloth_mesh(vertices, triangles, uvs=uvs, **kwargs)
 
-    def _add_cloth(self, t: ClothTopology, position, rotation, velocity, material, name) -> ClothRef:
+    def _add_cloth(self, t: ClothTopology, position, rotation, velocity, material, name, membrane=None) -> ClothRef:
+        if membrane is None:
+            membrane = topo.default_membrane_model(t.grid_shape is not None)
+        try:
+            membrane = MembraneModel(membrane)
+        except ValueError:
+            raise ValueError(f"unknown membrane {membrane!r}; allowed: {', '.join(m.value for m in MembraneModel)}") from None
         if isinstance(material, str):
             material = preset(material)
         if not isinstance(material, FabricMaterial):
@@ -324,6 +347,13 @@ class ModelBuilder:
         self.particle_pinned = np.concatenate([self.particle_pinned, np.zeros(n, np.int32)])
         self.particle_pin_stiffness = np.concatenate([self.particle_pin_stiffness, np.zeros(n)])
         k, c = spring_constants(t, material)
+        if membrane == MembraneModel.ELEMENT:
+            # The elements carry stretch and shear; structural and shear springs stay (strain limiter, diagnostics)
+            # with zero stiffness and damping.
+            carried = np.isin(t.spring_kind, (SpringKind.STRUCTURAL, SpringKind.SHEAR)) & (t.spring_law == SpringLaw.LINEAR)
+            self._element_structural_stiffness.append(k[carried & (t.spring_kind == SpringKind.STRUCTURAL)])
+            k, c = np.where(carried, 0.0, k), np.where(carried, 0.0, c)
+            self._add_membrane_elements(t, material, start)
         rest = np.linalg.norm(t.positions[t.springs[:, 0]] - t.positions[t.springs[:, 1]], axis=1)
         middle = np.where(t.spring_middle >= 0, t.spring_middle + start, -1)
         self._append_springs(t.springs + start, rest, k, c, t.spring_law, t.spring_kind, middle)
@@ -335,6 +365,19 @@ class ModelBuilder:
         ref = ClothRef(self, name, start, t)
         self.cloths.append((ref, material, tri_start))
         return ref
+
+    def _add_membrane_elements(self, t: ClothTopology, material: FabricMaterial, start: int):
+        """One membrane element per triangle of `t` (rest shape in the cloth's own frame: placing it does not
+        change it), with the material's Voigt constants and Kelvin-Voigt damping tau C."""
+        inverse, area = topo.triangle_rest_shapes(t.positions, t.triangles, t.triangle_warp)
+        keep = area > 0.0
+        c = membrane_element_stiffness(material)
+        count = int(keep.sum())
+        self.membrane_vertices = np.concatenate([self.membrane_vertices, t.triangles[keep].astype(np.int64) + start])
+        self.membrane_rest_inverse = np.concatenate([self.membrane_rest_inverse, inverse[keep]])
+        self.membrane_rest_area = np.concatenate([self.membrane_rest_area, area[keep]])
+        self.membrane_stiffness = np.concatenate([self.membrane_stiffness, np.tile(c, (count, 1))])
+        self.membrane_damping = np.concatenate([self.membrane_damping, np.tile(material.damping * c, (count, 1))])
 
     # -- pins and handles --------------------------------------------------------------------
     def pin(self, indices, stiffness: float | None = None):
@@ -532,6 +575,16 @@ class ModelBuilder:
         m.tri_vertices = arr(tris, wp.vec3i)
         m.tri_drag = arr(self.tri_drag.astype(np.float32), float, True)
         m.tri_corner_weights = arr(self.tri_corner_weights.astype(np.float32).reshape(-1, 3), wp.vec3)
+        m.membrane_count = len(self.membrane_vertices)
+        mv = self.membrane_vertices.astype(np.int32).reshape(-1, 3)
+        m.membrane_vertices = arr(mv, wp.vec3i)
+        m.membrane_rest_inverse = arr(self.membrane_rest_inverse.astype(np.float32).reshape(-1, 2, 2), wp.mat22)
+        m.membrane_rest_area = arr(self.membrane_rest_area.astype(np.float32), float)
+        m.membrane_stiffness = arr(self.membrane_stiffness.astype(np.float32).reshape(-1, 4), wp.vec4, True)
+        m.membrane_damping = arr(self.membrane_damping.astype(np.float32).reshape(-1, 4), wp.vec4, True)
+        mo, mid = topo.particle_triangles(mv, n)
+        m.particle_membrane_offsets = arr(mo, wp.int32)
+        m.particle_membrane_ids = arr(mid, wp.int32)
         so, sid, srole = topo.particle_springs(springs, middle, n)
         m.particle_spring_offsets = arr(so, wp.int32)
         m.particle_spring_ids = arr(sid, wp.int32)
@@ -564,7 +617,9 @@ class ModelBuilder:
         if k is None:
             structural = (self.spring_kind[order] == SpringKind.STRUCTURAL) & (law == SpringLaw.LINEAR)
             stiff = m.spring_stiffness.numpy()
-            k = float(np.median(stiff[structural])) if structural.any() else 1.0e3
+            # element cloths' structural springs carry nothing: count what they would have carried
+            values = np.concatenate([stiff[structural & (stiff > 0.0)], *self._element_structural_stiffness])
+            k = float(np.median(values)) if len(values) else 1.0e3
         m.self_collision_stiffness = k
         return m
 
@@ -578,6 +633,8 @@ class ModelBuilder:
         check_float32("spring damping (material damping x spring constant)", self.spring_damping, hint=": lower the damping")
         check_float32("spring rest lengths [m]", self.spring_rest_length, positive=True)
         check_float32("triangle drag coefficients", self.tri_drag)
+        check_float32("membrane element constants (material stiffness and damping)", np.concatenate([self.membrane_stiffness.ravel(),
+                      self.membrane_damping.ravel()]), hint=": lower the stiffness or the damping")
         check_float32_resolution("springs", self.particle_positions, self.spring_rest_length)
 
     def _finalize_colliders(self, m: Model, arr):

@@ -69,6 +69,59 @@ def membrane_tensor(material) -> Orthotropic:
     return Orthotropic(material.stretch_stiffness, material.stretch_weft, material.shear_stiffness)
 
 
+def membrane_element_stiffness(material) -> np.ndarray:
+    """The constants of a triangle membrane element (:mod:`cloth_warp.kernels.forces`, `membrane_forces`) for
+    a material: (C_11, C_22, C_12, C_66) of the Voigt matrix of :func:`membrane_tensor` in the warp/weft frame
+    (1: warp, 2: weft, 6: engineering shear) [N/m], shape (4,). The element stores C_12 and C_66 apart: unlike a
+    spring net it is not bound to Cauchy's relation (today the tensor has C_12 = C_66 = G)."""
+    v = membrane_tensor(material).voigt()
+    return np.array([v[0, 0], v[1, 1], v[0, 1], v[2, 2]])
+
+
+def membrane_element_energy(x, vertices, rest_inverse, area, stiffness) -> np.ndarray:
+    """Energy [J] per triangle element, A (1/2) e . C e with e = (E_ww, E_ff, 2 E_wf) the Green strain
+    E = (F^T F - I) / 2 in the material frame, F = [x_1 - x_0, x_2 - x_0] Dm^-1 (numpy, float64), shape (t,).
+
+    Args:
+        x: positions [m], (n, 3); vertices: corners, (t, 3); rest_inverse: Dm^-1 [1/m], (t, 2, 2);
+        area: rest areas [m^2], (t,); stiffness: (C_11, C_22, C_12, C_66) per element [N/m], (t, 4) or (4,).
+    """
+    x = np.asarray(x, np.float64)
+    p = x[np.asarray(vertices)]
+    ds = np.stack([p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]], axis=2)  # (t, 3, 2)
+    f = ds @ np.asarray(rest_inverse, np.float64)
+    fw, ff = f[..., 0], f[..., 1]
+    e = np.stack([0.5 * (np.sum(fw * fw, 1) - 1.0), 0.5 * (np.sum(ff * ff, 1) - 1.0), np.sum(fw * ff, 1)], axis=1)
+    c = np.broadcast_to(np.asarray(stiffness, np.float64), (len(e), 4))
+    w = c[:, 0] * e[:, 0] ** 2 + c[:, 1] * e[:, 1] ** 2 + 2.0 * c[:, 2] * e[:, 0] * e[:, 1] + c[:, 3] * e[:, 2] ** 2
+    return 0.5 * np.asarray(area, np.float64) * w
+
+
+def membrane_element_row_bound(vertices, rest_inverse, area, stiffness, particle_count: int) -> np.ndarray:
+    """Per particle, the block-Gershgorin bound sum over its elements and their corners l of |K_kl| [N/m]
+    (spectral norms of the 3x3 blocks of the rest stiffness K = A B^T C B, which rotations leave unchanged),
+    so omega_max^2 <= max_i (bound_i + springs' 2 sum_j k_ij) / m_i, shape (particle_count,)."""
+    vertices = np.asarray(vertices)
+    out = np.zeros(particle_count)
+    if not len(vertices):
+        return out
+    inv = np.asarray(rest_inverse, np.float64)
+    g = np.stack([-(inv[:, 0] + inv[:, 1]), inv[:, 0], inv[:, 1]], axis=1)  # (t, 3 corners, 2): row k of [-1 -1; I] Dm^-1
+    # strain Jacobian of corner k at rest in the material plane: rows (g_w, 0), (0, g_f), (g_f, g_w)
+    b = np.zeros(g.shape[:2] + (3, 2))
+    b[..., 0, 0] = g[..., 0]
+    b[..., 1, 1] = g[..., 1]
+    b[..., 2, 0] = g[..., 1]
+    b[..., 2, 1] = g[..., 0]
+    c4 = np.broadcast_to(np.asarray(stiffness, np.float64), (len(vertices), 4))
+    c = np.zeros((len(vertices), 3, 3))
+    c[:, 0, 0], c[:, 1, 1], c[:, 0, 1], c[:, 1, 0], c[:, 2, 2] = c4[:, 0], c4[:, 1], c4[:, 2], c4[:, 2], c4[:, 3]
+    blocks = np.einsum("t,tkia,tij,tljb->tklab", np.asarray(area, np.float64), b, c, b)  # (t, 3, 3, 2, 2)
+    norms = np.linalg.norm(blocks, ord=2, axis=(-2, -1)).sum(axis=2)  # (t, 3)
+    np.add.at(out, vertices.reshape(-1), norms.reshape(-1))
+    return out
+
+
 def plate_tensor(material, twist: float = 1.0) -> Orthotropic:
     """The plate tensor of a material with `twist` x Huber's H = sqrt(D_w D_f) / 3 (nu = 1/3 when isotropic),
     and D such that a free strip cut along the warp or the weft (which bends anticlastically) has the

@@ -197,7 +197,7 @@ class ModelFlags(enum.IntFlag):
     SPRING_PROPERTIES = 1 << 2
     """spring_rest_length, spring_stiffness, spring_damping."""
     TRIANGLE_PROPERTIES = 1 << 3
-    """tri_drag."""
+    """tri_drag, membrane_stiffness, membrane_damping."""
     COLLIDER_PROPERTIES = 1 << 4
     """collider_thickness, collider_static_friction, collider_kinetic_friction."""
     SELF_COLLISION_PROPERTIES = 1 << 5
@@ -218,6 +218,8 @@ FIELD_FLAGS: dict[str, ModelFlags] = {
     "spring_stiffness": ModelFlags.SPRING_PROPERTIES,
     "spring_damping": ModelFlags.SPRING_PROPERTIES,
     "tri_drag": ModelFlags.TRIANGLE_PROPERTIES,
+    "membrane_stiffness": ModelFlags.TRIANGLE_PROPERTIES,
+    "membrane_damping": ModelFlags.TRIANGLE_PROPERTIES,
     "collider_thickness": ModelFlags.COLLIDER_PROPERTIES,
     "collider_static_friction": ModelFlags.COLLIDER_PROPERTIES,
     "collider_kinetic_friction": ModelFlags.COLLIDER_PROPERTIES,
@@ -234,7 +236,7 @@ class Model:
     """Description of the simulated cloth(s), created by :meth:`ModelBuilder.finalize`; solvers never write it.
 
     Every field is declared below with its unit and shape (Warp arrays are float32 unless noted; n =
-    particle_count, s = spring_count, t = tri_count, c = max(collider_count, 1)). The fields listed in
+    particle_count, s = spring_count, t = tri_count, e = membrane_count, c = max(collider_count, 1)). The fields listed in
     :data:`FIELD_FLAGS` may be changed between runs (a fit does); whoever changes them then calls
     ``notify_model_changed(flags)`` on what was built from the model (see :class:`ModelFlags`).
     """
@@ -301,6 +303,27 @@ class Model:
         the triangle's current area), shape (t,) (differentiable)."""
         self.tri_corner_weights: wp.array | None = None
         """Share of a triangle's drag per corner, shape (t,), vec3 (sums to 1)."""
+
+        # -- triangle membrane elements (stretch and shear of cloths built with membrane="element") -----
+        self.membrane_count = 0
+        """e, the number of membrane elements (one per triangle of such cloths; 0 when every cloth uses springs)."""
+        self.membrane_vertices: wp.array | None = None
+        """Corners of each element (the triangle's, same winding), shape (e,), vec3i."""
+        self.membrane_rest_inverse: wp.array | None = None
+        """Dm^-1 [1/m]: the inverse of the rest edge matrix in the triangle's warp/weft frame
+        (:func:`~cloth_warp.topology.triangle_rest_shapes`), shape (e,), mat22 (fixed: a new rest shape needs a new model)."""
+        self.membrane_rest_area: wp.array | None = None
+        """Rest area A [m^2], shape (e,) (fixed)."""
+        self.membrane_stiffness: wp.array | None = None
+        """(C_11, C_22, C_12, C_66) [N/m]: warp, weft, coupling and shear entries of the Voigt matrix in the
+        warp/weft frame (:func:`~cloth_warp.elasticity.membrane_element_stiffness`), shape (e,), vec4 (differentiable)."""
+        self.membrane_damping: wp.array | None = None
+        """Kelvin-Voigt damping C_d = tau C [N s/m] (tau: the material's relaxation time), shape (e,), vec4
+        (differentiable)."""
+        self.particle_membrane_offsets: wp.array | None = None
+        """Start of each particle's elements in particle_membrane_ids, shape (n + 1,), int32."""
+        self.particle_membrane_ids: wp.array | None = None
+        """Membrane elements incident to each particle, int32."""
 
         # -- incidence lists (gather) and strain-limit colouring ------------------------------------
         self.particle_spring_offsets: wp.array | None = None

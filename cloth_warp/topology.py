@@ -60,6 +60,26 @@ class SpringModel(enum.Enum):
     """Stiff structural + shear springs; span-2 buckling springs incl. span-2 diagonals (Choi & Ko 2002)."""
 
 
+class MembraneModel(enum.Enum):
+    """What carries a cloth's stretch and shear (the membrane); bending stays on springs either way."""
+
+    SPRINGS = "springs"
+    """The structural and shear springs, their constants fitted to the continuum energy per region (exact on
+    grids at any warp angle and cell shape; on triangle meshes a spring net obeys Cauchy's relation and
+    cannot store a shear stiffness far below the stretch stiffness off the material axes)."""
+    ELEMENT = "element"
+    """One orthotropic constant-strain (StVK) element per triangle: the continuum energy on any mesh. The
+    structural and shear springs stay, with zero stiffness, for the strain limiter and diagnostics."""
+
+
+def default_membrane_model(grid: bool) -> MembraneModel:
+    """Springs for now, on grids and meshes alike. The element is chosen per cloth (``membrane="element"``):
+    it stores the continuum energy on any mesh (springs shear 3.6x too stiffly at G/C = 0.02 on irregular
+    meshes) but its gradient through the implicit adjoint does not yet match finite differences
+    (tests/test_membrane.py), so it is not the default until it does."""
+    return MembraneModel.SPRINGS
+
+
 # Choi-Ko's quartic fit of the buckling curve (physics.md 7.2, as in Blender's implicit.c):
 # f_b = (4 k_b / L^2) |P(l/L)|, P(s) = -11.541 s^4 + 34.193 s^3 - 39.083 s^2 + 23.116 s - 9.713.
 BUCKLING_POLY = (-11.541, 34.193, -39.083, 23.116, -9.713)
@@ -91,6 +111,8 @@ class ClothTopology:
         corner_weights: per triangle corner, the share of the triangle's air drag that goes to that
             corner, shape (t, 3); chosen so that sum over triangles of weight x area = particle_area
             (drag per unit mass uniform on a flat sheet). None means 1/3 each.
+        triangle_warp: per triangle, the unit warp direction in its plane at rest, shape (t, 3) (the weft is
+            normal x warp, the normal that of the triangle's winding); None: :func:`triangle_frames` defaults.
     """
 
     positions: np.ndarray
@@ -107,6 +129,7 @@ class ClothTopology:
     grid_shape: tuple[int, int] | None = None
     corner_weights: np.ndarray | None = None
     warnings: list[str] = field(default_factory=list)
+    triangle_warp: np.ndarray | None = None
 
     @property
     def particle_count(self) -> int:
@@ -246,8 +269,9 @@ def grid_topology(
     springs, kind, law, middle = sl.arrays()
     # Texture coordinates span [0, 1]^2 over the grid (u along x, v along y), per triangle corner.
     corner_uv = (positions[:, :2] / np.array([sx, sy]))[triangles]
+    triangle_warp = np.tile([np.cos(warp), np.sin(warp), 0.0], (len(triangles), 1))
     return ClothTopology(positions, triangles, springs, kind, law, membrane, bending, middle, particle_area,
-                         grid_shape=(nx, ny), corner_uv=corner_uv, corner_weights=corner_weights)
+                         grid_shape=(nx, ny), corner_uv=corner_uv, corner_weights=corner_weights, triangle_warp=triangle_warp)
 
 
 def check_grid_size(name: str, nx: int, ny: int):
@@ -614,6 +638,7 @@ def mesh_topology(
         render_to_particle=render_to_particle,
         corner_uv=corner_uv,
         warnings=issues,
+        triangle_warp=warp,
     )
 
 
@@ -655,6 +680,36 @@ def triangle_frames(positions: np.ndarray, triangles: np.ndarray, corner_uv: np.
         warp = np.where(ok[:, None], tangent, warp)
     warp -= np.sum(warp * normal, axis=1, keepdims=True) * normal
     return normal, warp / np.maximum(np.linalg.norm(warp, axis=1, keepdims=True), 1e-300)
+
+
+def triangle_rest_shapes(positions: np.ndarray, triangles: np.ndarray, warp: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Per triangle, the inverse rest edge matrix in its material frame and its rest area.
+
+    With X_k = ((x_k - x_0) . w, (x_k - x_0) . f) the corners in the triangle's warp/weft frame (w = `warp`,
+    default :func:`triangle_frames`; f = n x w with n the normal of the triangle's winding, so det Dm > 0),
+    Dm = [X_1 - X_0, X_2 - X_0] and the deformation gradient of current corners x_k is
+    F = [x_1 - x_0, x_2 - x_0] Dm^-1 (3x2; its columns map the warp and the weft).
+
+    Returns:
+        (Dm^-1 [1/m], shape (t, 2, 2); area [m^2], shape (t,)).
+    """
+    x = np.asarray(positions, np.float64)[np.asarray(triangles)]
+    e1, e2 = x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]
+    normal = np.cross(e1, e2)
+    twice_area = np.linalg.norm(normal, axis=1)
+    normal /= np.maximum(twice_area, 1e-300)[:, None]
+    if warp is None:
+        _, warp = triangle_frames(positions, triangles)
+    w = np.asarray(warp, np.float64)
+    w = w - np.sum(w * normal, axis=1, keepdims=True) * normal
+    w /= np.maximum(np.linalg.norm(w, axis=1, keepdims=True), 1e-300)
+    f = np.cross(normal, w)
+    dm = np.stack([np.stack([np.sum(e1 * w, 1), np.sum(e2 * w, 1)], 1), np.stack([np.sum(e1 * f, 1), np.sum(e2 * f, 1)], 1)], 1)
+    det = dm[:, 0, 0] * dm[:, 1, 1] - dm[:, 0, 1] * dm[:, 1, 0]
+    safe = np.where(np.abs(det) > 1e-300, det, 1.0)
+    inverse = np.stack([np.stack([dm[:, 1, 1], -dm[:, 0, 1]], 1), np.stack([-dm[:, 1, 0], dm[:, 0, 0]], 1)], 1) / safe[:, None, None]
+    inverse[np.abs(det) <= 1e-300] = 0.0  # a degenerate triangle carries no membrane energy
+    return inverse, 0.5 * twice_area
 
 
 def _surviving_triangle_rows(before: np.ndarray, after: np.ndarray) -> np.ndarray:

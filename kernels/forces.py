@@ -4,6 +4,9 @@ Notation: x, v particle positions [m] and velocities [m/s]; for a spring (i, j):
 l = |d|, n = d / l, L its rest length; k its stiffness [N/m] (linear law) or k_b [N m^2] (buckling law),
 c its damping [N s/m].
 
+Triangle membrane elements (orthotropic StVK, physics.md section E) carry stretch and shear where a cloth
+asks for them (triangle meshes by default); their notation is given above `membrane_corner_gradients`.
+
 Each spring, bend triple and triangle is evaluated once and scattered into a per-particle force array
 with atomics (plain adds on the CPU backend, where this is the fastest formulation; differentiable
 under wp.Tape). The integrators then read one force per particle.
@@ -196,6 +199,157 @@ def corner_weight(i: int, a: int, b: int, weights: wp.vec3):
     return weights[2]
 
 
+# -- triangle membrane element (docs/physics.md section E) -------------------------------------------------
+# Notation: corners x_k, velocities v_k (k = 0, 1, 2); Dm^-1 the inverse rest edge matrix in the triangle's
+# warp/weft frame; g_k the k-th row of [-1 -1; 1 0; 0 1] Dm^-1, so F = sum_k x_k g_k^T (3x2, columns F_w, F_f);
+# Green strain e = (E_ww, E_ff, 2 E_wf) = ((F_w.F_w - 1)/2, (F_f.F_f - 1)/2, F_w.F_f); C the 3x3 Voigt matrix
+# from (C_11, C_22, C_12, C_66); B_k = de/dx_k (3x3). W = A (1/2) e.C e, f_k = -A B_k^T (C e + C_d de/dt).
+
+
+@wp.func
+def membrane_corner_gradients(rest_inverse: wp.mat22):
+    """g_0, g_1, g_2: d F / d x_k = I (x) g_k^T, from the inverse rest edge matrix Dm^-1 [1/m]."""
+    g1 = wp.vec2(rest_inverse[0, 0], rest_inverse[0, 1])
+    g2 = wp.vec2(rest_inverse[1, 0], rest_inverse[1, 1])
+    return -(g1 + g2), g1, g2
+
+
+@wp.func
+def membrane_strain_jacobian(fw: wp.vec3, ff: wp.vec3, g: wp.vec2):
+    """B_k = d e / d x_k of the Green strain (rows: E_ww, E_ff, 2 E_wf) for a corner with gradient g = g_k."""
+    a = g[0] * fw
+    b = g[1] * ff
+    c = g[1] * fw + g[0] * ff
+    return wp.mat33(a[0], a[1], a[2], b[0], b[1], b[2], c[0], c[1], c[2])
+
+
+@wp.func
+def membrane_voigt(c: wp.vec4):
+    """The 3x3 Voigt matrix [[C_11, C_12, 0], [C_12, C_22, 0], [0, 0, C_66]] of (C_11, C_22, C_12, C_66)."""
+    return wp.mat33(c[0], c[2], 0.0, c[2], c[1], 0.0, 0.0, 0.0, c[3])
+
+
+@wp.func
+def membrane_deformation(x0: wp.vec3, x1: wp.vec3, x2: wp.vec3, rest_inverse: wp.mat22):
+    """The columns F_w, F_f of the deformation gradient F = [x1 - x0, x2 - x0] Dm^-1."""
+    d1 = x1 - x0
+    d2 = x2 - x0
+    fw = rest_inverse[0, 0] * d1 + rest_inverse[1, 0] * d2
+    ff = rest_inverse[0, 1] * d1 + rest_inverse[1, 1] * d2
+    return fw, ff
+
+
+@wp.func
+def membrane_strain(fw: wp.vec3, ff: wp.vec3):
+    """Green strain in Voigt form e = ((F_w.F_w - 1)/2, (F_f.F_f - 1)/2, F_w.F_f) (engineering shear)."""
+    return wp.vec3(0.5 * (wp.dot(fw, fw) - 1.0), 0.5 * (wp.dot(ff, ff) - 1.0), wp.dot(fw, ff))
+
+
+@wp.func
+def membrane_energy(x0: wp.vec3, x1: wp.vec3, x2: wp.vec3, rest_inverse: wp.mat22, area: float, stiffness: wp.vec4):
+    """W = A (1/2) e . C e [J] of a triangle membrane element."""
+    fw, ff = membrane_deformation(x0, x1, x2, rest_inverse)
+    e = membrane_strain(fw, ff)
+    return 0.5 * area * wp.dot(e, membrane_voigt(stiffness) * e)
+
+
+@wp.func
+def membrane_forces(
+    x0: wp.vec3,
+    x1: wp.vec3,
+    x2: wp.vec3,
+    v0: wp.vec3,
+    v1: wp.vec3,
+    v2: wp.vec3,
+    rest_inverse: wp.mat22,
+    area: float,
+    stiffness: wp.vec4,
+    damping: wp.vec4,
+):
+    """Forces [N] on the corners of a membrane element: f_k = -A B_k^T (C e + C_d de/dt), de/dt = sum_l B_l v_l
+    (orthotropic StVK membrane with Kelvin-Voigt damping C_d = tau C)."""
+    fw, ff = membrane_deformation(x0, x1, x2, rest_inverse)
+    g0, g1, g2 = membrane_corner_gradients(rest_inverse)
+    b0 = membrane_strain_jacobian(fw, ff, g0)
+    b1 = membrane_strain_jacobian(fw, ff, g1)
+    b2 = membrane_strain_jacobian(fw, ff, g2)
+    rate = b0 * v0 + b1 * v1 + b2 * v2
+    stress = area * (membrane_voigt(stiffness) * membrane_strain(fw, ff) + membrane_voigt(damping) * rate)
+    return -(wp.transpose(b0) * stress), -(wp.transpose(b1) * stress), -(wp.transpose(b2) * stress)
+
+
+@wp.func
+def positive_stress(s: wp.vec3):
+    """The positive part of the symmetric 2x2 stress [[s_0, s_2], [s_2, s_1]] (negative eigenvalues set to 0),
+    returned as (s_ww, s_ff, s_wf). The square root is taken only where the eigenvalues have opposite signs
+    (then it is > 0), so the tape's adjoint stays finite."""
+    det = s[0] * s[1] - s[2] * s[2]
+    tr = s[0] + s[1]
+    if det >= 0.0:
+        if tr >= 0.0:
+            return s
+        return wp.vec3(0.0)
+    half = 0.5 * tr
+    r = wp.sqrt(half * half - det)
+    top = half + r
+    low = half - r
+    # S+ = top (S - low I) / (top - low)
+    scale = top / (2.0 * r)
+    return wp.vec3(scale * (s[0] - low), scale * (s[1] - low), scale * s[2])
+
+
+@wp.func
+def membrane_geometric_weights(g0: wp.vec2, g1: wp.vec2, g2: wp.vec2, s: wp.vec3):
+    """The corner matrix G_kl = g_k^T S g_l of the geometric stiffness (G (x) I_3) for the 2x2 stress s."""
+    sg0 = wp.vec2(s[0] * g0[0] + s[2] * g0[1], s[2] * g0[0] + s[1] * g0[1])
+    sg1 = wp.vec2(s[0] * g1[0] + s[2] * g1[1], s[2] * g1[0] + s[1] * g1[1])
+    sg2 = wp.vec2(s[0] * g2[0] + s[2] * g2[1], s[2] * g2[0] + s[1] * g2[1])
+    return wp.mat33(
+        wp.dot(g0, sg0), wp.dot(g0, sg1), wp.dot(g0, sg2),
+        wp.dot(g1, sg0), wp.dot(g1, sg1), wp.dot(g1, sg2),
+        wp.dot(g2, sg0), wp.dot(g2, sg1), wp.dot(g2, sg2),
+    )
+
+
+@wp.func
+def membrane_system(
+    x0: wp.vec3,
+    x1: wp.vec3,
+    x2: wp.vec3,
+    rest_inverse: wp.mat22,
+    area: float,
+    stiffness: wp.vec4,
+    damping: wp.vec4,
+    stiffness_scale: float,
+    damping_scale: float,
+):
+    """The pieces of an element's matrix a K + b D (a = `stiffness_scale`, b = `damping_scale`), with
+    K = A B^T C B + A G(S+) (x) I (Gauss-Newton plus the geometric stiffness of the positive part S+ of the
+    stress S = C e: positive semi-definite, and the exact Hessian wherever S >= 0) and D = A B^T C_d B:
+    returns B_0, B_1, B_2, the Voigt matrix A (a C + b C_d) and the corner matrix a A G(S+)."""
+    fw, ff = membrane_deformation(x0, x1, x2, rest_inverse)
+    g0, g1, g2 = membrane_corner_gradients(rest_inverse)
+    b0 = membrane_strain_jacobian(fw, ff, g0)
+    b1 = membrane_strain_jacobian(fw, ff, g1)
+    b2 = membrane_strain_jacobian(fw, ff, g2)
+    c = membrane_voigt(stiffness)
+    stress = positive_stress(c * membrane_strain(fw, ff))
+    voigt = area * (stiffness_scale * c + damping_scale * membrane_voigt(damping))
+    geometric = (stiffness_scale * area) * membrane_geometric_weights(g0, g1, g2, stress)
+    return b0, b1, b2, voigt, geometric
+
+
+@wp.func
+def membrane_product(b0: wp.mat33, b1: wp.mat33, b2: wp.mat33, voigt: wp.mat33, geometric: wp.mat33, p0: wp.vec3, p1: wp.vec3,
+                     p2: wp.vec3):
+    """y_k = B_k^T V (sum_l B_l p_l) + sum_l G_kl p_l: the element matrix of `membrane_system` times (p_0, p_1, p_2)."""
+    t = voigt * (b0 * p0 + b1 * p1 + b2 * p2)
+    y0 = wp.transpose(b0) * t + geometric[0, 0] * p0 + geometric[0, 1] * p1 + geometric[0, 2] * p2
+    y1 = wp.transpose(b1) * t + geometric[1, 0] * p0 + geometric[1, 1] * p1 + geometric[1, 2] * p2
+    y2 = wp.transpose(b2) * t + geometric[2, 0] * p0 + geometric[2, 1] * p1 + geometric[2, 2] * p2
+    return y0, y1, y2
+
+
 @wp.kernel
 def eval_spring_forces(
     # Model
@@ -240,6 +394,30 @@ def eval_bending_forces(
     wp.atomic_add(force_out, t[0], fa)
     wp.atomic_add(force_out, t[2], fb)
     wp.atomic_add(force_out, t[1], fm)
+
+
+@wp.kernel
+def eval_membrane_forces(
+    # Model
+    membrane_vertices: wp.array(dtype=wp.vec3i),
+    membrane_rest_inverse: wp.array(dtype=wp.mat22),
+    membrane_rest_area: wp.array(dtype=float),
+    membrane_stiffness: wp.array(dtype=wp.vec4),
+    membrane_damping: wp.array(dtype=wp.vec4),
+    # State
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    # outputs (zeroed by the caller)
+    force_out: wp.array(dtype=wp.vec3),
+):
+    """Triangle membrane elements: scatter f_k = -A B_k^T (C e + C_d de/dt) to the three corners."""
+    e = wp.tid()
+    c = membrane_vertices[e]
+    f0, f1, f2 = membrane_forces(x[c[0]], x[c[1]], x[c[2]], v[c[0]], v[c[1]], v[c[2]], membrane_rest_inverse[e],
+                                 membrane_rest_area[e], membrane_stiffness[e], membrane_damping[e])
+    wp.atomic_add(force_out, c[0], f0)
+    wp.atomic_add(force_out, c[1], f1)
+    wp.atomic_add(force_out, c[2], f2)
 
 
 @wp.kernel

@@ -12,7 +12,9 @@ system block is B_s = h D_s + h^2 K_s, so matrix-free
 
 with g_t = sqrt(c_A A_t) n_t and the corner weights w_tc of the drag (exact for linear drag), plus for
 each Choi-Ko bend triple (a, m, b) the quadratic-bending term h^2 g_r (g . (p_a, p_m, p_b)) with
-g = `bending_stiffness_weights` and g_r its entry for the particle's role.
+g = `bending_stiffness_weights` and g_r its entry for the particle's role; and for each triangle membrane
+element the 9x9 block h D_e + h^2 K_e applied matrix-free (`membrane_product`: K_e = A B^T C B + A G(S+) (x) I,
+Gauss-Newton plus the geometric stiffness of the positive part of the stress, so PSD; D_e = A B^T C_d B).
 Hard pins are constraints through the filter S_i = 0 (Baraff & Witkin's modified PCG, solved in its
 projected form): dv_i = z_i = (target_i - x0_i) / h - v0_i there.
 
@@ -26,6 +28,9 @@ import warp as wp
 from .forces import (
     bending_stiffness_weights,
     corner_weight,
+    membrane_product,
+    membrane_system,
+    membrane_voigt,
     spring_damping_block,
     spring_stiffness_block,
     total_force,
@@ -39,6 +44,11 @@ LENGTH_EPS = wp.constant(1.0e-9)
 CG_RS = wp.constant(0)
 CG_CAC = wp.constant(1)
 CG_RR = wp.constant(2)
+# A membrane element's diagonal blocks enter the block-diagonal preconditioner P^-1 this many times over.
+# Block Jacobi (dv <- dv + P (b - A dv)) converges when 2 P^-1 - A is positive definite: a spring's 6x6 block
+# satisfies it with weight 1, a 3-corner element only with 3/2 (a PSD matrix of 3x3 blocks is <= 3x its block
+# diagonal). With weight 1 Jacobi diverges on element cloth at any h^2 k / m above ~1; CG only needs P SPD.
+MEMBRANE_DIAGONAL_WEIGHT = wp.constant(1.5)
 
 
 @wp.kernel
@@ -128,6 +138,85 @@ def pinned_velocity_change(i: int, particle_pinned: wp.array(dtype=wp.int32), pi
 
 
 @wp.func
+def corner_value(i: int, c: wp.vec3i, y0: wp.vec3, y1: wp.vec3, y2: wp.vec3):
+    """The entry y_k of the corner k of element c that is particle i."""
+    if i == c[0]:
+        return y0
+    if i == c[1]:
+        return y1
+    return y2
+
+
+@wp.func
+def membrane_block_product(membrane_vertices: wp.array(dtype=wp.vec3i), membrane_block: wp.array2d(dtype=wp.mat33), e: int,
+                           p: wp.array(dtype=wp.vec3)):
+    """(h D_e + h^2 K_e) p on the three corners of element e, from the blocks stored by `eval_membrane_system_blocks`."""
+    c = membrane_vertices[e]
+    return membrane_product(membrane_block[e, 0], membrane_block[e, 1], membrane_block[e, 2], membrane_block[e, 3],
+                            membrane_block[e, 4], p[c[0]], p[c[1]], p[c[2]])
+
+
+@wp.func
+def membrane_diagonal(b: wp.mat33, voigt: wp.mat33, geometric: float):
+    """The corner's diagonal 3x3 block B_k^T V B_k + G_kk I of an element's matrix."""
+    return wp.transpose(b) * voigt * b + geometric * wp.identity(n=3, dtype=float)
+
+
+@wp.kernel
+def eval_membrane_system_blocks(
+    # Model
+    membrane_vertices: wp.array(dtype=wp.vec3i),
+    membrane_rest_inverse: wp.array(dtype=wp.mat22),
+    membrane_rest_area: wp.array(dtype=float),
+    membrane_stiffness: wp.array(dtype=wp.vec4),
+    membrane_damping: wp.array(dtype=wp.vec4),
+    particle_pinned: wp.array(dtype=wp.int32),
+    # State in
+    x0: wp.array(dtype=wp.vec3),
+    v0: wp.array(dtype=wp.vec3),
+    # Control
+    pin_target: wp.array(dtype=wp.vec3),
+    dt: float,
+    # outputs (the three per-particle ones accumulated: zeroed by the caller)
+    membrane_block_out: wp.array2d(dtype=wp.mat33),
+    membrane_kv_out: wp.array(dtype=wp.vec3),
+    membrane_diag_out: wp.array(dtype=wp.mat33),
+    membrane_az_out: wp.array(dtype=wp.vec3),
+):
+    """Per element the pieces of h D_e + h^2 K_e (B_0, B_1, B_2, A (h^2 C + h C_d), h^2 A G(S+)); scattered
+    per corner: K_e v0 (for b), the diagonal blocks x MEMBRANE_DIAGONAL_WEIGHT (preconditioner) and (h D_e + h^2 K_e) z (pinned corners)."""
+    e = wp.tid()
+    c = membrane_vertices[e]
+    a = c[0]
+    b = c[1]
+    d = c[2]
+    area = membrane_rest_area[e]
+    b0, b1, b2, voigt, geometric = membrane_system(x0[a], x0[b], x0[d], membrane_rest_inverse[e], area, membrane_stiffness[e],
+                                                   membrane_damping[e], dt * dt, dt)
+    membrane_block_out[e, 0] = b0
+    membrane_block_out[e, 1] = b1
+    membrane_block_out[e, 2] = b2
+    membrane_block_out[e, 3] = voigt
+    membrane_block_out[e, 4] = geometric
+    # K_e v0: the stiffness alone (A C and the geometric part without h^2)
+    k0, k1, k2 = membrane_product(b0, b1, b2, area * membrane_voigt(membrane_stiffness[e]), geometric * (1.0 / (dt * dt)),
+                                  v0[a], v0[b], v0[d])
+    wp.atomic_add(membrane_kv_out, a, k0)
+    wp.atomic_add(membrane_kv_out, b, k1)
+    wp.atomic_add(membrane_kv_out, d, k2)
+    wp.atomic_add(membrane_diag_out, a, MEMBRANE_DIAGONAL_WEIGHT * membrane_diagonal(b0, voigt, geometric[0, 0]))
+    wp.atomic_add(membrane_diag_out, b, MEMBRANE_DIAGONAL_WEIGHT * membrane_diagonal(b1, voigt, geometric[1, 1]))
+    wp.atomic_add(membrane_diag_out, d, MEMBRANE_DIAGONAL_WEIGHT * membrane_diagonal(b2, voigt, geometric[2, 2]))
+    za = pinned_velocity_change(a, particle_pinned, pin_target, x0, v0, dt)
+    zb = pinned_velocity_change(b, particle_pinned, pin_target, x0, v0, dt)
+    zd = pinned_velocity_change(d, particle_pinned, pin_target, x0, v0, dt)
+    y0, y1, y2 = membrane_product(b0, b1, b2, voigt, geometric, za, zb, zd)
+    wp.atomic_add(membrane_az_out, a, y0)
+    wp.atomic_add(membrane_az_out, b, y1)
+    wp.atomic_add(membrane_az_out, d, y2)
+
+
+@wp.func
 def system_product(
     i: int,
     spring_offsets: wp.array(dtype=wp.int32),
@@ -139,9 +228,13 @@ def system_product(
     tri_ids: wp.array(dtype=wp.int32),
     tri_indices: wp.array2d(dtype=wp.int32),
     tri_corner_weights: wp.array(dtype=wp.vec3),
+    membrane_offsets: wp.array(dtype=wp.int32),
+    membrane_ids: wp.array(dtype=wp.int32),
+    membrane_vertices: wp.array(dtype=wp.vec3i),
     system_block: wp.array(dtype=wp.mat33),
     bend_vector: wp.array(dtype=wp.vec3),
     drag_vector: wp.array(dtype=wp.vec3),
+    membrane_block: wp.array2d(dtype=wp.mat33),
     mass_eff: float,
     p: wp.array(dtype=wp.vec3),
     dt: float,
@@ -166,6 +259,10 @@ def system_product(
         g = drag_vector[t]
         p_mean = w[0] * p[a] + w[1] * p[b] + w[2] * p[tri_indices[t, 2]]
         q += dt * corner_weight(i, a, b, w) * wp.dot(g, p_mean) * g
+    for k in range(membrane_offsets[i], membrane_offsets[i + 1]):
+        e = membrane_ids[k]
+        y0, y1, y2 = membrane_block_product(membrane_vertices, membrane_block, e, p)
+        q += corner_value(i, membrane_vertices[e], y0, y1, y2)
     return q
 
 
@@ -190,6 +287,9 @@ def eval_implicit_system(
     system_block: wp.array(dtype=wp.mat33),
     bend_vector: wp.array(dtype=wp.vec3),
     drag_vector: wp.array(dtype=wp.vec3),
+    membrane_kv: wp.array(dtype=wp.vec3),
+    membrane_diag: wp.array(dtype=wp.mat33),
+    membrane_az: wp.array(dtype=wp.vec3),
     # State in
     x0: wp.array(dtype=wp.vec3),
     v0: wp.array(dtype=wp.vec3),
@@ -245,6 +345,10 @@ def eval_implicit_system(
         for c in range(3):
             z_mean += w[c] * pinned_velocity_change(tri_indices[t, c], particle_pinned, pin_target, x0, v0, dt)
         a_z += dt * wi * wp.dot(g, z_mean) * g
+    # membrane elements: scattered per particle by eval_membrane_system_blocks (zero without elements)
+    k_v += membrane_kv[i]
+    diag += membrane_diag[i]
+    a_z += membrane_az[i]
     b = dt * (f0 - dt * k_v)
     rhs_out[i] = b
     if particle_pinned[i] != 0:
@@ -273,11 +377,14 @@ def scatter_system_product(
     linear_spring_count: int,
     bend_triples: wp.array(dtype=wp.vec3i),
     bend_count: int,
+    membrane_vertices: wp.array(dtype=wp.vec3i),
+    membrane_count: int,
     tri_vertices: wp.array(dtype=wp.vec3i),
     tri_corner_weights: wp.array(dtype=wp.vec3),
     # per-step blocks
     system_block: wp.array(dtype=wp.mat33),
     bend_vector: wp.array(dtype=wp.vec3),
+    membrane_block: wp.array2d(dtype=wp.mat33),
     drag_vector: wp.array(dtype=wp.vec3),
     p: wp.array(dtype=wp.vec3),
     dt: float,
@@ -287,7 +394,7 @@ def scatter_system_product(
     """The element part of A p, one element per thread and scattered (each element's work done once, where
     the per-particle gather of `system_product` repeats a triple's or triangle's dot for every member):
     linear springs B_s (p_a - p_b) to a and its negative to b, then bend triples h^2 g_r (g . p_triple),
-    then triangles h w_r (g . p_mean) g."""
+    then membrane elements (h D_e + h^2 K_e) p, then triangles h w_r (g . p_mean) g."""
     e = wp.tid()
     if e < linear_spring_count:
         ends = spring_ends[e]
@@ -305,6 +412,14 @@ def scatter_system_product(
         wp.atomic_add(product_out, t[2], g[2] * d)
         return
     e -= bend_count
+    if e < membrane_count:
+        corners = membrane_vertices[e]
+        y0, y1, y2 = membrane_block_product(membrane_vertices, membrane_block, e, p)
+        wp.atomic_add(product_out, corners[0], y0)
+        wp.atomic_add(product_out, corners[1], y1)
+        wp.atomic_add(product_out, corners[2], y2)
+        return
+    e -= membrane_count
     c = tri_vertices[e]
     w = tri_corner_weights[e]
     g = drag_vector[e]
@@ -395,10 +510,14 @@ def jacobi_iterate(
     tri_ids: wp.array(dtype=wp.int32),
     tri_indices: wp.array2d(dtype=wp.int32),
     tri_corner_weights: wp.array(dtype=wp.vec3),
+    membrane_offsets: wp.array(dtype=wp.int32),
+    membrane_ids: wp.array(dtype=wp.int32),
+    membrane_vertices: wp.array(dtype=wp.vec3i),
     particle_pinned: wp.array(dtype=wp.int32),
     system_block: wp.array(dtype=wp.mat33),
     bend_vector: wp.array(dtype=wp.vec3),
     drag_vector: wp.array(dtype=wp.vec3),
+    membrane_block: wp.array2d(dtype=wp.mat33),
     precond: wp.array(dtype=wp.mat33),
     rhs: wp.array(dtype=wp.vec3),
     dv_in: wp.array(dtype=wp.vec3),
@@ -406,7 +525,8 @@ def jacobi_iterate(
     # outputs
     dv_out: wp.array(dtype=wp.vec3),
 ):
-    """Block Jacobi: dv_i <- A_ii^-1 (b_i - sum_{j != i} A_ij dv_j); pinned rows keep z_i."""
+    """Block Jacobi: dv_i <- P_i (b_i - sum_{j != i} A_ij dv_j + E_i dv_i), P_i^-1 = A_ii + E_i (E_i: the membrane
+    elements' extra diagonal weight); pinned rows keep z_i."""
     i = wp.tid()
     if particle_pinned[i] != 0:
         dv_out[i] = dv_in[i]
@@ -432,6 +552,18 @@ def jacobi_iterate(
         wi = corner_weight(i, a, b, w)
         others = w[0] * dv_in[a] + w[1] * dv_in[b] + w[2] * dv_in[tri_indices[t, 2]] - wi * di
         acc -= dt * wi * wp.dot(g, others) * g
+    for k in range(membrane_offsets[i], membrane_offsets[i + 1]):
+        e = membrane_ids[k]
+        c = membrane_vertices[e]
+        y0, y1, y2 = membrane_block_product(membrane_vertices, membrane_block, e, dv_in)
+        # dv + P (b - A dv) with P^-1 holding the element's diagonal block x MEMBRANE_DIAGONAL_WEIGHT:
+        # subtract y_k - weight A_kk dv_i
+        if i == c[0]:
+            acc -= y0 - MEMBRANE_DIAGONAL_WEIGHT * (membrane_diagonal(membrane_block[e, 0], membrane_block[e, 3], membrane_block[e, 4][0, 0]) * di)
+        elif i == c[1]:
+            acc -= y1 - MEMBRANE_DIAGONAL_WEIGHT * (membrane_diagonal(membrane_block[e, 1], membrane_block[e, 3], membrane_block[e, 4][1, 1]) * di)
+        else:
+            acc -= y2 - MEMBRANE_DIAGONAL_WEIGHT * (membrane_diagonal(membrane_block[e, 2], membrane_block[e, 3], membrane_block[e, 4][2, 2]) * di)
     dv_out[i] = precond[i] * acc
 
 
@@ -447,12 +579,16 @@ def eval_system_residual(
     tri_ids: wp.array(dtype=wp.int32),
     tri_indices: wp.array2d(dtype=wp.int32),
     tri_corner_weights: wp.array(dtype=wp.vec3),
+    membrane_offsets: wp.array(dtype=wp.int32),
+    membrane_ids: wp.array(dtype=wp.int32),
+    membrane_vertices: wp.array(dtype=wp.vec3i),
     particle_mass: wp.array(dtype=float),
     particle_pin_stiffness: wp.array(dtype=float),
     particle_pinned: wp.array(dtype=wp.int32),
     system_block: wp.array(dtype=wp.mat33),
     bend_vector: wp.array(dtype=wp.vec3),
     drag_vector: wp.array(dtype=wp.vec3),
+    membrane_block: wp.array2d(dtype=wp.mat33),
     rhs: wp.array(dtype=wp.vec3),
     dv: wp.array(dtype=wp.vec3),
     global_damping: float,
@@ -466,7 +602,7 @@ def eval_system_residual(
     if particle_pinned[i] != 0:
         return
     m_eff = effective_mass(i, particle_mass, particle_pin_stiffness, global_damping, dt)
-    r = rhs[i] - system_product(i, spring_offsets, spring_ids, spring_role, spring_indices, spring_middle, tri_offsets, tri_ids, tri_indices, tri_corner_weights, system_block, bend_vector, drag_vector, m_eff, dv, dt)
+    r = rhs[i] - system_product(i, spring_offsets, spring_ids, spring_role, spring_indices, spring_middle, tri_offsets, tri_ids, tri_indices, tri_corner_weights, membrane_offsets, membrane_ids, membrane_vertices, system_block, bend_vector, drag_vector, membrane_block, m_eff, dv, dt)
     wp.atomic_add(cg_scalars_out, slot, CG_RR, wp.float64(wp.dot(r, r)))
 
 
@@ -506,12 +642,16 @@ def cg_warm_start(
     tri_ids: wp.array(dtype=wp.int32),
     tri_indices: wp.array2d(dtype=wp.int32),
     tri_corner_weights: wp.array(dtype=wp.vec3),
+    membrane_offsets: wp.array(dtype=wp.int32),
+    membrane_ids: wp.array(dtype=wp.int32),
+    membrane_vertices: wp.array(dtype=wp.vec3i),
     particle_mass: wp.array(dtype=float),
     particle_pin_stiffness: wp.array(dtype=float),
     particle_pinned: wp.array(dtype=wp.int32),
     system_block: wp.array(dtype=wp.mat33),
     bend_vector: wp.array(dtype=wp.vec3),
     drag_vector: wp.array(dtype=wp.vec3),
+    membrane_block: wp.array2d(dtype=wp.mat33),
     precond: wp.array(dtype=wp.mat33),
     rhs: wp.array(dtype=wp.vec3),
     guess: wp.array(dtype=wp.vec3),
@@ -534,7 +674,7 @@ def cg_warm_start(
         search_out[i] = wp.vec3(0.0)
         return
     m_eff = effective_mass(i, particle_mass, particle_pin_stiffness, global_damping, dt)
-    r = rhs[i] - system_product(i, spring_offsets, spring_ids, spring_role, spring_indices, spring_middle, tri_offsets, tri_ids, tri_indices, tri_corner_weights, system_block, bend_vector, drag_vector, m_eff, guess, dt)
+    r = rhs[i] - system_product(i, spring_offsets, spring_ids, spring_role, spring_indices, spring_middle, tri_offsets, tri_ids, tri_indices, tri_corner_weights, membrane_offsets, membrane_ids, membrane_vertices, system_block, bend_vector, drag_vector, membrane_block, m_eff, guess, dt)
     s = precond[i] * r
     residual_out[i] = r
     preconditioned_out[i] = s
@@ -651,6 +791,38 @@ def eval_residual_springs(
         add_free(particle_pinned, a, -g[0] * t, residual_out)
         add_free(particle_pinned, m, -g[1] * t, residual_out)
         add_free(particle_pinned, b, -g[2] * t, residual_out)
+
+
+@wp.kernel
+def eval_residual_membrane(
+    membrane_vertices: wp.array(dtype=wp.vec3i),
+    membrane_rest_inverse: wp.array(dtype=wp.mat22),
+    membrane_rest_area: wp.array(dtype=float),
+    membrane_stiffness: wp.array(dtype=wp.vec4),
+    membrane_damping: wp.array(dtype=wp.vec4),
+    particle_pinned: wp.array(dtype=wp.int32),
+    x0: wp.array(dtype=wp.vec3),
+    v0: wp.array(dtype=wp.vec3),
+    dv: wp.array(dtype=wp.vec3),
+    dt: float,
+    # outputs (accumulated)
+    residual_out: wp.array(dtype=wp.vec3),
+):
+    """Membrane-element part of r: -h^2 K_e (v0 + dv) - h D_e dv, the element recomputed from x0."""
+    e = wp.tid()
+    c = membrane_vertices[e]
+    a = c[0]
+    b = c[1]
+    d = c[2]
+    area = membrane_rest_area[e]
+    b0, b1, b2, voigt_k, geometric = membrane_system(x0[a], x0[b], x0[d], membrane_rest_inverse[e], area, membrane_stiffness[e],
+                                                     membrane_damping[e], dt * dt, 0.0)
+    k0, k1, k2 = membrane_product(b0, b1, b2, voigt_k, geometric, v0[a] + dv[a], v0[b] + dv[b], v0[d] + dv[d])
+    voigt_d = (dt * area) * membrane_voigt(membrane_damping[e])
+    d0, d1, d2 = membrane_product(b0, b1, b2, voigt_d, wp.mat33(0.0), dv[a], dv[b], dv[d])
+    add_free(particle_pinned, a, -(k0 + d0), residual_out)
+    add_free(particle_pinned, b, -(k1 + d1), residual_out)
+    add_free(particle_pinned, d, -(k2 + d2), residual_out)
 
 
 @wp.kernel

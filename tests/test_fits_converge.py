@@ -293,6 +293,8 @@ def test_model_arrays_are_linear_in_each_fitted_material_value(spring_model):
         models = [build_model(with_values(scene, {f"material.{name}": s * value}), "cpu", requires_grad=True) for s in (1, 2, 3)]
         builds = [{k: a.numpy().astype(np.float64) for k, a in model_grad_arrays(m).items()} for m in models]
         for array in builds[0]:
+            if builds[0][array].size == 0:  # the membrane elements of a cloth built without them
+                continue
             first = builds[1][array] - builds[0][array]
             second = builds[2][array] - 2.0 * builds[1][array] + builds[0][array]
             assert np.abs(second).max() <= 1e-5 * max(np.abs(first).max(), 1e-30), (name, array)

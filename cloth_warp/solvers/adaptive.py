@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..elasticity import membrane_element_energy, membrane_element_row_bound
 from ..diagnostics import Diagnostics, StepStats
 from ..model import Control, State
 from .base import SolverBase
@@ -243,8 +244,9 @@ def forced_strain(model, samples: int = 16, max_particles: int = 128, max_times:
 
 def stable_dt(model, solver) -> float | None:
     """The explicit integrators' stability step [s]: h omega_max < c (c = 2 for Euler and midpoint, 2.83 for
-    RK4) with omega_max^2 <= max_i 2 sum_j k_ij / m_i + k_pin,i / m_i (Gershgorin over linear springs and soft
-    pins; bending triples are left out). None for implicit solvers."""
+    RK4) with omega_max^2 <= max_i (2 sum_j k_ij + sum_e sum_l |K_e,il| + k_pin,i) / m_i (Gershgorin over linear
+    springs, membrane elements' 3x3 blocks at rest and soft pins; bending triples are left out). None for
+    implicit solvers."""
     c = getattr(solver, "stability", None)
     if c is None or model.particle_count == 0:
         return None
@@ -254,10 +256,14 @@ def stable_dt(model, solver) -> float | None:
     k = model.spring_stiffness.numpy()[:nl].astype(np.float64)
     ksum = np.bincount(ends[:, 0], k, minlength=n) + np.bincount(ends[:, 1], k, minlength=n)
     mass = model.particle_mass.numpy().astype(np.float64)
+    extra = np.zeros(n)
+    if model.membrane_count:
+        extra = membrane_element_row_bound(model.membrane_vertices.numpy().reshape(-1, 3), model.membrane_rest_inverse.numpy(),
+                                           model.membrane_rest_area.numpy(), model.membrane_stiffness.numpy(), n)
     free = (model.particle_pinned.numpy() == 0) & (mass > 0.0)
     if not free.any():
         return None
-    w2 = (2.0 * ksum[free] + model.particle_pin_stiffness.numpy()[free]) / mass[free]
+    w2 = (2.0 * ksum[free] + extra[free] + model.particle_pin_stiffness.numpy()[free]) / mass[free]
     w = math.sqrt(float(w2.max())) if w2.max() > 0.0 else 0.0
     return c / w if w > 0.0 else None
 
@@ -313,6 +319,10 @@ class DivergenceBounds:
         length = np.linalg.norm(x0[ends[:, 0]] - x0[ends[:, 1]], axis=1) if len(ends) else np.zeros(0)
         k = model.spring_stiffness.numpy().astype(np.float64)
         self.spring_energy0 = 0.5 * float((k[:nl] * (length[:nl] - rest[:nl]) ** 2).sum())
+        if model.membrane_count:  # the elastic energy of membrane elements counts as spring energy here
+            self.spring_energy0 += float(membrane_element_energy(x0, model.membrane_vertices.numpy().reshape(-1, 3),
+                                                                 model.membrane_rest_inverse.numpy(), model.membrane_rest_area.numpy(),
+                                                                 model.membrane_stiffness.numpy()).sum())
         limited = model.spring_limited.numpy() != 0
         self.initial_strain = float((length[limited] / rest[limited] - 1.0).max()) if limited.any() else 0.0
         self.forced_strain = forced_strain(model)

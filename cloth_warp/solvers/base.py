@@ -96,7 +96,8 @@ class SolverBase:
         return buf
 
     def element_forces(self, x: wp.array, v: wp.array, control: Control, key: str = "") -> wp.array:
-        """Scatter every spring's, bend triple's and triangle's force into a per-particle array [N]."""
+        """Scatter every spring's, bend triple's, membrane element's and triangle's (drag) force into a per-particle
+        array [N]. Every integrator reads its forces here."""
         m = self.model
         force = self.scratch("element_force" + key, wp.vec3, x.requires_grad)
         force.zero_()
@@ -109,6 +110,10 @@ class SolverBase:
             wp.launch(kf.eval_bending_forces, dim=m.spring_count - m.linear_spring_count,
                       inputs=[m.bend_triples, m.spring_stiffness, m.linear_spring_count, x],
                       outputs=[force], device=dev)
+        if m.membrane_count:
+            wp.launch(kf.eval_membrane_forces, dim=m.membrane_count,
+                      inputs=[m.membrane_vertices, m.membrane_rest_inverse, m.membrane_rest_area, m.membrane_stiffness,
+                              m.membrane_damping, x, v], outputs=[force], device=dev)
         if m.tri_count:
             wp.launch(kf.eval_drag_forces, dim=m.tri_count,
                       inputs=[m.tri_vertices, m.tri_drag, m.tri_corner_weights, x, v, control.wind], outputs=[force], device=dev)

@@ -1,11 +1,12 @@
 """Explicit integrators: forward Euler, symplectic Euler, explicit midpoint and classical RK4.
 
-All evaluate the same forces (`cloth_warp.kernels.forces.particle_force`): springs (linear and
-Choi-Ko buckling), gravity, air drag with wind, soft pins and global damping. Hard-pinned particles
+All evaluate the same forces (`SolverBase.element_forces`): springs (linear and Choi-Ko buckling),
+triangle membrane elements, gravity, air drag with wind, soft pins and global damping. Hard-pinned particles
 move in a straight line onto Control.pin_target during the step.
 
 Stability (physics.md 1(h)): explicit and symplectic Euler and midpoint need h omega_max < 2, RK4
-h omega_max < 2.83, with omega_max^2 <= max_i 2 sum_j k_ij / m_i. Differentiable under wp.Tape
+h omega_max < 2.83, with omega_max^2 <= max_i (2 sum_j k_ij + sum of the membrane elements' block norms) / m_i
+(`cloth_warp.solvers.adaptive.stable_dt`). Differentiable under wp.Tape
 (taped rollouts keep one State per step).
 """
 

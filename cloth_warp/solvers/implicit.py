@@ -32,7 +32,9 @@ class SolverImplicitEuler(SolverBase):
     Solves ``(M + h D + h^2 K) dv = h (f0 - h K v0)``, then ``v1 = v0 + dv``, ``x1 = x0 + h v1``
     (notation in :mod:`cloth_warp.kernels.implicit`). K = -df/dx keeps springs positive semi-definite:
     linear springs drop their transverse term under compression, buckling springs keep only the
-    longitudinal term (physics.md 3(b), 3(d)); so A is SPD and CG applies. Hard pins enter as
+    longitudinal term (physics.md 3(b), 3(d)); triangle membrane elements use Gauss-Newton plus the
+    geometric stiffness of the positive part of their stress (physics.md E: the exact Hessian wherever the
+    element is in tension both ways, PSD always); so A is SPD and CG applies. Hard pins enter as
     constraints through the filter (velocity change prescribed, no Lagrange multipliers).
 
     Per step the solver reports `last_iterations`, `last_residual` (the relative residual
@@ -119,6 +121,12 @@ class SolverImplicitEuler(SolverBase):
         self.system_block = wp.zeros(s, dtype=wp.mat33, device=dev)
         self.bend_vector = wp.zeros(s, dtype=wp.vec3, device=dev)
         self.drag_vector = wp.zeros(t, dtype=wp.vec3, device=dev)
+        # membrane elements: per element B_0, B_1, B_2, the Voigt matrix A (h^2 C + h C_d), the corner matrix of the
+        # geometric stiffness; per particle K_e v0, the diagonal blocks and (h D_e + h^2 K_e) z (zero without elements)
+        self.membrane_block = wp.zeros((max(model.membrane_count, 1), 5), dtype=wp.mat33, device=dev)
+        self.membrane_kv = wp.zeros(n, dtype=wp.vec3, device=dev)
+        self.membrane_diag = wp.zeros(n, dtype=wp.mat33, device=dev)
+        self.membrane_az = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.rhs = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.precond = wp.zeros(n, dtype=wp.mat33, device=dev)
         self.dv = wp.zeros(n, dtype=wp.vec3, device=dev)
@@ -158,13 +166,26 @@ class SolverImplicitEuler(SolverBase):
                 outputs=[self.drag_vector],
                 device=dev,
             )
+        if m.membrane_count:
+            self.membrane_kv.zero_()
+            self.membrane_diag.zero_()
+            self.membrane_az.zero_()
+            wp.launch(
+                ki.eval_membrane_system_blocks,
+                dim=m.membrane_count,
+                inputs=[m.membrane_vertices, m.membrane_rest_inverse, m.membrane_rest_area, m.membrane_stiffness, m.membrane_damping,
+                        m.particle_pinned, state_in.particle_q, state_in.particle_qd, control.pin_target, dt],
+                outputs=[self.membrane_block, self.membrane_kv, self.membrane_diag, self.membrane_az],
+                device=dev,
+            )
         self.cg_scalars.zero_()
         force = self.element_forces(state_in.particle_q, state_in.particle_qd, control)
         wp.launch(
             ki.eval_implicit_system,
             dim=m.particle_count,
-            inputs=[*self._product_args(), m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, force, self.stiffness_block,
-                    self.system_block, self.bend_vector, self.drag_vector, state_in.particle_q, state_in.particle_qd,
+            inputs=[*self._product_args()[:9], m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, force, self.stiffness_block,
+                    self.system_block, self.bend_vector, self.drag_vector, self.membrane_kv, self.membrane_diag, self.membrane_az,
+                    state_in.particle_q, state_in.particle_qd,
                     control.pin_target, wp.vec3(*m.gravity), m.global_damping, dt],
             outputs=[self.rhs, self.precond, self.dv, self.residual, self.preconditioned, self.search, self.cg_scalars],
             device=dev,
@@ -173,7 +194,8 @@ class SolverImplicitEuler(SolverBase):
     def _product_args(self):
         m = self.model
         return [m.particle_spring_offsets, m.particle_spring_ids, m.particle_spring_role, m.spring_indices, m.spring_middle,
-                m.particle_tri_offsets, m.particle_tri_ids, m.tri_indices, m.tri_corner_weights]
+                m.particle_tri_offsets, m.particle_tri_ids, m.tri_indices, m.tri_corner_weights, m.particle_membrane_offsets,
+                m.particle_membrane_ids, m.membrane_vertices]
 
     def solve_cg(self, dt: float, warm: bool = False) -> wp.array:
         """Filtered PCG on the assembled system (`warm`: started from the previous step's dv); returns the
@@ -187,14 +209,15 @@ class SolverImplicitEuler(SolverBase):
         stop = self._stop_residual(rel, warm)
         if rr0 > 1e-300 and rel > stop:
             bends = m.spring_count - m.linear_spring_count
-            elements = m.linear_spring_count + bends + m.tri_count
+            elements = m.linear_spring_count + bends + m.membrane_count + m.tri_count
             for k in range(self.max_iterations):
                 self.product.zero_()
                 wp.launch(
                     ki.scatter_system_product,
                     dim=elements,
-                    inputs=[m.spring_ends, m.linear_spring_count, m.bend_triples, bends, m.tri_vertices, m.tri_corner_weights,
-                            self.system_block, self.bend_vector, self.drag_vector, self.search, dt],
+                    inputs=[m.spring_ends, m.linear_spring_count, m.bend_triples, bends, m.membrane_vertices, m.membrane_count,
+                            m.tri_vertices, m.tri_corner_weights, self.system_block, self.bend_vector, self.membrane_block,
+                            self.drag_vector, self.search, dt],
                     outputs=[self.product],
                     device=dev,
                 )
@@ -237,7 +260,8 @@ class SolverImplicitEuler(SolverBase):
                 wp.launch(
                     ki.jacobi_iterate,
                     dim=m.particle_count,
-                    inputs=[*common, m.particle_pinned, self.system_block, self.bend_vector, self.drag_vector, self.precond, self.rhs, src, dt],
+                    inputs=[*common, m.particle_pinned, self.system_block, self.bend_vector, self.drag_vector, self.membrane_block,
+                            self.precond, self.rhs, src, dt],
                     outputs=[dst],
                     device=dev,
                 )
@@ -250,7 +274,7 @@ class SolverImplicitEuler(SolverBase):
                         ki.eval_system_residual,
                         dim=m.particle_count,
                         inputs=[*common, m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, self.system_block,
-                                self.bend_vector, self.drag_vector, self.rhs, src, m.global_damping, dt, slot],
+                                self.bend_vector, self.drag_vector, self.membrane_block, self.rhs, src, m.global_damping, dt, slot],
                         outputs=[self.cg_scalars],
                         device=dev,
                     )
@@ -334,7 +358,7 @@ class SolverImplicitEuler(SolverBase):
             ki.cg_warm_start,
             dim=m.particle_count,
             inputs=[*self._product_args(), m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, self.system_block,
-                    self.bend_vector, self.drag_vector, self.precond, self.rhs, self.dv_alt, m.global_damping, dt],
+                    self.bend_vector, self.drag_vector, self.membrane_block, self.precond, self.rhs, self.dv_alt, m.global_damping, dt],
             outputs=[self.dv, self.residual, self.preconditioned, self.search, self.cg_scalars],
             device=m.device,
         )
@@ -367,6 +391,10 @@ class SolverImplicitEuler(SolverBase):
         if m.spring_count:
             wp.launch(ki.eval_residual_springs, dim=m.spring_count,
                       inputs=[m.spring_indices, m.spring_rest_length, m.spring_stiffness, m.spring_damping, m.spring_middle,
+                              m.particle_pinned, x0, v0, dv, dt], outputs=[r], device=dev)
+        if m.membrane_count:
+            wp.launch(ki.eval_residual_membrane, dim=m.membrane_count,
+                      inputs=[m.membrane_vertices, m.membrane_rest_inverse, m.membrane_rest_area, m.membrane_stiffness, m.membrane_damping,
                               m.particle_pinned, x0, v0, dv, dt], outputs=[r], device=dev)
         if m.tri_count:
             wp.launch(ki.eval_residual_drag, dim=m.tri_count,
