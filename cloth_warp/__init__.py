@@ -22,6 +22,7 @@ import logging as _logging
 # wait for Warp, USD and every module to load.
 _EXPORTS = {
     "builder": ["ClothRef", "ModelBuilder", "load_mesh_file", "quat_from_axis_angle"],
+    "calibrate": ["CalibrationResult", "FabricMeasurements"],
     "cache": ["CacheError", "CacheReader", "UsdCacheWriter", "open_cache"],
     "diagnostics": ["Diagnostics", "StepStats", "StrainLimitReport"],
     "gradients": ["CentroidLoss", "ChamferLoss", "ChordAngleLoss", "Loss", "PositionLoss", "Rollout"],
@@ -33,7 +34,7 @@ _EXPORTS = {
     "simulator": ["Simulator"],
     "solvers": ["AdaptiveStepper", "LinearSolver", "SimulationDiverged", "SolverExplicitEuler", "SolverImplicitEuler",
                 "SolverMidpoint", "SolverRK4", "SolverSymplecticEuler", "StepCheck", "StrainLimitWarning", "StrainLimiter", "make_solver"],
-    "topology": ["MeshError", "SpringKind", "SpringLaw", "SpringModel"],
+    "topology": ["MembraneModel", "MeshError", "SpringKind", "SpringLaw", "SpringModel"],
     "validation": ["InvalidValue", "LIMITS"],
     "wind": ["GustyWind"],
 }

@@ -9,6 +9,9 @@
     cloth-warp fit SCENE [--target CACHE] [--param KEY[=LO:HI] ...] [--loss positions|final|chamfer]
                          [--iters N] [--lr X] [--frames N] [-o FITTED.toml] [--set ...] [--quiet]
                                                 (target and params default to the scene's [fit] table)
+    cloth-warp calibrate MEASUREMENTS.toml -o FABRIC.toml [--iters N] [--no-drape] [--device D] [--quiet]
+                                                fit a material to fabric measurements (report: FABRIC.json;
+                                                a simulated test that is not finite exits 3)
 
 Exit codes: 0 done, 2 bad input (scene key, mesh, unreadable file, unwritable output, another live run on the
 same output, a failed save: the cache keeps the last good save), 3 diverged (the cache keeps every good
@@ -360,6 +363,61 @@ def cmd_fit(args) -> int:
     return EXIT_INTERRUPTED if result.status == "interrupted" else EXIT_OK
 
 
+class CalibrateProgress(Progress):
+    """One line per calibration iteration: the block, and each measurement's relative error."""
+
+    def __call__(self, block: str, iteration: int, total: int, errors: dict):
+        if self.quiet:
+            return
+        shown = "  ".join(f"{k} {100 * e:+.2f} %" for k, e in errors.items())
+        self.stream.write(f"cloth-warp calibrate: {block} {iteration}/{total}  {shown}  "
+                          f"({_fmt_time(time.monotonic() - self.start)})\n")
+        self.stream.flush()
+
+
+def format_calibration(result, paths: dict) -> str:
+    """The end-of-calibration summary: the material, then each measurement against its simulated test."""
+    m = result.material
+    lines = [f"{result.status}: {result.iterations} iterations (simulations with gradient) in {result.wall_s:.1f} s",
+             f"  material    {m.name}: areal density {m.areal_density:g} kg/m^2, stretch {m.stretch_stiffness:.5g} / "
+             f"{m.stretch_weft:.5g} N/m (warp / weft), shear {m.shear_stiffness:.5g} N/m, bend {m.bend_stiffness:.5g} / "
+             f"{m.bend_weft:.5g} N m",
+             f"  {'measurement':<22} {'target':>12} {'simulated':>12} {'error':>9}  unit"]
+    for r in result.measurements:
+        note = "" if r.parameter else "  (reported, not fitted)"
+        lines.append(f"  {r.key:<22} {r.target:>12.5g} {r.simulated:>12.5g} {100 * r.relative_error:>+8.3f} %  {r.unit or '-'}{note}")
+    tol = result.solver_tolerance
+    if tol is not None and tol.tolerance is not None:
+        lines.append(f"  solver tolerance {tol.tolerance:g} ({tol.reason})")
+    lines.extend(f"  note        {n}" for n in result.notes)
+    lines.append(f"  material    {paths['material']}")
+    lines.append(f"  report      {paths['report']}")
+    return "\n".join(lines)
+
+
+def cmd_calibrate(args) -> int:
+    from .calibrate import calibrate, read_measurements, write_calibration
+
+    if args.iters is not None and args.iters < 1:
+        raise BadInput(f"--iters must be >= 1, got {args.iters}")
+    measurements = read_measurements(args.measurements)
+    progress = CalibrateProgress(quiet=args.quiet)
+    if not args.quiet:
+        print(f"cloth-warp calibrate: {args.measurements}: fitting stretch and bending by simulated tests"
+              + (" (then the Cusick drape, reported)" if measurements.drape is not None and not args.no_drape else ""),
+              file=sys.stderr)
+    options = {} if args.iters is None else {"iterations": args.iters}
+    try:
+        result = calibrate(measurements, drape=not args.no_drape, device=args.device, progress=progress, **options)
+    except FloatingPointError as exc:
+        print(f"cloth-warp: error: {exc}; nothing written", file=sys.stderr)
+        return EXIT_DIVERGED
+    paths = write_calibration(result, args.output)
+    if not args.quiet:
+        print(format_calibration(result, paths))
+    return EXIT_OK
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="cloth-warp", description="Differentiable cloth simulation in NVIDIA Warp.",
                                      epilog="Exit codes: 0 done, 2 bad input, 3 diverged, 130 interrupted.")
@@ -425,6 +483,21 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--set", action="append", metavar="KEY.PATH=VALUE", help="override a scene key before fitting; repeatable")
     fit.add_argument("-q", "--quiet", action="store_true", help="no progress and no summary")
     fit.set_defaults(func=cmd_fit)
+
+    from .calibrate import ITERATIONS
+
+    cal = sub.add_parser("calibrate", help="fit a fabric material to standard measurements (D1388 bending, strip tensile)",
+                         description="Fit a material so that simulated ASTM D1388 cantilevers and strip tensile tests give the "
+                                     "measured values (adjoint gradients, Gauss-Newton); writes a [material] table a scene "
+                                     "loads with [material] file = \"FABRIC.toml\", and FABRIC.json beside it.")
+    cal.add_argument("measurements", help="measurements file (.toml; see scenes/measurements/denim.toml)")
+    cal.add_argument("-o", "--output", required=True, help="material file to write (.toml); the JSON report goes beside it")
+    cal.add_argument("--iters", type=int, help="most Gauss-Newton iterations per block (tension, bending; "
+                     f"default {ITERATIONS})")
+    cal.add_argument("--no-drape", action="store_true", help="skip the Cusick drape run even if the file gives a drape coefficient")
+    cal.add_argument("--device", help="Warp device: cpu, cuda, cuda:0 (default: Warp's)")
+    cal.add_argument("-q", "--quiet", action="store_true", help="no progress and no summary")
+    cal.set_defaults(func=cmd_calibrate)
     return parser
 
 

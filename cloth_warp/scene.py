@@ -130,6 +130,9 @@ SCHEMA: dict = {
                           "increasing texture u for meshes with UVs (given, it overrides the UVs)", L["angle"]),
     },
     "material": {
+        "file": Key("path", None, "a material file: TOML holding one [material] table of the keys below (what `cloth-warp "
+                    "calibrate` writes), relative to the scene file; merged into this table when the scene loads, the keys "
+                    "given here overriding the file's"),
         "preset": Key("str", "cotton", "fabric preset; the keys below override its values", allowed=PRESETS),
         "areal_density": Key("float", None, "mass per area (default: the preset's)", L["areal_density"]),
         "stretch_stiffness": Key("float", None, "stretch stiffness E h along the warp (default: the preset's)",
@@ -422,6 +425,7 @@ def parse_scene(text: str, path=None, overrides: dict | None = None) -> Scene:
         _set_key(data, key, copy.deepcopy(value))
     scene = Scene(data, pathlib.Path(path) if path else None, dict(overrides or {}), text)
     _check(data, SCHEMA, "")
+    _merge_material_file(scene)
     try:
         _check_values(scene)
     except InvalidValue as exc:
@@ -449,6 +453,42 @@ def read_scene_text(path) -> str:
         column = exc.start - (data.rfind(b"\n", 0, exc.start) + 1) + 1
         raise SceneError(f"{path}: not UTF-8 text (TOML files are UTF-8): byte 0x{data[exc.start]:02x} at offset {exc.start} "
                          f"(line {line}, column {column}) {exc.reason}; save the file as UTF-8") from None
+
+
+def read_material_file(path, where: str = "material.file") -> dict:
+    """The [material] table of a material file (TOML with that one table; its keys those of a scene's [material] but
+    ``file``), checked by the scene's gate; a SceneError names `where`, the file and the key."""
+    path = pathlib.Path(path)
+    if path.is_dir():
+        raise SceneError(f"{where}: {path} is a directory, not a material file")
+    if not path.is_file():
+        raise SceneError(f"{where}: file not found: {path} (paths are relative to the scene file)")
+    try:
+        data = tomllib.loads(read_scene_text(path))
+    except SceneError as exc:
+        raise SceneError(f"{where}: {exc}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise SceneError(f"{where}: {path}: TOML syntax error: {exc}") from None
+    other = [k for k in data if k != "material"]
+    if other or not isinstance(data.get("material"), dict):
+        raise SceneError(f"{where}: {path}: a material file holds one [material] table"
+                         + (f"; unknown key {other[0]!r}" if other else ", found none"))
+    if "file" in data["material"]:
+        raise SceneError(f"{where}: {path}: material.file: a material file cannot name another")
+    try:
+        _check(data["material"], SCHEMA["material"], "material")
+    except SceneError as exc:
+        raise SceneError(f"{where}: {path}: {exc}") from None
+    return data["material"]
+
+
+def _merge_material_file(scene: Scene):
+    """Replace ``material.file`` by the file's values, under the keys the scene's [material] table gives."""
+    table = scene.data.get("material", {})
+    if "file" not in table:
+        return
+    values = read_material_file(scene.resolve(table["file"]))
+    scene.data["material"] = {**values, **{k: v for k, v in table.items() if k != "file"}}
 
 
 def _check_values(scene: Scene):
