@@ -10,7 +10,7 @@ import cloth_warp as cw
 from analytic import elastic_catenary_sag, elastica_deflection
 from cloth_warp import topology as topo
 from cloth_warp.builder import spring_constants
-from cloth_warp.elasticity import Orthotropic, membrane_tensor, nnls, plate_tensor
+from cloth_warp.elasticity import Orthotropic, membrane_tensor, nnls
 from conftest import run_steps
 from meshes import KINDS, strip_mesh
 

@@ -6,7 +6,6 @@ import math
 
 import numpy as np
 import pytest
-import warp as wp
 
 import cloth_warp as cw
 from cloth_warp import topology as topo
