@@ -114,7 +114,11 @@ def bending_stiffness_weights(xa: wp.vec3, xm: wp.vec3, xb: wp.vec3, bend_stiffn
         return wp.vec3(0.0)
     arc = a1 + a2
     fb = buckling_force(wp.min(chord, arc * 0.999999), arc, bend_stiffness)
-    root = wp.sqrt(fb * a1 * a2 / arc)
+    square = fb * a1 * a2 / arc
+    if square <= 0.0:
+        # a triple the fit left at zero stiffness: no square root, whose derivative at 0 is infinite (NaN adjoint)
+        return wp.vec3(0.0)
+    root = wp.sqrt(square)
     return root * wp.vec3(1.0 / a1, -(1.0 / a1 + 1.0 / a2), 1.0 / a2)
 
 

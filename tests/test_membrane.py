@@ -318,8 +318,7 @@ def _position_loss_check(model, solver, dt, steps, field, rng, largest_step=0.1)
     return norm, (4 * fine - coarse) / 3
 
 
-@pytest.mark.parametrize("solver_name", ["symplectic", pytest.param("implicit_cg", marks=pytest.mark.xfail(
-    reason="open: the implicit adjoint's derivative differs from FD by ~40 % (stiffness) and in sign (damping)", strict=True))])
+@pytest.mark.parametrize("solver_name", ["symplectic", "implicit_cg"])
 @pytest.mark.parametrize("field", ["membrane_stiffness", "membrane_damping"])
 def test_element_gradients_match_finite_differences(solver_name, field):
     """Check d loss / d (element stiffness, damping) by wp.Tape (explicit) and by the implicit adjoint within 1e-2 of FD.
