@@ -34,7 +34,7 @@ _EXPORTS = {
     "simulator": ["Simulator"],
     "solvers": ["AdaptiveStepper", "LinearSolver", "SimulationDiverged", "SolverExplicitEuler", "SolverImplicitEuler",
                 "SolverMidpoint", "SolverRK4", "SolverSymplecticEuler", "StepCheck", "StrainLimitWarning", "StrainLimiter", "make_solver"],
-    "topology": ["MembraneModel", "MeshError", "SpringKind", "SpringLaw", "SpringModel"],
+    "topology": ["BendingModel", "MembraneModel", "MeshError", "SpringKind", "SpringLaw", "SpringModel"],
     "validation": ["InvalidValue", "LIMITS"],
     "wind": ["GustyWind"],
 }

@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -16,7 +17,8 @@ from .elasticity import TWISTS, membrane_element_stiffness, membrane_tensor, pla
 from .materials import FabricMaterial, preset
 from .model import ClothInfo, Handle, Keyframe, Model
 from .outputs import USD_SUFFIXES, usd_error_text
-from .topology import ClothTopology, MembraneModel, MeshError, SpringKind, SpringLaw, SpringModel
+from .plate import plate_stencils
+from .topology import BendingModel, ClothTopology, MembraneModel, MeshError, SpringKind, SpringLaw, SpringModel
 from .validation import (
     LIMITS,
     check_direction,
@@ -161,6 +163,11 @@ class ModelBuilder:
         self.membrane_rest_area = np.zeros(0)
         self.membrane_stiffness = np.zeros((0, 4))
         self.membrane_damping = np.zeros((0, 4))
+        self.plate_offsets = np.zeros(1, np.int64)
+        self.plate_points = np.zeros(0, np.int64)
+        self.plate_weights = np.zeros((0, 3))
+        self.plate_stiffness = np.zeros((0, 3, 3))
+        self.plate_vertex = np.zeros(0, np.int64)
         # stretch constants the structural springs of element cloths would have had (default repulsion stiffness)
         self._element_structural_stiffness: list[np.ndarray] = []
         self.cloths: list[tuple[ClothRef, FabricMaterial, int]] = []
@@ -244,6 +251,7 @@ class ModelBuilder:
         spring_model: SpringModel | str = SpringModel.CHOI_KO,
         warp_angle: float = 0.0,
         membrane: MembraneModel | str | None = None,
+        bending: BendingModel | str | None = None,
         name: str | None = None,
     ) -> ClothRef:
         """Add a grid cloth of resolution (nx, ny) cells and size (sx, sy) [m].
@@ -252,11 +260,13 @@ class ModelBuilder:
         `rotation` (quaternion x, y, z, w or 3x3) and moved to `position` [m]. The material's warp runs
         along the local x axis turned by `warp_angle` [deg] about the local z axis (45: a bias cut).
         `membrane` (:class:`~cloth_warp.topology.MembraneModel`): what carries stretch and shear; default
-        "springs", fitted exactly to the material on grids at any warp angle and cell shape (and cheaper than
-        the "element", which gives the same energy here).
+        "element", the continuum's energy on any cell shape ("springs": cheaper, exact for uniform strain, but a
+        spring lattice on cells 2:1 and beyond has soft modes at shear/stretch ratios >= 0.2, knits among them).
+        `bending` (:class:`~cloth_warp.topology.BendingModel`): default "springs" (bend springs fitted per node,
+        with Choi-Ko's immediate buckling); "stencil" as on meshes.
         """
         t = topo.grid_topology(resolution, size, SpringModel(spring_model), warp_angle)
-        return self._add_cloth(t, position, rotation, velocity, material, name or f"cloth{len(self.cloths)}", membrane)
+        return self._add_cloth(t, position, rotation, velocity, material, name or f"cloth{len(self.cloths)}", membrane, bending)
 
     def add_cloth_mesh(
         self,
@@ -272,6 +282,7 @@ class ModelBuilder:
         spring_model: SpringModel | str = SpringModel.CHOI_KO,
         warp_direction=None,
         membrane: MembraneModel | str | None = None,
+        bending: BendingModel | str | None = None,
         name: str | None = None,
     ) -> ClothRef:
         """Add a cloth from a triangle mesh (vertices [m] before `scale`); seams are welded.
@@ -284,6 +295,8 @@ class ModelBuilder:
         "element", one orthotropic triangle element per triangle, which stores the material's shear on any
         mesh (a spring net on triangles with edges at arbitrary angles obeys Cauchy's relation and shears
         3.6x too stiffly at G/C = 0.02); "springs" keeps the fitted spring net (cheaper, exact stretch only).
+        `bending` (:class:`~cloth_warp.topology.BendingModel`): default "stencil", one plate-bending stencil per
+        vertex (the plate energy on any mesh); "springs": bend triples, exact only where they are straight at rest.
 
         Raises :class:`~cloth_warp.topology.MeshError` for empty meshes, non-finite coordinates and
         out-of-range indices; degenerate/duplicate triangles are dropped and non-manifold edges kept,
@@ -293,7 +306,7 @@ class ModelBuilder:
         scale = check_number("scale", scale, LIMITS["scale"])
         v = check_points("vertices (x scale)", v * scale)
         t = topo.mesh_topology(v, tri, SpringModel(spring_model), uvs=uvs, warp_direction=warp_direction)
-        return self._add_cloth(t, position, rotation, velocity, material, name or f"cloth{len(self.cloths)}", membrane)
+        return self._add_cloth(t, position, rotation, velocity, material, name or f"cloth{len(self.cloths)}", membrane, bending)
 
     def add_cloth_disc(self, *, radius: float, rings: int = 16, **kwargs) -> ClothRef:
         """Add a circular cloth of `radius` [m] meshed in `rings` concentric rings
@@ -318,13 +331,10 @@ class ModelBuilder:
         kwargs.setdefault("name", os.path.splitext(os.path.basename(str(path)))[0])
         return self.add_cloth_mesh(vertices, triangles, uvs=uvs, **kwargs)
 
-    def _add_cloth(self, t: ClothTopology, position, rotation, velocity, material, name, membrane=None) -> ClothRef:
-        if membrane is None:
-            membrane = topo.default_membrane_model(t.grid_shape is not None)
-        try:
-            membrane = MembraneModel(membrane)
-        except ValueError:
-            raise ValueError(f"unknown membrane {membrane!r}; allowed: {', '.join(m.value for m in MembraneModel)}") from None
+    def _add_cloth(self, t: ClothTopology, position, rotation, velocity, material, name, membrane=None, bending=None) -> ClothRef:
+        grid = t.grid_shape is not None
+        membrane = _choice("membrane", membrane, MembraneModel, topo.default_membrane_model(grid))
+        bending = _choice("bending", bending, BendingModel, topo.default_bending_model(grid))
         if isinstance(material, str):
             material = preset(material)
         if not isinstance(material, FabricMaterial):
@@ -356,7 +366,11 @@ class ModelBuilder:
             self._add_membrane_elements(t, material, start)
         rest = np.linalg.norm(t.positions[t.springs[:, 0]] - t.positions[t.springs[:, 1]], axis=1)
         middle = np.where(t.spring_middle >= 0, t.spring_middle + start, -1)
-        self._append_springs(t.springs + start, rest, k, c, t.spring_law, t.spring_kind, middle)
+        keep = np.ones(t.spring_count, bool)
+        if bending == BendingModel.STENCIL:
+            keep = t.spring_kind != SpringKind.BEND  # the stencils carry the bending
+            self._add_plate_stencils(t, material, start)
+        self._append_springs(t.springs[keep] + start, rest[keep], k[keep], c[keep], t.spring_law[keep], t.spring_kind[keep], middle[keep])
         tri_start = len(self.triangles)
         self.triangles = np.concatenate([self.triangles, t.triangles.astype(np.int64) + start])
         self.tri_drag = np.concatenate([self.tri_drag, np.full(len(t.triangles), material.drag_coefficient)])
@@ -378,6 +392,19 @@ class ModelBuilder:
         self.membrane_rest_area = np.concatenate([self.membrane_rest_area, area[keep]])
         self.membrane_stiffness = np.concatenate([self.membrane_stiffness, np.tile(c, (count, 1))])
         self.membrane_damping = np.concatenate([self.membrane_damping, np.tile(material.damping * c, (count, 1))])
+
+    def _add_plate_stencils(self, t: ClothTopology, material: FabricMaterial, start: int):
+        """One plate-bending stencil per vertex of `t` (:func:`~cloth_warp.plate.plate_stencils`), stiffness
+        S = A_v D with D the Voigt matrix of the material's plate tensor in the vertex's warp/weft frame."""
+        st, issues = plate_stencils(t.positions, t.triangles, t.triangle_warp, t.particle_area)
+        for msg in issues:
+            warnings.warn(f"cloth mesh: {msg}", stacklevel=4)
+        d = plate_tensor(material).voigt()
+        self.plate_offsets = np.concatenate([self.plate_offsets, st.offsets[1:] + self.plate_offsets[-1]])
+        self.plate_points = np.concatenate([self.plate_points, st.points + start])
+        self.plate_weights = np.concatenate([self.plate_weights, st.weights])
+        self.plate_stiffness = np.concatenate([self.plate_stiffness, st.area[:, None, None] * d[None]])
+        self.plate_vertex = np.concatenate([self.plate_vertex, st.vertex + start])
 
     # -- pins and handles --------------------------------------------------------------------
     def pin(self, indices, stiffness: float | None = None):
@@ -582,6 +609,13 @@ class ModelBuilder:
         m.membrane_rest_area = arr(self.membrane_rest_area.astype(np.float32), float)
         m.membrane_stiffness = arr(self.membrane_stiffness.astype(np.float32).reshape(-1, 4), wp.vec4, True)
         m.membrane_damping = arr(self.membrane_damping.astype(np.float32).reshape(-1, 4), wp.vec4, True)
+        m.plate_count = len(self.plate_stiffness)
+        m.plate_offsets = arr(self.plate_offsets.astype(np.int32), wp.int32)
+        m.plate_points = arr(self.plate_points.astype(np.int32), wp.int32)
+        m.plate_weights = arr(self.plate_weights.astype(np.float32).reshape(-1, 3), wp.vec3)
+        plate_stiffness = clamp_boundary_plates(self.plate_stiffness, self.plate_offsets, self.plate_points, self.plate_vertex,
+                                                self.particle_pinned, self.particle_positions)
+        m.plate_stiffness = arr(plate_stiffness.astype(np.float32).reshape(-1, 3, 3), wp.mat33, True)
         mo, mid = topo.particle_triangles(mv, n)
         m.particle_membrane_offsets = arr(mo, wp.int32)
         m.particle_membrane_ids = arr(mid, wp.int32)
@@ -635,6 +669,8 @@ class ModelBuilder:
         check_float32("triangle drag coefficients", self.tri_drag)
         check_float32("membrane element constants (material stiffness and damping)", np.concatenate([self.membrane_stiffness.ravel(),
                       self.membrane_damping.ravel()]), hint=": lower the stiffness or the damping")
+        check_float32("plate-bending stiffness (material bend stiffness x dual area)", self.plate_stiffness,
+                      hint=": raise the bend stiffness or use larger cells")
         check_float32_resolution("springs", self.particle_positions, self.spring_rest_length)
 
     def _finalize_colliders(self, m: Model, arr):
@@ -682,6 +718,16 @@ def _keyframes(keyframes, name: str = "keyframes") -> list[Keyframe]:
     return [Keyframe(t, tr, q) for t, tr, q in check_keyframes(name, keyframes)]
 
 
+def _choice(key: str, value, kind, default):
+    """`value` as a member of the enum `kind` (None: `default`), or a ValueError naming the allowed values."""
+    if value is None:
+        return default
+    try:
+        return kind(value)
+    except ValueError:
+        raise ValueError(f"unknown {key} {value!r}; allowed: {', '.join(m.value for m in kind)}") from None
+
+
 def clamp_boundary_bending(stiffness, springs, middle, law, pinned) -> np.ndarray:
     """Double the bend triples at the edge of a clamped region (middle and exactly one end hard-pinned).
 
@@ -697,6 +743,26 @@ def clamp_boundary_bending(stiffness, springs, middle, law, pinned) -> np.ndarra
         edge = p[np.asarray(middle)[tri]] & (ends == 1)
         k[np.flatnonzero(tri)[edge]] *= 2.0
     return k
+
+
+def clamp_boundary_plates(stiffness, offsets, points, vertex, pinned, positions) -> np.ndarray:
+    """Double the plate stencils at the edge of a clamped region (their vertex hard-pinned, pinned points around it
+    that span an area, and free points): as with bend triples (:func:`clamp_boundary_bending`), the stencil then
+    straddles the clamp and measures half the free side's curvature over a dual area only half of which bends,
+    which would leave the root a quarter as stiff as half its area is; doubling makes it that (a cantilever's tip
+    otherwise deflects ~h/L too far: +10 % at 12 cells)."""
+    out = np.asarray(stiffness, np.float64).copy()
+    p = np.asarray(pinned) != 0
+    for s in np.flatnonzero(p[vertex]):
+        ids = points[offsets[s]:offsets[s + 1]]
+        held = ids[p[ids]]
+        if len(held) == len(ids) or len(held) < 3:
+            continue
+        spread = positions[held] - positions[held].mean(axis=0)
+        sv = np.linalg.svd(spread, compute_uv=False)
+        if sv[1] > 1e-3 * sv[0]:  # the pinned points are not on one line: a clamped area, not a pinned edge
+            out[s] *= 2.0
+    return out
 
 
 def spring_constants(t: ClothTopology, material: FabricMaterial) -> tuple[np.ndarray, np.ndarray]:

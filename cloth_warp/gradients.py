@@ -3,7 +3,7 @@
 A :class:`Rollout` advances a model T steps with any solver and returns a loss and its gradient. Gradients
 land in the ``.grad`` of what the loss depends on: the model's differentiable arrays (``particle_mass``,
 ``spring_stiffness``, ``spring_damping``, ``spring_rest_length``, ``tri_drag``, ``membrane_stiffness``,
-``membrane_damping``, collider friction), the
+``membrane_damping``, ``plate_stiffness``, collider friction), the
 initial state's ``particle_q`` / ``particle_qd``, the control's ``wind`` and, for animated handles, each
 step's pin targets (folded into per-keyframe translation gradients, :attr:`Rollout.handle_gradients`)::
 
@@ -180,7 +180,7 @@ def _gather(x: wp.array, ids: wp.array) -> wp.array:
 def model_grad_arrays(model: Model) -> dict[str, wp.array]:
     """The model's differentiable arrays by name (those with a .grad)."""
     names = ("particle_q", "particle_qd", "particle_mass", "spring_rest_length", "spring_stiffness", "spring_damping", "tri_drag",
-             "membrane_stiffness", "membrane_damping", "collider_static_friction", "collider_kinetic_friction")
+             "membrane_stiffness", "membrane_damping", "plate_stiffness", "collider_static_friction", "collider_kinetic_friction")
     return {n: getattr(model, n) for n in names if getattr(model, n, None) is not None and getattr(model, n).requires_grad}
 
 

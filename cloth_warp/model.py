@@ -204,8 +204,10 @@ class ModelFlags(enum.IntFlag):
     """cloth_thickness, cloth_friction, self_collision_stiffness."""
     MODEL_PROPERTIES = 1 << 6
     """gravity, global_damping."""
+    PLATE_PROPERTIES = 1 << 7
+    """plate_stiffness."""
     ALL = (PARTICLE_PROPERTIES | PARTICLE_INITIAL_STATE | SPRING_PROPERTIES | TRIANGLE_PROPERTIES | COLLIDER_PROPERTIES
-           | SELF_COLLISION_PROPERTIES | MODEL_PROPERTIES)
+           | SELF_COLLISION_PROPERTIES | MODEL_PROPERTIES | PLATE_PROPERTIES)
     """Every field a flag covers."""
 
 
@@ -220,6 +222,7 @@ FIELD_FLAGS: dict[str, ModelFlags] = {
     "tri_drag": ModelFlags.TRIANGLE_PROPERTIES,
     "membrane_stiffness": ModelFlags.TRIANGLE_PROPERTIES,
     "membrane_damping": ModelFlags.TRIANGLE_PROPERTIES,
+    "plate_stiffness": ModelFlags.PLATE_PROPERTIES,
     "collider_thickness": ModelFlags.COLLIDER_PROPERTIES,
     "collider_static_friction": ModelFlags.COLLIDER_PROPERTIES,
     "collider_kinetic_friction": ModelFlags.COLLIDER_PROPERTIES,
@@ -236,7 +239,7 @@ class Model:
     """Description of the simulated cloth(s), created by :meth:`ModelBuilder.finalize`; solvers never write it.
 
     Every field is declared below with its unit and shape (Warp arrays are float32 unless noted; n =
-    particle_count, s = spring_count, t = tri_count, e = membrane_count, c = max(collider_count, 1)). The fields listed in
+    particle_count, s = spring_count, t = tri_count, e = membrane_count, p = plate_count, c = max(collider_count, 1)). The fields listed in
     :data:`FIELD_FLAGS` may be changed between runs (a fit does); whoever changes them then calls
     ``notify_model_changed(flags)`` on what was built from the model (see :class:`ModelFlags`).
     """
@@ -324,6 +327,20 @@ class Model:
         """Start of each particle's elements in particle_membrane_ids, shape (n + 1,), int32."""
         self.particle_membrane_ids: wp.array | None = None
         """Membrane elements incident to each particle, int32."""
+
+        # -- plate-bending stencils (bending of cloths built with bending="stencil", cloth_warp.plate) --------
+        self.plate_count = 0
+        """p, the number of stencils (one per vertex of such cloths; 0 when every cloth bends with springs)."""
+        self.plate_offsets: wp.array | None = None
+        """Start of each stencil's points in plate_points, shape (p + 1,), int32."""
+        self.plate_points: wp.array | None = None
+        """The particles of each stencil: its vertex first, then its nearest neighbours, int32."""
+        self.plate_weights: wp.array | None = None
+        """c_j [1/m^2]: u_k = sum_j c_jk x_j is the curvature (K_ww, K_ff, 2 K_wf) along the normal, vec3 per entry
+        of plate_points (fixed: the rest shape)."""
+        self.plate_stiffness: wp.array | None = None
+        """S = A_v D [N m^3]: the vertex's dual area times the plate's Voigt matrix in its warp/weft frame,
+        shape (p,), mat33 (differentiable)."""
 
         # -- incidence lists (gather) and strain-limit colouring ------------------------------------
         self.particle_spring_offsets: wp.array | None = None

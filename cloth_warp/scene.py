@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from .materials import PRESETS as MATERIAL_PRESETS
+from .topology import BendingModel, MembraneModel, SpringModel
 from .validation import (
     BUILD_BYTES_PER_PARTICLE,
     LIMITS,
@@ -70,7 +71,9 @@ class Tables:
 
 
 L = LIMITS
-SPRING_MODELS = ("choi_ko", "provot")
+SPRING_MODELS = tuple(m.value for m in SpringModel)
+MEMBRANE_MODELS = tuple(m.value for m in MembraneModel)
+BENDING_MODELS = tuple(m.value for m in BendingModel)
 UP_AXES = ("Y", "Z")
 LINEAR_SOLVERS = ("cg", "jacobi")
 # The same names as cloth_warp.solvers.SOLVERS (kept here so validation does not import Warp; a test compares).
@@ -125,6 +128,12 @@ SCHEMA: dict = {
                       "(uniform in +-jitter, seeded by scene.seed): breaks perfect symmetry so folds can form", L["jitter"]),
         "spring_model": Key("str", "choi_ko", "spring set: Choi-Ko (stiff stretch/shear, buckling bend) or Provot",
                             allowed=SPRING_MODELS),
+        "membrane": Key("str", None, "what carries stretch and shear: 'element' (one orthotropic triangle element per "
+                        "triangle, the continuum's energy on any mesh) or 'springs' (the fitted spring net); default: element",
+                        allowed=MEMBRANE_MODELS),
+        "bending": Key("str", None, "what carries bending: 'springs' (bend springs, Choi-Ko buckling; exact on grids) or "
+                       "'stencil' (a plate stencil per vertex, exact on any triangle mesh); default: springs on grids, "
+                       "stencil on discs and meshes", allowed=BENDING_MODELS),
         "warp_angle": Key("float", None, "angle of the fabric's warp from the cloth's local x axis, about its local z "
                           "(45: a bias cut); default: along x for grids, discs and meshes without UVs, along "
                           "increasing texture u for meshes with UVs (given, it overrides the UVs)", L["angle"]),
@@ -671,7 +680,8 @@ def _add_cloth(b, scene: Scene):
     """Add the scene's cloth (grid, disc or mesh) to builder `b`; returns its handle."""
     common = dict(position=tuple(scene.get("cloth.position")), rotation=_rotation_q(scene.data.get("cloth", {}).get("rotation")),
                   velocity=tuple(scene.get("cloth.velocity")), material=build_material(scene),
-                  spring_model=scene.get("cloth.spring_model"), name=scene.get("cloth.name"))
+                  spring_model=scene.get("cloth.spring_model"), membrane=scene.get("cloth.membrane"),
+                  bending=scene.get("cloth.bending"), name=scene.get("cloth.name"))
     warp_angle = scene.get("cloth.warp_angle")
     warp = None if warp_angle is None else (math.cos(math.radians(warp_angle)), math.sin(math.radians(warp_angle)), 0.0)
     mesh = scene.data.get("cloth", {}).get("mesh")

@@ -61,7 +61,7 @@ class SpringModel(enum.Enum):
 
 
 class MembraneModel(enum.Enum):
-    """What carries a cloth's stretch and shear (the membrane); bending stays on springs either way."""
+    """What carries a cloth's stretch and shear (the membrane); bending: :class:`BendingModel`."""
 
     SPRINGS = "springs"
     """The structural and shear springs, their constants fitted to the continuum energy per region (exact on
@@ -72,12 +72,30 @@ class MembraneModel(enum.Enum):
     structural and shear springs stay, with zero stiffness, for the strain limiter and diagnostics."""
 
 
+class BendingModel(enum.Enum):
+    """What carries a cloth's bending."""
+
+    SPRINGS = "springs"
+    """Span-2 bend springs (Choi-Ko buckling or Provot flexion, per `spring_model`) fitted to the plate tensor per
+    vertex; exact on grids of any cell shape and on meshes whose triples are straight at rest (right-angled,
+    equilateral). On irregular meshes no neighbour pair is straight: the triples push at rest and bend 5-30 %
+    off the plate (docs/physics.md section M)."""
+    STENCIL = "stencil"
+    """One plate-bending stencil per vertex (:mod:`cloth_warp.plate`): the plate energy of the vertex's dual area,
+    exact for uniform curvature on any triangle mesh; quadratic (no immediate buckling)."""
+
+
+def default_bending_model(grid: bool) -> BendingModel:
+    """Bend springs on grids (exact at any cell shape, with Choi-Ko's immediate buckling), stencils on triangle
+    meshes (whose bend triples are kinked at rest when the mesh is irregular)."""
+    return BendingModel.SPRINGS if grid else BendingModel.STENCIL
+
+
 def default_membrane_model(grid: bool) -> MembraneModel:
-    """Springs for now, on grids and meshes alike. The element is chosen per cloth (``membrane="element"``):
-    it stores the continuum energy on any mesh (springs shear 3.6x too stiffly at G/C = 0.02 on irregular
-    meshes) but its gradient through the implicit adjoint does not yet match finite differences
-    (tests/test_membrane.py), so it is not the default until it does."""
-    return MembraneModel.SPRINGS
+    """The element, on grids and meshes alike: it stores the continuum membrane energy on any cell shape and
+    triangle mesh (springs shear 3.6x too stiffly at G/C = 0.02 on irregular meshes and are 10-30x too soft on
+    2:1 cells at G/C >= 0.2, docs/physics.md section E). Springs stay a choice (``membrane="springs"``)."""
+    return MembraneModel.ELEMENT
 
 
 # Choi-Ko's quartic fit of the buckling curve (physics.md 7.2, as in Blender's implicit.c):

@@ -7,6 +7,11 @@ c its damping [N s/m].
 Triangle membrane elements (orthotropic StVK, physics.md section E) carry stretch and shear where a cloth
 asks for them (triangle meshes by default); their notation is given above `membrane_corner_gradients`.
 
+Plate-bending stencils (physics.md section P) carry bending where a cloth asks for them (triangle meshes by
+default): a stencil s over points j with weights c_j [1/m^2] and stiffness S_s [N m^3] (A_v times the plate's
+Voigt matrix) measures U = sum_j x_j c_j^T (columns: the curvature vectors u_k [1/m]) and stores
+(1/2) tr(U S U^T); its force on point j is -U S c_j, its stiffness (c_i . S c_j) I.
+
 Each spring, bend triple and triangle is evaluated once and scattered into a per-particle force array
 with atomics (plain adds on the CPU backend, where this is the fastest formulation; differentiable
 under wp.Tape). The integrators then read one force per particle.
@@ -28,6 +33,8 @@ BUCKLING_P1 = wp.constant(23.116)
 BUCKLING_P0 = wp.constant(-9.713)
 
 LENGTH_EPS = wp.constant(1.0e-9)
+# The most points a plate-bending stencil has (cloth_warp.plate.STENCIL_MAX_POINTS; at most Warp's unroll limit).
+PLATE_MAX_POINTS = wp.constant(16)
 
 
 # P(1 - t) = R0 + R1 t + R2 t^2 + R3 t^3 + R4 t^4 (Taylor coefficients of the fit about s = 1), used to
@@ -422,6 +429,44 @@ def eval_membrane_forces(
     wp.atomic_add(force_out, c[0], f0)
     wp.atomic_add(force_out, c[1], f1)
     wp.atomic_add(force_out, c[2], f2)
+
+
+@wp.func
+def plate_curvature(plate_points: wp.array(dtype=wp.int32), plate_weights: wp.array(dtype=wp.vec3), start: int, end: int,
+                    x: wp.array(dtype=wp.vec3)):
+    """U = sum_j x_j c_j^T over the stencil's entries [start, end): column k is the curvature vector u_k [1/m]
+    (x: positions [m], or any per-particle vector for a product with the stencil's stiffness). Summed as
+    sum_j (x_j - x_v) c_j^T (the same, as sum_j c_j = 0; x_v the stencil's vertex, its first point), so float32
+    round-off scales with the stencil's size, not with the distance from the origin."""
+    u = wp.mat33(0.0)
+    origin = x[plate_points[start]]
+    # a constant trip count (unrolled): a local summed in a dynamic loop would not be differentiable
+    for j in range(1, PLATE_MAX_POINTS):
+        k = start + j
+        if k < end:
+            u += wp.outer(x[plate_points[k]] - origin, plate_weights[k])
+    return u
+
+
+@wp.kernel
+def eval_plate_forces(
+    # Model
+    plate_offsets: wp.array(dtype=wp.int32),
+    plate_points: wp.array(dtype=wp.int32),
+    plate_weights: wp.array(dtype=wp.vec3),
+    plate_stiffness: wp.array(dtype=wp.mat33),
+    # State
+    x: wp.array(dtype=wp.vec3),
+    # outputs (zeroed by the caller)
+    force_out: wp.array(dtype=wp.vec3),
+):
+    """Plate-bending stencils: scatter f_j = -U S c_j to the stencil's points."""
+    s = wp.tid()
+    start = plate_offsets[s]
+    end = plate_offsets[s + 1]
+    t = plate_curvature(plate_points, plate_weights, start, end, x) * plate_stiffness[s]
+    for k in range(start, end):
+        wp.atomic_sub(force_out, plate_points[k], t * plate_weights[k])
 
 
 @wp.kernel

@@ -15,6 +15,8 @@ each Choi-Ko bend triple (a, m, b) the quadratic-bending term h^2 g_r (g . (p_a,
 g = `bending_stiffness_weights` and g_r its entry for the particle's role; and for each triangle membrane
 element the 9x9 block h D_e + h^2 K_e applied matrix-free (`membrane_product`: K_e = A B^T C B + A G(S+) (x) I,
 Gauss-Newton plus the geometric stiffness of the positive part of the stress, so PSD; D_e = A B^T C_d B).
+For each plate-bending stencil (forces.py: points j, weights c_j, stiffness S) the constant block h^2 (c_i . S c_j) I,
+applied as h^2 U(p) S c_i with U(p) = sum_j p_j c_j^T (`scatter_plate_product`).
 Hard pins are constraints through the filter S_i = 0 (Baraff & Witkin's modified PCG, solved in its
 projected form): dv_i = z_i = (target_i - x0_i) / h - v0_i there.
 
@@ -31,6 +33,7 @@ from .forces import (
     membrane_product,
     membrane_system,
     membrane_voigt,
+    plate_curvature,
     spring_damping_block,
     spring_stiffness_block,
     total_force,
@@ -216,6 +219,69 @@ def eval_membrane_system_blocks(
     wp.atomic_add(membrane_az_out, d, y2)
 
 
+@wp.kernel
+def eval_plate_system(
+    # Model
+    plate_offsets: wp.array(dtype=wp.int32),
+    plate_points: wp.array(dtype=wp.int32),
+    plate_weights: wp.array(dtype=wp.vec3),
+    plate_stiffness: wp.array(dtype=wp.mat33),
+    particle_pinned: wp.array(dtype=wp.int32),
+    # State in
+    x0: wp.array(dtype=wp.vec3),
+    v0: wp.array(dtype=wp.vec3),
+    # Control
+    pin_target: wp.array(dtype=wp.vec3),
+    dt: float,
+    # outputs (accumulated: zeroed by the caller; the first three shared with the membrane elements)
+    kv_out: wp.array(dtype=wp.vec3),
+    diag_out: wp.array(dtype=wp.mat33),
+    az_out: wp.array(dtype=wp.vec3),
+    plate_diagonal_out: wp.array(dtype=float),
+):
+    """Per stencil, scattered to its points: K v0 = U(v0) S c_j (for b), the diagonal h^2 (c_j . S c_j) x m/2 (m points:
+    a PSD matrix of m blocks is at most m times its block diagonal, so block Jacobi converges; the preconditioner
+    and `jacobi_iterate` use the same weight) and h^2 K z (pinned points)."""
+    s = wp.tid()
+    start = plate_offsets[s]
+    end = plate_offsets[s + 1]
+    stiffness = plate_stiffness[s]
+    kv = plate_curvature(plate_points, plate_weights, start, end, v0) * stiffness
+    uz = wp.mat33(0.0)
+    for k in range(start, end):
+        uz += wp.outer(pinned_velocity_change(plate_points[k], particle_pinned, pin_target, x0, v0, dt), plate_weights[k])
+    az = (dt * dt) * uz * stiffness
+    weight = 0.5 * float(end - start) * dt * dt
+    for k in range(start, end):
+        j = plate_points[k]
+        c = plate_weights[k]
+        d = weight * wp.dot(c, stiffness * c)
+        wp.atomic_add(kv_out, j, kv * c)
+        wp.atomic_add(diag_out, j, d * wp.identity(n=3, dtype=float))
+        wp.atomic_add(plate_diagonal_out, j, d)
+        wp.atomic_add(az_out, j, az * c)
+
+
+@wp.kernel
+def scatter_plate_product(
+    plate_offsets: wp.array(dtype=wp.int32),
+    plate_points: wp.array(dtype=wp.int32),
+    plate_weights: wp.array(dtype=wp.vec3),
+    plate_stiffness: wp.array(dtype=wp.mat33),
+    p: wp.array(dtype=wp.vec3),
+    dt: float,
+    # outputs (accumulated)
+    product_out: wp.array(dtype=wp.vec3),
+):
+    """The plate stencils' part of A p: h^2 U(p) S c_j to each point j."""
+    s = wp.tid()
+    start = plate_offsets[s]
+    end = plate_offsets[s + 1]
+    t = (dt * dt) * plate_curvature(plate_points, plate_weights, start, end, p) * plate_stiffness[s]
+    for k in range(start, end):
+        wp.atomic_add(product_out, plate_points[k], t * plate_weights[k])
+
+
 @wp.func
 def system_product(
     i: int,
@@ -235,13 +301,14 @@ def system_product(
     bend_vector: wp.array(dtype=wp.vec3),
     drag_vector: wp.array(dtype=wp.vec3),
     membrane_block: wp.array2d(dtype=wp.mat33),
+    plate_product: wp.array(dtype=wp.vec3),
     mass_eff: float,
     p: wp.array(dtype=wp.vec3),
     dt: float,
 ):
-    """(A p)_i, matrix-free."""
+    """(A p)_i, matrix-free (the plate stencils' part scattered beforehand into `plate_product`)."""
     pi = p[i]
-    q = mass_eff * pi
+    q = mass_eff * pi + plate_product[i]
     for k in range(spring_offsets[i], spring_offsets[i + 1]):
         s = spring_ids[k]
         role = spring_role[k]
@@ -518,6 +585,8 @@ def jacobi_iterate(
     bend_vector: wp.array(dtype=wp.vec3),
     drag_vector: wp.array(dtype=wp.vec3),
     membrane_block: wp.array2d(dtype=wp.mat33),
+    plate_product: wp.array(dtype=wp.vec3),
+    plate_diagonal: wp.array(dtype=float),
     precond: wp.array(dtype=wp.mat33),
     rhs: wp.array(dtype=wp.vec3),
     dv_in: wp.array(dtype=wp.vec3),
@@ -526,7 +595,7 @@ def jacobi_iterate(
     dv_out: wp.array(dtype=wp.vec3),
 ):
     """Block Jacobi: dv_i <- P_i (b_i - sum_{j != i} A_ij dv_j + E_i dv_i), P_i^-1 = A_ii + E_i (E_i: the membrane
-    elements' extra diagonal weight); pinned rows keep z_i."""
+    elements' and plate stencils' extra diagonal weight); pinned rows keep z_i."""
     i = wp.tid()
     if particle_pinned[i] != 0:
         dv_out[i] = dv_in[i]
@@ -564,6 +633,8 @@ def jacobi_iterate(
             acc -= y1 - MEMBRANE_DIAGONAL_WEIGHT * (membrane_diagonal(membrane_block[e, 1], membrane_block[e, 3], membrane_block[e, 4][1, 1]) * di)
         else:
             acc -= y2 - MEMBRANE_DIAGONAL_WEIGHT * (membrane_diagonal(membrane_block[e, 2], membrane_block[e, 3], membrane_block[e, 4][2, 2]) * di)
+    # plate stencils: their product scattered beforehand, their diagonal weighted as in the preconditioner
+    acc -= plate_product[i] - plate_diagonal[i] * di
     dv_out[i] = precond[i] * acc
 
 
@@ -589,6 +660,7 @@ def eval_system_residual(
     bend_vector: wp.array(dtype=wp.vec3),
     drag_vector: wp.array(dtype=wp.vec3),
     membrane_block: wp.array2d(dtype=wp.mat33),
+    plate_product: wp.array(dtype=wp.vec3),
     rhs: wp.array(dtype=wp.vec3),
     dv: wp.array(dtype=wp.vec3),
     global_damping: float,
@@ -602,7 +674,7 @@ def eval_system_residual(
     if particle_pinned[i] != 0:
         return
     m_eff = effective_mass(i, particle_mass, particle_pin_stiffness, global_damping, dt)
-    r = rhs[i] - system_product(i, spring_offsets, spring_ids, spring_role, spring_indices, spring_middle, tri_offsets, tri_ids, tri_indices, tri_corner_weights, membrane_offsets, membrane_ids, membrane_vertices, system_block, bend_vector, drag_vector, membrane_block, m_eff, dv, dt)
+    r = rhs[i] - system_product(i, spring_offsets, spring_ids, spring_role, spring_indices, spring_middle, tri_offsets, tri_ids, tri_indices, tri_corner_weights, membrane_offsets, membrane_ids, membrane_vertices, system_block, bend_vector, drag_vector, membrane_block, plate_product, m_eff, dv, dt)
     wp.atomic_add(cg_scalars_out, slot, CG_RR, wp.float64(wp.dot(r, r)))
 
 
@@ -652,6 +724,7 @@ def cg_warm_start(
     bend_vector: wp.array(dtype=wp.vec3),
     drag_vector: wp.array(dtype=wp.vec3),
     membrane_block: wp.array2d(dtype=wp.mat33),
+    plate_product: wp.array(dtype=wp.vec3),
     precond: wp.array(dtype=wp.mat33),
     rhs: wp.array(dtype=wp.vec3),
     guess: wp.array(dtype=wp.vec3),
@@ -674,7 +747,7 @@ def cg_warm_start(
         search_out[i] = wp.vec3(0.0)
         return
     m_eff = effective_mass(i, particle_mass, particle_pin_stiffness, global_damping, dt)
-    r = rhs[i] - system_product(i, spring_offsets, spring_ids, spring_role, spring_indices, spring_middle, tri_offsets, tri_ids, tri_indices, tri_corner_weights, membrane_offsets, membrane_ids, membrane_vertices, system_block, bend_vector, drag_vector, membrane_block, m_eff, guess, dt)
+    r = rhs[i] - system_product(i, spring_offsets, spring_ids, spring_role, spring_indices, spring_middle, tri_offsets, tri_ids, tri_indices, tri_corner_weights, membrane_offsets, membrane_ids, membrane_vertices, system_block, bend_vector, drag_vector, membrane_block, plate_product, m_eff, guess, dt)
     s = precond[i] * r
     residual_out[i] = r
     preconditioned_out[i] = s
@@ -823,6 +896,29 @@ def eval_residual_membrane(
     add_free(particle_pinned, a, -(k0 + d0), residual_out)
     add_free(particle_pinned, b, -(k1 + d1), residual_out)
     add_free(particle_pinned, d, -(k2 + d2), residual_out)
+
+
+@wp.kernel
+def eval_residual_plate(
+    plate_offsets: wp.array(dtype=wp.int32),
+    plate_points: wp.array(dtype=wp.int32),
+    plate_weights: wp.array(dtype=wp.vec3),
+    plate_stiffness: wp.array(dtype=wp.mat33),
+    particle_pinned: wp.array(dtype=wp.int32),
+    v0: wp.array(dtype=wp.vec3),
+    dv: wp.array(dtype=wp.vec3),
+    dt: float,
+    # outputs (accumulated)
+    residual_out: wp.array(dtype=wp.vec3),
+):
+    """Plate-stencil part of r: -h^2 K (v0 + dv), K = (c_i . S c_j) I (constant: no x0)."""
+    s = wp.tid()
+    start = plate_offsets[s]
+    end = plate_offsets[s + 1]
+    u = plate_curvature(plate_points, plate_weights, start, end, v0) + plate_curvature(plate_points, plate_weights, start, end, dv)
+    t = (dt * dt) * u * plate_stiffness[s]
+    for k in range(start, end):
+        add_free(particle_pinned, plate_points[k], -(t * plate_weights[k]), residual_out)
 
 
 @wp.kernel

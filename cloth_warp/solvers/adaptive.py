@@ -18,6 +18,7 @@ import numpy as np
 from ..elasticity import membrane_element_energy, membrane_element_row_bound
 from ..diagnostics import Diagnostics, StepStats
 from ..model import Control, State
+from ..plate import stencil_row_bound
 from .base import SolverBase
 
 log = logging.getLogger(__name__)
@@ -260,6 +261,9 @@ def stable_dt(model, solver) -> float | None:
     if model.membrane_count:
         extra = membrane_element_row_bound(model.membrane_vertices.numpy().reshape(-1, 3), model.membrane_rest_inverse.numpy(),
                                            model.membrane_rest_area.numpy(), model.membrane_stiffness.numpy(), n)
+    if model.plate_count:
+        extra = extra + stencil_row_bound(model.plate_offsets.numpy(), model.plate_points.numpy(), model.plate_weights.numpy(),
+                                          model.plate_stiffness.numpy(), n)
     free = (model.particle_pinned.numpy() == 0) & (mass > 0.0)
     if not free.any():
         return None

@@ -96,7 +96,7 @@ class SolverBase:
         return buf
 
     def element_forces(self, x: wp.array, v: wp.array, control: Control, key: str = "") -> wp.array:
-        """Scatter every spring's, bend triple's, membrane element's and triangle's (drag) force into a per-particle
+        """Scatter every spring's, bend triple's, membrane element's, plate stencil's and triangle's (drag) force into a per-particle
         array [N]. Every integrator reads its forces here."""
         m = self.model
         force = self.scratch("element_force" + key, wp.vec3, x.requires_grad)
@@ -114,6 +114,9 @@ class SolverBase:
             wp.launch(kf.eval_membrane_forces, dim=m.membrane_count,
                       inputs=[m.membrane_vertices, m.membrane_rest_inverse, m.membrane_rest_area, m.membrane_stiffness,
                               m.membrane_damping, x, v], outputs=[force], device=dev)
+        if m.plate_count:
+            wp.launch(kf.eval_plate_forces, dim=m.plate_count,
+                      inputs=[m.plate_offsets, m.plate_points, m.plate_weights, m.plate_stiffness, x], outputs=[force], device=dev)
         if m.tri_count:
             wp.launch(kf.eval_drag_forces, dim=m.tri_count,
                       inputs=[m.tri_vertices, m.tri_drag, m.tri_corner_weights, x, v, control.wind], outputs=[force], device=dev)

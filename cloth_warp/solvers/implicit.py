@@ -127,6 +127,10 @@ class SolverImplicitEuler(SolverBase):
         self.membrane_kv = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.membrane_diag = wp.zeros(n, dtype=wp.mat33, device=dev)
         self.membrane_az = wp.zeros(n, dtype=wp.vec3, device=dev)
+        # plate stencils (sharing the three per-particle arrays above): their weighted diagonal h^2 K_jj m/2 for block
+        # Jacobi, and their part of A p for the per-particle (gather) kernels, scattered before each
+        self.plate_diagonal = wp.zeros(n, dtype=float, device=dev)
+        self.plate_product = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.rhs = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.precond = wp.zeros(n, dtype=wp.mat33, device=dev)
         self.dv = wp.zeros(n, dtype=wp.vec3, device=dev)
@@ -166,10 +170,21 @@ class SolverImplicitEuler(SolverBase):
                 outputs=[self.drag_vector],
                 device=dev,
             )
-        if m.membrane_count:
+        if m.membrane_count or m.plate_count:
             self.membrane_kv.zero_()
             self.membrane_diag.zero_()
             self.membrane_az.zero_()
+        if m.plate_count:
+            self.plate_diagonal.zero_()
+            wp.launch(
+                ki.eval_plate_system,
+                dim=m.plate_count,
+                inputs=[m.plate_offsets, m.plate_points, m.plate_weights, m.plate_stiffness, m.particle_pinned, state_in.particle_q,
+                        state_in.particle_qd, control.pin_target, dt],
+                outputs=[self.membrane_kv, self.membrane_diag, self.membrane_az, self.plate_diagonal],
+                device=dev,
+            )
+        if m.membrane_count:
             wp.launch(
                 ki.eval_membrane_system_blocks,
                 dim=m.membrane_count,
@@ -197,6 +212,18 @@ class SolverImplicitEuler(SolverBase):
                 m.particle_tri_offsets, m.particle_tri_ids, m.tri_indices, m.tri_corner_weights, m.particle_membrane_offsets,
                 m.particle_membrane_ids, m.membrane_vertices]
 
+    def _plate_product(self, p: wp.array, dt: float, out: wp.array | None = None):
+        """Add the plate stencils' part of A p to `out` (default: set `plate_product` to it, zero without stencils)."""
+        m = self.model
+        if out is None:
+            out = self.plate_product
+            if not m.plate_count:
+                return  # stays zero
+            out.zero_()
+        if m.plate_count:
+            wp.launch(ki.scatter_plate_product, dim=m.plate_count,
+                      inputs=[m.plate_offsets, m.plate_points, m.plate_weights, m.plate_stiffness, p, dt], outputs=[out], device=m.device)
+
     def solve_cg(self, dt: float, warm: bool = False) -> wp.array:
         """Filtered PCG on the assembled system (`warm`: started from the previous step's dv); returns the
         array holding dv."""
@@ -221,6 +248,7 @@ class SolverImplicitEuler(SolverBase):
                     outputs=[self.product],
                     device=dev,
                 )
+                self._plate_product(self.search, dt, self.product)
                 wp.launch(
                     ki.cg_product,
                     dim=m.particle_count,
@@ -257,11 +285,12 @@ class SolverImplicitEuler(SolverBase):
         if rr0 > 1e-300 and rel > stop:
             common = self._product_args()
             for k in range(self.max_iterations):
+                self._plate_product(src, dt)
                 wp.launch(
                     ki.jacobi_iterate,
                     dim=m.particle_count,
                     inputs=[*common, m.particle_pinned, self.system_block, self.bend_vector, self.drag_vector, self.membrane_block,
-                            self.precond, self.rhs, src, dt],
+                            self.plate_product, self.plate_diagonal, self.precond, self.rhs, src, dt],
                     outputs=[dst],
                     device=dev,
                 )
@@ -270,11 +299,13 @@ class SolverImplicitEuler(SolverBase):
                 if iterations % self.check_every == 0 or iterations == self.max_iterations:
                     slot = 1  # row 0 keeps |r_0|^2
                     self.cg_scalars[slot : slot + 1].zero_()
+                    self._plate_product(src, dt)
                     wp.launch(
                         ki.eval_system_residual,
                         dim=m.particle_count,
                         inputs=[*common, m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, self.system_block,
-                                self.bend_vector, self.drag_vector, self.membrane_block, self.rhs, src, m.global_damping, dt, slot],
+                                self.bend_vector, self.drag_vector, self.membrane_block, self.plate_product, self.rhs, src,
+                                m.global_damping, dt, slot],
                         outputs=[self.cg_scalars],
                         device=dev,
                     )
@@ -354,11 +385,13 @@ class SolverImplicitEuler(SolverBase):
         """Restart the iteration from the guess in dv_alt: r0 = S (rhs - A guess), search direction, |r0|^2."""
         m = self.model
         self.cg_scalars.zero_()
+        self._plate_product(self.dv_alt, dt)
         wp.launch(
             ki.cg_warm_start,
             dim=m.particle_count,
             inputs=[*self._product_args(), m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, self.system_block,
-                    self.bend_vector, self.drag_vector, self.membrane_block, self.precond, self.rhs, self.dv_alt, m.global_damping, dt],
+                    self.bend_vector, self.drag_vector, self.membrane_block, self.plate_product, self.precond, self.rhs, self.dv_alt,
+                    m.global_damping, dt],
             outputs=[self.dv, self.residual, self.preconditioned, self.search, self.cg_scalars],
             device=m.device,
         )
@@ -396,6 +429,10 @@ class SolverImplicitEuler(SolverBase):
             wp.launch(ki.eval_residual_membrane, dim=m.membrane_count,
                       inputs=[m.membrane_vertices, m.membrane_rest_inverse, m.membrane_rest_area, m.membrane_stiffness, m.membrane_damping,
                               m.particle_pinned, x0, v0, dv, dt], outputs=[r], device=dev)
+        if m.plate_count:
+            wp.launch(ki.eval_residual_plate, dim=m.plate_count,
+                      inputs=[m.plate_offsets, m.plate_points, m.plate_weights, m.plate_stiffness, m.particle_pinned, v0, dv, dt],
+                      outputs=[r], device=dev)
         if m.tri_count:
             wp.launch(ki.eval_residual_drag, dim=m.tri_count,
                       inputs=[m.tri_indices, m.tri_drag, m.tri_corner_weights, m.particle_pinned, x0, dv, dt], outputs=[r], device=dev)
