@@ -151,17 +151,18 @@ def strip_material(alpha, **kw):
 
 @pytest.mark.slow
 def test_cantilever_on_every_cell_shape_and_mesh():
-    """Check the tip of a clamped strip (alpha = 2) on cells 1:3-3:1, right, equilateral and irregular triangles:
-    within 3 % of the heavy elastica; grids and regular meshes within 2 % of one another (measured: grids within
-    0.1 %, right +0.1 %, equilateral +1.1 %, irregular -2.5 %)."""
+    """Check the tip of a clamped strip (alpha = 2) on cells 1:3-3:1 (bend springs) and right, equilateral and
+    irregular triangles (plate stencils, strips 4 cells wide: two-cell strips bend 4-17 % softly, docs/physics.md
+    section P): within 3 % of the heavy elastica and within 2 % of one another (measured: grids within 0.2 %, right
+    +0.5 %, equilateral +0.15 %, irregular +1.85 %; more irregular seeds in test_mesh_bending)."""
     mat = strip_material(2.0)
     expected = elastica_deflection(2.0)
     cases = {f"grid {a}": ("grid", a) for a in (1 / 3, 1 / 2, 2.0, 3.0)} | {k: (k, 1.0) for k in KINDS}
-    got = {name: cantilever_deflection(mesh, mat, aspect=aspect) for name, (mesh, aspect) in cases.items()}
+    got = {name: cantilever_deflection(mesh, mat, aspect=aspect, width=0.05 if mesh == "grid" else 0.1)
+           for name, (mesh, aspect) in cases.items()}
     errors = {name: round(d / expected - 1.0, 4) for name, d in got.items()}
     assert max(abs(e) for e in errors.values()) < 0.03, errors
-    regular = [d for name, d in got.items() if name != "irregular"]
-    assert max(regular) / min(regular) - 1.0 < 0.02, errors
+    assert max(got.values()) / min(got.values()) - 1.0 < 0.02, errors
 
 
 @pytest.mark.slow

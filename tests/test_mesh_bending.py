@@ -130,16 +130,16 @@ def test_stencil_forces_are_the_gradient_of_the_energy():
 
 
 @pytest.mark.slow
-def test_cantilever_on_every_mesh_kind_and_seed():
-    """Check a clamped strip (alpha = 2, edges 2.5 cm, 4 cells wide) of right, equilateral and irregular triangles
-    (five jitter seeds) puts its tip within 3 % of the heavy elastica and within 2 % of one another (measured: right
-    +0.5 %, equilateral +0.15 %, irregular -0.1 to +1.9 %; bend triples on the irregular strips two cells wide:
-    -3 to +23 %, and -28 to -34 % at 1.25 cm edges)."""
+def test_cantilever_on_irregular_meshes_of_every_seed():
+    """Check a clamped strip (alpha = 2, edges 2.5 cm, 4 cells wide) of irregular triangles jittered by seeds 1-4
+    (seed 0, right and equilateral: test_materials) puts its tip within 3 % of the heavy elastica and within 2 % of
+    one another (measured: -0.1 to +0.9 %; bend triples on irregular strips two cells wide: -3 to +23 %, and -28 to
+    -34 % at 1.25 cm edges)."""
     import test_materials
 
     expected = elastica_deflection(2.0)
     got = {}
-    for kind, seed in [("right", 0), ("equilateral", 0)] + [("irregular", s) for s in range(5)]:
+    for kind, seed in [("irregular", s) for s in range(1, 5)]:
         original = test_materials.strip_mesh
         test_materials.strip_mesh = lambda k, length, width, h, root=0.0, seed_=seed: strip_mesh(k, length, width, h, root=root, seed=seed_)
         try:
