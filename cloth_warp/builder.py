@@ -155,6 +155,7 @@ class ModelBuilder:
         self.spring_law = np.zeros(0, np.int32)
         self.spring_kind = np.zeros(0, np.int32)
         self.spring_middle = np.zeros(0, np.int64)
+        self.spring_of_element_cloth = np.zeros(0, bool)  # the cloth's membrane is elements (its shear springs carry nothing)
         self.triangles = np.zeros((0, 3), np.int64)
         self.tri_drag = np.zeros(0)
         self.tri_corner_weights = np.zeros((0, 3))
@@ -229,7 +230,8 @@ class ModelBuilder:
         )
         return len(self.springs) - 1
 
-    def _append_springs(self, springs, rest, k, c, law, kind, middle):
+    def _append_springs(self, springs, rest, k, c, law, kind, middle, element_cloth: bool = False):
+        self.spring_of_element_cloth = np.concatenate([self.spring_of_element_cloth, np.full(len(springs), element_cloth)])
         self.springs = np.concatenate([self.springs, springs.astype(np.int64)])
         self.spring_rest_length = np.concatenate([self.spring_rest_length, rest])
         self.spring_stiffness = np.concatenate([self.spring_stiffness, k])
@@ -260,8 +262,9 @@ class ModelBuilder:
         `rotation` (quaternion x, y, z, w or 3x3) and moved to `position` [m]. The material's warp runs
         along the local x axis turned by `warp_angle` [deg] about the local z axis (45: a bias cut).
         `membrane` (:class:`~cloth_warp.topology.MembraneModel`): what carries stretch and shear; default
-        "element", the continuum's energy on any cell shape ("springs": cheaper, exact for uniform strain, but a
-        spring lattice on cells 2:1 and beyond has soft modes at shear/stretch ratios >= 0.2, knits among them).
+        "springs" on cells up to 1.5:1 (exact for uniform strain, cheaper) and "element" on more elongated cells
+        (where a spring lattice has soft modes at shear/stretch ratios >= 0.2, knits among them):
+        :func:`~cloth_warp.topology.default_membrane_model`.
         `bending` (:class:`~cloth_warp.topology.BendingModel`): default "springs" (bend springs fitted per node,
         with Choi-Ko's immediate buckling); "stencil" as on meshes.
         """
@@ -333,7 +336,11 @@ class ModelBuilder:
 
     def _add_cloth(self, t: ClothTopology, position, rotation, velocity, material, name, membrane=None, bending=None) -> ClothRef:
         grid = t.grid_shape is not None
-        membrane = _choice("membrane", membrane, MembraneModel, topo.default_membrane_model(grid))
+        aspect = 1.0
+        if grid:  # cell width over height, from the rest extent
+            extent = np.ptp(t.positions[:, :2], axis=0)
+            aspect = float((extent[0] / t.grid_shape[0]) / (extent[1] / t.grid_shape[1]))
+        membrane = _choice("membrane", membrane, MembraneModel, topo.default_membrane_model(grid, aspect))
         bending = _choice("bending", bending, BendingModel, topo.default_bending_model(grid))
         if isinstance(material, str):
             material = preset(material)
@@ -370,7 +377,8 @@ class ModelBuilder:
         if bending == BendingModel.STENCIL:
             keep = t.spring_kind != SpringKind.BEND  # the stencils carry the bending
             self._add_plate_stencils(t, material, start)
-        self._append_springs(t.springs[keep] + start, rest[keep], k[keep], c[keep], t.spring_law[keep], t.spring_kind[keep], middle[keep])
+        self._append_springs(t.springs[keep] + start, rest[keep], k[keep], c[keep], t.spring_law[keep], t.spring_kind[keep], middle[keep],
+                             element_cloth=membrane == MembraneModel.ELEMENT)
         tri_start = len(self.triangles)
         self.triangles = np.concatenate([self.triangles, t.triangles.astype(np.int64) + start])
         self.tri_drag = np.concatenate([self.tri_drag, np.full(len(t.triangles), material.drag_coefficient)])
@@ -626,7 +634,12 @@ class ModelBuilder:
         to, tid = topo.particle_triangles(tris, n)
         m.particle_tri_offsets = arr(to, wp.int32)
         m.particle_tri_ids = arr(tid, wp.int32)
-        limited = np.isin(self.spring_kind[order], (SpringKind.STRUCTURAL, SpringKind.SHEAR)) & (law == SpringLaw.LINEAR)
+        # The limiter holds structural springs and, where springs carry the shear, shear springs; on element cloths the
+        # shear diagonals carry nothing, and holding them at the limit would cap the shear angle (~11 deg at 10 %) and
+        # keep a draped cloth from coming to rest (tests/test_colliders.py).
+        kind_sorted = self.spring_kind[order]
+        limited = ((kind_sorted == SpringKind.STRUCTURAL) | ((kind_sorted == SpringKind.SHEAR) & ~self.spring_of_element_cloth[order])) \
+            & (law == SpringLaw.LINEAR)
         colors = topo.color_springs(springs, n, limited)
         m.strain_limit_color_count = colors.shape[0]
         # The same colouring as spring lists (one launch per colour over its springs, forward path).

@@ -11,7 +11,7 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
-from .validation import LIMITS, check_number
+from .validation import LIMITS, InvalidValue, check_number
 
 GRAVITY = 9.81
 """Standard gravity used by the presets' derived quantities [m/s^2]."""
@@ -63,6 +63,14 @@ class FabricMaterial:
         for f, limits in _LIMITS.items():
             if getattr(self, f) is not None or not f.endswith("_weft"):
                 object.__setattr__(self, f, check_number(f"material {self.name!r} {f}", getattr(self, f), limits))
+        # The membrane tensor couples warp and weft by G (C_12 = C_66 = G, elasticity.membrane_tensor): positive
+        # definite only while G^2 < C_warp C_weft. Beyond it a stretched sheet gains energy by shrinking across
+        # (the element's forces grow from round-off on a sheet at rest; the spring fit silently clips).
+        limit = math.sqrt(self.stretch_stiffness * self.stretch_weft)
+        if not self.shear_stiffness < limit:
+            raise InvalidValue(f"material {self.name!r} shear_stiffness: {self.shear_stiffness:g} N/m must be below "
+                               f"sqrt(stretch_stiffness x stretch_stiffness_weft) = {limit:.4g} N/m (a stiffer shear "
+                               "makes the membrane unstable); lower it or raise the stretch stiffness")
 
     @property
     def stretch_weft(self) -> float:

@@ -129,7 +129,8 @@ SCHEMA: dict = {
         "spring_model": Key("str", "choi_ko", "spring set: Choi-Ko (stiff stretch/shear, buckling bend) or Provot",
                             allowed=SPRING_MODELS),
         "membrane": Key("str", None, "what carries stretch and shear: 'element' (one orthotropic triangle element per "
-                        "triangle, the continuum's energy on any mesh) or 'springs' (the fitted spring net); default: element",
+                        "triangle, the continuum's energy on any mesh) or 'springs' (the fitted spring net); default: springs on grids "
+                        "of cells up to 1.5:1, element on other grids, discs and meshes",
                         allowed=MEMBRANE_MODELS),
         "bending": Key("str", None, "what carries bending: 'springs' (bend springs, Choi-Ko buckling; exact on grids) or "
                        "'stencil' (a plate stencil per vertex, exact on any triangle mesh); default: springs on grids, "
@@ -517,6 +518,10 @@ def _check_values(scene: Scene):
             raise SceneError("measure.cusick.disc_radius: give the specimen radius [m] (or use a cloth.disc)")
         if radius <= cusick["pedestal_radius"]:
             raise SceneError(f"measure.cusick: the specimen radius {radius} m must exceed the pedestal radius {cusick['pedestal_radius']} m")
+    try:
+        build_material(scene)  # the material's own cross-key rule (shear below sqrt(warp x weft stretch))
+    except ValueError as exc:
+        raise SceneError(f"material.shear_stiffness: {str(exc).split(': ', 1)[-1]}") from None
     from .topology import check_disc_size, check_grid_size
 
     if disc is not None:

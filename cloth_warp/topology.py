@@ -91,10 +91,19 @@ def default_bending_model(grid: bool) -> BendingModel:
     return BendingModel.SPRINGS if grid else BendingModel.STENCIL
 
 
-def default_membrane_model(grid: bool) -> MembraneModel:
-    """The element, on grids and meshes alike: it stores the continuum membrane energy on any cell shape and
-    triangle mesh (springs shear 3.6x too stiffly at G/C = 0.02 on irregular meshes and are 10-30x too soft on
-    2:1 cells at G/C >= 0.2, docs/physics.md section E). Springs stay a choice (``membrane="springs"``)."""
+# Grid cells more elongated than this get membrane elements by default: a spring lattice stores the right energy
+# for uniform strain at any cell shape, but on cells 2:1 and beyond its non-uniform modes go 10-30x too soft once
+# the shear is >= 0.2 of the stretch stiffness (knits); on cells up to 1.5:1 springs and elements agree.
+GRID_SPRING_ASPECT = 1.5
+
+
+def default_membrane_model(grid: bool, cell_aspect: float = 1.0) -> MembraneModel:
+    """Elements on triangle meshes (a spring net there shears 3.6x too stiffly at G/C = 0.02) and on grids whose
+    cells are more elongated than GRID_SPRING_ASPECT; springs on other grids, where they are exact, cheaper, and
+    where every shipped grid scene was tuned (an element cloth draped on the sphere scene stalls at ~1 mm/s with two
+    corners up, where springs come to rest: left open). Either is a choice per cloth (``membrane=``)."""
+    if grid and max(cell_aspect, 1.0 / cell_aspect) <= GRID_SPRING_ASPECT:
+        return MembraneModel.SPRINGS
     return MembraneModel.ELEMENT
 
 

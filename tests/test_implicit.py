@@ -10,11 +10,13 @@ from cloth_warp.numpy_reference import NumpyCloth
 
 def perturbed_cloth(device, rng, spring_model="choi_ko", stretch=50.0):
     """A small cloth with every force term active: compressed and stretched springs, buckling springs,
-    drag with wind, global damping, a soft pin and two hard pins whose targets move."""
+    drag with wind, global damping, a soft pin and two hard pins whose targets move. Its membrane is springs
+    (membrane="springs"): the numpy reference (cloth_warp/numpy_reference.py) knows springs only; the membrane
+    element has its own dense-solve and energy-gradient checks (tests/test_membrane.py)."""
     mat = cw.FabricMaterial(areal_density=0.2, stretch_stiffness=stretch, shear_stiffness=5.0, bend_stiffness=1e-4,
                             damping=1e-3, drag_coefficient=0.8)
     b = cw.ModelBuilder(global_damping=0.1)
-    c = b.add_cloth_grid(resolution=(5, 4), size=(0.5, 0.4), material=mat, spring_model=spring_model)
+    c = b.add_cloth_grid(resolution=(5, 4), size=(0.5, 0.4), material=mat, spring_model=spring_model, membrane="springs")
     b.pin(c.select("corner:top_left"))
     b.pin(c.select("corner:top_right"))
     b.pin(c.select("corner:bottom_left"), stiffness=20.0)
@@ -35,7 +37,8 @@ def perturbed_cloth(device, rng, spring_model="choi_ko", stretch=50.0):
 @pytest.mark.parametrize("linear_solver", ["cg", "jacobi"])
 @pytest.mark.parametrize("spring_model", ["choi_ko", "provot"])
 def test_linear_solvers_match_dense_solve(device, rng, linear_solver, spring_model):
-    """Check that Jacobi and CG reproduce a float64 dense solve of the same implicit system to 1e-5 relative."""
+    """Check that Jacobi and CG reproduce a float64 dense solve of the same implicit system to 1e-5 relative (spring
+    membrane: the numpy reference's; elements: tests/test_membrane.py::test_implicit_step_matches_a_dense_solve)."""
     model, state, control = perturbed_cloth(device, rng, spring_model)
     dt = 1.0 / 60.0
     solver = cw.SolverImplicitEuler(model, linear_solver=linear_solver, tolerance=3e-7, max_iterations=2000, check_every=1)
@@ -49,7 +52,8 @@ def test_linear_solvers_match_dense_solve(device, rng, linear_solver, spring_mod
 
 
 def test_forces_match_numpy(device, rng):
-    """Check the kernels' total force against the independent numpy implementation."""
+    """Check the kernels' total force against the independent numpy implementation (spring membrane: the numpy
+    reference's; element forces: tests/test_membrane.py::test_forces_are_minus_the_energy_gradient_and_damping_the_rayleigh_gradient)."""
     model, state, control = perturbed_cloth(device, rng)
     f = wp.zeros(model.particle_count, dtype=wp.vec3, device=device)
     from cloth_warp.kernels import forces as kf

@@ -135,7 +135,7 @@ def test_terminal_velocity_of_sheet(device, name):
 
 def test_edge_on_sheet_falls_freely(device):
     """Check a sheet falling edge-on feels no drag (normal velocity is zero)."""
-    mat = cw.FabricMaterial(areal_density=0.2, stretch_stiffness=10.0, bend_stiffness=0.0, drag_coefficient=1.0)
+    mat = cw.FabricMaterial(areal_density=0.2, stretch_stiffness=10.0, shear_stiffness=1.0, bend_stiffness=0.0, drag_coefficient=1.0)
     b = cw.ModelBuilder(gravity=(0.0, -9.81, 0.0))
     b.add_cloth_grid(resolution=(3, 3), size=(0.3, 0.3), material=mat)  # in the xy-plane: vertical
     model = b.finalize(device)
@@ -146,7 +146,7 @@ def test_edge_on_sheet_falls_freely(device):
 
 def test_wind_drives_a_sheet(device):
     """Check a free sheet in uniform wind approaches the wind velocity along its normal."""
-    mat = cw.FabricMaterial(areal_density=0.2, stretch_stiffness=10.0, bend_stiffness=0.0, drag_coefficient=1.0)
+    mat = cw.FabricMaterial(areal_density=0.2, stretch_stiffness=10.0, shear_stiffness=1.0, bend_stiffness=0.0, drag_coefficient=1.0)
     b = cw.ModelBuilder(gravity=(0.0, 0.0, 0.0))
     b.add_cloth_grid(resolution=(3, 3), size=(0.3, 0.3), material=mat)  # normal along z
     model = b.finalize(device)

@@ -22,10 +22,10 @@ PATCH_STRAIN = 1e-3  # small: the Green strain differs from the linear strain by
 PATCH_TOLERANCE = 1e-2  # the brief's 1 %; the element is exact up to that eps/2 and float32 round-off
 
 
-def mesh_model(kind, material=WOVEN, membrane="element", size=(0.3, 0.2), h=0.05, requires_grad=False, device="cpu"):
+def mesh_model(kind, material=WOVEN, membrane="element", size=(0.3, 0.2), h=0.05, requires_grad=False, device="cpu", bending=None):
     v, tri = strip_mesh(kind, size[0], size[1], h)
     b = cw.ModelBuilder()
-    ref = b.add_cloth_mesh(v, tri, material=material, warp_direction=(1.0, 0.0, 0.0), membrane=membrane)
+    ref = b.add_cloth_mesh(v, tri, material=material, warp_direction=(1.0, 0.0, 0.0), membrane=membrane, bending=bending)
     return b, ref, b.finalize(device, requires_grad=requires_grad)
 
 
@@ -242,7 +242,8 @@ def _jacobian_transpose_times(x, tris, inverse, area, cd, rate):
 def test_implicit_step_matches_a_dense_solve(linear_solver):
     """Check CG and Jacobi solve the element cloth's implicit system like a float64 dense solve (1e-4 relative)."""
     mat = WOVEN.replace(stretch_stiffness=50.0, stretch_stiffness_weft=30.0, shear_stiffness=5.0, damping=2e-3, drag_coefficient=0.5)
-    b, ref, model = mesh_model("irregular", material=mat, size=(0.2, 0.15))
+    # bend triples (the numpy reference knows them; stencils: test_mesh_bending's dense solve)
+    b, ref, model = mesh_model("irregular", material=mat, size=(0.2, 0.15), bending="springs")
     b.pin(ref.indices([0]))
     model = b.finalize("cpu")
     rng = np.random.default_rng(7)
@@ -339,8 +340,10 @@ def test_element_gradients_match_finite_differences(solver_name, field):
 
 
 def test_element_cloths_have_elements_and_spring_cloths_keep_their_springs():
-    """Check the choice: membrane="element" gives one element per triangle and zero membrane springs; grids and
-    meshes by default (springs, see topology.default_membrane_model) no elements and unchanged springs."""
+    """Check the choice (topology.default_membrane_model): grids of cells up to 1.5:1 keep their fitted springs and no
+    elements; grids of 2:1 cells and meshes get one element per triangle, zero-stiffness membrane springs of which
+    the strain limiter still holds the structural ones (not the shear diagonals: they carry nothing), and a grid's
+    bend springs as with springs."""
     b = cw.ModelBuilder()
     g = b.add_cloth_grid(resolution=(6, 4), size=(0.3, 0.2), material=WOVEN, warp_angle=30.0)
     grid = b.finalize("cpu")
@@ -348,16 +351,31 @@ def test_element_cloths_have_elements_and_spring_cloths_keep_their_springs():
     k, _ = spring_constants(g.topology, WOVEN)
     order = np.lexsort((np.minimum(g.topology.springs[:, 0], g.topology.springs[:, 1]), g.topology.spring_law))
     np.testing.assert_allclose(grid.spring_stiffness.numpy(), k[order].astype(np.float32))
+    models = {}
+    for membrane in ("springs", None):  # 2:1 cells: elements by default
+        b = cw.ModelBuilder()
+        b.add_cloth_grid(resolution=(12, 4), size=(0.3, 0.2), material=WOVEN, warp_angle=30.0, membrane=membrane)
+        models[membrane] = b.finalize("cpu")
+    elongated = models[None]
+    assert models["springs"].membrane_count == 0 and elongated.membrane_count == elongated.tri_count
+    bend = elongated.spring_kind.numpy() == topo.SpringKind.BEND
+    assert bend.any()
+    np.testing.assert_array_equal(elongated.spring_stiffness.numpy()[bend], models["springs"].spring_stiffness.numpy()[bend])
     _, _, mesh = mesh_model("irregular")
     assert mesh.membrane_count == mesh.tri_count
-    kind = mesh.spring_kind.numpy()
-    membrane_springs = (kind != topo.SpringKind.BEND)
-    assert np.all(mesh.spring_stiffness.numpy()[membrane_springs] == 0.0)
-    assert np.all(mesh.spring_limited.numpy()[membrane_springs] == 1)  # the strain limiter still sees them
+    for model in (mesh, elongated):
+        kind = model.spring_kind.numpy()
+        membrane_springs = kind != topo.SpringKind.BEND
+        assert np.all(model.spring_stiffness.numpy()[membrane_springs] == 0.0)
+        assert np.all(model.spring_damping.numpy()[membrane_springs] == 0.0)
+        limited = model.spring_limited.numpy() == 1
+        np.testing.assert_array_equal(limited, kind == topo.SpringKind.STRUCTURAL)
+    np.testing.assert_array_equal(grid.spring_limited.numpy() == 1, np.isin(grid.spring_kind.numpy(), (topo.SpringKind.STRUCTURAL,
+                                                                                                      topo.SpringKind.SHEAR)))
     _, _, springs = mesh_model("irregular", membrane="springs")
     assert springs.membrane_count == 0
     _, _, default = mesh_model("irregular", membrane=None)
-    assert default.membrane_count == 0
+    assert default.membrane_count == default.tri_count
     assert mesh.self_collision_stiffness > 0.0  # the repulsion default does not fall to the zeroed springs
     with pytest.raises(ValueError, match="membrane"):
         mesh_model("irregular", membrane="fem")
