@@ -404,7 +404,8 @@ class ModelBuilder:
     def _add_plate_stencils(self, t: ClothTopology, material: FabricMaterial, start: int):
         """One plate-bending stencil per vertex of `t` (:func:`~cloth_warp.plate.plate_stencils`), stiffness
         S = A_v D with D the Voigt matrix of the material's plate tensor in the vertex's warp/weft frame."""
-        st, issues = plate_stencils(t.positions, t.triangles, t.triangle_warp, t.particle_area)
+        warp = t.triangle_warp if t.triangle_warp is not None else topo.triangle_frames(t.positions, t.triangles)[1]
+        st, issues = plate_stencils(t.positions, t.triangles, warp, t.particle_area)
         for msg in issues:
             warnings.warn(f"cloth mesh: {msg}", stacklevel=4)
         d = plate_tensor(material).voigt()
