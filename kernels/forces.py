@@ -449,24 +449,26 @@ def plate_curvature(plate_points: wp.array(dtype=wp.int32), plate_weights: wp.ar
 
 
 @wp.kernel
-def eval_plate_forces(
+def scatter_plate_product(
     # Model
     plate_offsets: wp.array(dtype=wp.int32),
     plate_points: wp.array(dtype=wp.int32),
     plate_weights: wp.array(dtype=wp.vec3),
     plate_stiffness: wp.array(dtype=wp.mat33),
-    # State
-    x: wp.array(dtype=wp.vec3),
-    # outputs (zeroed by the caller)
-    force_out: wp.array(dtype=wp.vec3),
+    # a per-particle vector and its factor
+    p: wp.array(dtype=wp.vec3),
+    scale: float,
+    # outputs (accumulated)
+    product_out: wp.array(dtype=wp.vec3),
 ):
-    """Plate-bending stencils: scatter f_j = -U S c_j to the stencil's points."""
+    """scale K p, scattered: scale U(p) S c_j to each point j of each stencil. The energy is quadratic, so with p the
+    positions and scale -1 these are the stencils' forces f = -K x; the implicit solver uses scale h^2."""
     s = wp.tid()
     start = plate_offsets[s]
     end = plate_offsets[s + 1]
-    t = plate_curvature(plate_points, plate_weights, start, end, x) * plate_stiffness[s]
+    t = scale * plate_curvature(plate_points, plate_weights, start, end, p) * plate_stiffness[s]
     for k in range(start, end):
-        wp.atomic_sub(force_out, plate_points[k], t * plate_weights[k])
+        wp.atomic_add(product_out, plate_points[k], t * plate_weights[k])
 
 
 @wp.kernel

@@ -16,7 +16,7 @@ g = `bending_stiffness_weights` and g_r its entry for the particle's role; and f
 element the 9x9 block h D_e + h^2 K_e applied matrix-free (`membrane_product`: K_e = A B^T C B + A G(S+) (x) I,
 Gauss-Newton plus the geometric stiffness of the positive part of the stress, so PSD; D_e = A B^T C_d B).
 For each plate-bending stencil (forces.py: points j, weights c_j, stiffness S) the constant block h^2 (c_i . S c_j) I,
-applied as h^2 U(p) S c_i with U(p) = sum_j p_j c_j^T (`scatter_plate_product`).
+applied as h^2 U(p) S c_i with U(p) = sum_j p_j c_j^T (forces.py `scatter_plate_product`).
 Hard pins are constraints through the filter S_i = 0 (Baraff & Witkin's modified PCG, solved in its
 projected form): dv_i = z_i = (target_i - x0_i) / h - v0_i there.
 
@@ -260,26 +260,6 @@ def eval_plate_system(
         wp.atomic_add(diag_out, j, d * wp.identity(n=3, dtype=float))
         wp.atomic_add(plate_diagonal_out, j, d)
         wp.atomic_add(az_out, j, az * c)
-
-
-@wp.kernel
-def scatter_plate_product(
-    plate_offsets: wp.array(dtype=wp.int32),
-    plate_points: wp.array(dtype=wp.int32),
-    plate_weights: wp.array(dtype=wp.vec3),
-    plate_stiffness: wp.array(dtype=wp.mat33),
-    p: wp.array(dtype=wp.vec3),
-    dt: float,
-    # outputs (accumulated)
-    product_out: wp.array(dtype=wp.vec3),
-):
-    """The plate stencils' part of A p: h^2 U(p) S c_j to each point j."""
-    s = wp.tid()
-    start = plate_offsets[s]
-    end = plate_offsets[s + 1]
-    t = (dt * dt) * plate_curvature(plate_points, plate_weights, start, end, p) * plate_stiffness[s]
-    for k in range(start, end):
-        wp.atomic_add(product_out, plate_points[k], t * plate_weights[k])
 
 
 @wp.func

@@ -115,8 +115,8 @@ class SolverBase:
                       inputs=[m.membrane_vertices, m.membrane_rest_inverse, m.membrane_rest_area, m.membrane_stiffness,
                               m.membrane_damping, x, v], outputs=[force], device=dev)
         if m.plate_count:
-            wp.launch(kf.eval_plate_forces, dim=m.plate_count,
-                      inputs=[m.plate_offsets, m.plate_points, m.plate_weights, m.plate_stiffness, x], outputs=[force], device=dev)
+            wp.launch(kf.scatter_plate_product, dim=m.plate_count,
+                      inputs=[m.plate_offsets, m.plate_points, m.plate_weights, m.plate_stiffness, x, -1.0], outputs=[force], device=dev)
         if m.tri_count:
             wp.launch(kf.eval_drag_forces, dim=m.tri_count,
                       inputs=[m.tri_vertices, m.tri_drag, m.tri_corner_weights, x, v, control.wind], outputs=[force], device=dev)

@@ -9,6 +9,7 @@ import numpy as np
 import warp as wp
 
 from ..autodiff import paused_tape
+from ..kernels import forces as kf
 from ..kernels import implicit as ki
 from ..model import Control, Model, State
 from .base import SolverBase
@@ -221,8 +222,9 @@ class SolverImplicitEuler(SolverBase):
                 return  # stays zero
             out.zero_()
         if m.plate_count:
-            wp.launch(ki.scatter_plate_product, dim=m.plate_count,
-                      inputs=[m.plate_offsets, m.plate_points, m.plate_weights, m.plate_stiffness, p, dt], outputs=[out], device=m.device)
+            wp.launch(kf.scatter_plate_product, dim=m.plate_count,
+                      inputs=[m.plate_offsets, m.plate_points, m.plate_weights, m.plate_stiffness, p, dt * dt], outputs=[out],
+                      device=m.device)
 
     def solve_cg(self, dt: float, warm: bool = False) -> wp.array:
         """Filtered PCG on the assembled system (`warm`: started from the previous step's dv); returns the
@@ -284,8 +286,10 @@ class SolverImplicitEuler(SolverBase):
         stop = self._stop_residual(rel, warm)
         if rr0 > 1e-300 and rel > stop:
             common = self._product_args()
+            product_of_src = False  # plate_product holds A_plate src (the residual check leaves it so)
             for k in range(self.max_iterations):
-                self._plate_product(src, dt)
+                if not product_of_src:
+                    self._plate_product(src, dt)
                 wp.launch(
                     ki.jacobi_iterate,
                     dim=m.particle_count,
@@ -295,11 +299,13 @@ class SolverImplicitEuler(SolverBase):
                     device=dev,
                 )
                 src, dst = dst, src
+                product_of_src = False
                 iterations = k + 1
                 if iterations % self.check_every == 0 or iterations == self.max_iterations:
                     slot = 1  # row 0 keeps |r_0|^2
                     self.cg_scalars[slot : slot + 1].zero_()
                     self._plate_product(src, dt)
+                    product_of_src = True
                     wp.launch(
                         ki.eval_system_residual,
                         dim=m.particle_count,
