@@ -134,15 +134,21 @@ def plate_stencils(positions: np.ndarray, triangles: np.ndarray, triangle_warp: 
     for v in range(n):
         if not neighbours[v] or particle_area[v] <= 0.0:
             continue
-        # candidate points: v, then its rings, each nearest first
+        # candidate points: v, then its rings, each nearest first (ties by index)
         order, seen, ring = [v], {v}, set(neighbours[v])
-        for _ in range(STENCIL_MAX_RINGS):
-            order += sorted(ring, key=lambda q: float(np.sum((positions[q] - positions[v]) ** 2)))
+        h2 = 0.0
+        for r in range(STENCIL_MAX_RINGS):
+            ids = np.array(sorted(ring))
+            dist2 = np.sum((positions[ids] - positions[v]) ** 2, axis=1)
+            if r == 0:
+                h2 = float(dist2.mean())  # the one-ring's mean squared edge length
+            order += ids[np.argsort(dist2, kind="stable")].tolist()
             seen |= ring
             if len(order) >= STENCIL_MAX_POINTS:
                 break
             ring = set().union(*(neighbours[q] for q in ring)) - seen
-        h2 = float(np.mean(np.sum((positions[list(neighbours[v])] - positions[v]) ** 2, axis=1)))
+            if not ring:
+                break
         c, best = None, None
         for count in range(min(max(STENCIL_MIN_POINTS, len(neighbours[v]) + 1), STENCIL_MAX_POINTS), min(len(order), STENCIL_MAX_POINTS) + 1):
             ids = np.array(order[:count])
