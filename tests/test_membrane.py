@@ -256,6 +256,17 @@ def test_implicit_step_matches_a_dense_solve(linear_solver):
     stress = np.array([_voigt(c[t]) @ e for t, e in enumerate(_strains(x, tris, inverse))])
     assert np.all(stress[:, 0] * stress[:, 1] > stress[:, 2] ** 2) and np.all(stress[:, 0] > 0.0)
     v = rng.normal(scale=0.1, size=x.shape).astype(np.float32).astype(np.float64)
+    dt = 1.0 / 60.0
+    k, d, f = _dense_element_system(model, x, v, dt)
+    err, solver = implicit_step_error(model, x, v, dt, linear_solver, d, k, f.ravel())
+    assert err < 1e-4, (err, solver.last_iterations, solver.last_residual)
+
+
+def implicit_step_error(model, x, v, dt, linear_solver, damping, stiffness, force):
+    """Relative error of one implicit step (CG or block Jacobi at tolerance 1e-7, particle 0 pinned and its target
+    moved 2 mm) against a float64 dense solve: the numpy reference's spring system (springs, bend triples, drag,
+    pins) plus the given dense damping and stiffness matrices (3n x 3n) and forces (3n) of the other elements.
+    Returns (error, solver)."""
     state = model.state()
     state.particle_q.assign(x.astype(np.float32))
     state.particle_qd.assign(v.astype(np.float32))
@@ -263,24 +274,18 @@ def test_implicit_step_matches_a_dense_solve(linear_solver):
     target = control.pin_target.numpy()
     target[0] += 0.002
     control.pin_target.assign(target)
-    dt = 1.0 / 60.0
     solver = cw.SolverImplicitEuler(model, linear_solver=linear_solver, tolerance=1e-7, max_iterations=20000, check_every=1)
     dv = solver.solve(state, control, dt).numpy()
-    # reference: the springs' system (zero spring constants here: bend triples, drag, pins) plus the elements'
-    numpy_cloth = NumpyCloth(model)
-    a, rhs = numpy_cloth.implicit_system(x, v, control.pin_target.numpy(), control.wind.numpy()[0], dt)
-    k, d, f = _dense_element_system(model, x, v, dt)
-    a += dt * d + dt * dt * k
-    rhs += dt * (f.ravel() - dt * k @ v.ravel())
+    a, rhs = NumpyCloth(model).implicit_system(x, v, control.pin_target.numpy(), control.wind.numpy()[0], dt)
+    a += dt * damping + dt * dt * stiffness
+    rhs += dt * (force - dt * stiffness @ v.ravel())
     pinned = model.particle_pinned.numpy() != 0
     z = np.zeros_like(x)
     z[pinned] = (control.pin_target.numpy()[pinned] - x[pinned]) / dt - v[pinned]
     free = np.repeat(~pinned, 3)
     expected = z.ravel().copy()
     expected[free] = np.linalg.solve(a[np.ix_(free, free)], rhs[free] - a[np.ix_(free, ~free)] @ z.ravel()[~free])
-    expected = expected.reshape(-1, 3)
-    err = np.linalg.norm(dv - expected) / np.linalg.norm(expected)
-    assert err < 1e-4, (err, solver.last_iterations, solver.last_residual)
+    return np.linalg.norm(dv - expected.reshape(-1, 3)) / np.linalg.norm(expected), solver
 
 
 def _position_loss_check(model, solver, dt, steps, field, rng, largest_step=0.1):

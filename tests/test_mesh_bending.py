@@ -19,6 +19,7 @@ from cloth_warp import plate
 from cloth_warp.elasticity import plate_tensor
 from meshes import KINDS, strip_mesh
 from test_materials import cantilever_deflection, strip_material
+from test_membrane import implicit_step_error
 
 MATERIAL = cw.FabricMaterial(areal_density=0.2, stretch_stiffness=300.0, shear_stiffness=30.0, bend_stiffness=2e-5,
                              bend_stiffness_weft=8e-6)
@@ -39,6 +40,16 @@ def stencil_arrays(model):
             model.plate_stiffness.numpy().astype(np.float64))
 
 
+def stencil_stiffness(model):
+    """The stencils' constant stiffness K_ij = sum over stencils of c_i . S c_j (n x n; times I_3 per block), float64."""
+    off, pts, w, stiff = stencil_arrays(model)
+    k = np.zeros((model.particle_count, model.particle_count))
+    for s in range(len(stiff)):
+        p, c = pts[off[s]:off[s + 1]], w[off[s]:off[s + 1]]
+        k[np.ix_(p, p)] += c @ stiff[s] @ c.T
+    return k
+
+
 def bending_forces(model, x):
     """Per-particle forces of the stencils alone, or of the bend triples alone where the model has no stencils."""
     from cloth_warp.kernels import forces as kf
@@ -46,8 +57,8 @@ def bending_forces(model, x):
     q = wp.array(np.asarray(x, np.float32), dtype=wp.vec3)
     out = wp.zeros(model.particle_count, dtype=wp.vec3)
     if model.plate_count:
-        wp.launch(kf.eval_plate_forces, dim=model.plate_count,
-                  inputs=[model.plate_offsets, model.plate_points, model.plate_weights, model.plate_stiffness, q], outputs=[out])
+        wp.launch(kf.scatter_plate_product, dim=model.plate_count,
+                  inputs=[model.plate_offsets, model.plate_points, model.plate_weights, model.plate_stiffness, q, -1.0], outputs=[out])
     else:
         wp.launch(kf.eval_bending_forces, dim=model.spring_count - model.linear_spring_count,
                   inputs=[model.bend_triples, model.spring_stiffness, model.linear_spring_count, q], outputs=[out])
@@ -122,10 +133,7 @@ def test_stencil_forces_are_the_gradient_of_the_energy():
             assert f[i, k] == pytest.approx(-grad, rel=1e-3, abs=1e-6 * np.abs(f).max())
     # the forces are linear in x: f(x + d) - f(x) = -K d with K from the weights
     d = rng.normal(scale=1e-3, size=x.shape)
-    k_matrix = np.zeros((model.particle_count, model.particle_count))
-    for s in range(len(stiff)):
-        p, c = pts[off[s]:off[s + 1]], w[off[s]:off[s + 1]]
-        k_matrix[np.ix_(p, p)] += c @ stiff[s] @ c.T
+    k_matrix = stencil_stiffness(model)
     np.testing.assert_allclose(bending_forces(model, x + d) - f, -k_matrix @ d, rtol=2e-3, atol=1e-4 * np.abs(k_matrix @ d).max())
 
 
@@ -155,8 +163,6 @@ def test_cantilever_on_irregular_meshes_of_every_seed():
 def test_implicit_step_with_stencils_matches_a_dense_solve(linear_solver):
     """Check CG and block Jacobi solve the implicit system of a stencil-bent cloth (spring membrane, drag, a moving
     pin) like a float64 dense solve with the stencils' constant stiffness K = sum c S c^T (x) I (1e-4 relative)."""
-    from cloth_warp.numpy_reference import NumpyCloth
-
     mat = MATERIAL.replace(bend_stiffness=2e-3, bend_stiffness_weft=1e-3, drag_coefficient=0.5)
     v0, tri = strip_mesh("irregular", 0.2, 0.15, 0.025, seed=2)
     b = cw.ModelBuilder()
@@ -166,32 +172,6 @@ def test_implicit_step_with_stencils_matches_a_dense_solve(linear_solver):
     rng = np.random.default_rng(4)
     x = (model.particle_q.numpy() + rng.normal(scale=3e-3, size=(model.particle_count, 3))).astype(np.float32).astype(np.float64)
     v = rng.normal(scale=0.1, size=x.shape).astype(np.float32).astype(np.float64)
-    state = model.state()
-    state.particle_q.assign(x.astype(np.float32))
-    state.particle_qd.assign(v.astype(np.float32))
-    control = model.control()
-    target = control.pin_target.numpy()
-    target[0] += 0.002
-    control.pin_target.assign(target)
-    dt = 1.0 / 60.0
-    solver = cw.SolverImplicitEuler(model, linear_solver=linear_solver, tolerance=1e-7, max_iterations=20000, check_every=1)
-    dv = solver.solve(state, control, dt).numpy()
-    a, rhs = NumpyCloth(model).implicit_system(x, v, control.pin_target.numpy(), control.wind.numpy()[0], dt)
-    off, pts, w, stiff = stencil_arrays(model)
-    n = model.particle_count
-    k_scalar = np.zeros((n, n))
-    for s in range(len(stiff)):
-        p, cw_ = pts[off[s]:off[s + 1]], w[off[s]:off[s + 1]]
-        k_scalar[np.ix_(p, p)] += cw_ @ stiff[s] @ cw_.T
-    k = np.kron(k_scalar, np.eye(3))
-    force = -(k @ x.ravel())
-    a += dt * dt * k
-    rhs += dt * (force - dt * k @ v.ravel())
-    pinned = model.particle_pinned.numpy() != 0
-    z = np.zeros_like(x)
-    z[pinned] = (control.pin_target.numpy()[pinned] - x[pinned]) / dt - v[pinned]
-    free = np.repeat(~pinned, 3)
-    expected = z.ravel().copy()
-    expected[free] = np.linalg.solve(a[np.ix_(free, free)], rhs[free] - a[np.ix_(free, ~free)] @ z.ravel()[~free])
-    err = np.linalg.norm(dv - expected.reshape(-1, 3)) / np.linalg.norm(expected)
+    k = np.kron(stencil_stiffness(model), np.eye(3))
+    err, solver = implicit_step_error(model, x, v, 1.0 / 60.0, linear_solver, np.zeros_like(k), k, -(k @ x.ravel()))
     assert err < 1e-4, (err, solver.last_iterations, solver.last_residual)
