@@ -62,6 +62,8 @@ class ElementSet:
         self.sorted_cell = wp.zeros(self.entry_capacity, dtype=wp.vec3i, device=dev)
         self.sorted_lo = wp.zeros(self.entry_capacity, dtype=wp.vec3, device=dev)
         self.sorted_hi = wp.zeros(self.entry_capacity, dtype=wp.vec3, device=dev)
+        self.entry_count = wp.zeros(1, dtype=wp.int32, device=dev)
+        """The entry count of the last :meth:`update_fixed`, on the device (clamped to the capacity)."""
 
     def subset(self, ids: np.ndarray, grid: bool) -> "ElementSet":
         """The elements with these ids, keeping their ids."""
@@ -81,7 +83,7 @@ class ElementSet:
         total = int(self.offsets.numpy()[self.count - 1]) + int(self.cell_count.numpy()[self.count - 1])
         if total > self.entry_capacity:
             self._allocate_entries(_next_pow2(total))
-        wp.launch(kb.fill_cells, dim=self.count, inputs=[self.cell_lo, self.cell_hi, self.offsets, self.table_size - 1],
+        wp.launch(kb.fill_cells, dim=self.count, inputs=[self.cell_lo, self.cell_hi, self.offsets, self.table_size - 1, self.entry_capacity],
                   outputs=[self.keys, self.values, self.entry_element, self.entry_cell], device=dev)
         wp.utils.radix_sort_pairs(self.keys, self.values, total)
         wp.launch(kb.gather_sorted_entries, dim=total, inputs=[self.values, self.entry_element, self.entry_cell, self.lo, self.hi],
@@ -90,6 +92,38 @@ class ElementSet:
         self.bucket_end.zero_()
         wp.launch(kb.bucket_ranges, dim=total, inputs=[self.keys, total], outputs=[self.bucket_start, self.bucket_end], device=dev)
         self.entries = total
+
+    def update_fixed(self, x_start: wp.array, velocity: wp.array, dt: float, pad: float, inv_cell_size: float, clamped: wp.array,
+                     overflow: wp.array, slot: int):
+        """:meth:`update` without reading the device: the entry count stays on the device (:attr:`entry_count`),
+        at most :attr:`entry_capacity` entries are registered, and a larger need is recorded in overflow[slot]
+        (the entries kept are then incomplete: the caller re-runs after :meth:`grow_entries`). The whole capacity
+        is sorted, entries past the count keyed above every bucket, so the entries come out in the order of
+        :meth:`update`'s sort (the radix sort is stable) and the same pairs are found in the same order."""
+        if self.count == 0:
+            self.entries = 0
+            return
+        dev = self.device
+        wp.launch(kb.element_bounds, dim=self.count, inputs=[self.elements, x_start, velocity, dt, pad, inv_cell_size],
+                  outputs=[self.lo, self.hi, self.cell_lo, self.cell_hi, self.cell_count, clamped], device=dev)
+        if not self.grid:
+            return
+        cap = self.entry_capacity
+        wp.utils.array_scan(self.cell_count, self.offsets, inclusive=False)
+        wp.launch(kb.entry_total, dim=1, inputs=[self.cell_count, self.offsets, self.count, cap, slot], outputs=[self.entry_count, overflow],
+                  device=dev)
+        wp.launch(kb.fill_cells, dim=self.count, inputs=[self.cell_lo, self.cell_hi, self.offsets, self.table_size - 1, cap],
+                  outputs=[self.keys, self.values, self.entry_element, self.entry_cell], device=dev)
+        wp.launch(kb.pad_entry_keys, dim=cap, inputs=[self.entry_count, self.table_size], outputs=[self.keys], device=dev)
+        wp.utils.radix_sort_pairs(self.keys, self.values, cap, 0, self.table_size.bit_length())
+        wp.launch(kb.gather_sorted_entries_listed, dim=cap, inputs=[self.entry_count, self.values, self.entry_element, self.entry_cell, self.lo,
+                                                                   self.hi],
+                  outputs=[self.sorted_element, self.sorted_cell, self.sorted_lo, self.sorted_hi], device=dev)
+        self.bucket_start.zero_()
+        self.bucket_end.zero_()
+        wp.launch(kb.bucket_ranges_listed, dim=cap, inputs=[self.keys, self.entry_count], outputs=[self.bucket_start, self.bucket_end],
+                  device=dev)
+        self.entries = None  # on the device
 
 
 class PairBuffer:
@@ -130,6 +164,31 @@ class PairBuffer:
             self._allocate(_next_pow2(n))
             self.grown += 1
 
+    def search_fixed(self, searches: list, inv_cell_size: float, overflow: wp.array, slot: int):
+        """:meth:`search` without reading the device: one pass, the count in :attr:`count_array` (clamped to the
+        capacity), a larger need recorded in overflow[slot] (the pairs kept are then incomplete). Targets'
+        entries may be on the device (empty buckets give no pairs)."""
+        self.count = None  # on the device
+        self.count_array.zero_()
+        for query, target, ordered, query_skip, target_skip in searches:
+            if not (query.count and target.count):
+                continue
+            wp.launch(kb.find_pairs, dim=query.count,
+                      inputs=[query.elements, query.ids, query_skip, query.lo, query.hi, query.cell_lo, query.cell_hi,
+                              target.elements, target.ids, target_skip, target.sorted_element, target.sorted_cell,
+                              target.sorted_lo, target.sorted_hi, target.bucket_start, target.bucket_end,
+                              target.table_size - 1, inv_cell_size, int(ordered), self.capacity],
+                      outputs=[self.pairs, self.count_array], device=self.device)
+        wp.launch(kb.clamp_count, dim=1, inputs=[self.capacity, slot], outputs=[self.count_array, overflow], device=self.device)
+
+    def grow(self, needed: int) -> bool:
+        """Make room for `needed` pairs (a power of two); False when they fit already."""
+        if needed <= self.capacity:
+            return False
+        self._allocate(_next_pow2(needed))
+        self.grown += 1
+        return True
+
     def numpy(self) -> np.ndarray:
         return self.pairs.numpy()[: self.count].copy()
 
@@ -145,7 +204,7 @@ class SelfCollisionGrid:
     """
 
     def __init__(self, triangles: np.ndarray, particle_count: int, device, cell_size: float | None = None, edges: np.ndarray | None = None,
-                 rest_positions: np.ndarray | None = None):
+                 rest_positions: np.ndarray | None = None, pair_capacity: int = 1024):
         tris = np.asarray(triangles, np.int64).reshape(-1, 3)
         if edges is None:
             edges = unique_edges(tris)
@@ -162,8 +221,8 @@ class SelfCollisionGrid:
         self.points = ElementSet(np.arange(particle_count).reshape(-1, 1), device, grid=True)
         self.edges = ElementSet(self.edges_np, device, grid=True)
         self.triangles = ElementSet(tris, device, grid=False)
-        self.vertex_face = PairBuffer(device)
-        self.edge_edge = PairBuffer(device)
+        self.vertex_face = PairBuffer(device, pair_capacity)
+        self.edge_edge = PairBuffer(device, pair_capacity)
         # pairs with an element the last patch registered again
         self.patch_vertex_face = PairBuffer(device)
         self.patch_edge_edge = PairBuffer(device)
@@ -176,6 +235,8 @@ class SelfCollisionGrid:
         self.clamped = wp.zeros(1, dtype=wp.int32, device=device)
         self._escaped = wp.zeros(1, dtype=wp.int32, device=device)
         self._reference = None
+        self.fixed_reference = None
+        """Per particle, the velocity [m/s] the last :meth:`build_fixed` registered (its own buffer)."""
         self.builds = 0
         self.patches = 0
 
@@ -202,6 +263,39 @@ class SelfCollisionGrid:
     def invalidate(self):
         """Forget the last update (the start positions it was built on have changed)."""
         self._reference = None
+
+    def build_fixed(self, x_start: wp.array, velocity: wp.array, dt: float, pad: float, margin: float, overflow: wp.array, slots: dict):
+        """:meth:`update` without reading the device (capturable): fixed capacities, counts on the device
+        (:attr:`PairBuffer.count_array`), the need of a buffer that overflowed recorded in overflow[slots[name]]
+        (names: "points", "edges" (grid entries), "vertex_face", "edge_edge"). The trajectories' velocity is
+        copied into :attr:`fixed_reference`. Patches and :meth:`refresh` do not apply to such a build (it
+        invalidates the host path's reference)."""
+        inv = 1.0 / self.cell_size
+        for name, s in self.element_sets():
+            s.update_fixed(x_start, velocity, dt, pad + margin, inv, self.clamped, overflow, slots.get(name, 0))
+        none = self._none
+        self.vertex_face.search_fixed([(self.triangles, self.points, False, none["triangles"], none["points"])], inv, overflow,
+                                      slots["vertex_face"])
+        self.edge_edge.search_fixed([(self.edges, self.edges, True, none["edges"], none["edges"])], inv, overflow, slots["edge_edge"])
+        if self.fixed_reference is None or self.fixed_reference.shape != velocity.shape:
+            self.fixed_reference = wp.zeros_like(velocity, requires_grad=False)
+        wp.copy(self.fixed_reference, velocity)
+        self.invalidate()
+
+    def grow(self, needed: dict) -> bool:
+        """Grow the buffers named in `needed` (name -> count, names as in :meth:`build_fixed`) to hold that many
+        (powers of two); True when any changed (arrays are new: graphs recorded before must be recorded again).
+        A grid's hash table grows with its entries (so its pairs come in a new order)."""
+        changed = False
+        sets = dict(self.element_sets())
+        for name, n in needed.items():
+            if name in ("points", "edges"):
+                if n > sets[name].entry_capacity:
+                    sets[name]._allocate_entries(_next_pow2(n))
+                    changed = True
+            elif name in ("vertex_face", "edge_edge"):
+                changed |= getattr(self, name).grow(n)
+        return changed
 
     def refresh(self, x_start: wp.array, velocity: wp.array, dt: float, pad: float, margin: float, max_fresh: float = 0.25) -> str:
         """Make the pairs valid for the step x_start -> x_start + dt velocity: "kept" when no particle's end

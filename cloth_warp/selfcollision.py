@@ -20,16 +20,27 @@ Per step, from the collision-free start x^n and the candidate end x~ (physics.md
 Under ``wp.Tape`` steps 2-3 differentiate with the contact set held fixed; an impact zone's rigid
 motion is computed on the host, so the step passes no gradient to its particles' positions.
 Pinned particles have infinite mass (impulses never move them) and keep their motion in a zone.
+
+The capturable path (``SelfCollision(model, capturable=True)``, forward only) runs the same physics without
+reading the device on the host, so a frame can be recorded once as a graph (``wp.ScopedCapture``) and
+replayed: buffers have fixed capacities (what does not fit is dropped and the need recorded), counts stay
+on the device, the CCD sweeps are a ``wp.capture_while`` loop, the broad phase is built in full on the
+device when the step's start positions are new and built again (``wp.capture_if``) when an end point left
+the margin (no patches), and impacts left after the sweeps are not resolved but flagged. After the frame,
+:meth:`SelfCollision.status` (one read) says whether a buffer overflowed or a step needed impact zones;
+the caller then calls :meth:`SelfCollision.grow` and runs the frame again on the host path.
 """
 
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass, field
 
 import numpy as np
 import warp as wp
 
 from .broadphase import SelfCollisionGrid
+from .graphs import device_while
 from .kernels import broadphase as kbp
 from .kernels import selfcollide as ksc
 from .model import ModelFlags
@@ -39,6 +50,26 @@ log = logging.getLogger(__name__)
 KINDS = (0, 1)  # vertex-face, edge-edge
 COUNTERS = ("self_proximity", "self_ccd", "self_sweeps", "impact_zones", "impact_zone_particles", "unresolved", "oversized",
             "pair_buffer_growths", "broad_phase_builds", "broad_phase_patches")
+# the capturable path's fixed-capacity buffers and where their needs are recorded in the counter block
+BUFFERS = {"points": ksc.NEED_POINT_ENTRIES, "edges": ksc.NEED_EDGE_ENTRIES, "vertex_face": ksc.NEED_VERTEX_FACE,
+           "edge_edge": ksc.NEED_EDGE_EDGE}
+
+
+@dataclass(frozen=True)
+class SelfCollisionStatus:
+    """What the capturable path reports after a frame (one device read, :meth:`SelfCollision.status`)."""
+
+    overflow: dict = field(default_factory=dict)
+    """Buffers that were too small: name ("points" / "edges": hash-grid entries, "vertex_face" / "edge_edge":
+    candidate pairs) -> (entries or pairs needed, capacity). Their steps dropped candidates: run again."""
+    fallback_steps: int = 0
+    """Steps whose CCD sweeps left impacts (they need rigid impact zones, which only the host path has)."""
+
+    @property
+    def needs_rerun(self) -> bool:
+        """The frame's result is not valid: grow the buffers (:meth:`SelfCollision.grow`) and run it again on the
+        host path."""
+        return bool(self.overflow) or self.fallback_steps > 0
 
 
 class SelfCollision:
@@ -46,23 +77,27 @@ class SelfCollision:
 
     Args:
         model: its ``cloth_thickness`` [m], ``cloth_friction`` and ``self_collision_stiffness`` [N/m] are read at
-            every use, its masses when built and on :meth:`notify_model_changed`.
+            every use (in a recorded graph: when recorded), its masses when built and on :meth:`notify_model_changed`.
         sweeps: CCD passes with impulses before rigid impact zones take over.
         zone_iterations: the most detection / merge rounds of impact zones per step.
+        capturable: run forward steps on the capturable path (see the module; also settable as
+            :attr:`capturable`); taped steps always take the host path.
+        pair_capacity: the first capacity of each candidate-pair buffer (both paths grow it when needed).
 
     Counters (summed since :meth:`reset_counts`): ``self_proximity`` (repulsion impulses),
     ``self_ccd`` (CCD impacts found), ``self_sweeps`` (CCD passes run), ``impact_zones`` (zones formed),
     ``impact_zone_particles``, ``unresolved`` (steps that ended with impacts left: should stay 0),
     ``oversized`` (elements whose box spans more than 64 voxels on an axis: broad phase clamped),
     ``pair_buffer_growths``, ``broad_phase_builds`` (full hash-grid builds) and ``broad_phase_patches``
-    (re-registrations of the elements whose end points left the margin).
+    (re-registrations of the elements whose end points left the margin). They live in one device block
+    (:attr:`counts`, read once by :meth:`read_counts`) with the capturable path's status.
     """
 
-    def __init__(self, model, sweeps: int = 4, zone_iterations: int = 64):
+    def __init__(self, model, sweeps: int = 4, zone_iterations: int = 64, capturable: bool = False, pair_capacity: int = 1024):
         self.model = model
         dev = model.device
         tris = model.tri_indices.numpy().reshape(-1, 3)
-        self.grid = SelfCollisionGrid(tris, model.particle_count, dev, rest_positions=model.rest_positions)
+        self.grid = SelfCollisionGrid(tris, model.particle_count, dev, rest_positions=model.rest_positions, pair_capacity=pair_capacity)
         self.edge_indices = self.grid.edges.elements  # (E, 3) rows, -1 padded: columns 0, 1 used
         self.tri_indices = model.tri_indices
         self.mass = np.zeros(0)
@@ -74,13 +109,19 @@ class SelfCollision:
         self._read_masses()
         self.sweeps = int(sweeps)
         self.zone_iterations = int(zone_iterations)
-        self.counts = wp.zeros(2, dtype=wp.int32, device=dev)
+        self.counts = wp.zeros(ksc.COUNT_SIZE, dtype=wp.int32, device=dev)
+        """Counters and status, int32 [ksc.COUNT_SIZE] (indices ksc.COUNT_* / ksc.NEED_*)."""
+        self.grid.clamped = self.counts[ksc.COUNT_OVERSIZED:ksc.COUNT_OVERSIZED + 1]  # the broad phase counts into the block
         self.no_zone = wp.full(model.particle_count, -1, dtype=wp.int32, device=dev)
+        self.capturable = bool(capturable)
+        """Forward steps take the capturable path (no device reads; see the module)."""
         self._cache: dict = {}
         self._last_weight = None
         self._resolved = None  # (x_start, dt, vbar) of the last round that ended without impacts
         self._close: dict = {}
         self._flip = False
+        self._fixed = None  # the capturable path's buffers (see _fixed_buffers)
+        self._fixed_step = None  # (x_start, dt) the capturable path's broad phase was built for
         self.reset_counts()
 
     # -- the model's values ----------------------------------------------------------------------
@@ -131,12 +172,49 @@ class SelfCollision:
         self._grown0 = self.grid.vertex_face.grown + self.grid.edge_edge.grown
 
     def read_counts(self) -> dict:
-        c = self.counts.numpy()
+        """The counters (:data:`COUNTERS`) since :meth:`reset_counts`: one read of the device block."""
+        return self._counts_of(self.counts.numpy())
+
+    def _counts_of(self, c: np.ndarray) -> dict:
         out = {"self_proximity": int(c[ksc.COUNT_PROXIMITY]), "self_ccd": int(c[ksc.COUNT_CCD])}
         out.update(self.host_counts)
-        out["oversized"] = int(self.grid.clamped.numpy()[0])
+        out["self_sweeps"] += int(c[ksc.COUNT_SWEEPS])
+        out["broad_phase_builds"] += int(c[ksc.COUNT_BUILDS])
+        out["oversized"] = int(c[ksc.COUNT_OVERSIZED])
         out["pair_buffer_growths"] = self.grid.vertex_face.grown + self.grid.edge_edge.grown - self._grown0
         return out
+
+    def status(self) -> SelfCollisionStatus:
+        """The capturable path's report since :meth:`reset_counts` (one read of the device block)."""
+        return self._status_of(self.counts.numpy())
+
+    def read_report(self) -> tuple[SelfCollisionStatus, dict]:
+        """(:meth:`status`, :meth:`read_counts`) from one read of the device block."""
+        c = self.counts.numpy()
+        return self._status_of(c), self._counts_of(c)
+
+    def capacities(self) -> dict:
+        """The capturable path's buffers' capacities (names as in :class:`SelfCollisionStatus`)."""
+        g = self.grid
+        return {"points": g.points.entry_capacity, "edges": g.edges.entry_capacity, "vertex_face": g.vertex_face.capacity,
+                "edge_edge": g.edge_edge.capacity}
+
+    def _status_of(self, c: np.ndarray) -> SelfCollisionStatus:
+        caps = self.capacities()
+        overflow = {name: (int(c[slot]), caps[name]) for name, slot in BUFFERS.items() if int(c[slot]) > caps[name]}
+        return SelfCollisionStatus(overflow=overflow, fallback_steps=int(c[ksc.COUNT_FALLBACKS]))
+
+    def grow(self, status: SelfCollisionStatus | None = None) -> bool:
+        """Grow the buffers that overflowed (`status`: default, read it now) to the next power of two of their need;
+        True when any changed (then graphs recorded before must be recorded again: the arrays are new). The
+        recorded needs are cleared (the other counters are not: :meth:`reset_counts` before running again)."""
+        status = self.status() if status is None else status
+        changed = self.grid.grow({name: needed for name, (needed, _) in status.overflow.items()})
+        if changed:
+            self._fixed = None
+        if status.overflow:
+            self.counts[ksc.NEED_POINT_ENTRIES:].zero_()
+        return changed
 
     # -- checkpoints -----------------------------------------------------------------------------
     def checkpoint_state(self) -> dict:
@@ -151,6 +229,8 @@ class SelfCollision:
         self.grid.restore_state({k[len("grid."):]: v for k, v in state.items() if k.startswith("grid.")})
         self._flip = bool(state["flip"])
         self._resolved = None
+        self._fixed_step = None
+        self._fixed = None  # capacities may have changed
         self.reset_counts()
 
     # -- buffers ---------------------------------------------------------------------------------
@@ -181,6 +261,7 @@ class SelfCollision:
         ("vertex_face": (triangle, particle), "edge_edge": (edge, edge) as rows of :attr:`edges`) and its first
         contact time [s] (-1 when none)."""
         dev = self.model.device
+        self._fixed_step = None
         self.grid.update(x_start, vbar, dt, 0.5 * self.thickness)
         out = {}
         for kind, name in zip(KINDS, ("vertex_face", "edge_edge")):
@@ -201,11 +282,15 @@ class SelfCollision:
     # -- the pipeline ----------------------------------------------------------------------------
     def apply(self, x_start: wp.array, x_end: wp.array, v_end: wp.array, dt: float, x_out: wp.array, v_out: wp.array):
         """Resolve the step x_start -> (x_end, v_end) into a collision-free (x_out, v_out) (the outputs
-        may alias the inputs when nothing is taped)."""
+        may alias the inputs when nothing is taped). With :attr:`capturable` (and nothing taped) on the
+        capturable path, whose result is valid unless :meth:`status` asks for a re-run."""
+        rg = x_end.requires_grad
+        if self.capturable and not rg:
+            self._apply_fixed(x_start, x_end, v_end, dt, x_out, v_out)
+            return
         m = self.model
         dev = m.device
         n = m.particle_count
-        rg = x_end.requires_grad
         h_c = self.thickness
         vbar0 = self._buffer("vbar0", wp.vec3, rg)
         wp.launch(ksc.average_velocity, dim=n, inputs=[x_start, x_end, dt], outputs=[vbar0], device=dev)
@@ -252,13 +337,128 @@ class SelfCollision:
         """A new step starts: the start positions changed, so the broad phase and the last round's result are stale."""
         self.grid.invalidate()
         self._resolved = None
+        self._fixed_step = None
 
+    # -- the capturable path ----------------------------------------------------------------------
+    # The same passes as the host path, launched over fixed capacities with the counts on the device. Its
+    # results equal the host path's bit for bit while the host path builds or keeps its broad phase and both
+    # have the same grid capacities; where the host path patches, this one builds again, so the candidate
+    # lists (and the order in which impulses add up) differ: then the results differ by round-off.
+    def _fixed_buffers(self) -> "_FixedBuffers":
+        """The capturable path's arrays, allocated on the host (first use, and after :meth:`grow`)."""
+        caps = (self.grid.vertex_face.capacity, self.grid.edge_edge.capacity)
+        if self._fixed is None or self._fixed.capacities != caps:  # grown (here or by the host path)
+            self._fixed = _FixedBuffers(self.model, self.grid)
+        return self._fixed
+
+    def _apply_fixed(self, x_start, x_end, v_end, dt, x_out, v_out):
+        """:meth:`apply` on the capturable path (no device reads; impacts left after the sweeps are counted as
+        fallbacks, not resolved)."""
+        m = self.model
+        dev = m.device
+        n = m.particle_count
+        f = self._fixed_buffers()
+        h_c = self.thickness
+        pad = 0.5 * h_c
+        wp.launch(ksc.average_velocity, dim=n, inputs=[x_start, x_end, dt], outputs=[f.vbar0], device=dev)
+        if self._fixed_step is not None and self._fixed_step[0] is x_start and self._fixed_step[1] == float(dt):
+            self._refresh_fixed(x_start, f.vbar0, dt, pad)  # a later round of the step
+        else:
+            self._build_fixed(x_start, f.vbar0, dt, pad)
+            self._fixed_step = (x_start, float(dt))
+        # 2. proximity pass
+        f.dv.zero_()
+        f.weight.zero_()
+        for kind in KINDS:
+            wp.launch(ksc.self_proximity_listed, dim=f.close[kind].shape[0],
+                      inputs=[f.close_count[kind], f.close[kind], kind, self.tri_indices, self.edge_indices, self.inv_mass, x_start, f.vbar0,
+                              h_c, self.stiffness, self.friction, dt],
+                      outputs=[f.dv, f.weight, self.counts], device=dev)
+        wp.launch(ksc.apply_velocity_changes, dim=n, inputs=[f.vbar0, f.dv, f.weight], outputs=[f.vbar], device=dev)
+        # 3. CCD sweeps on the device: the first on every close pair (a later round of the step: on the pairs
+        # with a particle whose vbar changed since the last round's result), then while impacts remain
+        resumed = self._resolved is not None and self._resolved[0] is x_start and self._resolved[1] == float(dt)
+        if resumed:
+            wp.launch(ksc.mark_changed, dim=n, inputs=[f.vbar, self._resolved[2]], outputs=[f.changed], device=dev)
+        sweep = {"x_start": x_start, "dt": dt, "pad": pad, "tolerance": self.contact_tolerance(), "separation": 0.1 * h_c / dt}
+        wp.launch(ksc.begin_sweeps, dim=1, inputs=[self.sweeps], outputs=[f.loop], device=dev)
+        self._sweep_fixed(first=True, weight=f.changed if resumed else None, **sweep)
+        device_while(f.loop, self._sweep_fixed, first=False, weight=f.weight, **sweep)
+        # 4. impacts left: counted in the block (COUNT_FALLBACKS) for the caller to run the frame on the host path
+        wp.copy(f.resolved, f.vbar)
+        self._resolved = (x_start, float(dt), f.resolved)
+        wp.launch(ksc.finish_step, dim=n, inputs=[x_start, f.vbar, f.vbar0, v_end, dt], outputs=[x_out, v_out], device=dev)
+
+    def _sweep_fixed(self, x_start, dt, pad, tolerance, separation, first: bool, weight):
+        """One CCD sweep of the capturable path (the body of its ``capture_while`` loop after the first): the
+        broad phase refreshed for the current vbar (not before the first), CCD on the close pairs (`weight`:
+        only those with a particle whose weight is > 0), the impulses averaged into vbar, the loop state updated."""
+        f = self._fixed
+        dev = self.model.device
+        if not first:
+            self._refresh_fixed(x_start, f.vbar, dt, pad)
+        lists = {kind: (f.close[kind], f.close_count[kind]) for kind in KINDS}
+        if weight is not None:
+            lists = self._changed_pairs_fixed(weight)
+        f.dv.zero_()  # after the selection: it reads the last sweep's weights
+        f.weight.zero_()
+        for kind, (pairs, count) in lists.items():
+            wp.launch(ksc.self_ccd_listed, dim=pairs.shape[0],
+                      inputs=[count, pairs, kind, self.tri_indices, self.edge_indices, self.inv_mass, self.no_zone, x_start, f.vbar, dt,
+                              tolerance, separation],
+                      outputs=[f.dv, f.weight, self.counts, f.loop], device=dev)
+        wp.launch(ksc.apply_velocity_changes, dim=self.model.particle_count, inputs=[f.vbar, f.dv, f.weight], outputs=[f.vbar], device=dev)
+        wp.launch(ksc.end_sweep, dim=1, inputs=[self.sweeps], outputs=[f.loop, self.counts], device=dev)
+
+    def _changed_pairs_fixed(self, weight) -> dict:
+        """The close pairs with an element whose particle has weight > 0 (see :meth:`_active_lists`)."""
+        f = self._fixed
+        dev = self.model.device
+        for name, elements in self.grid.element_sets():
+            wp.launch(kbp.mark_changed_elements, dim=elements.count, inputs=[elements.elements, weight, self.no_zone], outputs=[f.flags[name]],
+                      device=dev)
+        out = {}
+        for kind in KINDS:
+            first, second = (f.flags["triangles"], f.flags["points"]) if kind == 0 else (f.flags["edges"], f.flags["edges"])
+            f.active_count[kind].zero_()
+            wp.launch(kbp.select_flagged_pairs_listed, dim=f.active[kind].shape[0], inputs=[f.close_count[kind], f.close[kind], first, second, 1],
+                      outputs=[f.active[kind], f.active_count[kind]], device=dev)
+            out[kind] = (f.active[kind], f.active_count[kind])
+        return out
+
+    def _refresh_fixed(self, x_start, vbar, dt, pad):
+        """Keep the broad phase while no end point left the margin around the one it was built with, else build
+        it again (a device-side branch)."""
+        f = self._fixed
+        f.escaped.zero_()
+        wp.launch(kbp.take_escaped, dim=self.model.particle_count, inputs=[vbar, dt, self.margin],
+                  outputs=[self.grid.fixed_reference, f.escaped_particles, f.escaped], device=self.model.device)
+        wp.capture_if(f.escaped, on_true=self._build_fixed, x_start=x_start, velocity=vbar, dt=dt, pad=pad)
+
+    def _build_fixed(self, x_start, velocity, dt, pad):
+        """A full broad phase on the device (boxes grown by the margin) and its close pairs."""
+        f = self._fixed
+        dev = self.model.device
+        g = self.grid
+        g.build_fixed(x_start, velocity, dt, pad, self.margin, self.counts, BUFFERS)
+        wp.launch(ksc.increment_count, dim=1, inputs=[ksc.COUNT_BUILDS], outputs=[self.counts], device=dev)
+        reach = self.thickness + self.contact_tolerance()
+        for kind in KINDS:
+            buf = g.vertex_face if kind == 0 else g.edge_edge
+            f.close_count[kind].zero_()
+            wp.launch(ksc.select_close_pairs_listed, dim=buf.capacity,
+                      inputs=[buf.count_array, buf.pairs, kind, self.tri_indices, self.edge_indices, x_start, g.fixed_reference, dt, self.margin,
+                              reach],
+                      outputs=[f.close[kind], f.close_count[kind]], device=dev)
+
+    # -- the host path's broad phase -------------------------------------------------------------
     def _refresh_grid(self, x_start, vbar, dt, pad):
         """Keep the candidate pairs valid for the trajectories x_start + t vbar (the handler invalidates the
         broad phase at the start of each step: same array, new start positions): a full broad phase on new
         start positions, then only a patch for the particles whose end points left the margin (see
         :meth:`SelfCollisionGrid.refresh`); of the pairs, those close enough to touch are kept (within the
         thickness, given how far their vertices can move)."""
+        self._fixed_step = None  # the host path rebuilds the grid's buffers the capturable path also uses
         done = self.grid.refresh(x_start, vbar, dt, pad, self.margin)
         self.host_counts[f"broad_phase_{'patches' if done == 'patched' else 'builds'}"] += done != "kept"
         if done == "kept":
@@ -456,6 +656,34 @@ class SelfCollision:
         rot = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
         out[free] = (qc + (p[free] - pc) @ rot.T - p[free]) / dt
         return out
+
+
+class _FixedBuffers:
+    """The capturable path's arrays: per particle vbar (candidate and current), impulse sums, change flags,
+    the last resolved vbar and escape flags; per pair kind the close and active lists (the grid's pair
+    capacity) with device counts; per element set change flags; the CCD loop state."""
+
+    def __init__(self, model, grid: SelfCollisionGrid):
+        dev = model.device
+        n = model.particle_count
+        self.vbar0 = wp.zeros(n, dtype=wp.vec3, device=dev)
+        self.vbar = wp.zeros(n, dtype=wp.vec3, device=dev)
+        self.dv = wp.zeros(n, dtype=wp.vec3, device=dev)
+        self.weight = wp.zeros(n, dtype=float, device=dev)
+        self.changed = wp.zeros(n, dtype=float, device=dev)
+        self.resolved = wp.zeros(n, dtype=wp.vec3, device=dev)
+        self.escaped_particles = wp.zeros(n, dtype=wp.int32, device=dev)
+        self.escaped = wp.zeros(1, dtype=wp.int32, device=dev)
+        self.loop = wp.zeros(4, dtype=wp.int32, device=dev)
+        caps = (grid.vertex_face.capacity, grid.edge_edge.capacity)
+        self.capacities = caps
+        self.close = [wp.zeros(c, dtype=wp.vec2i, device=dev) for c in caps]
+        self.close_count = [wp.zeros(1, dtype=wp.int32, device=dev) for _ in caps]
+        self.active = [wp.zeros(c, dtype=wp.vec2i, device=dev) for c in caps]
+        self.active_count = [wp.zeros(1, dtype=wp.int32, device=dev) for _ in caps]
+        self.flags = {name: wp.zeros(max(s.count, 1), dtype=wp.int32, device=dev) for name, s in grid.element_sets()}
+        if grid.fixed_reference is None:
+            grid.fixed_reference = wp.zeros(n, dtype=wp.vec3, device=dev)
 
 
 def connected_labels(links: np.ndarray, count: int) -> np.ndarray:

@@ -11,7 +11,9 @@ voxels that hash to the same bucket are skipped by their stored voxel coordinate
 (their index in the full set), so the same search runs between the full grid and small grids of the
 elements re-registered by a patch. Pair buffers
 never truncate silently: the pair count is always the true count, pairs are written only while it
-is below the buffer's capacity, and the host grows the buffer and searches again.
+is below the buffer's capacity, and the host grows the buffer and searches again. The capturable
+path (``*_listed`` kernels, launched over a buffer's capacity with the count in a device array) never
+reads a count on the host: what does not fit is dropped and the need recorded as an overflow instead.
 """
 
 import warp as wp
@@ -112,12 +114,14 @@ def fill_cells(
     cell_hi: wp.array(dtype=wp.vec3i),
     offsets: wp.array(dtype=wp.int32),
     table_mask: int,
+    capacity: int,
     keys_out: wp.array(dtype=wp.int32),
     values_out: wp.array(dtype=wp.int32),
     entry_element_out: wp.array(dtype=wp.int32),
     entry_cell_out: wp.array(dtype=wp.vec3i),
 ):
-    """One entry (bucket key, entry id) per voxel an element touches."""
+    """One entry (bucket key, entry id) per voxel an element touches; entries past `capacity` are dropped
+    (the capturable path's overflow, reported by :func:`entry_total`)."""
     e = wp.tid()
     lo = cell_lo[e]
     hi = cell_hi[e]
@@ -125,6 +129,8 @@ def fill_cells(
     for i in range(lo[0], hi[0] + 1):
         for j in range(lo[1], hi[1] + 1):
             for k in range(lo[2], hi[2] + 1):
+                if slot >= capacity:
+                    return
                 c = wp.vec3i(i, j, k)
                 keys_out[slot] = cell_hash(c, table_mask)
                 values_out[slot] = slot
@@ -158,6 +164,69 @@ def gather_sorted_entries(sorted_entries: wp.array(dtype=wp.int32), entry_elemen
     cell_out[s] = entry_cell[e]
     lo_out[s] = lo[element]
     hi_out[s] = hi[element]
+
+
+@wp.kernel
+def gather_sorted_entries_listed(total: wp.array(dtype=wp.int32), sorted_entries: wp.array(dtype=wp.int32),
+                                 entry_element: wp.array(dtype=wp.int32), entry_cell: wp.array(dtype=wp.vec3i),
+                                 lo: wp.array(dtype=wp.vec3), hi: wp.array(dtype=wp.vec3), element_out: wp.array(dtype=wp.int32),
+                                 cell_out: wp.array(dtype=wp.vec3i), lo_out: wp.array(dtype=wp.vec3), hi_out: wp.array(dtype=wp.vec3)):
+    """:func:`gather_sorted_entries` launched over the capacity: the first total[0] entries (capturable path)."""
+    s = wp.tid()
+    if s >= total[0]:
+        return
+    e = sorted_entries[s]
+    element = entry_element[e]
+    element_out[s] = element
+    cell_out[s] = entry_cell[e]
+    lo_out[s] = lo[element]
+    hi_out[s] = hi[element]
+
+
+@wp.kernel
+def entry_total(cell_count: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.int32), count: int, capacity: int, slot: int,
+                total_out: wp.array(dtype=wp.int32), overflow_out: wp.array(dtype=wp.int32)):
+    """One thread: the number of grid entries (exclusive scan's last offset plus the last count), clamped to the
+    capacity; a larger need is recorded as overflow_out[slot] = max(overflow_out[slot], need)."""
+    total = offsets[count - 1] + cell_count[count - 1]
+    if total > capacity:
+        wp.atomic_max(overflow_out, slot, total)
+        total = capacity
+    total_out[0] = total
+
+
+@wp.kernel
+def pad_entry_keys(total: wp.array(dtype=wp.int32), sentinel: int, keys_out: wp.array(dtype=wp.int32)):
+    """Keys past the entry count take `sentinel` (above every bucket), so that sorting the whole capacity
+    leaves the entries first, in the order a sort of the entries alone gives (the sort is stable)."""
+    i = wp.tid()
+    if i >= total[0]:
+        keys_out[i] = sentinel
+
+
+@wp.kernel
+def bucket_ranges_listed(keys: wp.array(dtype=wp.int32), total: wp.array(dtype=wp.int32), bucket_start_out: wp.array(dtype=wp.int32),
+                         bucket_end_out: wp.array(dtype=wp.int32)):
+    """:func:`bucket_ranges` launched over the capacity, with the entry count total[0] on the device."""
+    i = wp.tid()
+    n = total[0]
+    if i >= n:
+        return
+    k = keys[i]
+    if i == 0 or keys[i - 1] != k:
+        bucket_start_out[k] = i
+    if i == n - 1 or keys[i + 1] != k:
+        bucket_end_out[k] = i + 1
+
+
+@wp.kernel
+def clamp_count(capacity: int, slot: int, count_out: wp.array(dtype=wp.int32), overflow_out: wp.array(dtype=wp.int32)):
+    """One thread: a buffer counted count_out[0] items and kept the first `capacity`: record a larger need in
+    overflow_out[slot] (max over the frame) and clamp the count to what the buffer holds."""
+    n = count_out[0]
+    if n > capacity:
+        wp.atomic_max(overflow_out, slot, n)
+        count_out[0] = capacity
 
 
 @wp.kernel
@@ -274,6 +343,22 @@ def select_flagged_pairs(pairs: wp.array(dtype=wp.vec2i), first_flags: wp.array(
                          flagged: int, selected_out: wp.array(dtype=wp.vec2i), count_out: wp.array(dtype=wp.int32)):
     """Compact the pairs with a flagged element (`flagged` = 1) or with neither element flagged (0)."""
     tid = wp.tid()
+    p = pairs[tid]
+    hit = first_flags[p[0]] != 0 or second_flags[p[1]] != 0
+    if hit == (flagged != 0):
+        slot = wp.atomic_add(count_out, 0, 1)
+        selected_out[slot] = p
+
+
+@wp.kernel
+def select_flagged_pairs_listed(count: wp.array(dtype=wp.int32), pairs: wp.array(dtype=wp.vec2i), first_flags: wp.array(dtype=wp.int32),
+                                second_flags: wp.array(dtype=wp.int32), flagged: int, selected_out: wp.array(dtype=wp.vec2i),
+                                count_out: wp.array(dtype=wp.int32)):
+    """:func:`select_flagged_pairs` launched over the capacity: the first count[0] pairs (capturable path; the
+    selection is a subset, so it never exceeds the capacity)."""
+    tid = wp.tid()
+    if tid >= count[0]:
+        return
     p = pairs[tid]
     hit = first_flags[p[0]] != 0 or second_flags[p[1]] != 0
     if hit == (flagged != 0):

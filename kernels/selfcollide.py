@@ -18,9 +18,25 @@ import warp as wp
 COPLANAR_BISECTIONS = wp.constant(32)
 NORMAL_EPS = wp.constant(1.0e-12)
 
-# Indices into the self-collision counters.
-COUNT_PROXIMITY = wp.constant(0)
-COUNT_CCD = wp.constant(1)
+# Indices into the self-collision counter block (int32): counters summed since the last reset, then, for the
+# capturable path, the largest need seen for each fixed-capacity buffer (0 when it always fitted).
+COUNT_PROXIMITY = wp.constant(0)  # repulsion impulses
+COUNT_CCD = wp.constant(1)  # CCD impacts found
+COUNT_OVERSIZED = wp.constant(2)  # elements whose box the broad phase clamped
+COUNT_SWEEPS = wp.constant(3)  # CCD passes with impulses (capturable path)
+COUNT_BUILDS = wp.constant(4)  # full broad-phase builds (capturable path)
+COUNT_FALLBACKS = wp.constant(5)  # steps left with impacts after the sweeps: need impact zones (capturable path)
+NEED_POINT_ENTRIES = wp.constant(6)  # grid entries of the particles
+NEED_EDGE_ENTRIES = wp.constant(7)  # grid entries of the edges
+NEED_VERTEX_FACE = wp.constant(8)  # vertex-face candidate pairs
+NEED_EDGE_EDGE = wp.constant(9)  # edge-edge candidate pairs
+COUNT_SIZE = 10
+
+# The capturable path's CCD loop state (int32 [4]): loop again, sweep index, impacts of this sweep, respond.
+LOOP_CONTINUE = wp.constant(0)
+LOOP_SWEEP = wp.constant(1)
+LOOP_HITS = wp.constant(2)
+LOOP_RESPOND = wp.constant(3)
 
 
 @wp.func
@@ -180,9 +196,9 @@ def pair_impulse(v_rel: wp.vec3, n: wp.vec3, normal_change: float, friction: flo
     return change / mass_weight
 
 
-@wp.kernel
-def self_proximity(
-    pairs: wp.array(dtype=wp.vec2i),
+@wp.func
+def proximity_response(
+    pair: wp.vec2i,
     kind: int,
     tri_indices: wp.array2d(dtype=wp.int32),
     edge_indices: wp.array2d(dtype=wp.int32),
@@ -201,8 +217,7 @@ def self_proximity(
     pass): overlap d = thickness - distance; if the relative normal velocity v_N < 0.1 d / dt, change it
     by min(dt k d / m, 0.1 d / dt - v_N) (never pushing apart faster than 10 % of the overlap per step),
     with friction on the tangential part."""
-    tid = wp.tid()
-    idx = pair_indices(pairs[tid], kind, tri_indices, edge_indices)
+    idx = pair_indices(pair, kind, tri_indices, edge_indices)
     alpha = start_weights(kind, x_start, idx)
     gap = weighted_sum(alpha, x_start[idx[0]], x_start[idx[1]], x_start[idx[2]], x_start[idx[3]])
     distance = wp.length(gap)
@@ -221,6 +236,55 @@ def self_proximity(
     change = wp.min(dt * stiffness * overlap * mass_weight, target - v_n)
     add_impulse(idx, alpha, inv_mass, pair_impulse(v_rel, n, change, friction, mass_weight), dv_out, weight_out)
     wp.atomic_add(counts_out, COUNT_PROXIMITY, 1)
+
+
+@wp.kernel
+def self_proximity(
+    pairs: wp.array(dtype=wp.vec2i),
+    kind: int,
+    tri_indices: wp.array2d(dtype=wp.int32),
+    edge_indices: wp.array2d(dtype=wp.int32),
+    inv_mass: wp.array(dtype=float),
+    x_start: wp.array(dtype=wp.vec3),
+    vbar: wp.array(dtype=wp.vec3),
+    thickness: float,
+    stiffness: float,
+    friction: float,
+    dt: float,
+    dv_out: wp.array(dtype=wp.vec3),
+    weight_out: wp.array(dtype=float),
+    counts_out: wp.array(dtype=wp.int32),
+):
+    """:func:`proximity_response` of each pair."""
+    tid = wp.tid()
+    proximity_response(pairs[tid], kind, tri_indices, edge_indices, inv_mass, x_start, vbar, thickness, stiffness, friction, dt,
+                       dv_out, weight_out, counts_out)
+
+
+@wp.kernel
+def self_proximity_listed(
+    count: wp.array(dtype=wp.int32),
+    pairs: wp.array(dtype=wp.vec2i),
+    kind: int,
+    tri_indices: wp.array2d(dtype=wp.int32),
+    edge_indices: wp.array2d(dtype=wp.int32),
+    inv_mass: wp.array(dtype=float),
+    x_start: wp.array(dtype=wp.vec3),
+    vbar: wp.array(dtype=wp.vec3),
+    thickness: float,
+    stiffness: float,
+    friction: float,
+    dt: float,
+    dv_out: wp.array(dtype=wp.vec3),
+    weight_out: wp.array(dtype=float),
+    counts_out: wp.array(dtype=wp.int32),
+):
+    """:func:`self_proximity` launched over the list's capacity, the first count[0] pairs (capturable path)."""
+    tid = wp.tid()
+    if tid >= count[0]:
+        return
+    proximity_response(pairs[tid], kind, tri_indices, edge_indices, inv_mass, x_start, vbar, thickness, stiffness, friction, dt,
+                       dv_out, weight_out, counts_out)
 
 
 @wp.func
@@ -394,6 +458,54 @@ def may_touch(kind: int, idx: wp.vec4i, x: wp.array(dtype=wp.vec3), v: wp.array(
     return gap - dt * closing_speed_bound(kind, v, idx) <= tolerance
 
 
+@wp.func
+def ccd_response(
+    pair: wp.vec2i,
+    kind: int,
+    tri_indices: wp.array2d(dtype=wp.int32),
+    edge_indices: wp.array2d(dtype=wp.int32),
+    inv_mass: wp.array(dtype=float),
+    zone: wp.array(dtype=wp.int32),
+    x_start: wp.array(dtype=wp.vec3),
+    vbar: wp.array(dtype=wp.vec3),
+    dt: float,
+    tolerance: float,
+    separation_speed: float,
+    respond: int,
+    dv_out: wp.array(dtype=wp.vec3),
+    weight_out: wp.array(dtype=float),
+    counts_out: wp.array(dtype=wp.int32),
+):
+    """Continuous collision detection on x_start + t vbar, t in [0, dt]; 1 on an impact, else 0. At the first
+    contact, if the pair is not already separating at `separation_speed` / 2, an inelastic impulse sets its
+    relative normal velocity to `separation_speed` [m/s] (when `respond`). Pairs whose four particles belong
+    to one rigid impact zone (zone id >= 0) are skipped: they move rigidly together."""
+    idx = pair_indices(pair, kind, tri_indices, edge_indices)
+    z = zone[idx[0]]
+    if z >= 0 and zone[idx[1]] == z and zone[idx[2]] == z and zone[idx[3]] == z:
+        return 0
+    if not may_touch(kind, idx, x_start, vbar, dt, tolerance):
+        return 0
+    t = first_contact_time(kind, idx, x_start, vbar, dt, tolerance)
+    if t < 0.0:
+        return 0
+    alpha = contact_at(kind, idx, x_start, vbar, t, tolerance)
+    n = contact_normal(kind, idx, x_start, vbar, t, alpha)
+    if wp.length(n) == 0.0:
+        return 0
+    v_rel = weighted_sum(alpha, vbar[idx[0]], vbar[idx[1]], vbar[idx[2]], vbar[idx[3]])
+    v_n = wp.dot(v_rel, n)
+    if v_n >= 0.5 * separation_speed:
+        return 0
+    mass_weight = inverse_mass_weight(alpha, idx, inv_mass)
+    if mass_weight <= 0.0:
+        return 0
+    wp.atomic_add(counts_out, COUNT_CCD, 1)
+    if respond != 0:
+        add_impulse(idx, alpha, inv_mass, pair_impulse(v_rel, n, separation_speed - v_n, 0.0, mass_weight), dv_out, weight_out)
+    return 1
+
+
 @wp.kernel
 def self_ccd(
     pairs: wp.array(dtype=wp.vec2i),
@@ -413,36 +525,96 @@ def self_ccd(
     hit_out: wp.array(dtype=wp.int32),
     counts_out: wp.array(dtype=wp.int32),
 ):
-    """Continuous collision detection on x_start + t vbar, t in [0, dt]. At the first contact, if the
-    pair is not already separating at `separation_speed` / 2, an inelastic impulse sets its relative
-    normal velocity to `separation_speed` [m/s] (when `respond`). Pairs whose four particles belong to
-    one rigid impact zone (zone id >= 0) are skipped: they move rigidly together."""
+    """:func:`ccd_response` of each pair, flagging the pairs that hit (the impact zones' input)."""
     tid = wp.tid()
-    hit_out[tid] = 0
-    idx = pair_indices(pairs[tid], kind, tri_indices, edge_indices)
-    z = zone[idx[0]]
-    if z >= 0 and zone[idx[1]] == z and zone[idx[2]] == z and zone[idx[3]] == z:
+    hit_out[tid] = ccd_response(pairs[tid], kind, tri_indices, edge_indices, inv_mass, zone, x_start, vbar, dt, tolerance,
+                                separation_speed, respond, dv_out, weight_out, counts_out)
+
+
+@wp.kernel
+def self_ccd_listed(
+    count: wp.array(dtype=wp.int32),
+    pairs: wp.array(dtype=wp.vec2i),
+    kind: int,
+    tri_indices: wp.array2d(dtype=wp.int32),
+    edge_indices: wp.array2d(dtype=wp.int32),
+    inv_mass: wp.array(dtype=float),
+    zone: wp.array(dtype=wp.int32),
+    x_start: wp.array(dtype=wp.vec3),
+    vbar: wp.array(dtype=wp.vec3),
+    dt: float,
+    tolerance: float,
+    separation_speed: float,
+    dv_out: wp.array(dtype=wp.vec3),
+    weight_out: wp.array(dtype=float),
+    counts_out: wp.array(dtype=wp.int32),
+    loop_out: wp.array(dtype=wp.int32),
+):
+    """:func:`self_ccd` launched over the list's capacity, the first count[0] pairs, responding when
+    loop_out[LOOP_RESPOND] and counting the sweep's impacts in loop_out[LOOP_HITS] (capturable path)."""
+    tid = wp.tid()
+    if tid >= count[0]:
         return
-    if not may_touch(kind, idx, x_start, vbar, dt, tolerance):
-        return
-    t = first_contact_time(kind, idx, x_start, vbar, dt, tolerance)
-    if t < 0.0:
-        return
-    alpha = contact_at(kind, idx, x_start, vbar, t, tolerance)
-    n = contact_normal(kind, idx, x_start, vbar, t, alpha)
-    if wp.length(n) == 0.0:
-        return
-    v_rel = weighted_sum(alpha, vbar[idx[0]], vbar[idx[1]], vbar[idx[2]], vbar[idx[3]])
-    v_n = wp.dot(v_rel, n)
-    if v_n >= 0.5 * separation_speed:
-        return
-    mass_weight = inverse_mass_weight(alpha, idx, inv_mass)
-    if mass_weight <= 0.0:
-        return
-    hit_out[tid] = 1
-    wp.atomic_add(counts_out, COUNT_CCD, 1)
-    if respond != 0:
-        add_impulse(idx, alpha, inv_mass, pair_impulse(v_rel, n, separation_speed - v_n, 0.0, mass_weight), dv_out, weight_out)
+    hit = ccd_response(pairs[tid], kind, tri_indices, edge_indices, inv_mass, zone, x_start, vbar, dt, tolerance, separation_speed,
+                       loop_out[LOOP_RESPOND], dv_out, weight_out, counts_out)
+    if hit != 0:
+        wp.atomic_add(loop_out, LOOP_HITS, 1)
+
+
+@wp.kernel
+def begin_sweeps(sweeps: int, loop_out: wp.array(dtype=wp.int32)):
+    """One thread: the CCD loop starts at sweep 0 (responding unless `sweeps` is 0)."""
+    loop_out[LOOP_CONTINUE] = 1
+    loop_out[LOOP_SWEEP] = 0
+    loop_out[LOOP_HITS] = 0
+    loop_out[LOOP_RESPOND] = wp.where(sweeps > 0, 1, 0)
+
+
+@wp.kernel
+def end_sweep(sweeps: int, loop_out: wp.array(dtype=wp.int32), counts_out: wp.array(dtype=wp.int32)):
+    """One thread after a CCD sweep: count it (if it responded); stop when it found no impact, or when it was
+    the check after the last responding sweep (impacts remain: count a fallback to impact zones); otherwise
+    go on to the next sweep."""
+    k = loop_out[LOOP_SWEEP]
+    if k < sweeps:
+        counts_out[COUNT_SWEEPS] = counts_out[COUNT_SWEEPS] + 1
+    if loop_out[LOOP_HITS] == 0:
+        loop_out[LOOP_CONTINUE] = 0
+    elif k >= sweeps:
+        loop_out[LOOP_CONTINUE] = 0
+        counts_out[COUNT_FALLBACKS] = counts_out[COUNT_FALLBACKS] + 1
+    else:
+        loop_out[LOOP_CONTINUE] = 1
+        loop_out[LOOP_SWEEP] = k + 1
+        loop_out[LOOP_HITS] = 0
+        loop_out[LOOP_RESPOND] = wp.where(k + 1 < sweeps, 1, 0)
+
+
+@wp.kernel
+def increment_count(index: int, counts_out: wp.array(dtype=wp.int32)):
+    """One thread: counts_out[index] += 1."""
+    counts_out[index] = counts_out[index] + 1
+
+
+@wp.func
+def is_close(
+    pair: wp.vec2i,
+    kind: int,
+    tri_indices: wp.array2d(dtype=wp.int32),
+    edge_indices: wp.array2d(dtype=wp.int32),
+    x_start: wp.array(dtype=wp.vec3),
+    velocity: wp.array(dtype=wp.vec3),
+    dt: float,
+    margin: float,
+    reach: float,
+):
+    """Whether a broad-phase pair can come within `reach` [m] during the step: every vertex moves at most
+    dt |velocity| + margin (the broad phase is reused while end points stay within `margin`), so a pair
+    farther apart at the start than reach plus both elements' largest moves never gets close."""
+    idx = pair_indices(pair, kind, tri_indices, edge_indices)
+    alpha = start_weights(kind, x_start, idx)
+    gap = wp.length(weighted_sum(alpha, x_start[idx[0]], x_start[idx[1]], x_start[idx[2]], x_start[idx[3]]))
+    return gap <= reach + dt * closing_speed_bound(kind, velocity, idx) + 2.0 * margin
 
 
 @wp.kernel
@@ -459,14 +631,33 @@ def select_close_pairs(
     selected_out: wp.array(dtype=wp.vec2i),
     count_out: wp.array(dtype=wp.int32),
 ):
-    """Keep the broad phase's pairs that can come within `reach` [m] during the step: every vertex moves
-    at most dt |velocity| + margin (the broad phase is reused while end points stay within `margin`), so
-    a pair farther apart at the start than reach plus both elements' largest moves never gets close."""
+    """Keep the broad phase's pairs that can come within `reach` [m] during the step (:func:`is_close`)."""
     tid = wp.tid()
-    idx = pair_indices(pairs[tid], kind, tri_indices, edge_indices)
-    alpha = start_weights(kind, x_start, idx)
-    gap = wp.length(weighted_sum(alpha, x_start[idx[0]], x_start[idx[1]], x_start[idx[2]], x_start[idx[3]]))
-    if gap <= reach + dt * closing_speed_bound(kind, velocity, idx) + 2.0 * margin:
+    if is_close(pairs[tid], kind, tri_indices, edge_indices, x_start, velocity, dt, margin, reach):
+        slot = wp.atomic_add(count_out, 0, 1)
+        selected_out[slot] = pairs[tid]
+
+
+@wp.kernel
+def select_close_pairs_listed(
+    count: wp.array(dtype=wp.int32),
+    pairs: wp.array(dtype=wp.vec2i),
+    kind: int,
+    tri_indices: wp.array2d(dtype=wp.int32),
+    edge_indices: wp.array2d(dtype=wp.int32),
+    x_start: wp.array(dtype=wp.vec3),
+    velocity: wp.array(dtype=wp.vec3),
+    dt: float,
+    margin: float,
+    reach: float,
+    selected_out: wp.array(dtype=wp.vec2i),
+    count_out: wp.array(dtype=wp.int32),
+):
+    """:func:`select_close_pairs` launched over the capacity, the first count[0] pairs (capturable path)."""
+    tid = wp.tid()
+    if tid >= count[0]:
+        return
+    if is_close(pairs[tid], kind, tri_indices, edge_indices, x_start, velocity, dt, margin, reach):
         slot = wp.atomic_add(count_out, 0, 1)
         selected_out[slot] = pairs[tid]
 

@@ -1,0 +1,223 @@
+"""Self-collision's capturable path: a step recorded once as a CPU graph (wp.ScopedCapture) and replayed gives,
+bit for bit, what the same path gives run eagerly, close to the host path and without intersecting
+triangles; fixed-capacity buffers that are too small report the need, grow and give the run of large
+enough ones; impacts left after the CCD sweeps raise the fallback flag and the host path's impact zones
+resolve them.
+
+The driver: the implicit integrator proposes each step's end (eagerly, outside the graph); the graph
+holds the self-collision pass only: begin_step, a first round, and a second round from the same start
+(as the solver's limiter / collision rounds: it resumes on the pairs the first round changed)."""
+
+import numpy as np
+import pytest
+import warp as wp
+from intersections import intersecting_pairs
+
+import cloth_warp as cw
+from cloth_warp.selfcollision import SelfCollision
+
+DT = 1.0 / 120.0
+FLAT = cw.quat_from_axis_angle((1, 0, 0), -90.0)
+
+
+def two_sheets(res: int = 16, drop_speed: float = 1.0, tilt: float = 12.0):
+    """A 0.3 m trampoline (res^2, its border pinned) and a tilted 0.2 m sheet 2 cm above it falling at
+    `drop_speed` [m/s]: one cloth model, so the sheets meet through self-collision only."""
+    b = cw.ModelBuilder()
+    lower = b.add_cloth_grid(resolution=(res, res), size=(0.3, 0.3), rotation=FLAT, position=(-0.15, 0.0, 0.15))
+    for edge in ("edge:left", "edge:right", "edge:top", "edge:bottom"):
+        b.pin(lower.select(edge))
+    tilted = cw.quat_from_axis_angle((1, 0, 0), -90.0 + tilt)
+    b.add_cloth_grid(resolution=(res, res), size=(0.2, 0.2), rotation=tilted, position=(-0.1, 0.02, 0.1),
+                     velocity=(0.0, -drop_speed, 0.0))
+    b.enable_self_collision(thickness=0.004)
+    return b.finalize("cpu")
+
+
+class Driver:
+    """Steps a model with its implicit integrator and a SelfCollision pass on fixed arrays, eagerly or by
+    replaying a graph of the pass recorded at the first step."""
+
+    def __init__(self, model, sc: SelfCollision, rounds: int = 2):
+        self.model, self.sc, self.rounds = model, sc, rounds
+        self.solver = cw.SolverImplicitEuler(model, strain_limit=None)
+        self.states = [model.state(), model.state()]
+        self.control = model.control()
+        n = model.particle_count
+        self.x_start, self.x_end, self.v_end, self.x_out, self.v_out = (wp.zeros(n, dtype=wp.vec3, device=model.device) for _ in range(5))
+        self.graph = None
+
+    def collide(self):
+        self.sc.begin_step()
+        for _ in range(self.rounds):
+            self.sc.apply(self.x_start, self.x_end, self.v_end, DT, self.x_out, self.v_out)
+
+    def capture(self):
+        """Record the pass (after an eager call has allocated its buffers; its counts are dropped)."""
+        self.collide()
+        self.sc.reset_counts()
+        with wp.ScopedCapture(device=self.model.device) as cap:
+            self.collide()
+        self.graph = cap.graph
+
+    def propose(self):
+        s0 = self.states[0]
+        wp.copy(self.x_start, s0.particle_q)
+        self.solver.integrate(s0, self.x_end, self.v_end, self.control, DT)
+
+    def finish(self):
+        s1 = self.states[1]
+        wp.copy(s1.particle_q, self.x_out)
+        wp.copy(s1.particle_qd, self.v_out)
+        self.states.reverse()
+
+    def step(self, graph: bool = False):
+        self.propose()
+        if graph:
+            if self.graph is None:
+                self.capture()
+            wp.capture_launch(self.graph)
+        else:
+            self.collide()
+        self.finish()
+
+    def positions(self) -> np.ndarray:
+        return self.states[0].particle_q.numpy()
+
+
+def run(model, steps: int, graph: bool, check=None, host: SelfCollision | None = None, **options):
+    """Positions after each of `steps` steps; with `host`, also that pass's result on each step's same inputs."""
+    sc = SelfCollision(model, **options)
+    d = Driver(model, sc)
+    tris = model.tri_indices.numpy().reshape(-1, 3)
+    out, beside = [], []
+    for _ in range(steps):
+        d.propose()
+        if host is not None:
+            host.begin_step()
+            xo, vo = wp.empty_like(d.x_out), wp.empty_like(d.v_out)
+            for _ in range(d.rounds):
+                host.apply(d.x_start, d.x_end, d.v_end, DT, xo, vo)
+            beside.append(xo.numpy())
+        if graph:
+            if d.graph is None:
+                d.capture()
+            wp.capture_launch(d.graph)
+        else:
+            d.collide()
+        d.finish()
+        out.append(d.positions().copy())
+        if check is not None:
+            assert not intersecting_pairs(out[-1], tris), len(out)
+    return out, sc, beside
+
+
+def test_recorded_step_replays_the_eager_capturable_path_bit_for_bit():
+    """Check 24 steps of a sheet dropped at 1 m/s onto a pinned one: the capturable pass recorded once with
+    wp.ScopedCapture on the CPU and replayed gives bit for bit the positions of the same pass run eagerly (CPU
+    launches run their threads in order, so atomics add up in the same order in both; the CCD loop and the
+    broad phase's rebuild run as recorded conditional nodes), the same counters, no intersecting triangles,
+    and needs no re-run. On each step's same inputs the host path agrees to 1e-6 m (it patches its broad
+    phase where this path builds it again, so impulses may add up in another order: round-off, which the
+    contacts of later steps would amplify, hence the per-step comparison) with the same contact counts
+    within 1 %."""
+    model = two_sheets()
+    steps = 24
+    capacity = 1 << 14  # holds this scene's candidate pairs (the overflow test starts small)
+    host = SelfCollision(model)
+    eager, sc_eager, host_out = run(model, steps, graph=False, host=host, capturable=True, pair_capacity=capacity)
+    replay, sc_graph, _ = run(model, steps, graph=True, check=intersecting_pairs, capturable=True, pair_capacity=capacity)
+    for k in range(steps):
+        np.testing.assert_array_equal(replay[k], eager[k], err_msg=f"step {k}")
+        np.testing.assert_allclose(eager[k], host_out[k], rtol=0.0, atol=1e-6, err_msg=f"step {k}")
+    status, counts = sc_graph.read_report()
+    assert not status.needs_rerun, status
+    assert counts == sc_eager.read_counts()  # (the eager call made at recording time was reset)
+    assert counts["self_ccd"] > 0 and counts["self_proximity"] > 0 and counts["self_sweeps"] > 0, counts
+    host_counts = host.read_counts()
+    for name in ("self_ccd", "self_proximity"):
+        assert counts[name] == pytest.approx(host_counts[name], rel=0.01), (counts, host_counts)
+
+
+def test_too_small_buffers_overflow_then_grow_to_the_result_of_large_ones():
+    """Check candidate-pair buffers of 16 and an edge grid of 64 entries overflow on the first recorded step: the
+    status names them with their needs (more than the capacity), the frame is flagged for a re-run; after
+    grow() (powers of two above the needs), a new recording and a re-run (again while a buffer filled from a
+    clipped one overflows in turn), the status is clean and the replayed run equals bit for bit an
+    uncaptured run of buffers created with those capacities."""
+    model = two_sheets()
+    steps = 12
+    sc = SelfCollision(model, capturable=True, pair_capacity=16)
+    sc.grid.edges._allocate_entries(64)
+    d = Driver(model, sc)
+    d.propose()
+    d.capture()
+    wp.capture_launch(d.graph)
+    status = sc.status()
+    assert status.needs_rerun and {"vertex_face", "edges"} <= set(status.overflow), status
+    overflowed, out, entries = set(), [], None
+    for k in range(steps):
+        if k:
+            d.propose()
+            wp.capture_launch(d.graph)
+            status = sc.status()
+        for _ in range(4):  # a buffer filled from a clipped one (pairs from an incomplete grid) may overflow next
+            if not status.needs_rerun:
+                break
+            for name, (needed, capacity) in status.overflow.items():
+                assert needed > capacity == sc.capacities()[name]
+            overflowed |= set(status.overflow)
+            assert sc.grow(status)
+            caps = sc.capacities()
+            for name, (needed, _) in status.overflow.items():
+                assert caps[name] >= needed and caps[name] & (caps[name] - 1) == 0
+            sc.reset_counts()
+            d.capture()  # the arrays are new: record again, and re-run the step (its inputs are intact)
+            wp.capture_launch(d.graph)
+            status = sc.status()
+        assert not status.needs_rerun, (k, status)
+        sc.reset_counts()
+        d.finish()
+        out.append(d.positions().copy())
+        entries = entries or {name: sc.capacities()[name] for name in ("points", "edges")}
+    caps = sc.capacities()
+    assert overflowed == {"vertex_face", "edge_edge", "edges"}, overflowed
+    assert entries == {name: caps[name] for name in entries}  # the hash tables kept their size after the first step
+    ref = SelfCollision(model, capturable=True, pair_capacity=min(caps["vertex_face"], caps["edge_edge"]))
+    ref.grid.edges._allocate_entries(caps["edges"])
+    ref.grid.grow(caps)
+    assert ref.capacities() == caps
+    d_ref = Driver(model, ref)
+    for k in range(steps):
+        d_ref.step()
+        np.testing.assert_array_equal(d_ref.positions(), out[k], err_msg=f"step {k}")
+
+
+def test_impacts_left_after_the_sweeps_flag_a_fallback_that_the_host_path_resolves():
+    """Check a sheet hitting the pinned one at 6 m/s with a single CCD sweep: the capturable pass's check sweep
+    still finds impacts, so the status asks for a re-run (fallback steps > 0) and the pass's result is not
+    trusted; re-running those steps eagerly on the host path forms rigid impact zones, leaves no impact
+    unresolved and no intersecting triangles."""
+    model = two_sheets(drop_speed=6.0, tilt=3.0)
+    sc = SelfCollision(model, sweeps=1, capturable=True, pair_capacity=1 << 15)
+    d = Driver(model, sc)
+    tris = model.tri_indices.numpy().reshape(-1, 3)
+    fallbacks = 0
+    for k in range(12):
+        d.propose()
+        sc.reset_counts()
+        d.collide()
+        status = sc.status()
+        if status.needs_rerun:
+            assert not status.overflow and status.fallback_steps > 0
+            fallbacks += 1
+            sc.grow(status)
+            sc.reset_counts()
+            sc.capturable = False
+            d.collide()  # the inputs are intact (the pass writes x_out, v_out)
+            sc.capturable = True
+            counts = sc.read_counts()
+            assert counts["impact_zones"] > 0 and counts["unresolved"] == 0, counts
+        d.finish()
+        assert not intersecting_pairs(d.positions(), tris), k
+    assert fallbacks > 0
