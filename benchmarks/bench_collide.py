@@ -65,9 +65,9 @@ def measure(size: int, frames: int, warmup: int, device: str = "cpu") -> dict:
         return (time.perf_counter() - t0) / frames
 
     with_ms = timed(solver) * 1e3
-    contacts = solver.collisions.read_counts()["collider_contacts"] / 2.0  # last frame, per step
+    contacts = solver.read_pass_reports()["colliders"].contacts / 2.0  # last frame, per step
     plain = build_solver(scene, model)
-    plain.collisions = None
+    plain.passes = tuple(p for p in plain.passes if p.name != "colliders")
     without_ms = timed(plain) * 1e3
     # the collision kernel alone, on the contact state (what one pass costs)
     x = model.state(requires_grad=False)
@@ -76,7 +76,7 @@ def measure(size: int, frames: int, warmup: int, device: str = "cpu") -> dict:
     wp.synchronize()
     t0 = time.perf_counter()
     for _ in range(reps):
-        solver.collisions.apply(start.particle_q, start.particle_q, start.particle_qd, control, 1.0 / 120.0, x.particle_q, x.particle_qd)
+        solver.pass_named("colliders").apply(start.particle_q, start.particle_q, start.particle_qd, control, 1.0 / 120.0, x.particle_q, x.particle_qd)
     wp.synchronize()
     pass_ms = (time.perf_counter() - t0) / reps * 1e3
     return {"size": size, "particles": model.particle_count, "with_ms_frame": with_ms, "without_ms_frame": without_ms,

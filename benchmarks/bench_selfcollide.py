@@ -82,11 +82,10 @@ def measure(scene_name: str, size: int, frames: int, warmup: int, scale_thicknes
     for _ in range(warmup):
         sim.step_frame()
     warm_s = time.perf_counter() - t0
-    handler = solver.collisions
-    selfc = handler.self_collision
+    selfc = solver.pass_named("self_collision").self_collision
     clock = Clock(synchronize=device != "cpu")
     clock.wrap(selfc, "apply", "self")
-    clock.wrap(handler, "_colliders", "colliders")
+    clock.wrap(solver.pass_named("colliders"), "apply", "colliders")
     counts: dict[str, int] = {}
     vf = ee = 0
     wp.synchronize()

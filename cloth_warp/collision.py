@@ -4,9 +4,9 @@ Bridson, Fedkiw & Anderson (2002) in the order of physics.md 3(f): the integrato
 limiter) propose an end-of-step state from the collision-free start state; the collision pass turns
 the step's average velocity vbar = (x_end - x_start) / h into one whose straight-line trajectory stays
 clear of every collider by its thickness, with inelastic normal response and Coulomb friction, and
-hands the same velocity correction to the end velocity. Every solver runs it as the last stage of
-``step`` (so strain limiting never moves cloth back into a collider). With self-collision on, the
-collider pass is followed by :class:`~cloth_warp.selfcollision.SelfCollision` on its result, which has
+hands the same velocity correction to the end velocity. Both are passes (:mod:`~cloth_warp.passes`) run
+after the strain limiter (so strain limiting never moves cloth back into a collider): the collider pass,
+then, with self-collision on, :class:`~cloth_warp.selfcollision.SelfCollision` on its result, which has
 the last word (the cloth is intersection-free at the end of every step).
 
 What differentiates (under ``wp.Tape``): the response is piecewise smooth in positions, velocities,
@@ -19,100 +19,50 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from .diagnostics import ColliderReport, SelfCollisionReport
 from .kernels import collide as kcol
 from .model import Control, Model
+from .passes import StepPass
 from .selfcollision import COUNTERS as SELF_COUNTERS
 from .selfcollision import SelfCollision
 
 COUNTERS = ("collider_contacts", "collider_ccd")
-ALL_COUNTERS = COUNTERS + SELF_COUNTERS  # with self-collision, read_counts() also has these
+ALL_COUNTERS = COUNTERS + SELF_COUNTERS  # the counter names of both contact passes (frame diagnostics)
 
 
-class CollisionHandler:
-    """Cloth-collider contact with continuous detection (then self-collision, when the model has it on),
-    run by the solvers after each step.
+class ColliderPass(StepPass):
+    """Cloth-collider contact with continuous detection, a pass after the integrator (:mod:`~cloth_warp.passes`).
 
     Per step and particle, every collider in turn: the particle's path relative to the collider (start
     pose to end pose) is traced for its first point within the collider's thickness; the end point is
     put back on the tangent plane there (offset by the thickness) with inelastic normal response and
     static/kinetic Coulomb friction, then pushed out along the surface normal if curvature still leaves
     it inside. Only cloth vertices are tested (a collider's sharp edge can poke between vertices of a
-    coarse cloth).
+    coarse cloth). One launch, no host reads: capturable.
 
-    Counters (summed over the steps since :meth:`reset_counts`): ``collider_contacts`` (particle-collider
-    contacts resolved) and ``collider_ccd`` (of them, the ones only the continuous trace found: the end
-    point alone was clear, so a discrete test would have tunnelled); with self-collision, also the
-    counters of :class:`~cloth_warp.selfcollision.SelfCollision`.
+    Report (:class:`~cloth_warp.diagnostics.ColliderReport`, summed over the steps since :meth:`reset_report`):
+    contacts resolved and, of them, the ones only the continuous trace found (``ccd``: the end point alone was
+    clear, so a discrete test would have tunnelled).
     """
+
+    name = "colliders"
 
     def __init__(self, model: Model):
         self.model = model
         self.counts = wp.zeros(len(COUNTERS), dtype=wp.int32, device=model.device)
-        self.self_collision = SelfCollision(model) if model.self_collision and model.tri_count else None
 
     @property
-    def active(self) -> bool:
-        return self.model.collider_count > 0 or self.self_collision is not None
+    def kernel_modules(self) -> tuple:
+        return (kcol,)
 
-    def notify_model_changed(self, flags: int) -> None:
-        """Model fields changed (:class:`~cloth_warp.model.ModelFlags`): the collider pass reads the model at every
-        step; self-collision refreshes its inverse masses."""
-        if self.self_collision is not None:
-            self.self_collision.notify_model_changed(flags)
-
-    def begin_step(self):
-        """A new step starts (its passes share the start state; caches of the previous step are stale)."""
-        if self.self_collision is not None:
-            self.self_collision.begin_step()
-
-    def reset_counts(self):
+    def reset_report(self):
         self.counts.zero_()
-        if self.self_collision is not None:
-            self.self_collision.reset_counts()
 
-    def checkpoint_state(self) -> dict:
-        """What carries from one frame to the next: with self-collision, its state (see
-        :meth:`SelfCollision.checkpoint_state <cloth_warp.selfcollision.SelfCollision.checkpoint_state>`); the
-        collider pass keeps nothing (poses come from the control, counters are per frame)."""
-        if self.self_collision is None:
-            return {}
-        return {f"self.{k}": v for k, v in self.self_collision.checkpoint_state().items()}
-
-    def restore_state(self, state: dict) -> None:
-        if self.self_collision is not None:
-            sub = {k[len("self."):]: v for k, v in state.items() if k.startswith("self.")}
-            if not sub:
-                raise ValueError("the checkpoint holds no self-collision state, this model has self-collision on")
-            self.self_collision.restore_state(sub)
-        self.reset_counts()
-
-    def read_counts(self) -> dict:
-        """The counters as ints (small device-to-host copies); with self-collision also its counters
-        (see :class:`~cloth_warp.selfcollision.SelfCollision`)."""
+    def read_report(self) -> ColliderReport:
         c = self.counts.numpy()
-        out = {name: int(c[k]) for k, name in enumerate(COUNTERS)}
-        if self.self_collision is not None:
-            out.update(self.self_collision.read_counts())
-        return out
+        return ColliderReport(contacts=int(c[0]), ccd=int(c[1]))
 
-    def apply(self, x_start: wp.array, x_end: wp.array, v_end: wp.array, control: Control, dt: float,
-              x_out: wp.array, v_out: wp.array):
-        """Resolve the step x_start -> (x_end, v_end) into (x_out, v_out) (may alias x_end / v_end when not taped):
-        colliders first, then cloth against itself."""
-        m = self.model
-        if m.collider_count == 0:
-            self.self_collision.apply(x_start, x_end, v_end, dt, x_out, v_out)
-            return
-        if self.self_collision is not None:
-            rg = x_end.requires_grad
-            x_c = wp.empty_like(x_end, requires_grad=rg) if rg else x_out
-            v_c = wp.empty_like(v_end, requires_grad=rg) if rg else v_out
-            self._colliders(x_start, x_end, v_end, control, dt, x_c, v_c)
-            self.self_collision.apply(x_start, x_c, v_c, dt, x_out, v_out)
-            return
-        self._colliders(x_start, x_end, v_end, control, dt, x_out, v_out)
-
-    def _colliders(self, x_start, x_end, v_end, control: Control, dt: float, x_out, v_out):
+    def apply(self, x_start, x_end, v_end, control: Control, dt: float, x_out, v_out):
         m = self.model
         wp.launch(
             kcol.collide_colliders,
@@ -124,6 +74,82 @@ class CollisionHandler:
             outputs=[x_out, v_out, self.counts],
             device=m.device,
         )
+
+
+class SelfCollisionPass(StepPass):
+    """Cloth against itself (:class:`~cloth_warp.selfcollision.SelfCollision`: proximity, CCD, impact zones), a
+    pass after the colliders, with the last word: the cloth is intersection-free at the end of every step.
+
+    Report: :class:`~cloth_warp.diagnostics.SelfCollisionReport` (its counters summed since :meth:`reset_report`).
+    After ``set_recordable(True)`` (the Simulator's fixed-step frames) forward steps take its capturable path
+    (fixed-capacity buffers, sweeps looping on the device); a frame in which a buffer overflowed or a step left
+    impacts for rigid impact zones is then re-run on the host path (see :mod:`~cloth_warp.passes`), the buffers
+    grown to what it needed. Otherwise (a step called directly, taped steps) it takes the host path.
+
+    Args:
+        pair_capacity: the capturable path's starting capacity of candidate pairs per kind (default: 4 per
+            particle; it grows on overflow).
+    """
+
+    name = "self_collision"
+    checkpoint_key = "collisions.self"
+    device_loops = True
+
+    def __init__(self, model: Model, pair_capacity: int | None = None):
+        self.model = model
+        capacity = max(1024, 4 * model.particle_count) if pair_capacity is None else int(pair_capacity)
+        self.self_collision = SelfCollision(model, capturable=False, pair_capacity=capacity)
+        self._recordable = False
+        self._status = None
+
+    @property
+    def kernel_modules(self) -> tuple:
+        from .kernels import broadphase, selfcollide
+
+        return (broadphase, selfcollide)
+
+    def set_recordable(self, on: bool) -> None:
+        self._recordable = self.self_collision.capturable = bool(on)
+
+    def needs_rerun(self, report: SelfCollisionReport) -> bool:
+        return report.fallback_steps > 0 or bool(report.overflowed)
+
+    def prepare_rerun(self, report: SelfCollisionReport) -> bool:
+        grown = self.self_collision.grow(self._status)
+        self.self_collision.capturable = False
+        return grown
+
+    def end_rerun(self) -> None:
+        self.self_collision.capturable = self._recordable
+
+    def notify_model_changed(self, flags: int) -> None:
+        self.self_collision.notify_model_changed(flags)
+
+    def begin_step(self):
+        """A new step starts (its rounds share the start state; the last step's broad phase is stale)."""
+        self.self_collision.begin_step()
+
+    def reset_report(self):
+        self.self_collision.reset_counts()
+
+    def read_report(self) -> SelfCollisionReport:
+        status, counts = self.self_collision.read_report()
+        self._status = status  # what prepare_rerun grows
+        return SelfCollisionReport.from_counts(counts, status.fallback_steps, tuple(sorted(status.overflow)))
+
+    def checkpoint_state(self) -> dict:
+        """The broad phase's buffer capacities and counters (see :meth:`SelfCollision.checkpoint_state
+        <cloth_warp.selfcollision.SelfCollision.checkpoint_state>`)."""
+        return self.self_collision.checkpoint_state()
+
+    def restore_state(self, state: dict) -> None:
+        if not state:
+            raise ValueError("the checkpoint holds no self-collision state, this model has self-collision on")
+        self.self_collision.restore_state(state)
+        self.reset_report()
+
+    def apply(self, x_start, x_end, v_end, control: Control, dt: float, x_out, v_out):
+        self.self_collision.apply(x_start, x_end, v_end, dt, x_out, v_out)
 
 
 def penetration_depths(model: Model, positions: np.ndarray, time: float = 0.0) -> np.ndarray:

@@ -3,7 +3,7 @@ strain limiter's report."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 import warp as wp
@@ -57,6 +57,12 @@ class Diagnostics:
         self._potential0 = float((mass[free] * ((x0[free] - origin32) @ g)).sum()) if self.total_mass_free > 0.0 else 0.0
 
     def measure(self, state: State) -> StepStats:
+        """:meth:`launch` then :meth:`read`."""
+        self.launch(state)
+        return self.read()
+
+    def launch(self, state: State) -> None:
+        """Measure `state` on the device (capturable: a fill and one launch)."""
         m = self.model
         self.stats.zero_()
         wp.launch(
@@ -68,8 +74,80 @@ class Diagnostics:
             outputs=[self.stats],
             device=m.device,
         )
+
+    def read(self) -> StepStats:
+        """The statistics the last :meth:`launch` measured (one 20-byte read)."""
         s = self.stats.numpy()
         return StepStats(float(s[0]), float(s[1]), float(s[2]), int(s[3]), float(s[4]) - self._potential0)
+
+
+@dataclass(frozen=True)
+class ColliderReport:
+    """The collider pass over some steps: contacts resolved, and of them those only the continuous trace found."""
+
+    contacts: int
+    ccd: int
+
+    def counters(self) -> dict:
+        """As the frame diagnostics name them."""
+        return {"collider_contacts": self.contacts, "collider_ccd": self.ccd}
+
+
+@dataclass(frozen=True)
+class SelfCollisionReport:
+    """The self-collision pass over some steps (:class:`~cloth_warp.selfcollision.SelfCollision` documents each)."""
+
+    self_proximity: int
+    self_ccd: int
+    self_sweeps: int
+    impact_zones: int
+    impact_zone_particles: int
+    unresolved: int
+    oversized: int
+    pair_buffer_growths: int
+    broad_phase_builds: int
+    broad_phase_patches: int
+
+    fallback_steps: int = 0
+    """Steps of the capturable path that left impacts for the host path's impact zones (the frame is re-run)."""
+    overflowed: tuple = ()
+    """The capturable path's buffers that were too small (the frame is re-run after they grow)."""
+
+    @classmethod
+    def from_counts(cls, counts: dict, fallback_steps: int = 0, overflowed: tuple = ()) -> SelfCollisionReport:
+        named = {f.name: int(counts.get(f.name, 0)) for f in fields(cls) if f.name not in ("fallback_steps", "overflowed")}
+        return cls(**named, fallback_steps=int(fallback_steps), overflowed=tuple(overflowed))
+
+    def counters(self) -> dict:
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.name != "overflowed"}
+
+
+@dataclass(frozen=True)
+class LinearSolveReport:
+    """The implicit solver's linear solves over some steps (read from the device once per frame).
+
+    Attributes:
+        solves: solves run; iterations: summed over them; most_iterations: the most in one solve.
+        failed: solves whose residual was not finite (their steps' results are meaningless); first_failed: the
+            1-based solve that failed first (0: none).
+        unconverged: finite solves that ended above the tolerance (at the cap of iterations).
+        worst_residual, last_residual: the largest finite and the last relative residual |r_k| / |r_0|.
+        tolerance: the solver's relative tolerance.
+    """
+
+    solves: int
+    iterations: int
+    most_iterations: int
+    failed: int
+    first_failed: int
+    unconverged: int
+    worst_residual: float
+    last_residual: float
+    tolerance: float
+
+    @property
+    def converged(self) -> bool:
+        return self.failed == 0 and self.unconverged == 0
 
 
 @dataclass(frozen=True)
@@ -114,6 +192,11 @@ class StrainLimitReport:
     @property
     def mean_sweeps(self) -> float:
         return self.sweeps / self.steps if self.steps else 0.0
+
+    def counters(self) -> dict:
+        """As the frame diagnostics name them."""
+        return {"strain_excess_structural": self.structural_excess, "strain_excess_shear": self.shear_excess,
+                "strain_limit_sweeps": self.sweeps, "strain_limit_missed": self.missed_steps}
 
     def __add__(self, other: StrainLimitReport) -> StrainLimitReport:
         """The report of both stretches of steps."""

@@ -10,10 +10,11 @@ import numpy as np
 import warp as wp
 
 from .diagnostics import Diagnostics, StepStats, StrainLimitReport
+from .animation import ControlAnimator
 from .model import Model
+from .wind import GustyWind
 from .solvers.adaptive import AdaptiveStepper, DivergenceBounds, SimulationDiverged, StepCheck
 from .solvers.base import SolverBase
-from .solvers.implicit import SolverImplicitEuler
 
 log = logging.getLogger(__name__)
 
@@ -31,10 +32,10 @@ class Simulator:
     With fixed substeps the substep loop of a frame is captured once as a Warp graph (CPU or CUDA) and
     replayed, so per-launch overhead is paid once; with ``adaptive=True`` every step is checked and
     bad steps are retried with half the step (see :class:`AdaptiveStepper`). Capture is skipped for
-    animated handles and colliders (their targets and poses are updated on the host each substep), for the implicit solver
-    (its iterative solve checks convergence on the host), for self-collision (its broad phase sizes buffers on the host)
-    and, with strain limiting on CUDA, where the driver lacks conditional graph nodes (CUDA < 12.4: the limiter's sweeps
-    loop on the device until they converge).
+    animated handles and colliders (their targets and poses are updated on the host each substep), for self-collision
+    (its broad phase sizes buffers on the host) and, with strain limiting or the implicit solver on CUDA, where the driver
+    lacks conditional graph nodes (CUDA < 12.4: the limiter's sweeps and the linear solve loop on the device until they
+    converge).
 
     Divergence: after every frame, on every path (captured or not, adaptive or not, any integrator), the new
     state is checked against the scene's :class:`~cloth_warp.solvers.adaptive.DivergenceBounds` (non-finite
@@ -57,7 +58,8 @@ class Simulator:
             the control once per frame, at the frame's midpoint (a steady wind once).
 
     After each frame, :attr:`frame_info` holds the smallest and largest step used [s], the solver
-    iterations of its steps (summed) (with graph capture: the iterations are not read back, 0), with
+    iterations of its steps (summed) and the last relative residual (read from the device once per frame, captured
+    too; the frame's :class:`~cloth_warp.diagnostics.LinearSolveReport` is :attr:`solve_frame`), with
     collisions their counters summed over the frame's steps (``collider_contacts``, ``collider_ccd``) and,
     with strain limiting, what the limiter left (``strain_excess_structural`` / ``strain_excess_shear``: the
     worst excess strain l / L - 1 - limit after limiting, ``strain_limit_sweeps``, ``strain_limit_missed``:
@@ -90,22 +92,31 @@ class Simulator:
         self.bounds = DivergenceBounds(model, solver, self.check, wind=wind)
         self.stepper = AdaptiveStepper(solver, self.dt, dt_min=dt_min, check=self.check, bounds=self.bounds) if adaptive else None
         self.diagnostics = self.stepper.diagnostics if adaptive else Diagnostics(model)
-        limiting = solver.strain_limiter is not None and solver.strain_limiter.active
-        possible = (not adaptive and not model.animated and not isinstance(solver, SolverImplicitEuler)
-                    and not model.self_collision
-                    # the strain limiter's sweeps loop on the device (wp.capture_while): CUDA graphs need conditional nodes
-                    and not (limiting and model.device.is_cuda and not wp.is_conditional_graph_supported()))
+        self.animator = ControlAnimator(model, wind=wind if isinstance(wind, GustyWind) else None)
+        self.animator.set_clock(0.0, self.dt)
+        loops = solver.device_loops or any(p.device_loops for p in solver.passes)
+        possible = (not adaptive and self.animator.capturable and solver.capturable
+                    # the strain limiter's sweeps and the linear solve loop on the device (wp.capture_while): CUDA graphs
+                    # need conditional nodes
+                    and not (loops and model.device.is_cuda and not wp.is_conditional_graph_supported()))
         self.capture = possible if capture is None else (capture and possible)
+        for p in solver.passes:  # fixed-step frames, captured or not, run the recordable paths (re-run when asked)
+            p.set_recordable(not adaptive and solver.capturable)
         self._graph = None
         self.last_stats: StepStats | None = None
+        self.solve_frame = None  # the last frame's LinearSolveReport (solvers with a linear solve)
         self.wall_time = 0.0
         self.wind = wind
         if wind is not None and getattr(wind, "steady", False):
             self.control.set_wind(wind.at(0.0))
         self.bounds.note_wind(self.control.wind.numpy()[0])
         self.frame_info = {"dt_min": self.dt, "dt_max": self.dt, "iterations": 0, "residual": 0.0}
-        limiter = solver.strain_limiter
-        self.strain_limiter = limiter if limiter is not None and limiter.active else None  # the solver's, when it limits
+        self.strain_limiter = solver.strain_limiter  # the solver's pass, when it limits
+        self.pass_reports: dict = {}  # the last frame's report of each pass, by pass name
+        self.reruns = 0  # frames run again because a pass asked (buffers grown, a step for the host path)
+        # (live, saved) pairs of what a step carries to the next: a frame saves them as it starts, a re-run restores them
+        carried = [self.state.particle_q, self.state.particle_qd, self.animator.clock, *solver.carried_arrays()]
+        self._carried = [(a, wp.empty_like(a)) for a in carried]
         self.strain_limit_frame: StrainLimitReport | None = None
         self.strain_limit_total: StrainLimitReport | None = None
 
@@ -126,74 +137,119 @@ class Simulator:
         self._graph = None
 
     def _substeps(self):
-        iterations = 0
-        checked = not self.model.device.is_capturing
+        """A frame's steps: each sets the animated control from the device clock, then steps (all on the device,
+        so a frame records as one graph)."""
+        animator = self.animator
+        if animator.gusty:
+            animator.apply_wind(self.control, 0.5 * self.frame_dt)  # the clock holds the frame's start
         for k in range(self.substeps):
             src, dst = (self.state, self._other) if k % 2 == 0 else (self._other, self.state)
+            if animator.active:
+                animator.advance_clock(self.dt)
             if self.model.animated:
-                self.model.update_control(self.control, self.time + (k + 1) * self.dt, self.dt)
+                animator.apply(self.control)
             self.solver.step(src, dst, self.control, self.dt)
-            iterations += getattr(self.solver, "last_iterations", 0)
-            failure = getattr(self.solver, "last_failure", None) if checked else None
-            if failure is not None:
-                raise self._diverged(failure, f"{failure} in the linear solve of step {k + 1} of {self.substeps}",
-                                     self.diagnostics.measure(dst), self.time + (k + 1) * self.dt)
-        self.frame_info = {"dt_min": self.dt, "dt_max": self.dt, "iterations": iterations,
-                           "residual": float(getattr(self.solver, "last_residual", 0.0))}
         if self.substeps % 2 == 1:
             self.state.assign(self._other)
+
+    def _frame(self):
+        """Everything a fixed-step frame does on the device, recorded as one graph when captured: the records
+        reset, the carried arrays saved (a re-run starts from them), the steps, the statistics of the new state."""
+        self.solver.reset_pass_reports()
+        self.solver.reset_report()
+        for live, saved in self._carried:
+            wp.copy(saved, live)
+        self._substeps()
+        self.diagnostics.launch(self.state)
+
+    def _run_frame(self):
+        if not self.capture:
+            self._frame()
+            return
+        if self._graph is None:
+            with wp.ScopedCapture(device=self.model.device) as cap:
+                self._frame()
+            self._graph = cap.graph
+        wp.capture_launch(self._graph)
+
+    def _rerun(self, asking: list) -> None:
+        """Run the frame again from its start, eagerly, with the passes that asked on their host paths (and their
+        buffers grown); a graph whose arrays were replaced is recorded again at the next frame."""
+        grown = False
+        for p in asking:
+            grown |= p.prepare_rerun(self.pass_reports[p.name])
+        for live, saved in self._carried:
+            wp.copy(live, saved)
+        try:
+            self._frame()
+        finally:
+            for p in asking:
+                p.end_rerun()
+        if grown:
+            self._graph = None
+        self.reruns += 1
 
     def step_frame(self) -> StepStats:
         """Advance one frame; returns the statistics of the new state (raises :class:`SimulationDiverged`
         instead when it is beyond the scene's divergence bounds, see the class)."""
         t0 = _time.perf_counter()
-        collisions = getattr(self.solver, "collisions", None)
-        if collisions is not None:
-            collisions.reset_counts()
-        if self.strain_limiter is not None:
-            self.strain_limiter.reset_report()
         if self.wind is not None and not getattr(self.wind, "steady", False):
-            w = self.wind.at(self.time + 0.5 * self.frame_dt)
-            self.control.set_wind(w)
+            w = self.wind.at(self.time + 0.5 * self.frame_dt)  # host arithmetic only: the bounds' record of the wind
+            if not self.animator.gusty or self.stepper is not None:
+                self.control.set_wind(w)  # a wind the animator does not evaluate, or the adaptive (host) path
             self.bounds.note_wind(w)
+        reruns = self.reruns
         try:
             if self.stepper is not None:
+                self.solver.reset_pass_reports()
+                self.solver.reset_report()
                 self.stepper.advance(self.state, self.control, self.time, self.frame_dt)
-                r = self.stepper.interval
-                self.frame_info = {"dt_min": r.dt_min, "dt_max": r.dt_max, "iterations": r.iterations,
-                                   "residual": float(getattr(self.solver, "last_residual", 0.0)), "rejected": r.rejected}
-            elif self.capture:
-                if self._graph is None:
-                    with wp.ScopedCapture(device=self.model.device) as cap:
-                        self._substeps()
-                    self._graph = cap.graph
-                wp.capture_launch(self._graph)
-                self.frame_info = {"dt_min": self.dt, "dt_max": self.dt, "iterations": 0, "residual": 0.0}
+                self.diagnostics.launch(self.state)
+                self.pass_reports = self.solver.read_pass_reports()
             else:
-                self._substeps()
+                self._run_frame()
+                self.pass_reports = self.solver.read_pass_reports()
+                asking = [p for p in self.solver.passes if p.needs_rerun(self.pass_reports[p.name])]
+                if asking:
+                    self._rerun(asking)
+                    self.pass_reports = self.solver.read_pass_reports()
         except SimulationDiverged as exc:
             self.wall_time += _time.perf_counter() - t0
             raise exc.in_frame(self.frame + 1) from None
-        if collisions is not None:
-            self.frame_info.update(collisions.read_counts())
+        # the frame's reports: one read of each record (captured frames too)
+        stats = self.diagnostics.read()
+        if self.stepper is not None:
+            r = self.stepper.interval
+            self.solve_frame = None
+            self.frame_info = {"dt_min": r.dt_min, "dt_max": r.dt_max, "iterations": r.iterations,
+                               "residual": float(self.solver.last_residual), "rejected": r.rejected}
+        else:
+            solves = self.solve_frame = self.solver.read_report()
+            self.frame_info = {"dt_min": self.dt, "dt_max": self.dt, "iterations": solves.iterations if solves else 0,
+                               "residual": solves.last_residual if solves else 0.0, "frame_reruns": self.reruns - reruns}
+            if solves is not None and solves.failed:
+                self.wall_time += _time.perf_counter() - t0
+                reason = f"non-finite residual in the linear solve of step {solves.first_failed} of {self.substeps}"
+                raise self._diverged("non-finite residual", reason, stats, self.time + self.frame_dt).in_frame(self.frame + 1)
+        for report in self.pass_reports.values():
+            self.frame_info.update(report.counters())
         if self.strain_limiter is not None:
-            self._note_strain_limit(self.strain_limiter.read_report())
+            self._note_strain_limit(self.pass_reports[self.strain_limiter.name])
         end = (self.frame + 1) * self.frame_dt
-        stats = self.diagnostics.measure(self.state)
         bad = self.bounds.violation(stats)
         self.wall_time += _time.perf_counter() - t0
         if bad is not None:
             raise self._diverged(bad[0], bad[1], stats, end).in_frame(self.frame + 1)
         self.frame += 1
         self.time = end
+        if self.model.animated:
+            self.control.time = end  # what the last step's control was set for (the device clock's time)
         self.last_stats = stats
         return stats
 
     def _note_strain_limit(self, report: StrainLimitReport):
         self.strain_limit_frame = report
         self.strain_limit_total = report if self.strain_limit_total is None else self.strain_limit_total + report
-        self.frame_info.update(strain_excess_structural=report.structural_excess, strain_excess_shear=report.shear_excess,
-                               strain_limit_sweeps=report.sweeps, strain_limit_missed=report.missed_steps)
 
     def _diverged(self, kind: str, reason: str, stats: StepStats, t: float) -> SimulationDiverged:
         """The diagnosis of a fixed-step run that failed at time t: the step to try is a whole number of
@@ -237,7 +293,7 @@ class Simulator:
         * ``last_stats``: the last frame's statistics (5 numbers, when there is one);
         * ``solver.*``: the solver's (:meth:`SolverBase.checkpoint_state`): its name; implicit Euler's warm
           start (``solver.dv_previous``, ``solver.has_previous``); with self-collision the broad phase's
-          buffer capacities and counters (``solver.collisions.self.*``);
+          buffer capacities and counters (``solver.collisions.self.*``: each pass's state under its ``checkpoint_key``);
         * ``stepper.*`` (adaptive only): the current dt, the good steps since the last change, the statistics of
           the last accepted step, the run's report;
         * ``bounds.wind_speed``: the strongest wind the divergence bounds have seen.
@@ -268,8 +324,8 @@ class Simulator:
 
     def restore(self, checkpoint: dict) -> None:
         """Continue from a :meth:`checkpoint` (of a run of the same scene: particle count, fps, substeps,
-        adaptive stepping and solver kind must match, else ValueError). The arrays are written in place, so a
-        captured frame graph stays valid."""
+        adaptive stepping and solver kind must match, else ValueError). The arrays are written in place; the frame
+        is recorded again at the next step (a pass's restored buffers may be new arrays)."""
         ck = {k: _scalar(v) for k, v in checkpoint.items()}
         missing = [k for k in ("version", "particle_count", "fps", "substeps", "adaptive", "frame", "time", "particle_q", "particle_qd")
                    if k not in ck]
@@ -314,6 +370,8 @@ class Simulator:
             self.bounds.restore_state({"wind_speed": ck["bounds.wind_speed"]})
         self.frame = int(ck["frame"])
         self.time = float(ck["time"])
+        self.animator.set_clock(self.time, self.dt)
+        self._graph = None  # a pass's restored buffers may be new arrays
         self.wall_time = float(ck.get("wall_time", 0.0))
         s = ck.get("last_stats")
         self.last_stats = None if s is None else StepStats(float(s[0]), float(s[1]), float(s[2]), int(s[3]), float(s[4]))

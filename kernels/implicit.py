@@ -47,6 +47,26 @@ LENGTH_EPS = wp.constant(1.0e-9)
 CG_RS = wp.constant(0)
 CG_CAC = wp.constant(1)
 CG_RR = wp.constant(2)
+JACOBI_CHECK_ROW = wp.constant(1)  # block Jacobi's residual checks accumulate |r|^2 here (row 0 keeps |r_0|^2)
+# The solve's loop control (int32, read by wp.capture_while and the guarded kernels) and status (float64).
+LOOP_RUNNING = wp.constant(0)
+LOOP_ITERATION = wp.constant(1)
+LOOP_CHECK = wp.constant(2)  # block Jacobi: a residual check is due before the next iteration
+LOOP_SIZE = 3
+STATUS_REFERENCE = wp.constant(0)  # |S (b - A z)|^2 of the zero guess: the tolerance is relative to it
+STATUS_STOP = wp.constant(1)  # the relative residual at which this solve stops
+STATUS_RELATIVE = wp.constant(2)  # the last relative residual measured (NaN: the system is not finite)
+STATUS_SIZE = 3
+# The record of solves since its reset (float64), read once per frame.
+RECORD_SOLVES = wp.constant(0)
+RECORD_ITERATIONS = wp.constant(1)
+RECORD_MOST_ITERATIONS = wp.constant(2)
+RECORD_FAILED = wp.constant(3)  # non-finite residual: the step's result is meaningless
+RECORD_FIRST_FAILED = wp.constant(4)  # the 1-based solve (since the reset) that failed first, 0 if none
+RECORD_UNCONVERGED = wp.constant(5)  # finite, above the tolerance at the cap of iterations
+RECORD_WORST_RESIDUAL = wp.constant(6)  # the largest finite relative residual a solve ended with
+RECORD_LAST_RESIDUAL = wp.constant(7)
+RECORD_SIZE = 8
 # A membrane element's diagonal blocks enter the block-diagonal preconditioner P^-1 this many times over.
 # Block Jacobi (dv <- dv + P (b - A dv)) converges when 2 P^-1 - A is positive definite: a spring's 6x6 block
 # satisfies it with weight 1, a 3-corner element only with 3/2 (a PSD matrix of 3x3 blocks is <= 3x its block
@@ -485,13 +505,15 @@ def cg_product(
     search: wp.array(dtype=wp.vec3),
     global_damping: float,
     dt: float,
-    iteration: int,
+    loop: wp.array(dtype=wp.int32),
     # outputs: holds the element part (scatter_system_product) on entry, q on exit
     product_out: wp.array(dtype=wp.vec3),
     cg_scalars_out: wp.array2d(dtype=wp.float64),
 ):
-    """q = S A c (the mass term added to the scattered element part, pinned rows filtered) and c . q."""
+    """q = S A c (the mass term added to the scattered element part, pinned rows filtered) and c . q (row
+    loop[LOOP_ITERATION])."""
     i = wp.tid()
+    iteration = loop[LOOP_ITERATION]
     if particle_pinned[i] != 0:
         product_out[i] = wp.vec3(0.0)
         return
@@ -506,15 +528,16 @@ def cg_update(
     precond: wp.array(dtype=wp.mat33),
     search: wp.array(dtype=wp.vec3),
     product: wp.array(dtype=wp.vec3),
-    iteration: int,
+    loop: wp.array(dtype=wp.int32),
     # outputs (updated in place: forward-only solve, its gradient comes from an adjoint solve)
     dv_out: wp.array(dtype=wp.vec3),
     residual_out: wp.array(dtype=wp.vec3),
     preconditioned_out: wp.array(dtype=wp.vec3),
     cg_scalars_out: wp.array2d(dtype=wp.float64),
 ):
-    """alpha = r.s / c.Ac; dv += alpha c; r -= alpha q; s = P r; accumulate r.s and r.r."""
+    """alpha = r.s / c.Ac; dv += alpha c; r -= alpha q; s = P r; accumulate r.s and r.r (iteration loop[LOOP_ITERATION])."""
     i = wp.tid()
+    iteration = loop[LOOP_ITERATION]
     cac = cg_scalars_out[iteration, CG_CAC]
     alpha = float(0.0)
     if cac > wp.float64(0.0):
@@ -532,12 +555,15 @@ def cg_update(
 def cg_direction(
     preconditioned: wp.array(dtype=wp.vec3),
     cg_scalars: wp.array2d(dtype=wp.float64),
-    iteration: int,
+    loop: wp.array(dtype=wp.int32),
     # outputs
     search_out: wp.array(dtype=wp.vec3),
 ):
-    """c = s + beta c, beta = r_new.s_new / r.s."""
+    """c = s + beta c, beta = r_new.s_new / r.s, after the iteration end_cg_iteration counted (none once the loop stopped)."""
     i = wp.tid()
+    if loop[LOOP_RUNNING] == 0:
+        return
+    iteration = loop[LOOP_ITERATION] - 1
     rs = cg_scalars[iteration, CG_RS]
     beta = float(0.0)
     if rs > wp.float64(0.0):
@@ -571,12 +597,15 @@ def jacobi_iterate(
     rhs: wp.array(dtype=wp.vec3),
     dv_in: wp.array(dtype=wp.vec3),
     dt: float,
+    loop: wp.array(dtype=wp.int32),
     # outputs
     dv_out: wp.array(dtype=wp.vec3),
 ):
     """Block Jacobi: dv_i <- P_i (b_i - sum_{j != i} A_ij dv_j + E_i dv_i), P_i^-1 = A_ii + E_i (E_i: the membrane
-    elements' and plate stencils' extra diagonal weight); pinned rows keep z_i."""
+    elements' and plate stencils' extra diagonal weight); pinned rows keep z_i. Nothing once the loop stopped."""
     i = wp.tid()
+    if loop[LOOP_RUNNING] == 0:
+        return
     if particle_pinned[i] != 0:
         dv_out[i] = dv_in[i]
         return
@@ -645,17 +674,19 @@ def eval_system_residual(
     dv: wp.array(dtype=wp.vec3),
     global_damping: float,
     dt: float,
-    slot: int,
+    loop: wp.array(dtype=wp.int32),
     # outputs
     cg_scalars_out: wp.array2d(dtype=wp.float64),
 ):
-    """|S (b - A dv)|^2 into cg_scalars_out[slot, CG_RR]."""
+    """|S (b - A dv)|^2 into cg_scalars_out[JACOBI_CHECK_ROW, CG_RR] when a check is due (loop[LOOP_CHECK])."""
     i = wp.tid()
+    if loop[LOOP_CHECK] == 0:
+        return
     if particle_pinned[i] != 0:
         return
     m_eff = effective_mass(i, particle_mass, particle_pin_stiffness, global_damping, dt)
     r = rhs[i] - system_product(i, spring_offsets, spring_ids, spring_role, spring_indices, spring_middle, tri_offsets, tri_ids, tri_indices, tri_corner_weights, membrane_offsets, membrane_ids, membrane_vertices, system_block, bend_vector, drag_vector, membrane_block, plate_product, m_eff, dv, dt)
-    wp.atomic_add(cg_scalars_out, slot, CG_RR, wp.float64(wp.dot(r, r)))
+    wp.atomic_add(cg_scalars_out, JACOBI_CHECK_ROW, CG_RR, wp.float64(wp.dot(r, r)))
 
 
 @wp.kernel
@@ -710,6 +741,7 @@ def cg_warm_start(
     guess: wp.array(dtype=wp.vec3),
     global_damping: float,
     dt: float,
+    enabled: wp.array(dtype=wp.int32),
     # outputs
     dv_out: wp.array(dtype=wp.vec3),
     residual_out: wp.array(dtype=wp.vec3),
@@ -717,8 +749,11 @@ def cg_warm_start(
     search_out: wp.array(dtype=wp.vec3),
     cg_scalars_out: wp.array2d(dtype=wp.float64),
 ):
-    """Restart CG from `guess` (last step's dv on free particles, z on pinned): r0 = S (b - A guess)."""
+    """Restart CG from `guess` (last step's dv on free particles, z on pinned): r0 = S (b - A guess), r.s and r.r
+    into row 0 of `cg_scalars_out`; nothing when enabled[0] is 0 (no previous step: the assembled cold start stays)."""
     i = wp.tid()
+    if enabled[0] == 0:
+        return
     g = guess[i]
     dv_out[i] = g
     if particle_pinned[i] != 0:
@@ -750,6 +785,170 @@ def compose_warm_start(
         guess_out[i] = dv_pinned[i]
     else:
         guess_out[i] = dv_previous[i]
+
+
+
+# -- the solve's loop on the device ---------------------------------------------------------------
+# A solve is a wp.capture_while loop over one iteration: the kernels read the iteration from `loop` and a 1-thread
+# kernel counts it and tests convergence, so eager, graph-captured and taped (forward) solves run the same
+# iterations without a host read.
+
+
+@wp.func
+def relative_residual(rr: wp.float64, reference: wp.float64) -> wp.float64:
+    """sqrt(|r|^2 / |r_0|^2), NaN when either is not finite, 0 without a reference."""
+    if not (wp.isfinite(rr) and wp.isfinite(reference)):
+        return wp.float64(wp.nan)
+    if reference > wp.float64(1.0e-300):
+        return wp.sqrt(wp.max(rr, wp.float64(0.0)) / reference)
+    return wp.float64(0.0)
+
+
+@wp.func
+def stops(relative: wp.float64, stop: wp.float64) -> bool:
+    """The solve stops at or below its stop residual, and on a non-finite one."""
+    return relative <= stop or not wp.isfinite(relative)
+
+
+@wp.kernel
+def begin_linear_solve(
+    warm_scalars: wp.array2d(dtype=wp.float64),
+    warm: wp.array(dtype=wp.int32),
+    use_warm: int,
+    tolerance: wp.float64,
+    warm_reduction: wp.float64,
+    warm_floor: wp.float64,
+    max_iterations: int,
+    # outputs
+    cg_scalars_out: wp.array2d(dtype=wp.float64),
+    status_out: wp.array(dtype=wp.float64),
+    loop_out: wp.array(dtype=wp.int32),
+):
+    """Start a solve (1 thread): the reference |r_0|^2 is row 0 of `cg_scalars_out` (the zero guess's residual, as
+    assembled); a warm start (use_warm and warm[0]) replaces row 0 by its guess's (`warm_scalars`) and may stop
+    at warm_reduction times its starting residual (not below warm_floor). Iterates when the reference is
+    positive and the starting residual above the stop."""
+    reference = cg_scalars_out[0, CG_RR]
+    is_warm = use_warm != 0 and warm[0] != 0
+    if is_warm:
+        cg_scalars_out[0, CG_RS] = warm_scalars[0, CG_RS]
+        cg_scalars_out[0, CG_RR] = warm_scalars[0, CG_RR]
+    relative = relative_residual(cg_scalars_out[0, CG_RR], reference)
+    stop = tolerance
+    if is_warm:
+        stop = wp.min(tolerance, wp.max(warm_reduction * relative, warm_floor))
+    status_out[STATUS_REFERENCE] = reference
+    status_out[STATUS_STOP] = stop
+    status_out[STATUS_RELATIVE] = relative
+    loop_out[LOOP_ITERATION] = 0
+    loop_out[LOOP_CHECK] = 0
+    loop_out[LOOP_RUNNING] = 0
+    if reference > wp.float64(1.0e-300) and relative > stop and max_iterations > 0:
+        loop_out[LOOP_RUNNING] = 1
+
+
+@wp.kernel
+def end_cg_iteration(
+    cg_scalars: wp.array2d(dtype=wp.float64),
+    check_every: int,
+    max_iterations: int,
+    # outputs
+    status_out: wp.array(dtype=wp.float64),
+    loop_out: wp.array(dtype=wp.int32),
+):
+    """Count a CG iteration (1 thread); every `check_every` iterations and at the cap, measure the relative
+    residual and stop at the tolerance (or a non-finite residual); stop at the cap."""
+    k = loop_out[LOOP_ITERATION] + 1
+    loop_out[LOOP_ITERATION] = k
+    if k % check_every == 0 or k >= max_iterations:
+        relative = relative_residual(cg_scalars[k, CG_RR], status_out[STATUS_REFERENCE])
+        status_out[STATUS_RELATIVE] = relative
+        if stops(relative, status_out[STATUS_STOP]):
+            loop_out[LOOP_RUNNING] = 0
+    if k >= max_iterations:
+        loop_out[LOOP_RUNNING] = 0
+
+
+@wp.kernel
+def check_jacobi_residual(
+    cg_scalars: wp.array2d(dtype=wp.float64),
+    max_iterations: int,
+    # outputs
+    status_out: wp.array(dtype=wp.float64),
+    loop_out: wp.array(dtype=wp.int32),
+):
+    """Block Jacobi (1 thread): when a check is due, the relative residual eval_system_residual measured; stop at the
+    tolerance, a non-finite residual or the cap."""
+    if loop_out[LOOP_CHECK] == 0:
+        return
+    loop_out[LOOP_CHECK] = 0
+    relative = relative_residual(cg_scalars[JACOBI_CHECK_ROW, CG_RR], status_out[STATUS_REFERENCE])
+    status_out[STATUS_RELATIVE] = relative
+    if stops(relative, status_out[STATUS_STOP]) or loop_out[LOOP_ITERATION] >= max_iterations:
+        loop_out[LOOP_RUNNING] = 0
+
+
+@wp.kernel
+def end_jacobi_iteration(
+    check_every: int,
+    max_iterations: int,
+    # outputs
+    cg_scalars_out: wp.array2d(dtype=wp.float64),
+    loop_out: wp.array(dtype=wp.int32),
+):
+    """Count a block-Jacobi iteration (1 thread); every `check_every` iterations and at the cap a residual check is
+    due (its accumulator cleared)."""
+    if loop_out[LOOP_RUNNING] == 0:
+        return
+    k = loop_out[LOOP_ITERATION] + 1
+    loop_out[LOOP_ITERATION] = k
+    if k % check_every == 0 or k >= max_iterations:
+        loop_out[LOOP_CHECK] = 1
+        cg_scalars_out[JACOBI_CHECK_ROW, CG_RR] = wp.float64(0.0)
+
+
+@wp.kernel
+def end_linear_solve(
+    status: wp.array(dtype=wp.float64),
+    loop: wp.array(dtype=wp.int32),
+    tolerance: wp.float64,
+    keep_start: int,
+    # outputs
+    record_out: wp.array(dtype=wp.float64),
+    previous_ready_out: wp.array(dtype=wp.int32),
+):
+    """Record a finished solve (1 thread); with `keep_start`, its dv starts the next solve unless it failed."""
+    relative = status[STATUS_RELATIVE]
+    iterations = wp.float64(loop[LOOP_ITERATION])
+    solves = record_out[RECORD_SOLVES] + wp.float64(1.0)
+    record_out[RECORD_SOLVES] = solves
+    record_out[RECORD_ITERATIONS] = record_out[RECORD_ITERATIONS] + iterations
+    record_out[RECORD_MOST_ITERATIONS] = wp.max(record_out[RECORD_MOST_ITERATIONS], iterations)
+    record_out[RECORD_LAST_RESIDUAL] = relative
+    failed = not wp.isfinite(relative)
+    if failed:
+        record_out[RECORD_FAILED] = record_out[RECORD_FAILED] + wp.float64(1.0)
+        if record_out[RECORD_FIRST_FAILED] == wp.float64(0.0):
+            record_out[RECORD_FIRST_FAILED] = solves
+    else:
+        record_out[RECORD_WORST_RESIDUAL] = wp.max(record_out[RECORD_WORST_RESIDUAL], relative)
+        if relative > tolerance:
+            record_out[RECORD_UNCONVERGED] = record_out[RECORD_UNCONVERGED] + wp.float64(1.0)
+    if keep_start != 0:
+        previous_ready_out[0] = wp.where(failed, 0, 1)
+
+
+@wp.kernel
+def keep_velocity_change(
+    previous_ready: wp.array(dtype=wp.int32),
+    dv: wp.array(dtype=wp.vec3),
+    # outputs
+    dv_previous_out: wp.array(dtype=wp.vec3),
+):
+    """The solve's dv as the next solve's start (when it did not fail)."""
+    i = wp.tid()
+    if previous_ready[0] != 0:
+        dv_previous_out[i] = dv[i]
 
 
 # -- differentiation ---------------------------------------------------------------------------

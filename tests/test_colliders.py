@@ -141,14 +141,14 @@ def test_fast_particle_does_not_tunnel():
     m = b.finalize("cpu")
     solver = cw.SolverSymplecticEuler(m, strain_limit=None)
     sim = cw.Simulator(m, solver, fps=10, substeps=1)
-    solver.collisions.reset_counts()
+    solver.reset_pass_reports()
     sim.step_frame()
     x = sim.positions()[0]
     v = sim.state.particle_qd.numpy()[0]
     assert x[1] == pytest.approx(0.001 + 0.003, abs=1e-6)
     assert np.allclose(x[[0, 2]], 0.25, atol=1e-6)
     assert abs(v[1]) < 1e-6
-    assert solver.collisions.read_counts() == {"collider_contacts": 1, "collider_ccd": 1}
+    assert solver.read_pass_reports()["colliders"].counters() == {"collider_contacts": 1, "collider_ccd": 1}
 
 
 def test_moving_collider_carries_particle():
@@ -187,7 +187,7 @@ def test_sphere_shot_through_hanging_cloth():
     assert centre[2] > 0.7  # the sphere is well past the cloth's plane
     x = sim.positions()
     assert x[:, 2].max() > 0.6  # and the cloth went with it
-    assert solver.collisions.read_counts()["collider_ccd"] > 0
+    assert solver.read_pass_reports()["colliders"].ccd > 0
 
 
 def test_taped_steps_with_colliders_have_finite_gradients():
@@ -215,7 +215,7 @@ def test_taped_steps_with_colliders_have_finite_gradients():
     g_mu = m.collider_kinetic_friction.grad.numpy()
     assert np.all(np.isfinite(g_v)) and np.abs(g_v).max() > 0
     assert np.all(np.isfinite(g_mu)) and np.abs(g_mu).max() > 0
-    assert solver.collisions.read_counts()["collider_contacts"] > 0
+    assert solver.read_pass_reports()["colliders"].contacts > 0
 
 
 def test_bad_collider_input():

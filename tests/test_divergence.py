@@ -125,7 +125,7 @@ def test_nonfinite_residual_is_rejected_by_the_adaptive_stepper():
     err = diverge(sim, 2)
     assert err.kind == "non-finite residual"
     assert sim.stepper.report.reasons.get("non-finite residual", 0) >= 2
-    assert not sim.solver._has_previous
+    assert not sim.solver.has_previous
     assert_diagnosis(err, sim)
 
 

@@ -148,7 +148,7 @@ def test_density_fit_on_self_collision_scene_matches_a_fresh_build(tmp_path):
     cw.run_scene(path, {"material.areal_density": 0.15, "solver.tolerance": FIT_TOLERANCE}, output=target, frames=frames)
     fit = SceneFit(load_scene(path, {"material.areal_density": 0.3}), target, ["material.areal_density"], frames=frames)
     result = fit.run(iterations=3, learning_rate=0.3)
-    assert fit.solver.collisions.read_counts()["self_proximity"] > 0
+    assert fit.solver.read_pass_reports()["self_collision"].self_proximity > 0
     best = int(np.argmin(result.losses))
     assert best > 0 and result.final_loss < 0.5 * result.initial_loss  # the best values are not the ones built first
     density = result.final_values["material.areal_density"]
@@ -159,7 +159,7 @@ def test_density_fit_on_self_collision_scene_matches_a_fresh_build(tmp_path):
     for name, array in model_grad_arrays(fresh.model).items():
         np.testing.assert_array_equal(getattr(fit.model, name).numpy(), array.numpy(), err_msg=name)
     assert fit.model.self_collision_stiffness == fresh.model.self_collision_stiffness
-    ours, theirs = fit.solver.collisions.self_collision, fresh.solver.collisions.self_collision
+    ours, theirs = fit.solver.pass_named("self_collision").self_collision, fresh.solver.pass_named("self_collision").self_collision
     np.testing.assert_array_equal(ours.inv_mass.numpy(), theirs.inv_mass.numpy())
     # the handed-back model and solver run forward like a fresh build
     assert fit.rollout.forward(fit.loss) == pytest.approx(fresh.rollout.forward(fresh.loss), rel=1e-6)
@@ -172,7 +172,7 @@ def test_self_collision_follows_model_changes():
     b.add_cloth_grid(resolution=(3, 3), size=(0.1, 0.1))
     b.enable_self_collision(thickness=0.004, friction=0.3, stiffness=10.0)
     model = b.finalize("cpu")
-    sc = cw.SolverImplicitEuler(model).collisions.self_collision
+    sc = cw.SolverImplicitEuler(model).pass_named("self_collision").self_collision
     mass = model.particle_mass.numpy().copy()
     model.particle_mass.assign(2.0 * mass)
     model.self_collision_stiffness, model.cloth_thickness, model.cloth_friction = 20.0, 0.002, 0.1
@@ -207,7 +207,7 @@ def test_solver_and_simulator_follow_model_changes():
     np.testing.assert_allclose(limiter.attachment_rest_distance.numpy(), 1.5 * before, rtol=1e-6)
     np.testing.assert_array_equal(limiter.attachment_rest_distance.numpy(),
                                   cw.StrainLimiter(model).attachment_rest_distance.numpy())
-    assert not solver._has_previous
+    assert not solver.has_previous
     assert sim.diagnostics.total_mass_free == pytest.approx(2.0 * cw.Diagnostics(b.finalize("cpu")).total_mass_free, rel=1e-6)
 
 

@@ -144,7 +144,7 @@ def test_point_triangle_ccd_finds_the_degenerate_cubic_root(device):
     the step the point has not crossed the plane and separates at the set speed (0.1 thickness / h)."""
     h, thickness = 0.1, 1.0e-3
     m = point_triangle_model(device, pin_triangle=True, velocity=(0.0, 0.0, -100.0), thickness=thickness)
-    sc = cw.SolverSymplecticEuler(m, strain_limit=None).collisions.self_collision
+    sc = cw.SolverSymplecticEuler(m, strain_limit=None).pass_named("self_collision").self_collision
     x = m.particle_q
     vbar = wp.array(np.array([[0, 0, 0]] * 3 + [[0, 0, -100.0]], np.float32), dtype=wp.vec3, device=device)
     pairs, times = sc.first_contact_times(x, vbar, h)["vertex_face"]
@@ -156,7 +156,7 @@ def test_point_triangle_ccd_finds_the_degenerate_cubic_root(device):
     assert z > 0.0  # a discrete test would leave it at z = -9 m
     # inelastic, plus the 10 %-of-thickness separation; float32: -100 + dv carries ~1 ulp(100) = 8e-6 m/s
     assert vz == pytest.approx(0.1 * thickness / h, abs=2e-5)
-    assert solver.collisions.read_counts()["self_ccd"] == 1
+    assert solver.read_pass_reports()["self_collision"].self_ccd == 1
 
 
 def test_edge_edge_ccd_time_and_point():
@@ -170,7 +170,7 @@ def test_edge_edge_ccd_time_and_point():
     b.pin([3, 4, 5])
     b.enable_self_collision(thickness=1.0e-3, friction=0.0)
     m = b.finalize("cpu")
-    sc = cw.SolverSymplecticEuler(m, strain_limit=None).collisions.self_collision
+    sc = cw.SolverSymplecticEuler(m, strain_limit=None).pass_named("self_collision").self_collision
     vbar = m.particle_qd
     pairs, times = sc.first_contact_times(m.particle_q, vbar, 0.1)["edge_edge"]
     edges = sc.edges
@@ -231,7 +231,7 @@ def test_proximity_repulsion_and_friction_are_exact():
     dvn = min(h * 1.0e5 * d / 0.01, 0.1 * d / h + 0.5)
     assert v[2] == pytest.approx(-0.5 + dvn, rel=1e-4)
     assert v[0] == pytest.approx(1.0 - mu * dvn, rel=1e-4)
-    counts = solver.collisions.read_counts()
+    counts = {k: v for r in solver.read_pass_reports().values() for k, v in r.counters().items()}
     assert counts["self_proximity"] == 1 and counts["self_ccd"] == 0
 
 
@@ -258,7 +258,7 @@ def test_taped_self_collision_gives_finite_gradients():
     w[:, 1] = 1.0  # d(sum of heights)/d(v0)
     tape.backward(grads={states[-1].particle_q: wp.array(w, dtype=wp.vec3)})
     g = states[0].particle_qd.grad.numpy()
-    counts = solver.collisions.read_counts()
+    counts = {k: v for r in solver.read_pass_reports().values() for k, v in r.counters().items()}
     assert counts["self_proximity"] > 0
     assert np.all(np.isfinite(g)) and np.abs(g[: len(v)]).max() > 0.0
 

@@ -258,7 +258,7 @@ def test_taped_step_records_a_handful_of_launches(device):
     out = model.state(requires_grad=True)
     tape = wp.Tape()
     with tape:
-        limiter.apply(solver, x_in, wp.zeros_like(x_in), out, 0.01)
+        limiter.apply(x_in, x_in, wp.zeros_like(x_in), None, 0.01, out.particle_q, out.particle_qd)
     assert limiter.last_iterations > 5 and limiter.converged
     assert len(tape.launches) <= 3  # the backward hook, the velocity correction (and nothing per sweep)
     assert max(strain_excess(model, out.particle_q.numpy())) <= TOLERANCE + ROUND_OFF
@@ -290,7 +290,7 @@ def test_taped_limiter_gradient_matches_tape_and_finite_differences(device, rng)
         out = model.state(requires_grad=True)
         tape = wp.Tape()
         with tape:
-            lim.apply(solver, x_in, wp.zeros_like(x_in), out, 0.01)
+            lim.apply(x_in, x_in, wp.zeros_like(x_in), None, 0.01, out.particle_q, out.particle_qd)
         return tape, x_in, out.particle_q
 
     def taped_passes(x_np):  # every pass on the tape, a fresh array each (what the limiter avoids keeping)
@@ -378,7 +378,7 @@ def test_forward_and_taped_limiter_paths_agree(device, rng):
     for taped in (False, True):
         x_in = wp.array(moved, dtype=wp.vec3, device=device, requires_grad=taped)
         out = model.state(requires_grad=taped)
-        solver.strain_limiter.apply(solver, x_in, wp.zeros_like(x_in), out, 0.01)
+        solver.strain_limiter.apply(x_in, x_in, wp.zeros_like(x_in), None, 0.01, out.particle_q, out.particle_qd)
         assert solver.strain_limiter.last_iterations == 6
         results.append(out.particle_q.numpy())
     np.testing.assert_allclose(results[0], results[1], atol=1e-6)

@@ -338,7 +338,7 @@ class DivergenceBounds:
         shortest = max(float(lengths.min()), 0.1 * float(np.median(lengths))) if len(lengths) else 0.0
         reach = collider_reach(model)
         self.collider_strain = reach / shortest if reach > 0.0 and shortest > 0.0 else 0.0
-        limiter = solver.strain_limiter if solver.strain_limiter is not None and solver.strain_limiter.active else None
+        limiter = solver.strain_limiter
         base = max(c.strain_floor, c.strain_factor * limiter.max_strain) if limiter is not None else c.strain_unlimited
         imposed = max(self.forced_strain, self.initial_strain, self.collider_strain, 0.0)
         self.max_strain = float(c.max_strain) if c.max_strain is not None else base + imposed
@@ -467,17 +467,17 @@ class AdaptiveStepper:
     def _rejection(self, new: StepStats, old: StepStats | None, h: float) -> tuple[str, str] | None:
         """(kind, reason) when the trial step is bad, else None."""
         c = self.check
-        failure = getattr(self.solver, "last_failure", None)  # the cause, before what it does to the state
+        failure = self.solver.last_failure  # the cause, before what it does to the state
         if failure is not None:
             return failure, f"{failure} in the linear solve (after {self.solver.last_iterations} iterations)"
         bad = self.bounds.violation(new)
         if bad is not None:
             return bad
-        if c.require_convergence and not getattr(self.solver, "converged", True):
+        if c.require_convergence and not self.solver.converged:
             return "unconverged", (f"linear solver did not converge (residual {self.solver.last_residual:.2e} after "
                                    f"{self.solver.last_iterations} iterations)")
         limiter = self.solver.strain_limiter
-        if limiter is not None and limiter.active:
+        if limiter is not None:
             if limiter.last_initial_excess > c.max_strain_jump:
                 return "limiter", f"strain {limiter.last_initial_excess + limiter.max_strain:.3g} before strain limiting (limit {limiter.max_strain:g})"
             if c.require_convergence and not limiter.converged:
@@ -510,8 +510,8 @@ class AdaptiveStepper:
             bad = self._rejection(stats, self._stats, h)
             if bad is not None:
                 kind, reason = bad
-                if self.solver.strain_limiter is not None and self.solver.strain_limiter.active:
-                    self.solver.strain_limiter.discard_step()  # the frame's record keeps accepted steps only
+                for p in self.solver.passes:
+                    p.discard_step()  # the frame's records keep accepted steps only
                 r.rejected += 1
                 interval.rejected += 1
                 r.reasons[kind] = r.reasons.get(kind, 0) + 1
@@ -530,7 +530,7 @@ class AdaptiveStepper:
                 rep.dt_min = min(rep.dt_min, h)
                 rep.dt_max = max(rep.dt_max, h)
                 rep.max_strain = max(rep.max_strain, stats.max_strain)
-                rep.iterations += getattr(self.solver, "last_iterations", 0)
+                rep.iterations += self.solver.last_iterations
             self._good += 1
             if self._good >= self.grow_after and self.dt < self.nominal_dt:
                 self.dt = min(2.0 * self.dt, self.nominal_dt, max(dt_cap, self.dt))

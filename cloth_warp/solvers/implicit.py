@@ -9,6 +9,8 @@ import numpy as np
 import warp as wp
 
 from ..autodiff import paused_tape
+from ..diagnostics import LinearSolveReport
+from ..graphs import device_while
 from ..kernels import forces as kf
 from ..kernels import implicit as ki
 from ..model import Control, Model, State
@@ -50,7 +52,7 @@ class SolverImplicitEuler(SolverBase):
         max_iterations: iteration cap per step (a 128^2 cotton cloth at dt = 1/60 s needs up to ~660).
         tolerance: relative residual at which the solve stops. 1e-3 reproduces the 1e-4 motion of a 64^2
             cotton cloth at dt = 1/60 s to 0.3 % in kinetic energy; 1e-2 visibly over-damps it.
-        check_every: iterations between convergence checks (each check reads one number on the host).
+        check_every: iterations between convergence checks (on the device, in the loop's 1-thread counting kernel).
         warm_start: start each solve from the previous step's dv (forward runs). The tolerance stays
             relative to the zero-guess residual |S (b - A z)|, so a good start saves iterations.
         warm_start_reduction: a warm-started solve also cuts its starting residual by this factor (down to
@@ -71,6 +73,8 @@ class SolverImplicitEuler(SolverBase):
     """
 
     name = "implicit_euler"
+    kernel_modules = (ki,)
+    device_loops = True
 
     def __init__(
         self,
@@ -114,8 +118,6 @@ class SolverImplicitEuler(SolverBase):
         if not (0.0 < warm_start_reduction <= 1.0):
             raise ValueError(f"warm_start_reduction must be in (0, 1], got {warm_start_reduction!r}")
         self.warm_start_reduction = float(warm_start_reduction)
-        self._has_previous = False
-        self._reference_rr = 0.0
         n, s, t = model.particle_count, max(model.spring_count, 1), max(model.tri_count, 1)
         dev = model.device
         self.stiffness_block = wp.zeros(s, dtype=wp.mat33, device=dev)
@@ -142,12 +144,19 @@ class SolverImplicitEuler(SolverBase):
         self.search = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.product = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.cg_scalars = wp.zeros((self.max_iterations + 2, 3), dtype=wp.float64, device=dev)
+        self.warm_scalars = wp.zeros((1, 3), dtype=wp.float64, device=dev)  # a warm start's row 0
+        # the solve's state on the device (kernels/implicit.py LOOP_*, STATUS_*, RECORD_*): no host read inside a step
+        self.loop = wp.zeros(ki.LOOP_SIZE, dtype=wp.int32, device=dev)
+        self.solve_status = wp.zeros(ki.STATUS_SIZE, dtype=wp.float64, device=dev)
+        self.solve_record = wp.zeros(ki.RECORD_SIZE, dtype=wp.float64, device=dev)
+        self.previous_ready = wp.zeros(1, dtype=wp.int32, device=dev)  # 1: dv_previous starts the next forward solve
+        self._enabled = wp.ones(1, dtype=wp.int32, device=dev)
 
     def notify_model_changed(self, flags: int) -> None:
         """Model fields changed: besides the passes (:meth:`SolverBase.notify_model_changed`), the previous step's
         velocity change no longer predicts this one, so the next solve starts cold."""
         super().notify_model_changed(flags)
-        self._has_previous = False
+        self.previous_ready.zero_()
 
     # -- the linear system -------------------------------------------------------------------
     def assemble(self, state_in: State, control: Control, dt: float):
@@ -227,133 +236,127 @@ class SolverImplicitEuler(SolverBase):
                       device=m.device)
 
     def solve_cg(self, dt: float, warm: bool = False) -> wp.array:
-        """Filtered PCG on the assembled system (`warm`: started from the previous step's dv); returns the
-        array holding dv."""
-        m = self.model
-        dev = m.device
-        scal = self.cg_scalars.numpy() if dev.is_cpu else None
-        rr0 = self._reference_rr  # |S (b - A z)|^2: the zero-guess residual, also after a warm start
-        iterations = 0
-        rel = self._start_residual(scal)
-        stop = self._stop_residual(rel, warm)
-        if rr0 > 1e-300 and rel > stop:
-            bends = m.spring_count - m.linear_spring_count
-            elements = m.linear_spring_count + bends + m.membrane_count + m.tri_count
-            for k in range(self.max_iterations):
-                self.product.zero_()
-                wp.launch(
-                    ki.scatter_system_product,
-                    dim=elements,
-                    inputs=[m.spring_ends, m.linear_spring_count, m.bend_triples, bends, m.membrane_vertices, m.membrane_count,
-                            m.tri_vertices, m.tri_corner_weights, self.system_block, self.bend_vector, self.membrane_block,
-                            self.drag_vector, self.search, dt],
-                    outputs=[self.product],
-                    device=dev,
-                )
-                self._plate_product(self.search, dt, self.product)
-                wp.launch(
-                    ki.cg_product,
-                    dim=m.particle_count,
-                    inputs=[m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, self.search, m.global_damping, dt, k],
-                    outputs=[self.product, self.cg_scalars],
-                    device=dev,
-                )
-                wp.launch(
-                    ki.cg_update,
-                    dim=m.particle_count,
-                    inputs=[self.precond, self.search, self.product, k],
-                    outputs=[self.dv, self.residual, self.preconditioned, self.cg_scalars],
-                    device=dev,
-                )
-                iterations = k + 1
-                if iterations % self.check_every == 0 or iterations == self.max_iterations:
-                    rel = math.sqrt(max(self._read(scal, iterations), 0.0) / rr0)
-                    if rel <= stop or not math.isfinite(rel):
-                        break
-                wp.launch(ki.cg_direction, dim=m.particle_count, inputs=[self.preconditioned, self.cg_scalars, k], outputs=[self.search], device=dev)
-        self._report(iterations, rel)
+        """Filtered PCG on the assembled system (`warm`: a warm start may have replaced the cold one, see
+        :meth:`solve`), iterating on the device until the stop residual; returns the array holding dv."""
+        self._begin_iterations(warm)
+        device_while(self.loop, self._cg_iteration, dt=dt)
         return self.dv
 
-    def solve_jacobi(self, dt: float, warm: bool = False) -> wp.array:
-        """Block Jacobi on the assembled system (`warm` as in :meth:`solve_cg`); returns the array holding dv."""
+    def _cg_iteration(self, dt: float):
         m = self.model
         dev = m.device
-        scal = self.cg_scalars.numpy() if dev.is_cpu else None
-        rr0 = self._reference_rr
-        src, dst = self.dv, self.dv_alt
-        iterations = 0
-        rel = self._start_residual(scal)
-        stop = self._stop_residual(rel, warm)
-        if rr0 > 1e-300 and rel > stop:
-            common = self._product_args()
-            product_of_src = False  # plate_product holds A_plate src (the residual check leaves it so)
-            for k in range(self.max_iterations):
-                if not product_of_src:
-                    self._plate_product(src, dt)
-                wp.launch(
-                    ki.jacobi_iterate,
-                    dim=m.particle_count,
-                    inputs=[*common, m.particle_pinned, self.system_block, self.bend_vector, self.drag_vector, self.membrane_block,
-                            self.plate_product, self.plate_diagonal, self.precond, self.rhs, src, dt],
-                    outputs=[dst],
-                    device=dev,
-                )
-                src, dst = dst, src
-                product_of_src = False
-                iterations = k + 1
-                if iterations % self.check_every == 0 or iterations == self.max_iterations:
-                    slot = 1  # row 0 keeps |r_0|^2
-                    self.cg_scalars[slot : slot + 1].zero_()
-                    self._plate_product(src, dt)
-                    product_of_src = True
-                    wp.launch(
-                        ki.eval_system_residual,
-                        dim=m.particle_count,
-                        inputs=[*common, m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, self.system_block,
-                                self.bend_vector, self.drag_vector, self.membrane_block, self.plate_product, self.rhs, src,
-                                m.global_damping, dt, slot],
-                        outputs=[self.cg_scalars],
-                        device=dev,
-                    )
-                    rel = math.sqrt(max(self._read(scal, slot), 0.0) / rr0)
-                    if rel <= stop or not math.isfinite(rel):
-                        break
-        self._report(iterations, rel)
-        return src
+        bends = m.spring_count - m.linear_spring_count
+        elements = m.linear_spring_count + bends + m.membrane_count + m.tri_count
+        self.product.zero_()
+        if elements:
+            wp.launch(
+                ki.scatter_system_product,
+                dim=elements,
+                inputs=[m.spring_ends, m.linear_spring_count, m.bend_triples, bends, m.membrane_vertices, m.membrane_count,
+                        m.tri_vertices, m.tri_corner_weights, self.system_block, self.bend_vector, self.membrane_block,
+                        self.drag_vector, self.search, dt],
+                outputs=[self.product],
+                device=dev,
+            )
+        self._plate_product(self.search, dt, self.product)
+        wp.launch(ki.cg_product, dim=m.particle_count,
+                  inputs=[m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, self.search, m.global_damping, dt, self.loop],
+                  outputs=[self.product, self.cg_scalars], device=dev)
+        wp.launch(ki.cg_update, dim=m.particle_count, inputs=[self.precond, self.search, self.product, self.loop],
+                  outputs=[self.dv, self.residual, self.preconditioned, self.cg_scalars], device=dev)
+        wp.launch(ki.end_cg_iteration, dim=1, inputs=[self.cg_scalars, self.check_every, self.max_iterations],
+                  outputs=[self.solve_status, self.loop], device=dev)
+        wp.launch(ki.cg_direction, dim=m.particle_count, inputs=[self.preconditioned, self.cg_scalars, self.loop], outputs=[self.search],
+                  device=dev)
 
-    def _start_residual(self, scal) -> float:
-        """The relative residual of the starting guess; NaN when the system is not finite (a NaN or inf
-        right-hand side, matrix or guess): the solve then does not iterate and reports a non-finite residual
-        (``last_failure``)."""
-        rr0 = self._reference_rr
-        start = self._read(scal, 0)
-        if not (math.isfinite(rr0) and math.isfinite(start)):
-            return math.nan
-        return math.sqrt(max(start, 0.0) / rr0) if rr0 > 1e-300 else 0.0
+    def solve_jacobi(self, dt: float, warm: bool = False) -> wp.array:
+        """Block Jacobi on the assembled system (`warm` as in :meth:`solve_cg`), iterating on the device; returns
+        the array holding dv."""
+        self._begin_iterations(warm)
+        device_while(self.loop, self._jacobi_iteration, dt=dt)
+        return self.dv
 
-    def _stop_residual(self, rel_start: float, warm: bool) -> float:
-        """The relative residual at which this solve stops (see `warm_start_reduction`)."""
-        if not warm:
-            return self.tolerance
-        return min(self.tolerance, max(self.warm_start_reduction * rel_start, WARM_START_FLOOR))
+    def _jacobi_iteration(self, dt: float):
+        """A due residual check of dv (and the stop), then one iteration dv -> dv_alt -> dv (skipped once stopped:
+        dv_alt then already equals dv)."""
+        m = self.model
+        dev = m.device
+        common = self._product_args()
+        self._plate_product(self.dv, dt)  # the check's and the iteration's plate part of A dv
+        wp.launch(
+            ki.eval_system_residual,
+            dim=m.particle_count,
+            inputs=[*common, m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, self.system_block, self.bend_vector,
+                    self.drag_vector, self.membrane_block, self.plate_product, self.rhs, self.dv, m.global_damping, dt, self.loop],
+            outputs=[self.cg_scalars],
+            device=dev,
+        )
+        wp.launch(ki.check_jacobi_residual, dim=1, inputs=[self.cg_scalars, self.max_iterations], outputs=[self.solve_status, self.loop],
+                  device=dev)
+        wp.launch(
+            ki.jacobi_iterate,
+            dim=m.particle_count,
+            inputs=[*common, m.particle_pinned, self.system_block, self.bend_vector, self.drag_vector, self.membrane_block,
+                    self.plate_product, self.plate_diagonal, self.precond, self.rhs, self.dv, dt, self.loop],
+            outputs=[self.dv_alt],
+            device=dev,
+        )
+        wp.copy(self.dv, self.dv_alt)
+        wp.launch(ki.end_jacobi_iteration, dim=1, inputs=[self.check_every, self.max_iterations], outputs=[self.cg_scalars, self.loop],
+                  device=dev)
 
-    def _read(self, scal, row: int) -> float:
-        if scal is not None:  # CPU: a zero-copy view, no transfer
-            return float(scal[row, 2])
-        return float(self.cg_scalars[row : row + 1].numpy()[0, 2])
+    def _begin_iterations(self, warm: bool):
+        """The reference residual, the stop and whether to iterate, on the device (:func:`~cloth_warp.kernels.implicit.begin_linear_solve`)."""
+        wp.launch(ki.begin_linear_solve, dim=1,
+                  inputs=[self.warm_scalars, self.previous_ready, int(warm), wp.float64(self.tolerance), wp.float64(self.warm_start_reduction),
+                          wp.float64(WARM_START_FLOOR), self.max_iterations],
+                  outputs=[self.cg_scalars, self.solve_status, self.loop], device=self.model.device)
 
-    def _report(self, iterations: int, rel: float):
-        self.last_iterations = iterations
-        self.last_residual = rel
-        self.converged = bool(math.isfinite(rel) and rel <= self.tolerance)
-        self.last_failure = None if math.isfinite(rel) else "non-finite residual"
+    # -- the solve's report (each property reads the device; the Simulator reads the record once per frame) ----------
+    @property
+    def last_iterations(self) -> int:
+        """Iterations of the last solve."""
+        return int(self.loop.numpy()[ki.LOOP_ITERATION])
+
+    @property
+    def last_residual(self) -> float:
+        """The last solve's relative residual |r_k| / |r_0| (NaN: not finite)."""
+        return float(self.solve_status.numpy()[ki.STATUS_RELATIVE])
+
+    @property
+    def converged(self) -> bool:
+        rel = self.last_residual
+        return bool(math.isfinite(rel) and rel <= self.tolerance)
+
+    @property
+    def last_failure(self) -> str | None:
+        return None if math.isfinite(self.last_residual) else "non-finite residual"
+
+    @property
+    def has_previous(self) -> bool:
+        """Whether the next forward solve starts from the last one's dv."""
+        return bool(self.previous_ready.numpy()[0])
+
+    def reset_report(self):
+        self.solve_record.zero_()
+
+    def read_report(self) -> LinearSolveReport:
+        """The solves since :meth:`reset_report` (one read of a few numbers)."""
+        r = self.solve_record.numpy().astype(np.float64)
+        return LinearSolveReport(
+            solves=int(r[ki.RECORD_SOLVES]), iterations=int(r[ki.RECORD_ITERATIONS]), most_iterations=int(r[ki.RECORD_MOST_ITERATIONS]),
+            failed=int(r[ki.RECORD_FAILED]), first_failed=int(r[ki.RECORD_FIRST_FAILED]), unconverged=int(r[ki.RECORD_UNCONVERGED]),
+            worst_residual=float(r[ki.RECORD_WORST_RESIDUAL]), last_residual=float(r[ki.RECORD_LAST_RESIDUAL]), tolerance=self.tolerance)
+
+    def carried_arrays(self) -> list:
+        return [self.dv_previous, self.previous_ready]
 
     # -- checkpoints --------------------------------------------------------------------------
     def checkpoint_state(self) -> dict:
         """The warm start (the previous step's dv and whether there is one) on top of the base's state; every
         other array is rebuilt by each step's assembly before it is read."""
         out = super().checkpoint_state()
-        out["has_previous"] = bool(self._has_previous)
+        out["has_previous"] = self.has_previous
         out["dv_previous"] = self.dv_previous.numpy().copy()
         return out
 
@@ -361,44 +364,50 @@ class SolverImplicitEuler(SolverBase):
         super().restore_state(state)
         dv = np.asarray(state["dv_previous"], np.float32).reshape(self.model.particle_count, 3)
         self.dv_previous.assign(dv)
-        self._has_previous = bool(state["has_previous"])
+        self.previous_ready.fill_(int(bool(state["has_previous"])))
 
     # -- the step ----------------------------------------------------------------------------
     def solve(self, state_in: State, control: Control, dt: float) -> wp.array:
-        """Assemble and solve the step's linear system; returns the array holding dv [m/s]."""
+        """Assemble and solve the step's linear system; returns the array holding dv [m/s]. No host reads: a
+        forward solve (warm-started from the last one's dv when there is one, decided on the device) can be
+        recorded in a graph."""
         self.assemble(state_in, control, dt)
-        self._reference_rr = self._read(self.cg_scalars.numpy() if self.model.device.is_cpu else None, 0)
-        warm = self.warm_start and self._has_previous and not state_in.requires_grad
+        warm = self.warm_start and not state_in.requires_grad
         if warm:
             self._restart_from_previous(dt)
         dv = self._iterate(dt, warm)
+        m = self.model
+        wp.launch(ki.end_linear_solve, dim=1, inputs=[self.solve_status, self.loop, wp.float64(self.tolerance), int(self.warm_start)],
+                  outputs=[self.solve_record, self.previous_ready], device=m.device)
         if self.warm_start:  # a non-finite solve is no start for the next (nor for a retry of this step)
-            if self.last_failure is None:
-                wp.copy(self.dv_previous, dv)
-            self._has_previous = self.last_failure is None
+            wp.launch(ki.keep_velocity_change, dim=m.particle_count, inputs=[self.previous_ready, dv], outputs=[self.dv_previous],
+                      device=m.device)
         return dv
 
     def _iterate(self, dt: float, warm: bool = False) -> wp.array:
         return self.solve_cg(dt, warm) if self.linear_solver == LinearSolver.CG else self.solve_jacobi(dt, warm)
 
     def _restart_from_previous(self, dt: float):
+        """When the last solve left a start (``previous_ready``, on the device): the guess = its dv on free
+        particles and this step's z on pinned ones, and its residual in `warm_scalars`."""
         m = self.model
         wp.launch(ki.compose_warm_start, dim=m.particle_count, inputs=[m.particle_pinned, self.dv_previous, self.dv],
                   outputs=[self.dv_alt], device=m.device)
-        self._start_from_guess(dt)
+        self._start_from_guess(dt, self.previous_ready, self.warm_scalars)
 
-    def _start_from_guess(self, dt: float):
-        """Restart the iteration from the guess in dv_alt: r0 = S (rhs - A guess), search direction, |r0|^2."""
+    def _start_from_guess(self, dt: float, enabled: wp.array, scalars: wp.array):
+        """Restart the iteration from the guess in dv_alt when enabled[0]: r0 = S (rhs - A guess), search direction,
+        |r0|^2 into row 0 of `scalars`."""
         m = self.model
-        self.cg_scalars.zero_()
+        scalars.zero_()
         self._plate_product(self.dv_alt, dt)
         wp.launch(
             ki.cg_warm_start,
             dim=m.particle_count,
             inputs=[*self._product_args(), m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, self.system_block,
                     self.bend_vector, self.drag_vector, self.membrane_block, self.plate_product, self.precond, self.rhs, self.dv_alt,
-                    m.global_damping, dt],
-            outputs=[self.dv, self.residual, self.preconditioned, self.search, self.cg_scalars],
+                    m.global_damping, dt, enabled],
+            outputs=[self.dv, self.residual, self.preconditioned, self.search, scalars],
             device=m.device,
         )
 
@@ -477,14 +486,14 @@ class SolverImplicitEuler(SolverBase):
     def _adjoint_solve(self, state_in: State, control: Control, dt: float, dv: wp.array, residual: wp.array):
         """Backward of one taped step: solve S A S lam = S dL/d(dv) and add lam to dL/dr."""
         m = self.model
-        report = (self.last_iterations, self.last_residual, self.converged, self.last_failure)
+        report = (wp.clone(self.loop), wp.clone(self.solve_status))  # the forward step's, kept as its report
         self.assemble(state_in, control, dt)  # the step's blocks and preconditioner (overwritten since)
         wp.copy(self.rhs, dv.grad)
         self.dv_alt.zero_()
-        self._start_from_guess(dt)
-        self._reference_rr = self._read(self.cg_scalars.numpy() if m.device.is_cpu else None, 0)
+        self._start_from_guess(dt, self._enabled, self.cg_scalars)
         lam = self._iterate(dt)
         self.adjoint_solves += 1
         self.adjoint_iterations += self.last_iterations
-        self.last_iterations, self.last_residual, self.converged, self.last_failure = report
+        wp.copy(self.loop, report[0])
+        wp.copy(self.solve_status, report[1])
         wp.launch(ki.add_vectors, dim=m.particle_count, inputs=[lam], outputs=[residual.grad], device=m.device)

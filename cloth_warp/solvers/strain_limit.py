@@ -17,8 +17,10 @@ import warp as wp
 
 from ..autodiff import paused_tape
 from ..diagnostics import StrainLimitReport
+from ..graphs import device_while
 from ..kernels import constraints as kc
-from ..model import Model, ModelFlags, State
+from ..model import Control, Model, ModelFlags, State
+from ..passes import StepPass
 
 DEFAULT_SWEEPS = 128
 """Cap of Gauss-Seidel sweeps per step (API and scene default)."""
@@ -31,8 +33,9 @@ class StrainLimitWarning(UserWarning):
     """The strain limit was not reached within the cap of sweeps in some steps of a run."""
 
 
-class StrainLimiter:
-    """Provot (1995) deformation constraints: no structural/shear spring longer than (1 + max_strain) L.
+class StrainLimiter(StepPass):
+    """Provot (1995) deformation constraints: no structural/shear spring longer than (1 + max_strain) L; the
+    first pass of a step (:mod:`~cloth_warp.passes`), a corrector (the contact passes after it get the last word).
 
     Each sweep starts with long-range attachments (Kim, Chentanez & Mueller 2012): every particle stays
     within (1 + max_strain) times its shortest rest path along limited springs from the nearest
@@ -65,6 +68,10 @@ class StrainLimiter:
         tolerance: excess strain at which sweeping stops; None for exactly `iterations` sweeps.
         relaxation: over-relaxation of each correction, in [1, 2).
     """
+
+    name = "strain_limit"
+    corrector = True
+    device_loops = True
 
     def __init__(self, model: Model, max_strain: float = 0.1, iterations: int = DEFAULT_SWEEPS, attachments: int = 4,
                  tolerance: float | None = 1.0e-3, relaxation: float = 1.5):
@@ -114,6 +121,10 @@ class StrainLimiter:
         return self.model.strain_limit_color_count > 0
 
     @property
+    def kernel_modules(self) -> tuple:
+        return (kc,)
+
+    @property
     def report_tolerance(self) -> float:
         """The excess [strain] above which a step counts as missed."""
         return self.tolerance if self.tolerance is not None else REPORT_TOLERANCE
@@ -141,8 +152,11 @@ class StrainLimiter:
         return self.last_excess <= self.report_tolerance
 
     # -- the record of steps --------------------------------------------------------------------------------------
+    def end_step(self):
+        self.record_step()
+
     def record_step(self):
-        """Add the last apply() to the record (a solver calls it once per step, after its last round)."""
+        """Add the last apply() to the record (once per step, after its last round: :meth:`end_step`)."""
         with paused_tape():
             wp.launch(kc.record_strain_limit, dim=1, inputs=[self._status, self._loop, self.report_tolerance],
                       outputs=[self.record, self._record_backup], device=self.model.device)
@@ -165,12 +179,14 @@ class StrainLimiter:
             sweeps=int(r[kc.RECORD_SWEEPS]), most_sweeps=int(r[kc.RECORD_MOST_SWEEPS]), frames=1, missed_frames=int(missed > 0))
 
     # -- limiting -----------------------------------------------------------------------------------------------------
-    def apply(self, solver, x_in: wp.array, v_in: wp.array, state_out: State, dt: float):
-        """Limit x_in into state_out.particle_q and correct v_in into state_out.particle_qd (see the class)."""
-        if x_in.requires_grad:
-            self._apply_taped(x_in, v_in, state_out, dt)
+    def apply(self, x_start, x_end: wp.array, v_end: wp.array, control: Control, dt: float, x_out: wp.array, v_out: wp.array):
+        """Limit x_end into x_out and correct v_end into v_out by the position change over dt (see the class;
+        the start positions and the control are not used)."""
+        state_out = State(x_out, v_out)
+        if x_end.requires_grad:
+            self._apply_taped(x_end, v_end, state_out, dt)
         else:
-            self._apply_forward(x_in, v_in, state_out, dt)
+            self._apply_forward(x_end, v_end, state_out, dt)
 
     @property
     def _check(self) -> int:
@@ -206,7 +222,7 @@ class StrainLimiter:
         x = state_out.particle_q
         wp.copy(x, x_in)
         self._begin(x)
-        wp.capture_while(self._loop, self._sweep_in_place, x=x)
+        device_while(self._loop, self._sweep_in_place, x=x)
         self._finish(x)
         wp.launch(kc.correct_velocity, dim=m.particle_count, inputs=[x_in, x, v_in, dt], outputs=[state_out.particle_qd], device=m.device)
 
