@@ -1,7 +1,7 @@
 """The cloth-warp command line (also ``python -m cloth_warp``).
 
     cloth-warp run SCENE [-o OUT] [--frames N] [--fps F] [--start-frame K] [--device cpu|cuda]
-                         [--set key.path=value ...] [--stats FILE.json] [--resume] [--quiet] [-v]
+                         [--set key.path=value ...] [--stats FILE.json] [--resume] [--profile] [--quiet] [-v]
     cloth-warp validate SCENE [--set ...]       check a scene without running it
     cloth-warp info CACHE [--json]              what a cache holds
     cloth-warp scenes                           the shipped scenes
@@ -148,6 +148,15 @@ def format_summary(s: dict) -> str:
     return "\n".join(lines)
 
 
+def format_profile(profile: dict) -> str:
+    """The stage table of a run with --profile (the summary's ``profile``)."""
+    from .profiling import StageReport
+
+    report = StageReport.from_dict(profile)
+    return (f"profile     {report.frames} frames, not captured as graphs, device synchronised at every stage boundary\n"
+            + report.table(markdown=False))
+
+
 def _write_stats(path, summary):
     if path:
         from .outputs import atomic_write_text
@@ -186,7 +195,7 @@ def cmd_run(args) -> int:
             warnings.showwarning = _show_warning(warnings.showwarning)
             summary = run_scene(args.scene, overrides, output=args.output, frames=args.frames, fps=args.fps,
                                 device=args.device, start_frame=args.start_frame, progress=progress, argv=sys.argv,
-                                resume=args.resume)
+                                resume=args.resume, profile=args.profile)
     except KeyboardInterrupt as exc:
         summary = getattr(exc, "summary", None)
         progress.finish()
@@ -212,6 +221,8 @@ def cmd_run(args) -> int:
     _write_stats(args.stats, summary)
     if not args.quiet or summary["status"] != "complete":
         print(format_summary(summary), file=sys.stdout if summary["status"] == "complete" else sys.stderr)
+    if summary.get("profile") is not None and not args.quiet:
+        print(format_profile(summary["profile"]))
     if summary["status"] == "diverged":
         print(f"cloth-warp: error: {summary['message']}", file=sys.stderr)
         return EXIT_DIVERGED
@@ -437,6 +448,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("-q", "--quiet", action="store_true", help="no progress and no summary (errors still print)")
     run.add_argument("--resume", action="store_true", help="continue an interrupted, failed or killed run of the same output "
                      "from its last saved frame (same frames as an uninterrupted run)")
+    run.add_argument("--profile", action="store_true", help="time the step's stages and print a table of them (also in --stats "
+                     "under \"profile\"); frames then run without graph capture and the device is synchronised at every "
+                     "stage, so the run is slower than without")
     run.set_defaults(func=cmd_run)
 
     val = sub.add_parser("validate", help="check a scene without running it")

@@ -17,8 +17,10 @@ import warnings
 
 import numpy as np
 
+from . import profiling
 from .cache import COUNTER_DIAGNOSTICS, STRAIN_LIMIT_DIAGNOSTICS
 from .collision import ALL_COUNTERS as COLLISION_COUNTERS
+from .profiling import stage
 from .scene import Scene, SceneError, build_model, build_solver, build_wind, load_scene
 
 log = logging.getLogger(__name__)
@@ -46,18 +48,7 @@ def find_scene(name_or_path) -> pathlib.Path:
 
 
 def _kernel_modules(solver):
-    from .kernels import broadphase, collide, constraints, diagnostics, forces, implicit, selfcollide
-    from .solvers import SolverImplicitEuler
-
-    mods = [forces, constraints, diagnostics]
-    if isinstance(solver, SolverImplicitEuler):
-        mods.append(implicit)
-    collisions = getattr(solver, "collisions", None)
-    if collisions is not None:
-        mods.append(collide)
-        if collisions.self_collision is not None:
-            mods += [broadphase, selfcollide]
-    return mods
+    return solver.all_kernel_modules()
 
 
 def _drape_coefficient(scene: Scene, model, positions) -> float:
@@ -178,7 +169,8 @@ def strain_limit_message(limit: dict) -> str:
 
 
 def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int | None = None, fps: float | None = None,
-              device=None, start_frame: int | None = None, progress=None, argv=None, resume: bool = False) -> dict:
+              device=None, start_frame: int | None = None, progress=None, argv=None, resume: bool = False,
+              profile: bool = False) -> dict:
     """Run a scene (a path, a shipped scene name or a :class:`Scene`) and write its cache.
 
     Args:
@@ -192,6 +184,10 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
             simulation goes on from there, giving the frames an uninterrupted run gives (bit-identical on
             the CPU); the scene must be the same but for its [output] keys (more frames may be asked).
             Stopped while copying, the earlier cache is left as it was.
+        profile: time the step's stages (:mod:`cloth_warp.profiling`: ``frame`` around each step, the solver's own
+            stages inside it, ``cache`` around each cache write) and put the :class:`~cloth_warp.profiling.StageReport`
+            in the summary under ``profile`` (its ``to_dict()``). Frames then run without graph capture (a replayed
+            graph runs no Python to time) and the device is synchronised at every stage boundary: slower than a plain run.
 
     Returns the summary dict (JSON-able, non-finite values as None): status ``complete`` / ``diverged``
     (with ``message`` and ``diagnosis``) / ``interrupted``, frames, wall and compile time, ms/frame, max
@@ -256,7 +252,7 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
         compile_s = load_kernels(solver, model.device)
         wind = build_wind(scene)
         sim = Simulator(model, solver, fps=fps, substeps=substeps, adaptive=bool(scene.get("solver.adaptive")),
-                        dt_min=float(scene.get("solver.dt_min")), wind=wind)
+                        dt_min=float(scene.get("solver.dt_min")), wind=wind, capture=False if profile else None)
         if source is not None:
             try:
                 sim.restore(source[2])
@@ -287,6 +283,8 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
     resumed_limit: list[dict] = []  # the per-frame diagnostics of frames copied from an earlier run
     t_loop = time.perf_counter()
     interrupted = write_error = None
+    if profile:
+        profiling.enable(model.device)
     try:
         first = 0
         if source is not None:  # the earlier run's frames, then its state at the last of them
@@ -301,14 +299,16 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
         else:
             writer.write(sim.state.particle_q.numpy(), sim.state.particle_qd.numpy(), checkpoint=sim.checkpoint())
         for f in range(first, n_frames):
-            stats = sim.step_frame()
+            with stage("frame"):
+                stats = sim.step_frame()
             info = sim.frame_info
             diag = {"maxStrain": stats.max_strain, "dt": info["dt_min"], "solverIterations": info["iterations"],
                     "solverResidual": info["residual"]}
             diag.update({attr: info.get(key) for attr, key in COUNTER_DIAGNOSTICS.items()})
             diag.update({attr: info.get(key) for attr, key in STRAIN_LIMIT_DIAGNOSTICS.items()})
-            writer.write(sim.state.particle_q.numpy(), sim.state.particle_qd.numpy(), diag,
-                         checkpoint=sim.checkpoint() if writer.save_due else None)
+            with stage("cache"):
+                writer.write(sim.state.particle_q.numpy(), sim.state.particle_qd.numpy(), diag,
+                             checkpoint=sim.checkpoint() if writer.save_due else None)
             for key in COLLISION_COUNTERS:
                 if key in info:
                     contacts[key] = contacts.get(key, 0) + info[key]
@@ -341,6 +341,9 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
             wall = time.perf_counter() - t_loop
             done = summary["frames"]
             new = done - summary.get("resumed_frames", 0)
+            if profile:
+                profiling.disable()
+                summary["profile"] = profiling.report(frames=new).to_dict()
             summary.update(
                 wall_s=wall, total_s=time.perf_counter() - t_start, compile_s=compile_s,
                 ms_per_frame=1e3 * wall / new if new else None, max_strain=max_strain,
