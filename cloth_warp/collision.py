@@ -133,8 +133,13 @@ class SelfCollisionPass(StepPass):
         self.self_collision.reset_counts()
 
     def read_report(self) -> SelfCollisionReport:
-        status, counts = self.self_collision.read_report()
+        """The counters since the last reset; the host-side ones (a host-path step's) are cleared as they are read,
+        since a replayed frame resets only the device block."""
+        sc = self.self_collision
+        status, counts = sc.read_report()
         self._status = status  # what prepare_rerun grows
+        sc.host_counts = dict.fromkeys(sc.host_counts, 0)
+        sc._grown0 = sc.grid.vertex_face.grown + sc.grid.edge_edge.grown
         return SelfCollisionReport.from_counts(counts, status.fallback_steps, tuple(sorted(status.overflow)))
 
     def checkpoint_state(self) -> dict:

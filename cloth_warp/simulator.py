@@ -12,6 +12,7 @@ import warp as wp
 from .diagnostics import Diagnostics, StepStats, StrainLimitReport
 from .animation import ControlAnimator
 from .model import Model
+from .profiling import stage
 from .wind import GustyWind
 from .solvers.adaptive import AdaptiveStepper, DivergenceBounds, SimulationDiverged, StepCheck
 from .solvers.base import SolverBase
@@ -31,11 +32,12 @@ class Simulator:
 
     With fixed substeps the substep loop of a frame is captured once as a Warp graph (CPU or CUDA) and
     replayed, so per-launch overhead is paid once; with ``adaptive=True`` every step is checked and
-    bad steps are retried with half the step (see :class:`AdaptiveStepper`). Capture is skipped for
-    animated handles and colliders (their targets and poses are updated on the host each substep), for self-collision
-    (its broad phase sizes buffers on the host) and, with strain limiting or the implicit solver on CUDA, where the driver
-    lacks conditional graph nodes (CUDA < 12.4: the limiter's sweeps and the linear solve loop on the device until they
-    converge).
+    bad steps are retried with half the step (see :class:`AdaptiveStepper`). Handles, keyframed colliders
+    and the gusty wind are set on the device from a device clock (:class:`~cloth_warp.animation.ControlAnimator`);
+    a pass that asks (self-collision: a buffer overflowed, or a step needs rigid impact zones) gets its frame run
+    again eagerly from the frame's start. Capture is skipped with adaptive stepping, for deforming mesh colliders on
+    the CPU (Warp 1.19 does not record their BVH refit) and, on CUDA, where the driver lacks conditional graph nodes
+    (CUDA < 12.4: the linear solve, the limiter's sweeps and the CCD sweeps loop on the device).
 
     Divergence: after every frame, on every path (captured or not, adaptive or not, any integrator), the new
     state is checked against the scene's :class:`~cloth_warp.solvers.adaptive.DivergenceBounds` (non-finite
@@ -160,7 +162,8 @@ class Simulator:
         for live, saved in self._carried:
             wp.copy(saved, live)
         self._substeps()
-        self.diagnostics.launch(self.state)
+        with stage("statistics"):
+            self.diagnostics.launch(self.state)
 
     def _run_frame(self):
         if not self.capture:
@@ -174,10 +177,9 @@ class Simulator:
 
     def _rerun(self, asking: list) -> None:
         """Run the frame again from its start, eagerly, with the passes that asked on their host paths (and their
-        buffers grown); a graph whose arrays were replaced is recorded again at the next frame."""
-        grown = False
+        buffers grown); the frame is recorded again at the next frame (its arrays may have been replaced)."""
         for p in asking:
-            grown |= p.prepare_rerun(self.pass_reports[p.name])
+            p.prepare_rerun(self.pass_reports[p.name])
         for live, saved in self._carried:
             wp.copy(live, saved)
         try:
@@ -185,8 +187,7 @@ class Simulator:
         finally:
             for p in asking:
                 p.end_rerun()
-        if grown:
-            self._graph = None
+        self._graph = None  # grown buffers, or the host path's own reallocations: a recorded frame holds the old arrays
         self.reruns += 1
 
     def step_frame(self) -> StepStats:
@@ -209,10 +210,12 @@ class Simulator:
             else:
                 self._run_frame()
                 self.pass_reports = self.solver.read_pass_reports()
+                solves = self.solver.read_report()
                 asking = [p for p in self.solver.passes if p.needs_rerun(self.pass_reports[p.name])]
-                if asking:
+                if asking and not (solves is not None and solves.failed):  # a failed solve is reported, not re-run
                     self._rerun(asking)
                     self.pass_reports = self.solver.read_pass_reports()
+                    solves = self.solver.read_report()
         except SimulationDiverged as exc:
             self.wall_time += _time.perf_counter() - t0
             raise exc.in_frame(self.frame + 1) from None
@@ -224,13 +227,13 @@ class Simulator:
             self.frame_info = {"dt_min": r.dt_min, "dt_max": r.dt_max, "iterations": r.iterations,
                                "residual": float(self.solver.last_residual), "rejected": r.rejected}
         else:
-            solves = self.solve_frame = self.solver.read_report()
+            self.solve_frame = solves
             self.frame_info = {"dt_min": self.dt, "dt_max": self.dt, "iterations": solves.iterations if solves else 0,
                                "residual": solves.last_residual if solves else 0.0, "frame_reruns": self.reruns - reruns}
             if solves is not None and solves.failed:
                 self.wall_time += _time.perf_counter() - t0
                 reason = f"non-finite residual in the linear solve of step {solves.first_failed} of {self.substeps}"
-                raise self._diverged("non-finite residual", reason, stats, self.time + self.frame_dt).in_frame(self.frame + 1)
+                raise self._diverged("non-finite residual", reason, stats, self.time + solves.first_failed * self.dt).in_frame(self.frame + 1)
         for report in self.pass_reports.values():
             self.frame_info.update(report.counters())
         if self.strain_limiter is not None:

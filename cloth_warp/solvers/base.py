@@ -7,6 +7,7 @@ import warp as wp
 from ..kernels import forces as kf
 from ..model import Control, Model, State
 from ..passes import StepPass, build_passes
+from ..profiling import stage
 from .strain_limit import DEFAULT_SWEEPS
 
 
@@ -173,12 +174,14 @@ class SolverBase:
             raise ValueError(f"time step must be positive, got {dt!r}")
         passes = self.passes
         if not passes:
-            self.integrate(state_in, state_out.particle_q, state_out.particle_qd, control, dt)
+            with stage("integrate"):
+                self.integrate(state_in, state_out.particle_q, state_out.particle_qd, control, dt)
             return
         rg = state_in.requires_grad
         x = self.scratch("x_unlimited", wp.vec3, rg)
         v = self.scratch("v_unlimited", wp.vec3, rg)
-        self.integrate(state_in, x, v, control, dt)
+        with stage("integrate"):
+            self.integrate(state_in, x, v, control, dt)
         repeat = any(p.corrector for p in passes) and not all(p.corrector for p in passes)
         rounds = self.collision_rounds if repeat else 1
         for p in passes:
@@ -187,7 +190,8 @@ class SolverBase:
             for k, p in enumerate(passes):
                 last = r == rounds - 1 and k == len(passes) - 1
                 out = state_out if last else State(self.scratch(f"x_{p.name}{r}", wp.vec3, rg), self.scratch(f"v_{p.name}{r}", wp.vec3, rg))
-                p.apply(state_in.particle_q, x, v, control, dt, out.particle_q, out.particle_qd)
+                with stage(p.name):
+                    p.apply(state_in.particle_q, x, v, control, dt, out.particle_q, out.particle_qd)
                 x, v = out.particle_q, out.particle_qd
         for p in passes:
             p.end_step()

@@ -11,6 +11,7 @@ import warp as wp
 from ..autodiff import paused_tape
 from ..diagnostics import LinearSolveReport
 from ..graphs import device_while
+from ..profiling import stage
 from ..kernels import forces as kf
 from ..kernels import implicit as ki
 from ..model import Control, Model, State
@@ -371,11 +372,13 @@ class SolverImplicitEuler(SolverBase):
         """Assemble and solve the step's linear system; returns the array holding dv [m/s]. No host reads: a
         forward solve (warm-started from the last one's dv when there is one, decided on the device) can be
         recorded in a graph."""
-        self.assemble(state_in, control, dt)
+        with stage("assemble"):
+            self.assemble(state_in, control, dt)
         warm = self.warm_start and not state_in.requires_grad
-        if warm:
-            self._restart_from_previous(dt)
-        dv = self._iterate(dt, warm)
+        with stage("linear_solve"):
+            if warm:
+                self._restart_from_previous(dt)
+            dv = self._iterate(dt, warm)
         m = self.model
         wp.launch(ki.end_linear_solve, dim=1, inputs=[self.solve_status, self.loop, wp.float64(self.tolerance), int(self.warm_start)],
                   outputs=[self.solve_record, self.previous_ready], device=m.device)
