@@ -390,7 +390,22 @@ def main():
             w.close()
         if tree is not None:
             remove_worktree(tree)
-    write_report(args, rows, cold, {label: w.hello for label, w in workers.items()})
+    roots = {"ref": tree, "new": ROOT}
+    write_report(args, rows, cold, {label: where_loaded(w.hello, roots[label]) for label, w in workers.items()})
+
+
+def where_loaded(hello: dict, root) -> dict:
+    """A worker's hello with the files it loaded named relative to its tree (this repository or the ref's worktree;
+    the ref loads this tree's counter): no machine paths in the report."""
+    out = dict(hello)
+    for key, value in hello.items():
+        if isinstance(value, str) and key != "warp":
+            path = pathlib.Path(value).resolve()
+            for base, name in ((pathlib.Path(root).resolve(), "tree"), (ROOT.resolve(), "repo")):
+                if path.is_relative_to(base):
+                    out[key] = f"{name}:{path.relative_to(base).as_posix()}"
+                    break
+    return out
 
 
 def summary_line(row: dict) -> str:
