@@ -47,8 +47,12 @@ def find_scene(name_or_path) -> pathlib.Path:
     raise SceneError(f"scene file not found: {p}{hint}")
 
 
-def _kernel_modules(solver):
-    return solver.all_kernel_modules()
+def _kernel_modules(solver, animated: bool = False):
+    """The solver's kernel modules (:meth:`SolverBase.all_kernel_modules`) and, for a scene with animated handles,
+    colliders or a gusty wind, the ControlAnimator's."""
+    from .kernels import animation
+
+    return solver.all_kernel_modules() + ([animation] if animated else [])
 
 
 def _drape_coefficient(scene: Scene, model, positions) -> float:
@@ -60,12 +64,13 @@ def _drape_coefficient(scene: Scene, model, positions) -> float:
                              disc_radius=float(radius), up_axis=model.up_axis)
 
 
-def load_kernels(solver, device) -> float:
-    """Compile (or load from the kernel cache) the kernel modules a solver uses; returns seconds taken."""
+def load_kernels(solver, device, animated: bool = False) -> float:
+    """Compile (or load from the kernel cache) the kernel modules a solver uses (and, `animated`, the animator's);
+    returns seconds taken."""
     import warp as wp
 
     t0 = time.perf_counter()
-    for m in _kernel_modules(solver):
+    for m in _kernel_modules(solver, animated):
         wp.load_module(m, device=device)
     return time.perf_counter() - t0
 
@@ -249,8 +254,8 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
                 raise SceneError(f"--resume: {source[0]} already holds {source[1] - 1} frames, more than the {n_frames} asked")
         solver = build_solver(scene, model)
         substeps = int(scene.get("solver.substeps"))
-        compile_s = load_kernels(solver, model.device)
         wind = build_wind(scene)
+        compile_s = load_kernels(solver, model.device, animated=model.animated or (wind is not None and not wind.steady))
         sim = Simulator(model, solver, fps=fps, substeps=substeps, adaptive=bool(scene.get("solver.adaptive")),
                         dt_min=float(scene.get("solver.dt_min")), wind=wind, capture=False if profile else None)
         if source is not None:
