@@ -266,10 +266,10 @@ def _assert_same_frames(a, b):
 
 
 RESUME_CASES = {
-    "implicit": (HANG, ["cloth.grid.resolution=[10, 10]"], 90),  # long enough to be caught between saves under load
+    "implicit": (HANG, ["cloth.grid.resolution=[10, 10]"], 300),  # captured frames: long enough to be caught between saves
     "adaptive_explicit": (HANG, ["cloth.grid.resolution=[6, 6]", "solver.integrator='symplectic_euler'", "solver.substeps=16",
                                  "solver.adaptive=true"], 400),
-    "self_collision": (ROOT / "scenes" / "pile.toml", ["cloth.grid.resolution=[10, 10]"], 24),
+    "self_collision": (ROOT / "scenes" / "pile.toml", ["cloth.grid.resolution=[10, 10]"], 150),  # captured: fast frames
 }
 
 
