@@ -108,10 +108,9 @@ def _stage_module(counter_module):
 class Bench:
     """One scene in a worker: the model, solver and Simulator built as `cloth-warp run` builds them."""
 
-    def __init__(self, scene_name: str, device: str, per_module: bool = False):
+    def __init__(self, scene_name: str, device: str):
         import warp as wp
 
-        from cloth_warp import runner
         from cloth_warp.runner import find_scene, load_kernels
         from cloth_warp.scene import build_model, build_solver, load_scene
 
@@ -120,13 +119,7 @@ class Bench:
         self.scene = load_scene(find_scene(scene_name))
         self.model = build_model(self.scene, device)
         self.solver = build_solver(self.scene, self.model)
-        self.module_s = {}  # with per_module: seconds per kernel module the runner loads
-        if per_module and hasattr(runner, "_kernel_modules"):
-            for m in runner._kernel_modules(self.solver):
-                t_module = time.perf_counter()
-                wp.load_module(m, device=self.model.device)
-                self.module_s[m.__name__.rsplit(".", 1)[-1]] = time.perf_counter() - t_module
-        self.compile_s = load_kernels(self.solver, self.model.device) + sum(self.module_s.values())
+        self.compile_s = load_kernels(self.solver, self.model.device)
         self.sim = self.simulator(self.solver)
         self.setup_s = time.perf_counter() - t
 
@@ -222,7 +215,7 @@ def cold_worker_main(args) -> None:
     import cloth_warp  # noqa: F401
 
     t_import = time.perf_counter()
-    bench = Bench(COLD_SCENE, args.device, per_module=True)
+    bench = Bench(COLD_SCENE, args.device)  # runner.load_kernels as `cloth-warp run` loads them (in parallel where the tree does)
     t_built = time.perf_counter()
     first = bench.frame()  # modules the runner's list misses load here, and a capture is recorded
     total = time.perf_counter() - t0
@@ -230,8 +223,7 @@ def cold_worker_main(args) -> None:
     found = (re.fullmatch(r"wp_(.+)_[0-9a-f]{6,}", p.name) for p in cache.rglob("wp_*") if p.is_dir())  # <version>/wp_<module>_<hash>
     modules = sorted({m.group(1).removeprefix("cloth_warp.kernels.") for m in found if m})
     print(TAG + json.dumps({"import_s": t_import - t0, "compile_s": bench.compile_s, "build_s": t_built - t_import - bench.compile_s,
-                            "first_frame_s": first, "total_s": total, "modules": modules,
-                            "module_s": bench.module_s}), flush=True)
+                            "first_frame_s": first, "total_s": total, "modules": modules}), flush=True)
 
 
 # -- parent side ------------------------------------------------------------------------------------------------------
@@ -427,7 +419,7 @@ def cold_line(c: dict) -> str:
 
 
 def _modules_text(c: dict) -> str:
-    """The modules compiled, with their compile seconds where measured."""
+    """The modules compiled (with their compile seconds where an older record measured them)."""
     times = c.get("module_s", {})
     return ", ".join(f"{m} {times[m]:.1f} s" if m in times else m for m in c["modules"])
 
@@ -486,9 +478,9 @@ def write_report(args, rows, cold, hellos):
                      f"{cell('reads')} | {cell('allocations')} | {top} |")
     if cold:
         lines += ["", f"Cold start (empty kernel cache, a fresh process; `{COLD_SCENE}`: implicit Euler, colliders, "
-                  "self-collision): seconds to the first frame done; compile = `runner.load_kernels`, the first frame "
-                  "includes modules loaded on first use:", "",
-                  "| tree | to first frame [s] | compile [s] | first frame [s] | import [s] | modules compiled (compile s each) |", "|---|---:|---:|---:|---:|---|"]
+                  "self-collision): seconds to the first frame done; compile = `runner.load_kernels` as `cloth-warp run` calls it "
+                  "(modules compiled in parallel where the tree does), the first frame includes modules loaded on first use:", "",
+                  "| tree | to first frame [s] | compile [s] | first frame [s] | import [s] | modules compiled |", "|---|---:|---:|---:|---:|---|"]
         for label, c in cold.items():
             name = "this tree" if label == "new" else f"ref `{args.ref}`"
             if "error" in c:

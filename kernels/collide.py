@@ -303,7 +303,7 @@ def collide_colliders(
     v_out[i] = ve
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def eval_collider_distance(
     collider: int,
     collider_shape: wp.array(dtype=wp.int32),
