@@ -73,7 +73,7 @@ DIAGNOSTICS = {  # per-frame custom attributes: name -> (USD type name, descript
 # per-frame diagnostic attribute <- collision counter (cloth_warp.collision / cloth_warp.selfcollision)
 COUNTER_DIAGNOSTICS = {"colliderContacts": "collider_contacts", "colliderCcd": "collider_ccd", "selfProximity": "self_proximity",
                        "selfCcd": "self_ccd", "selfSweeps": "self_sweeps", "impactZones": "impact_zones", "selfUnresolved": "unresolved"}
-# per-frame diagnostic attribute <- the Simulator's strain-limit report (Simulator.frame_info)
+# per-frame diagnostic attribute <- the strain limiter's report (FrameReport.counters)
 STRAIN_LIMIT_DIAGNOSTICS = {"strainExcessStructural": "strain_excess_structural", "strainExcessShear": "strain_excess_shear",
                             "strainLimitSweeps": "strain_limit_sweeps", "strainLimitMissed": "strain_limit_missed"}
 COLLIDER_SCOPE = "colliders"  # colliders are written under /World/colliders

@@ -23,6 +23,7 @@ from .diagnostics import ColliderReport, SelfCollisionReport
 from .kernels import collide as kcol
 from .model import Control, Model
 from .passes import StepPass
+from .records import record_values
 from .selfcollision import COUNTERS as SELF_COUNTERS
 from .selfcollision import SelfCollision
 
@@ -58,8 +59,11 @@ class ColliderPass(StepPass):
     def reset_report(self):
         self.counts.zero_()
 
+    def record_arrays(self) -> list:
+        return [(self, "counts")]
+
     def read_report(self) -> ColliderReport:
-        c = self.counts.numpy()
+        c = record_values(self.counts)
         return ColliderReport(contacts=int(c[0]), ccd=int(c[1]))
 
     def apply(self, x_start, x_end, v_end, control: Control, dt: float, x_out, v_out):
@@ -131,6 +135,9 @@ class SelfCollisionPass(StepPass):
 
     def reset_report(self):
         self.self_collision.reset_counts()
+
+    def record_arrays(self) -> list:
+        return [(self.self_collision, "counts")]
 
     def read_report(self) -> SelfCollisionReport:
         """The counters since the last reset; the host-side ones (a host-path step's) are cleared as they are read,

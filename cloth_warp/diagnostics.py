@@ -1,15 +1,17 @@
-"""Step statistics (max strain, kinetic energy, max speed, non-finite values, work done by gravity) and the
-strain limiter's report."""
+"""Step statistics (max strain, kinetic energy, max speed, non-finite values, work done by gravity), the reports
+of the linear solve and of each pass, and the frame's report that gathers them."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
+from typing import Mapping
 
 import numpy as np
 import warp as wp
 
 from .kernels import diagnostics as kd
 from .model import Model, State
+from .records import record_values
 
 
 @dataclass(frozen=True)
@@ -75,9 +77,13 @@ class Diagnostics:
             device=m.device,
         )
 
+    def record_arrays(self) -> list:
+        """The device record the frame's report reads (:class:`~cloth_warp.records.FrameRecord`)."""
+        return [(self, "stats")]
+
     def read(self) -> StepStats:
-        """The statistics the last :meth:`launch` measured (one 20-byte read)."""
-        s = self.stats.numpy()
+        """The statistics the last :meth:`launch` measured (one 20-byte read, or the frame record's copy)."""
+        s = record_values(self.stats)
         return StepStats(float(s[0]), float(s[1]), float(s[2]), int(s[3]), float(s[4]) - self._potential0)
 
 
@@ -205,3 +211,42 @@ class StrainLimitReport:
             max(self.shear_excess, other.shear_excess), max(self.initial_excess, other.initial_excess), self.steps + other.steps,
             self.missed_steps + other.missed_steps, self.sweeps + other.sweeps, max(self.most_sweeps, other.most_sweeps),
             self.frames + other.frames, self.missed_frames + other.missed_frames)
+
+
+@dataclass(frozen=True)
+class FrameReport:
+    """What one frame did (:attr:`Simulator.frame_report <cloth_warp.simulator.Simulator.frame_report>`), read
+    from the device once after it (:class:`~cloth_warp.records.FrameRecord`).
+
+    Attributes:
+        stats: the statistics of the frame's last state.
+        dt_min, dt_max: the smallest and largest step taken [s].
+        iterations: linear-solve iterations, summed over the frame's steps (0 without a linear solve).
+        residual: the last solve's relative residual.
+        solves: the frame's :class:`LinearSolveReport` (fixed steps with a linear solve; None otherwise).
+        passes: each pass's report by pass name (:class:`ColliderReport`, :class:`SelfCollisionReport`,
+            :class:`StrainLimitReport`).
+        rejected: adaptive steps rejected and retried with a smaller step.
+        reruns: times a fixed-step frame was run again because a pass asked (None with adaptive steps).
+    """
+
+    stats: StepStats
+    dt_min: float
+    dt_max: float
+    iterations: int = 0
+    residual: float = 0.0
+    solves: LinearSolveReport | None = None
+    passes: Mapping[str, object] = field(default_factory=dict)
+    rejected: int = 0
+    reruns: int | None = 0
+
+    def counters(self) -> dict:
+        """Flat, by the names the cache's per-frame diagnostics and the run summary use."""
+        out = {"dt_min": self.dt_min, "dt_max": self.dt_max, "iterations": self.iterations, "residual": self.residual}
+        if self.reruns is None:
+            out["rejected"] = self.rejected
+        else:
+            out["frame_reruns"] = self.reruns
+        for report in self.passes.values():
+            out.update(report.counters())
+        return out

@@ -63,6 +63,11 @@ class StepPass:
     def read_report(self):
         return None
 
+    def record_arrays(self) -> list:
+        """(owner, attribute) of each device array :meth:`read_report` reads, for the frame's one-read record
+        (:class:`~cloth_warp.records.FrameRecord`); read them with :func:`~cloth_warp.records.record_values`."""
+        return []
+
     def set_recordable(self, on: bool) -> None:
         """Take the path that can be recorded in a graph (`on`), else the host path (the default: a step called
         directly, outside a Simulator, then never needs a re-run). The Simulator turns it on for its fixed-step

@@ -316,9 +316,10 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
         for f in range(first, n_frames):
             with stage("frame"):
                 stats = sim.step_frame()
-            info = sim.frame_info
-            diag = {"maxStrain": stats.max_strain, "dt": info["dt_min"], "solverIterations": info["iterations"],
-                    "solverResidual": info["residual"]}
+            report = sim.frame_report
+            info = report.counters()
+            diag = {"maxStrain": stats.max_strain, "dt": report.dt_min, "solverIterations": report.iterations,
+                    "solverResidual": report.residual}
             diag.update({attr: info.get(key) for attr, key in COUNTER_DIAGNOSTICS.items()})
             diag.update({attr: info.get(key) for attr, key in STRAIN_LIMIT_DIAGNOSTICS.items()})
             with stage("cache"):
@@ -328,9 +329,9 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
                 if key in info:
                     contacts[key] = contacts.get(key, 0) + info[key]
             max_strain = max(max_strain, stats.max_strain)
-            dt_min, dt_max = min(dt_min, info["dt_min"]), max(dt_max, info["dt_max"])
-            iterations.append(info["iterations"])
-            rejected += info.get("rejected", 0)
+            dt_min, dt_max = min(dt_min, report.dt_min), max(dt_max, report.dt_max)
+            iterations.append(report.iterations)
+            rejected += report.rejected
             summary["frames"] = f + 1
             if progress is not None:
                 summary["wall_s"] = time.perf_counter() - t_loop

@@ -9,10 +9,11 @@ import time as _time
 import numpy as np
 import warp as wp
 
-from .diagnostics import Diagnostics, StepStats, StrainLimitReport
+from .diagnostics import Diagnostics, FrameReport, StepStats, StrainLimitReport
 from .animation import ControlAnimator
 from .model import Model
 from .profiling import stage
+from .records import FrameRecord
 from .wind import GustyWind
 from .solvers.adaptive import AdaptiveStepper, DivergenceBounds, SimulationDiverged, StepCheck
 from .solvers.base import SolverBase
@@ -59,13 +60,13 @@ class Simulator:
         wind: a :class:`~cloth_warp.wind.GustyWind` (or anything with ``at(time) -> vec3`` [m/s]); set on
             the control once per frame, at the frame's midpoint (a steady wind once).
 
-    After each frame, :attr:`frame_info` holds the smallest and largest step used [s], the solver
-    iterations of its steps (summed) and the last relative residual (read from the device once per frame, captured
-    too; the frame's :class:`~cloth_warp.diagnostics.LinearSolveReport` is :attr:`solve_frame`), with
-    collisions their counters summed over the frame's steps (``collider_contacts``, ``collider_ccd``) and,
-    with strain limiting, what the limiter left (``strain_excess_structural`` / ``strain_excess_shear``: the
-    worst excess strain l / L - 1 - limit after limiting, ``strain_limit_sweeps``, ``strain_limit_missed``:
-    steps left above the tolerance), read from the device once per frame on every path (captured too).
+    After each frame, :attr:`frame_report` (:class:`~cloth_warp.diagnostics.FrameReport`) holds the statistics of
+    the new state, the smallest and largest step used [s], the linear solves (iterations summed over the steps, the
+    last relative residual, the :class:`~cloth_warp.diagnostics.LinearSolveReport`), each pass's report (collider
+    contacts, self-collision counters, what the strain limiter left: the worst excess strain l / L - 1 - limit,
+    sweeps, steps left above the tolerance) and the re-runs. All of it lives on the device in one block
+    (:class:`~cloth_warp.records.FrameRecord`) read once per frame, captured or not; :attr:`frame_info` is the
+    same, flat.
     :attr:`strain_limit_frame` is that frame's :class:`~cloth_warp.diagnostics.StrainLimitReport` and
     :attr:`strain_limit_total` the sum over the frames this Simulator ran (``missed_frames`` counts the
     frames that missed the limit).
@@ -106,13 +107,13 @@ class Simulator:
             p.set_recordable(not adaptive and solver.capturable)
         self._graph = None
         self.last_stats: StepStats | None = None
-        self.solve_frame = None  # the last frame's LinearSolveReport (solvers with a linear solve)
         self.wall_time = 0.0
         self.wind = wind
         if wind is not None and getattr(wind, "steady", False):
             self.control.set_wind(wind.at(0.0))
         self.bounds.note_wind(self.control.wind.numpy()[0])
-        self.frame_info = {"dt_min": self.dt, "dt_max": self.dt, "iterations": 0, "residual": 0.0}
+        self.frame_report: FrameReport | None = None  # the last frame's report
+        self._record: FrameRecord | None = None  # the frame's device records in one block (gathered when None)
         self.strain_limiter = solver.strain_limiter  # the solver's pass, when it limits
         self.pass_reports: dict = {}  # the last frame's report of each pass, by pass name
         self.reruns = 0  # frames run again because a pass asked (buffers grown, a step for the host path)
@@ -137,6 +138,23 @@ class Simulator:
         else:
             self.diagnostics = Diagnostics(self.model)
         self._graph = None
+        self._record = None
+
+    @property
+    def frame_info(self) -> dict:
+        """The last frame's report, flat (:meth:`FrameReport.counters <cloth_warp.diagnostics.FrameReport.counters>`:
+        ``dt_min``, ``dt_max``, ``iterations``, ``residual``, ``frame_reruns`` or ``rejected``, each pass's counters);
+        before the first frame, the step and zero counts."""
+        if self.frame_report is None:
+            return {"dt_min": self.dt, "dt_max": self.dt, "iterations": 0, "residual": 0.0}
+        return self.frame_report.counters()
+
+    def _frame_record(self) -> FrameRecord:
+        """The block the frame's reports are read from (gathered again after anything that may have replaced a
+        record array: a re-run, a restore, a model change)."""
+        if self._record is None:
+            self._record = FrameRecord.of(self.model.device, [self.diagnostics, self.solver, *self.solver.passes])
+        return self._record
 
     def _substeps(self):
         """A frame's steps: each sets the animated control from the device clock, then steps (all on the device,
@@ -170,6 +188,7 @@ class Simulator:
             self._frame()
             return
         if self._graph is None:
+            self._frame_record()  # the record arrays in their block before the frame records writes into them
             with wp.ScopedCapture(device=self.model.device) as cap:
                 self._frame()
             self._graph = cap.graph
@@ -188,6 +207,7 @@ class Simulator:
             for p in asking:
                 p.end_rerun()
         self._graph = None  # grown buffers, or the host path's own reallocations: a recorded frame holds the old arrays
+        self._record = None
         self.reruns += 1
 
     def step_frame(self) -> StepStats:
@@ -206,36 +226,39 @@ class Simulator:
                 self.solver.reset_report()
                 self.stepper.advance(self.state, self.control, self.time, self.frame_dt)
                 self.diagnostics.launch(self.state)
-                self.pass_reports = self.solver.read_pass_reports()
+                with self._frame_record().fetched():  # one read: every report below comes from it
+                    self.pass_reports = self.solver.read_pass_reports()
+                    stats = self.diagnostics.read()
+                solves = None
             else:
                 self._run_frame()
-                self.pass_reports = self.solver.read_pass_reports()
-                solves = self.solver.read_report()
+                with self._frame_record().fetched():
+                    self.pass_reports = self.solver.read_pass_reports()
+                    solves = self.solver.read_report()
+                    stats = self.diagnostics.read()
                 asking = [p for p in self.solver.passes if p.needs_rerun(self.pass_reports[p.name])]
                 if asking and not (solves is not None and solves.failed):  # a failed solve is reported, not re-run
                     self._rerun(asking)
-                    self.pass_reports = self.solver.read_pass_reports()
-                    solves = self.solver.read_report()
+                    with self._frame_record().fetched():
+                        self.pass_reports = self.solver.read_pass_reports()
+                        solves = self.solver.read_report()
+                        stats = self.diagnostics.read()
         except SimulationDiverged as exc:
             self.wall_time += _time.perf_counter() - t0
             raise exc.in_frame(self.frame + 1) from None
-        # the frame's reports: one read of each record (captured frames too)
-        stats = self.diagnostics.read()
         if self.stepper is not None:
             r = self.stepper.interval
-            self.solve_frame = None
-            self.frame_info = {"dt_min": r.dt_min, "dt_max": r.dt_max, "iterations": r.iterations,
-                               "residual": float(self.solver.last_residual), "rejected": r.rejected}
+            self.frame_report = FrameReport(stats=stats, dt_min=r.dt_min, dt_max=r.dt_max, iterations=r.iterations,
+                                            residual=float(self.solver.last_residual), passes=self.pass_reports, rejected=r.rejected,
+                                            reruns=None)
         else:
-            self.solve_frame = solves
-            self.frame_info = {"dt_min": self.dt, "dt_max": self.dt, "iterations": solves.iterations if solves else 0,
-                               "residual": solves.last_residual if solves else 0.0, "frame_reruns": self.reruns - reruns}
+            self.frame_report = FrameReport(stats=stats, dt_min=self.dt, dt_max=self.dt, iterations=solves.iterations if solves else 0,
+                                            residual=solves.last_residual if solves else 0.0, solves=solves, passes=self.pass_reports,
+                                            reruns=self.reruns - reruns)
             if solves is not None and solves.failed:
                 self.wall_time += _time.perf_counter() - t0
                 reason = f"non-finite residual in the linear solve of step {solves.first_failed} of {self.substeps}"
                 raise self._diverged("non-finite residual", reason, stats, self.time + solves.first_failed * self.dt).in_frame(self.frame + 1)
-        for report in self.pass_reports.values():
-            self.frame_info.update(report.counters())
         if self.strain_limiter is not None:
             self._note_strain_limit(self.pass_reports[self.strain_limiter.name])
         end = (self.frame + 1) * self.frame_dt
@@ -375,7 +398,8 @@ class Simulator:
         self.time = float(ck["time"])
         self.animator.set_clock(self.time, self.dt)
         self._graph = None  # a pass's restored buffers may be new arrays
+        self._record = None
         self.wall_time = float(ck.get("wall_time", 0.0))
         s = ck.get("last_stats")
         self.last_stats = None if s is None else StepStats(float(s[0]), float(s[1]), float(s[2]), int(s[3]), float(s[4]))
-        self.frame_info = {"dt_min": self.dt, "dt_max": self.dt, "iterations": 0, "residual": 0.0}
+        self.frame_report = None

@@ -93,7 +93,8 @@ class SolverBase:
             p.reset_report()
 
     def read_pass_reports(self) -> dict:
-        """Each pass's report since :meth:`reset_pass_reports`, by pass name (one read per pass)."""
+        """Each pass's report since :meth:`reset_pass_reports`, by pass name (one read per pass, or none within a
+        fetched :class:`~cloth_warp.records.FrameRecord`)."""
         return {p.name: p.read_report() for p in self.passes}
 
     def reset_report(self):
@@ -103,6 +104,11 @@ class SolverBase:
         """The linear solves since :meth:`reset_report`, a :class:`~cloth_warp.diagnostics.LinearSolveReport`
         (None for solvers without a linear solve)."""
         return None
+
+    def record_arrays(self) -> list:
+        """(owner, attribute) of each device array :meth:`read_report` reads (the passes name their own), for the
+        frame's one-read record (:class:`~cloth_warp.records.FrameRecord`)."""
+        return []
 
     def notify_model_changed(self, flags: int) -> None:
         """Model fields changed (:class:`~cloth_warp.model.ModelFlags`): refresh what this solver and its passes

@@ -21,6 +21,7 @@ from ..graphs import device_while
 from ..kernels import constraints as kc
 from ..model import Control, Model, ModelFlags, State
 from ..passes import StepPass
+from ..records import record_values
 
 DEFAULT_SWEEPS = 128
 """Cap of Gauss-Seidel sweeps per step (API and scene default)."""
@@ -168,9 +169,12 @@ class StrainLimiter(StepPass):
     def reset_report(self):
         self.record.zero_()
 
+    def record_arrays(self) -> list:
+        return [(self, "record")]
+
     def read_report(self) -> StrainLimitReport:
         """The record since the last :meth:`reset_report` (one read of 7 numbers)."""
-        r = self.record.numpy().astype(np.float64)
+        r = record_values(self.record).astype(np.float64)
         missed = int(r[kc.RECORD_MISSED])
         return StrainLimitReport(
             max_strain=self.max_strain, tolerance=self.report_tolerance, max_sweeps=self.iterations,
