@@ -112,6 +112,11 @@ class SelfCollisionPass(StepPass):
 
         return (broadphase, selfcollide)
 
+    @property
+    def capturable(self) -> bool:
+        """Whether the path it takes now can be recorded (after ``set_recordable(True)``; the host path cannot)."""
+        return self.self_collision.capturable
+
     def set_recordable(self, on: bool) -> None:
         self._recordable = self.self_collision.capturable = bool(on)
 

@@ -33,10 +33,11 @@ class Simulator:
 
     With fixed substeps the substep loop of a frame is captured once as a Warp graph (CPU or CUDA) and
     replayed, so per-launch overhead is paid once; with ``adaptive=True`` every step is checked and
-    bad steps are retried with half the step (see :class:`AdaptiveStepper`). Handles, keyframed colliders
+    bad steps are retried with half the step (see :class:`AdaptiveStepper`), each step replayed from a graph
+    recorded once per step size where the step can be recorded. Handles, keyframed colliders
     and the gusty wind are set on the device from a device clock (:class:`~cloth_warp.animation.ControlAnimator`);
     a pass that asks (self-collision: a buffer overflowed, or a step needs rigid impact zones) gets its frame run
-    again eagerly from the frame's start. Capture is skipped with adaptive stepping, for deforming mesh colliders on
+    again eagerly from the frame's start. A frame is not captured with adaptive stepping (its steps are), for deforming mesh colliders on
     the CPU (Warp 1.19 does not record their BVH refit) and, on CUDA, where the driver lacks conditional graph nodes
     (CUDA < 12.4: the linear solve, the limiter's sweeps and the CCD sweeps loop on the device).
 
@@ -93,18 +94,23 @@ class Simulator:
         self.time = 0.0
         self.check = check or StepCheck()
         self.bounds = DivergenceBounds(model, solver, self.check, wind=wind)
-        self.stepper = AdaptiveStepper(solver, self.dt, dt_min=dt_min, check=self.check, bounds=self.bounds) if adaptive else None
-        self.diagnostics = self.stepper.diagnostics if adaptive else Diagnostics(model)
         self.animator = ControlAnimator(model, wind=wind if isinstance(wind, GustyWind) else None)
         self.animator.set_clock(0.0, self.dt)
-        loops = solver.device_loops or any(p.device_loops for p in solver.passes)
-        possible = (not adaptive and self.animator.capturable and solver.capturable
-                    # the strain limiter's sweeps and the linear solve loop on the device (wp.capture_while): CUDA graphs
-                    # need conditional nodes
-                    and not (loops and model.device.is_cuda and not wp.is_conditional_graph_supported()))
-        self.capture = possible if capture is None else (capture and possible)
         for p in solver.passes:  # fixed-step frames, captured or not, run the recordable paths (re-run when asked)
-            p.set_recordable(not adaptive and solver.capturable)
+            p.set_recordable(not adaptive)
+        if not solver.capturable:  # a pass that cannot be recorded: every pass takes its host path
+            for p in solver.passes:
+                p.set_recordable(False)
+        loops = solver.device_loops or any(p.device_loops for p in solver.passes)
+        # the strain limiter's sweeps and the linear solve loop on the device (wp.capture_while): CUDA graphs need
+        # conditional nodes
+        recordable = solver.capturable and not (loops and model.device.is_cuda and not wp.is_conditional_graph_supported())
+        possible = recordable and not adaptive and self.animator.capturable
+        self.capture = possible if capture is None else (capture and possible)
+        # adaptive steps: a graph per step size (the control is set on the host before each step)
+        self.stepper = (AdaptiveStepper(solver, self.dt, dt_min=dt_min, check=self.check, bounds=self.bounds,
+                                        capture=recordable if capture is None else (capture and recordable)) if adaptive else None)
+        self.diagnostics = self.stepper.diagnostics if adaptive else Diagnostics(model)
         self._graph = None
         self.last_stats: StepStats | None = None
         self.wall_time = 0.0
@@ -134,6 +140,7 @@ class Simulator:
         if self.stepper is not None:
             self.stepper.bounds = self.bounds
             self.stepper.diagnostics = Diagnostics(self.model)
+            self.stepper.forget_graphs()
             self.diagnostics = self.stepper.diagnostics
         else:
             self.diagnostics = Diagnostics(self.model)
@@ -154,6 +161,9 @@ class Simulator:
         record array: a re-run, a restore, a model change)."""
         if self._record is None:
             self._record = FrameRecord.of(self.model.device, [self.diagnostics, self.solver, *self.solver.passes])
+            self._graph = None  # recorded graphs write the arrays the block has just replaced
+            if self.stepper is not None:
+                self.stepper.forget_graphs()
         return self._record
 
     def _substeps(self):
@@ -187,8 +197,8 @@ class Simulator:
         if not self.capture:
             self._frame()
             return
+        self._frame_record()  # the record arrays in their block before a frame is recorded writing into them
         if self._graph is None:
-            self._frame_record()  # the record arrays in their block before the frame records writes into them
             with wp.ScopedCapture(device=self.model.device) as cap:
                 self._frame()
             self._graph = cap.graph
@@ -222,6 +232,7 @@ class Simulator:
         reruns = self.reruns
         try:
             if self.stepper is not None:
+                self._frame_record()  # before the stepper records its steps
                 self.solver.reset_pass_reports()
                 self.solver.reset_report()
                 self.stepper.advance(self.state, self.control, self.time, self.frame_dt)
@@ -392,6 +403,7 @@ class Simulator:
         self.solver.restore_state({k[len("solver."):]: v for k, v in ck.items() if k.startswith("solver.")})
         if self.stepper is not None:
             self.stepper.restore_state({k[len("stepper."):]: v for k, v in ck.items() if k.startswith("stepper.")})
+            self.stepper.forget_graphs()  # a pass's restored buffers may be new arrays
         if "bounds.wind_speed" in ck:
             self.bounds.restore_state({"wind_speed": ck["bounds.wind_speed"]})
         self.frame = int(ck["frame"])

@@ -33,6 +33,8 @@ def run(name, overrides, frames, capture, setup=None):
         setup(sim)
     if not capture:
         sim.capture = False
+        if sim.stepper is not None:
+            sim.stepper.capture = False
     out = []
     for _ in range(frames):
         sim.step_frame()
@@ -80,3 +82,20 @@ def test_overflowing_buffers_grow_and_the_frame_equals_an_uncaptured_run():
     assert_same_frames(captured, uncaptured)
     tris = sim.model.tri_indices.numpy().reshape(-1, 3)
     assert sum(len(intersecting_pairs(q, tris)) for q, _, _ in captured) == 0
+
+
+def test_adaptive_steps_replay_a_graph_per_step_size():
+    """Check adaptive stepping records a trial step once per step size and replays it: with steps rejected and
+    retried at half the size, the frames and counters equal an uncaptured adaptive run bit for bit, and a frame
+    issues replays instead of its steps' launches."""
+    overrides = {"cloth.grid.resolution": [8, 8], "solver.integrator": "symplectic_euler", "solver.substeps": 12,
+                 "solver.adaptive": True}
+    sim, captured = run("hanging_cloth", overrides, 6, True)
+    plain, uncaptured = run("hanging_cloth", overrides, 6, False)
+    assert sim.stepper.capture and not plain.stepper.capture
+    assert len(sim.stepper._graphs) >= 2  # the nominal step and at least one smaller one
+    assert sum(info["rejected"] for _, _, info in captured) >= 1
+    assert_same_frames(captured, uncaptured)
+    with LaunchCounter() as counts:
+        sim.step_frame()
+    assert counts.replays >= 1 and counts.launches <= 1, counts.to_dict()  # the frame's statistics at most

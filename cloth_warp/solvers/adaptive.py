@@ -14,6 +14,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+import warp as wp
 
 from ..elasticity import membrane_element_energy, membrane_element_row_bound
 from ..diagnostics import Diagnostics, StepStats
@@ -49,7 +50,8 @@ class StepCheck:
     Adaptive stepping only (a step is rejected, never a frame):
         max_strain_jump: max strain rising by more than this within one step, or the integrator's raw
             output (before strain limiting) exceeding the strain limit by more than this.
-        energy_growth: kinetic energy above energy_growth * (previous + what gravity alone can add).
+        energy_growth: kinetic energy above energy_growth * (previous + what one step can add from rest: gravity over
+            the step, and the drive speed of handles, moving colliders and wind, :attr:`DivergenceBounds.drive_speed`).
         require_convergence: an iterative linear solve, or the strain limiter, missing its tolerance.
     """
 
@@ -423,6 +425,7 @@ class StepperReport:
 
 
 _REPORT_SCALARS = ("steps", "rejected", "dt_min", "dt_max", "max_strain", "iterations")
+MAX_STEP_GRAPHS = 8  # recorded trial steps kept (one per step size: the nominal dt, its halvings, a frame's remainder)
 
 
 class AdaptiveStepper:
@@ -438,11 +441,15 @@ class AdaptiveStepper:
     last good step (never NaN).
 
     Forward-only (it reads statistics on the host every step). `bounds` defaults to the solver's scene
-    without wind; the wind set on the control is then read once per :meth:`advance` and counted.
+    without wind; the wind set on the control is then read once per :meth:`advance` and counted. With `capture`
+    (when the solver's step can be recorded: :attr:`SolverBase.capturable`), a trial step and its statistics are
+    recorded as a graph the first time a step size is used and replayed for every later step of that size (the
+    last :data:`MAX_STEP_GRAPHS` sizes are kept); a rejected step is simply run again at the smaller size. The
+    control (handles, collider poses) is set on the host before each replay, as without capture.
     """
 
     def __init__(self, solver: SolverBase, dt: float, *, dt_min: float = 1.0e-6, grow_after: int = 8, check: StepCheck | None = None,
-                 bounds: DivergenceBounds | None = None):
+                 bounds: DivergenceBounds | None = None, capture: bool = False):
         if not (dt > 0.0):
             raise ValueError(f"dt must be positive, got {dt!r}")
         self.solver = solver
@@ -460,6 +467,30 @@ class AdaptiveStepper:
         self.interval = StepperReport()
         self._stats: StepStats | None = None
         self._good = 0
+        self.capture = bool(capture) and solver.capturable
+        self._graphs: dict = {}  # (dt, state arrays, control) -> the recorded trial step
+
+    def forget_graphs(self) -> None:
+        """Drop the recorded trial steps (the solver's or the diagnostics' arrays were replaced)."""
+        self._graphs.clear()
+
+    def _trial_step(self, state: State, control: Control, h: float) -> None:
+        """Step `state` by h into the trial state and measure it on the device (replayed from a graph per h when
+        capturing)."""
+        if not self.capture:
+            self.solver.step(state, self.trial, control, h)
+            self.diagnostics.launch(self.trial)
+            return
+        key = (h, state.particle_q.ptr, state.particle_qd.ptr, id(control), id(self.diagnostics))
+        graph = self._graphs.get(key)
+        if graph is None:
+            if len(self._graphs) >= MAX_STEP_GRAPHS:
+                self._graphs.pop(next(iter(self._graphs)))  # the oldest size
+            with wp.ScopedCapture(device=self.model.device) as cap:
+                self.solver.step(state, self.trial, control, h)
+                self.diagnostics.launch(self.trial)
+            graph = self._graphs[key] = cap.graph
+        wp.capture_launch(graph)
 
     def reset_report(self):
         self.report = StepperReport()
@@ -485,8 +516,10 @@ class AdaptiveStepper:
         if old is not None:
             if new.max_strain - old.max_strain > c.max_strain_jump:
                 return "strain jump", f"strain jumped from {old.max_strain:.3g} to {new.max_strain:.3g} in one step"
+            # what one step can add from rest: gravity's g h, and a handle, moving collider or wind handing on its
+            # drive speed (a ball hitting a resting cloth is not a blow-up; halving the step would not change it)
             g = math.sqrt(sum(x * x for x in self.model.gravity))
-            floor = 0.5 * self.diagnostics.total_mass_free * (g * h) ** 2
+            floor = 0.5 * self.diagnostics.total_mass_free * ((g * h) ** 2 + self.bounds.drive_speed ** 2)
             if new.kinetic_energy > c.energy_growth * (old.kinetic_energy + floor):
                 return "energy growth", f"kinetic energy grew from {old.kinetic_energy:.3g} J to {new.kinetic_energy:.3g} J in one step"
         return None
@@ -505,8 +538,8 @@ class AdaptiveStepper:
         while t < end - eps:
             h = min(self.dt, end - t)
             self.model.update_control(control, t + h, h)
-            self.solver.step(state, self.trial, control, h)
-            stats = self.diagnostics.measure(self.trial)
+            self._trial_step(state, control, h)
+            stats = self.diagnostics.read()
             bad = self._rejection(stats, self._stats, h)
             if bad is not None:
                 kind, reason = bad
