@@ -59,7 +59,7 @@ class ControlAnimator:
         """The model animated (its handles, colliders and collider meshes are read here, once)."""
         self.device = device
         """Warp device of every array."""
-        self.clock = wp.zeros(2, dtype=wp.float64, device=device)
+        self.clock = wp.zeros(4, dtype=wp.float64, device=device)  # time [s], dt [s], origin [s], steps since the origin
         """[time at the end of the step [s], the step's length dt [s]], shape (2,), float64."""
 
         # -- handles: one row per (particle, handle) pair; a particle in several handles follows the last --
@@ -120,11 +120,11 @@ class ControlAnimator:
         self.wind = wind
         """The GustyWind :meth:`apply_wind` evaluates (None: none)."""
         if wind is not None:
-            omega = 2.0 * np.pi * wind._freq  # the host's first product, kept bit for bit
+            omega = 2.0 * np.pi * wind.frequencies  # the host's first product, kept bit for bit
             gusts = wind.strength, wind.turn
             self._wind_args = [wp.vec3d(*wind.mean), wp.float64(gusts[0]), wp.float64(gusts[1]), wp.vec3d(*wind.up),
-                               wp.vec4d(*omega[0]), wp.vec4d(*wind._phase[0]), wp.vec4d(*omega[1]),
-                               wp.vec4d(*wind._phase[1]), wp.float64(math.pi / 180.0)]
+                               wp.vec4d(*omega[0]), wp.vec4d(*wind.phases[0]), wp.vec4d(*omega[1]),
+                               wp.vec4d(*wind.phases[1]), wp.float64(math.pi / 180.0)]
 
     # -- what is animated ---------------------------------------------------------------------------
     @property
@@ -156,11 +156,18 @@ class ControlAnimator:
 
     # -- the clock ------------------------------------------------------------------------------------
     def set_clock(self, time: float, dt: float = 0.0):
-        """Set the clock to a step ending at `time` [s] and lasting `dt` [s] (a host write: eager use, restore)."""
-        self.clock.assign(np.array([time, dt], np.float64))
+        """Set the clock to a step ending at `time` [s] and lasting `dt` [s], the origin of the steps that follow
+        (a host write: eager use)."""
+        self.clock.assign(np.array([time, dt, time, 0.0], np.float64))
+
+    def set_steps(self, steps: int, dt: float):
+        """Set the clock to the end of step `steps` of `dt` [s] from time 0, as :meth:`advance_clock` counts them
+        from a clock set to 0 (time = steps x dt: a run restored there goes on with the clock of the run that went
+        through)."""
+        self.clock.assign(np.array([steps * dt, dt, 0.0, steps], np.float64))
 
     def advance_clock(self, dt: float):
-        """Move the clock to the next step: time += dt [s], step length dt (one kernel; capturable)."""
+        """Move the clock to the next step: time = origin + steps x dt [s], step length dt (one kernel; capturable)."""
         wp.launch(ka.advance_clock, dim=1, inputs=[wp.float64(dt)], outputs=[self.clock], device=self.device)
 
     # -- the control --------------------------------------------------------------------------------

@@ -95,7 +95,7 @@ class Simulator:
         self.check = check or StepCheck()
         self.bounds = DivergenceBounds(model, solver, self.check, wind=wind)
         self.animator = ControlAnimator(model, wind=wind if isinstance(wind, GustyWind) else None)
-        self.animator.set_clock(0.0, self.dt)
+        self.animator.set_steps(0, self.dt)
         for p in solver.passes:  # fixed-step frames, captured or not, run the recordable paths (re-run when asked)
             p.set_recordable(not adaptive)
         if not solver.capturable:  # a pass that cannot be recorded: every pass takes its host path
@@ -408,7 +408,7 @@ class Simulator:
             self.bounds.restore_state({"wind_speed": ck["bounds.wind_speed"]})
         self.frame = int(ck["frame"])
         self.time = float(ck["time"])
-        self.animator.set_clock(self.time, self.dt)
+        self.animator.set_steps(self.frame * self.substeps, self.dt)
         self._graph = None  # a pass's restored buffers may be new arrays
         self._record = None
         self.wall_time = float(ck.get("wall_time", 0.0))

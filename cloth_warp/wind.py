@@ -31,8 +31,10 @@ class GustyWind:
         self.turn = check_number("turn", turn, LIMITS["gust_turn"])
         self.up = check_direction("up", up)
         rng = np.random.default_rng(check_number("seed", seed, LIMITS["seed"]))
-        self._freq = rng.uniform(0.5, 2.0, size=(2, 4)) / self.period
-        self._phase = rng.uniform(0.0, 2.0 * np.pi, size=(2, 4))
+        self.frequencies = rng.uniform(0.5, 2.0, size=(2, 4)) / self.period
+        """[Hz] (2, 4): the sinusoids of g (row 0) and h (row 1)."""
+        self.phases = rng.uniform(0.0, 2.0 * np.pi, size=(2, 4))
+        """[rad] (2, 4): their phases."""
 
     @property
     def steady(self) -> bool:
@@ -40,7 +42,7 @@ class GustyWind:
 
     def _signal(self, row: int, time: float) -> float:
         # Four unit-amplitude sinusoids, scaled by sqrt(2/4) so that the RMS is 1.
-        return float(np.sqrt(0.5) * np.sin(2.0 * np.pi * self._freq[row] * time + self._phase[row]).sum())
+        return float(np.sqrt(0.5) * np.sin(2.0 * np.pi * self.frequencies[row] * time + self.phases[row]).sum())
 
     def at(self, time: float) -> np.ndarray:
         """Wind velocity [m/s] at `time` [s]."""

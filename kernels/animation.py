@@ -122,8 +122,11 @@ def to_transform(p: wp.vec3d, q: wp.vec4d):
 
 @wp.kernel
 def advance_clock(dt: wp.float64, clock_out: wp.array(dtype=wp.float64)):
-    """Start the next step: time [s] += dt, step length = dt [s]."""
-    clock_out[0] = clock_out[0] + dt
+    """Start the next step: one more step since the clock's origin, time = origin + steps x dt [s] (from the count,
+    not summed step by step: a run restored at any step has the same clock as one that went through), length dt."""
+    steps = clock_out[3] + wp.float64(1.0)
+    clock_out[3] = steps
+    clock_out[0] = clock_out[2] + steps * dt
     clock_out[1] = dt
 
 

@@ -285,7 +285,7 @@ def test_captured_frames_replay_the_eager_sequence(device, tmp_path):
         got = snapshot(captured, mesh)
         for a, b in zip(got, want[k], strict=True):
             assert np.array_equal(a, b), f"frame {k}"
-    time, step = animator.clock.numpy()
+    time, step, _, _ = animator.clock.numpy()
     assert step == dt and time == pytest.approx(t0 + frames * frame_dt, abs=1e-12)
     host = model.control()
     model.update_control(host, float(time), float(step))
@@ -317,3 +317,25 @@ def test_cpu_capture_does_not_replay_mesh_refit(tmp_path):
     fresh = collider_distance(model, 1, probes, identity)[0]
     np.testing.assert_allclose(fresh, [0.1, 0.02, 0.02], atol=0.01)
     assert np.abs(stale - fresh).max() > 0.05, (stale, fresh)
+
+
+def test_clock_counts_steps_so_a_restored_run_keeps_its_time():
+    """Check the device clock is origin + steps x dt (not a running sum of dt), so a clock restored at step n
+    (:meth:`ControlAnimator.set_steps`, as a resumed run sets it) equals, bit for bit, one advanced n times."""
+    b = cw.ModelBuilder()
+    b.add_cloth_grid(resolution=(2, 2), size=(1.0, 1.0))
+    model = b.finalize(device="cpu")
+    dt = 1.0 / 60.0 / 7.0
+    went = ControlAnimator(model)
+    went.set_steps(0, dt)
+    for _ in range(1000):
+        went.advance_clock(dt)
+    summed = 0.0
+    for _ in range(1000):
+        summed += dt
+    restored = ControlAnimator(model)
+    restored.set_steps(990, dt)
+    for _ in range(10):
+        restored.advance_clock(dt)
+    assert np.array_equal(went.clock.numpy(), restored.clock.numpy())
+    assert went.clock.numpy()[0] == 1000 * dt and summed != 1000 * dt  # a running sum would drift off n x dt
