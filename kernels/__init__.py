@@ -6,6 +6,7 @@ Modules are grouped by what launches together, because each module is one cold c
 * :mod:`.implicit` - Baraff-Witkin system blocks, matrix-free product, CG and Jacobi;
 * :mod:`.constraints` - Provot strain limiting and animated handle targets;
 * :mod:`.collide` - collider distance functions, swept contact and the friction response;
+* :mod:`.contact` - collider contacts found before the implicit solve (its constraints);
 * :mod:`.broadphase` - the spatial hash grid of voxels for self-collision candidates;
 * :mod:`.selfcollide` - cloth-cloth proximity, CCD and impulse distribution (Bridson et al. 2002);
 * :mod:`.losses` - loss terms of differentiable rollouts (positions, Chamfer, a centroid target);

@@ -1,0 +1,95 @@
+"""Collider contacts for the implicit solve: which particles touch a collider at the start of a step, along
+which normal, and what end-of-step normal velocity puts them at the collider's thickness (Baraff & Witkin 1998,
+physics.md 3(c): contacts as constraints of the filtered PCG, S_i = I - n n^T, prescribed dv . n).
+
+A free particle is in contact with a collider when, at the start of the step, its distance to the surface
+(the collider in its start pose) is below ``thickness (1 + margin)`` (resting and sliding contact), or when its
+predicted end point x0 + h v0 (the collider in its end pose) is within the thickness (an approach this step
+would finish). The deepest such collider is kept. The constraint asks the end velocity's normal part,
+relative to the surface, to be
+
+    (v1 - u) . n = (thickness - d0) / h,
+
+so that the step ends at the thickness: a particle inside is pushed out, one within the margin comes down
+onto it; u is the surface velocity (rigid motion over the step, plus a deforming mesh's vertex velocities)
+and n the outward normal in the end pose. Releasing a contact whose constraint force pulls, friction, and
+the filter itself belong to the solver; this module only finds the contacts.
+"""
+
+import warp as wp
+
+from .collide import shape_distance, surface_velocity, mesh_surface_velocity
+
+wp.set_module_options({"enable_backward": False})
+
+# Indices into a contact set's counters.
+COUNT_CONTACTS = wp.constant(0)
+
+
+@wp.kernel
+def eval_collider_contacts(
+    # Model
+    particle_pinned: wp.array(dtype=wp.int32),
+    collider_count: int,
+    collider_shape: wp.array(dtype=wp.int32),
+    collider_size: wp.array(dtype=wp.vec3),
+    collider_mesh: wp.array(dtype=wp.uint64),
+    collider_deforming: wp.array(dtype=wp.int32),
+    collider_thickness: wp.array(dtype=float),
+    collider_static_friction: wp.array(dtype=float),
+    collider_kinetic_friction: wp.array(dtype=float),
+    mesh_max_distance: float,
+    # Control
+    collider_transform_start: wp.array(dtype=wp.transform),
+    collider_transform_end: wp.array(dtype=wp.transform),
+    # State in
+    x0: wp.array(dtype=wp.vec3),
+    v0: wp.array(dtype=wp.vec3),
+    dt: float,
+    margin: float,
+    # outputs
+    contact_collider_out: wp.array(dtype=wp.int32),
+    contact_normal_out: wp.array(dtype=wp.vec3),
+    contact_velocity_out: wp.array(dtype=wp.vec3),
+    contact_push_out: wp.array(dtype=float),
+    counts_out: wp.array(dtype=wp.int32),
+):
+    """Per particle: the collider it touches (-1: none), the outward unit normal n (world, end pose), the surface
+    velocity u [m/s] there and the prescribed relative normal speed (thickness - d0) / h [m/s]."""
+    i = wp.tid()
+    contact_collider_out[i] = -1
+    contact_normal_out[i] = wp.vec3(0.0)
+    contact_velocity_out[i] = wp.vec3(0.0)
+    contact_push_out[i] = 0.0
+    if particle_pinned[i] != 0:
+        return
+    xs = x0[i]
+    xp = xs + dt * v0[i]
+    inv_dt = 1.0 / dt
+    best = float(0.0)
+    found = int(-1)
+    for c in range(collider_count):
+        shape = collider_shape[c]
+        size = collider_size[c]
+        mesh = collider_mesh[c]
+        thickness = collider_thickness[c]
+        t_start = collider_transform_start[c]
+        t_end = collider_transform_end[c]
+        deforming = collider_deforming[c]
+        ps = wp.transform_point(wp.transform_inverse(t_start), xs)
+        if deforming != 0:
+            ps = ps + dt * mesh_surface_velocity(mesh, mesh_max_distance, ps)
+        d0, n_local = shape_distance(shape, size, mesh, mesh_max_distance, ps)
+        pe = wp.transform_point(wp.transform_inverse(t_end), xp)
+        d_end, n_end = shape_distance(shape, size, mesh, mesh_max_distance, pe)
+        touching = d0 < thickness * (1.0 + margin) or d_end < thickness
+        depth = d0 - thickness
+        if touching and (found < 0 or depth < best):
+            found = c
+            best = depth
+            contact_normal_out[i] = wp.transform_vector(t_end, n_local)
+            contact_velocity_out[i] = surface_velocity(deforming, mesh, mesh_max_distance, t_start, t_end, ps, inv_dt)
+            contact_push_out[i] = (thickness - d0) * inv_dt
+    contact_collider_out[i] = found
+    if found >= 0:
+        wp.atomic_add(counts_out, COUNT_CONTACTS, 1)
