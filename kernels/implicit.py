@@ -21,8 +21,11 @@ Hard pins are constraints through the filter S_i = 0 (Baraff & Witkin's modified
 projected form): dv_i = z_i = (target_i - x0_i) / h - v0_i there.
 
 Reductions (dot products) accumulate in float64 through atomics into `cg_scalars`, one row per
-iteration, so no host round trip is needed inside an iteration: column 0 holds r.s (s = P r), column 1
-c.Ac, column 2 r.r.
+iteration, so no host round trip is needed inside an iteration: column 0 holds r.u (u = P r), column 1
+u.Au, column 2 r.r, column 3 the step length alpha. The CG is Chronopoulos & Gear's (1989) single-reduction
+form: A u is the iteration's one product, A p follows from it by recurrence (q = w + beta q), so an iteration
+is one vector update (with both dot products of the next) and one product: two passes over the particles
+where the textbook form needs three.
 """
 
 import warp as wp
@@ -47,6 +50,8 @@ LENGTH_EPS = wp.constant(1.0e-9)
 CG_RS = wp.constant(0)
 CG_CAC = wp.constant(1)
 CG_RR = wp.constant(2)
+CG_ALPHA = wp.constant(3)
+CG_COLUMNS = 4
 JACOBI_CHECK_ROW = wp.constant(1)  # block Jacobi's residual checks accumulate |r|^2 here (row 0 keeps |r_0|^2)
 # The solve's loop control (int32, read by wp.capture_while and the guarded kernels) and status (float64).
 LOOP_RUNNING = wp.constant(0)
@@ -74,7 +79,7 @@ RECORD_SIZE = 8
 MEMBRANE_DIAGONAL_WEIGHT = wp.constant(1.5)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def eval_spring_system_blocks(
     # Model
     spring_indices: wp.array2d(dtype=wp.int32),
@@ -88,9 +93,11 @@ def eval_spring_system_blocks(
     # outputs
     stiffness_block_out: wp.array(dtype=wp.mat33),
     system_block_out: wp.array(dtype=wp.mat33),
+    spring_compact_out: wp.array(dtype=wp.vec4),
     bend_vector_out: wp.array(dtype=wp.vec3),
 ):
-    """K_s = -df_i/dx_i and B_s = h D_s + h^2 K_s for linear springs; g for bend triples."""
+    """K_s = -df_i/dx_i and B_s = h D_s + h^2 K_s for linear springs, and B_s's compact form (`spring_compact`);
+    g for bend triples."""
     s = wp.tid()
     xi = x[spring_indices[s, 0]]
     xj = x[spring_indices[s, 1]]
@@ -98,13 +105,38 @@ def eval_spring_system_blocks(
     if m >= 0:
         stiffness_block_out[s] = wp.mat33(0.0)
         system_block_out[s] = wp.mat33(0.0)
+        spring_compact_out[s] = wp.vec4(0.0)
         bend_vector_out[s] = bending_stiffness_weights(xi, x[m], xj, spring_stiffness[s])
         return
     k_block = spring_stiffness_block(xi, xj, spring_rest_length[s], spring_stiffness[s])
     d_block = spring_damping_block(xi, xj, spring_damping[s])
     stiffness_block_out[s] = k_block
     system_block_out[s] = dt * d_block + dt * dt * k_block
+    spring_compact_out[s] = spring_compact(xi, xj, spring_rest_length[s], spring_stiffness[s], spring_damping[s], dt)
     bend_vector_out[s] = wp.vec3(0.0)
+
+
+@wp.func
+def spring_compact(xi: wp.vec3, xj: wp.vec3, rest_length: float, stiffness: float, damping: float, dt: float):
+    """A linear spring's system block B_s = h D_s + h^2 K_s = a I + u u^T as (u_x, u_y, u_z, a): with n the unit
+    direction and t = max(0, 1 - L/l) (`spring_stiffness_block`, `spring_damping_block`), a = h^2 k t and
+    u = sqrt(h c + h^2 k (1 - t)) n (c, k >= 0); 16 bytes where the 3x3 block takes 36, for the CG's product."""
+    d = xi - xj
+    length = wp.length(d)
+    if length < LENGTH_EPS:
+        return wp.vec4(0.0)
+    n = d / length
+    t = wp.max(0.0, 1.0 - rest_length / length)
+    a = dt * dt * stiffness * t
+    u = wp.sqrt(wp.max(dt * damping + dt * dt * stiffness * (1.0 - t), 0.0)) * n
+    return wp.vec4(u[0], u[1], u[2], a)
+
+
+@wp.func
+def compact_product(c: wp.vec4, d: wp.vec3):
+    """B_s d for a spring's compact block (`spring_compact`)."""
+    u = wp.vec3(c[0], c[1], c[2])
+    return c[3] * d + wp.dot(u, d) * u
 
 
 @wp.func
@@ -133,7 +165,7 @@ def drag_vector(xa: wp.vec3, xb: wp.vec3, xc: wp.vec3, drag_coefficient: float):
     return wp.sqrt(drag_coefficient * 0.5 * twice_area) * (cr / twice_area)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def eval_triangle_drag_vectors(
     tri_indices: wp.array2d(dtype=wp.int32),
     tri_drag: wp.array(dtype=float),
@@ -185,7 +217,7 @@ def membrane_diagonal(b: wp.mat33, voigt: wp.mat33, geometric: float):
     return wp.transpose(b) * voigt * b + geometric * wp.identity(n=3, dtype=float)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def eval_membrane_system_blocks(
     # Model
     membrane_vertices: wp.array(dtype=wp.vec3i),
@@ -239,7 +271,7 @@ def eval_membrane_system_blocks(
     wp.atomic_add(membrane_az_out, d, y2)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def eval_plate_system(
     # Model
     plate_offsets: wp.array(dtype=wp.int32),
@@ -333,7 +365,7 @@ def system_product(
     return q
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def eval_implicit_system(
     # Model
     spring_offsets: wp.array(dtype=wp.int32),
@@ -437,56 +469,90 @@ def eval_implicit_system(
     wp.atomic_add(cg_scalars_out, 0, CG_RR, wp.float64(wp.dot(r, r)))
 
 
-@wp.kernel
-def scatter_system_product(
-    # Model
+# The element part of A p, one element per thread and scattered (each element's work done once, where the per-particle
+# gather of `system_product` repeats a triple's or triangle's dot for every member): one kernel per kind of element
+# (on the CPU backend three branch-free kernels take ~0.25 ms where one kernel branching on the kind took ~0.34 ms
+# for a 64^2 cloth). product_out holds their sum (zero on entry: `cg_step` clears it); `cg_product` adds the mass term.
+
+
+@wp.kernel(enable_backward=False)
+def scatter_spring_product(
     spring_ends: wp.array(dtype=wp.vec2i),
-    linear_spring_count: int,
+    spring_compact: wp.array(dtype=wp.vec4),
+    p: wp.array(dtype=wp.vec3),
+    loop: wp.array(dtype=wp.int32),
+    # outputs (accumulated)
+    product_out: wp.array(dtype=wp.vec3),
+):
+    """Linear springs (the first linear_spring_count springs): B_s (p_a - p_b) to a, its negative to b, from the
+    compact block (`spring_compact`)."""
+    e = wp.tid()
+    if loop[LOOP_RUNNING] == 0:
+        return
+    ends = spring_ends[e]
+    y = compact_product(spring_compact[e], p[ends[0]] - p[ends[1]])
+    wp.atomic_add(product_out, ends[0], y)
+    wp.atomic_sub(product_out, ends[1], y)
+
+
+@wp.kernel(enable_backward=False)
+def scatter_bend_product(
     bend_triples: wp.array(dtype=wp.vec3i),
-    bend_count: int,
+    linear_spring_count: int,
+    bend_vector: wp.array(dtype=wp.vec3),
+    p: wp.array(dtype=wp.vec3),
+    dt: float,
+    loop: wp.array(dtype=wp.int32),
+    # outputs (accumulated)
+    product_out: wp.array(dtype=wp.vec3),
+):
+    """Bend triples (springs linear_spring_count + e): h^2 g_r (g . p_triple) to each member r."""
+    e = wp.tid()
+    if loop[LOOP_RUNNING] == 0:
+        return
+    t = bend_triples[e]
+    g = bend_vector[e + linear_spring_count]
+    d = (dt * dt) * triple_dot(g, p, t[0], t[1], t[2])
+    wp.atomic_add(product_out, t[0], g[0] * d)
+    wp.atomic_add(product_out, t[1], g[1] * d)
+    wp.atomic_add(product_out, t[2], g[2] * d)
+
+
+@wp.kernel(enable_backward=False)
+def scatter_membrane_product(
     membrane_vertices: wp.array(dtype=wp.vec3i),
-    membrane_count: int,
+    membrane_block: wp.array2d(dtype=wp.mat33),
+    p: wp.array(dtype=wp.vec3),
+    loop: wp.array(dtype=wp.int32),
+    # outputs (accumulated)
+    product_out: wp.array(dtype=wp.vec3),
+):
+    """Membrane elements: (h D_e + h^2 K_e) p to their corners."""
+    e = wp.tid()
+    if loop[LOOP_RUNNING] == 0:
+        return
+    corners = membrane_vertices[e]
+    y0, y1, y2 = membrane_block_product(membrane_vertices, membrane_block, e, p)
+    wp.atomic_add(product_out, corners[0], y0)
+    wp.atomic_add(product_out, corners[1], y1)
+    wp.atomic_add(product_out, corners[2], y2)
+
+
+@wp.kernel(enable_backward=False)
+def scatter_drag_product(
     tri_vertices: wp.array(dtype=wp.vec3i),
     tri_corner_weights: wp.array(dtype=wp.vec3),
-    # per-step blocks
-    system_block: wp.array(dtype=wp.mat33),
-    bend_vector: wp.array(dtype=wp.vec3),
-    membrane_block: wp.array2d(dtype=wp.mat33),
     drag_vector: wp.array(dtype=wp.vec3),
     p: wp.array(dtype=wp.vec3),
     dt: float,
-    # outputs (zeroed by the caller)
+    loop: wp.array(dtype=wp.int32),
+    # outputs (accumulated)
     product_out: wp.array(dtype=wp.vec3),
 ):
-    """The element part of A p, one element per thread and scattered (each element's work done once, where
-    the per-particle gather of `system_product` repeats a triple's or triangle's dot for every member):
-    linear springs B_s (p_a - p_b) to a and its negative to b, then bend triples h^2 g_r (g . p_triple),
-    then membrane elements (h D_e + h^2 K_e) p, then triangles h w_r (g . p_mean) g."""
+    """Triangles' air drag: h w_r (g . p_mean) g to each corner r."""
     e = wp.tid()
-    if e < linear_spring_count:
-        ends = spring_ends[e]
-        y = system_block[e] * (p[ends[0]] - p[ends[1]])
-        wp.atomic_add(product_out, ends[0], y)
-        wp.atomic_sub(product_out, ends[1], y)
+    if loop[LOOP_RUNNING] == 0:
         return
-    e -= linear_spring_count
-    if e < bend_count:
-        t = bend_triples[e]
-        g = bend_vector[e + linear_spring_count]
-        d = (dt * dt) * triple_dot(g, p, t[0], t[1], t[2])
-        wp.atomic_add(product_out, t[0], g[0] * d)
-        wp.atomic_add(product_out, t[1], g[1] * d)
-        wp.atomic_add(product_out, t[2], g[2] * d)
-        return
-    e -= bend_count
-    if e < membrane_count:
-        corners = membrane_vertices[e]
-        y0, y1, y2 = membrane_block_product(membrane_vertices, membrane_block, e, p)
-        wp.atomic_add(product_out, corners[0], y0)
-        wp.atomic_add(product_out, corners[1], y1)
-        wp.atomic_add(product_out, corners[2], y2)
-        return
-    e -= membrane_count
     c = tri_vertices[e]
     w = tri_corner_weights[e]
     g = drag_vector[e]
@@ -496,7 +562,7 @@ def scatter_system_product(
     wp.atomic_add(product_out, c[2], w[2] * y)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def cg_product(
     # Model
     particle_mass: wp.array(dtype=float),
@@ -506,13 +572,15 @@ def cg_product(
     global_damping: float,
     dt: float,
     loop: wp.array(dtype=wp.int32),
-    # outputs: holds the element part (scatter_system_product) on entry, q on exit
+    # outputs: holds the element part (the scatter_*_product kernels) on entry, q on exit
     product_out: wp.array(dtype=wp.vec3),
     cg_scalars_out: wp.array2d(dtype=wp.float64),
 ):
     """q = S A c (the mass term added to the scattered element part, pinned rows filtered) and c . q (row
-    loop[LOOP_ITERATION])."""
+    loop[LOOP_ITERATION]; nothing once the loop stopped)."""
     i = wp.tid()
+    if loop[LOOP_RUNNING] == 0:
+        return
     iteration = loop[LOOP_ITERATION]
     if particle_pinned[i] != 0:
         product_out[i] = wp.vec3(0.0)
@@ -523,55 +591,61 @@ def cg_product(
     wp.atomic_add(cg_scalars_out, iteration, CG_CAC, wp.float64(wp.dot(c, q)))
 
 
-@wp.kernel
-def cg_update(
+@wp.kernel(enable_backward=False)
+def cg_step(
     precond: wp.array(dtype=wp.mat33),
-    search: wp.array(dtype=wp.vec3),
-    product: wp.array(dtype=wp.vec3),
     loop: wp.array(dtype=wp.int32),
     # outputs (updated in place: forward-only solve, its gradient comes from an adjoint solve)
+    search_out: wp.array(dtype=wp.vec3),
+    product_out: wp.array(dtype=wp.vec3),
+    preconditioned_product_out: wp.array(dtype=wp.vec3),
     dv_out: wp.array(dtype=wp.vec3),
     residual_out: wp.array(dtype=wp.vec3),
     preconditioned_out: wp.array(dtype=wp.vec3),
     cg_scalars_out: wp.array2d(dtype=wp.float64),
 ):
-    """alpha = r.s / c.Ac; dv += alpha c; r -= alpha q; s = P r; accumulate r.s and r.r (iteration loop[LOOP_ITERATION])."""
+    """One Chronopoulos-Gear PCG iteration k = loop[LOOP_ITERATION] from gamma_k = r.u and delta_k = u.Au (row k):
+    beta = gamma_k / gamma_{k-1}, alpha = gamma_k / (delta_k - beta gamma_k / alpha_{k-1}) (k = 0: beta = 0,
+    alpha = gamma_0 / delta_0); p = u + beta p, q = Au + beta q (= A p), dv += alpha p, r -= alpha q, u = P r;
+    r.u and r.r of the new residual into row k + 1, alpha into row k. A u (`preconditioned_product`) is read and
+    cleared: the next product scatters into zero."""
     i = wp.tid()
-    iteration = loop[LOOP_ITERATION]
-    cac = cg_scalars_out[iteration, CG_CAC]
-    alpha = float(0.0)
-    if cac > wp.float64(0.0):
-        alpha = float(cg_scalars_out[iteration, CG_RS] / cac)
-    dv_out[i] = dv_out[i] + alpha * search[i]
-    r = residual_out[i] - alpha * product[i]
+    k = loop[LOOP_ITERATION]
+    gamma = cg_scalars_out[k, CG_RS]
+    denominator = cg_scalars_out[k, CG_CAC]
+    beta = wp.float64(0.0)
+    if k > 0:
+        gamma_previous = cg_scalars_out[k - 1, CG_RS]
+        alpha_previous = cg_scalars_out[k - 1, CG_ALPHA]
+        if gamma_previous > wp.float64(0.0):
+            beta = gamma / gamma_previous
+        if alpha_previous > wp.float64(0.0):
+            denominator = denominator - beta * gamma / alpha_previous
+    alpha = wp.float64(0.0)
+    if denominator > wp.float64(0.0):
+        alpha = gamma / denominator
+    if i == 0:
+        cg_scalars_out[k, CG_ALPHA] = alpha
+    u = preconditioned_out[i]
+    w = preconditioned_product_out[i]
+    preconditioned_product_out[i] = wp.vec3(0.0)
+    p = u
+    q = w
+    if k > 0:  # (k = 0: p and q may hold anything, even a failed solve's NaN)
+        p = u + float(beta) * search_out[i]
+        q = w + float(beta) * product_out[i]
+    search_out[i] = p
+    product_out[i] = q
+    dv_out[i] = dv_out[i] + float(alpha) * p
+    r = residual_out[i] - float(alpha) * q
     residual_out[i] = r
     s = precond[i] * r
     preconditioned_out[i] = s
-    wp.atomic_add(cg_scalars_out, iteration + 1, CG_RS, wp.float64(wp.dot(r, s)))
-    wp.atomic_add(cg_scalars_out, iteration + 1, CG_RR, wp.float64(wp.dot(r, r)))
+    wp.atomic_add(cg_scalars_out, k + 1, CG_RS, wp.float64(wp.dot(r, s)))
+    wp.atomic_add(cg_scalars_out, k + 1, CG_RR, wp.float64(wp.dot(r, r)))
 
 
-@wp.kernel
-def cg_direction(
-    preconditioned: wp.array(dtype=wp.vec3),
-    cg_scalars: wp.array2d(dtype=wp.float64),
-    loop: wp.array(dtype=wp.int32),
-    # outputs
-    search_out: wp.array(dtype=wp.vec3),
-):
-    """c = s + beta c, beta = r_new.s_new / r.s, after the iteration end_cg_iteration counted (none once the loop stopped)."""
-    i = wp.tid()
-    if loop[LOOP_RUNNING] == 0:
-        return
-    iteration = loop[LOOP_ITERATION] - 1
-    rs = cg_scalars[iteration, CG_RS]
-    beta = float(0.0)
-    if rs > wp.float64(0.0):
-        beta = float(cg_scalars[iteration + 1, CG_RS] / rs)
-    search_out[i] = preconditioned[i] + beta * search_out[i]
-
-
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def jacobi_iterate(
     # Model
     spring_offsets: wp.array(dtype=wp.int32),
@@ -647,7 +721,7 @@ def jacobi_iterate(
     dv_out[i] = precond[i] * acc
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def eval_system_residual(
     # Model
     spring_offsets: wp.array(dtype=wp.int32),
@@ -713,7 +787,7 @@ def integrate_implicit(
     x_out[i] = x0[i] + dt * v1
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def cg_warm_start(
     # Model
     spring_offsets: wp.array(dtype=wp.int32),
@@ -771,7 +845,7 @@ def cg_warm_start(
     wp.atomic_add(cg_scalars_out, 0, CG_RR, wp.float64(wp.dot(r, r)))
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def compose_warm_start(
     particle_pinned: wp.array(dtype=wp.int32),
     dv_previous: wp.array(dtype=wp.vec3),
@@ -810,7 +884,7 @@ def stops(relative: wp.float64, stop: wp.float64) -> bool:
     return relative <= stop or not wp.isfinite(relative)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def begin_linear_solve(
     warm_scalars: wp.array2d(dtype=wp.float64),
     warm: wp.array(dtype=wp.int32),
@@ -847,7 +921,7 @@ def begin_linear_solve(
         loop_out[LOOP_RUNNING] = 1
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def end_cg_iteration(
     cg_scalars: wp.array2d(dtype=wp.float64),
     check_every: int,
@@ -869,7 +943,7 @@ def end_cg_iteration(
         loop_out[LOOP_RUNNING] = 0
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def check_jacobi_residual(
     cg_scalars: wp.array2d(dtype=wp.float64),
     max_iterations: int,
@@ -888,7 +962,7 @@ def check_jacobi_residual(
         loop_out[LOOP_RUNNING] = 0
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def end_jacobi_iteration(
     check_every: int,
     max_iterations: int,
@@ -907,7 +981,7 @@ def end_jacobi_iteration(
         cg_scalars_out[JACOBI_CHECK_ROW, CG_RR] = wp.float64(0.0)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def end_linear_solve(
     status: wp.array(dtype=wp.float64),
     loop: wp.array(dtype=wp.int32),
@@ -938,7 +1012,7 @@ def end_linear_solve(
         previous_ready_out[0] = wp.where(failed, 0, 1)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def keep_velocity_change(
     previous_ready: wp.array(dtype=wp.int32),
     dv: wp.array(dtype=wp.vec3),
@@ -1143,7 +1217,7 @@ def jacobi_correct(
         dv_out[i] = dv_in[i] + precond[i] * residual[i]
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def add_vectors(src: wp.array(dtype=wp.vec3), dst_out: wp.array(dtype=wp.vec3)):
     """dst_out += src (seeding a gradient from a host-side adjoint solve)."""
     i = wp.tid()

@@ -53,7 +53,9 @@ class SolverImplicitEuler(SolverBase):
         max_iterations: iteration cap per step (a 128^2 cotton cloth at dt = 1/60 s needs up to ~660).
         tolerance: relative residual at which the solve stops. 1e-3 reproduces the 1e-4 motion of a 64^2
             cotton cloth at dt = 1/60 s to 0.3 % in kinetic energy; 1e-2 visibly over-damps it.
-        check_every: iterations between convergence checks (on the device, in the loop's 1-thread counting kernel).
+        check_every: iterations between convergence checks, on the device in the loop's 1-thread counting kernel
+            (default: every CG iteration, where the residual is a by-product; every 4th block-Jacobi iteration,
+            where a check costs a residual evaluation).
         warm_start: start each solve from the previous step's dv (forward runs). The tolerance stays
             relative to the zero-guess residual |S (b - A z)|, so a good start saves iterations.
         warm_start_reduction: a warm-started solve also cuts its starting residual by this factor (down to
@@ -84,7 +86,7 @@ class SolverImplicitEuler(SolverBase):
         linear_solver: LinearSolver | str = LinearSolver.CG,
         max_iterations: int = 1000,
         tolerance: float = 1.0e-3,
-        check_every: int = 4,
+        check_every: int | None = None,
         warm_start: bool = True,
         warm_start_reduction: float = 0.01,
         strain_limit: float | None = 0.1,
@@ -114,6 +116,8 @@ class SolverImplicitEuler(SolverBase):
         tolerance = check_number("tolerance", tolerance, LIMITS["tolerance"])
         self.max_iterations = int(max_iterations)
         self.tolerance = float(tolerance)
+        if check_every is None:
+            check_every = 1 if self.linear_solver == LinearSolver.CG else 4
         self.check_every = max(1, int(check_every))
         self.warm_start = bool(warm_start)
         if not (0.0 < warm_start_reduction <= 1.0):
@@ -123,6 +127,7 @@ class SolverImplicitEuler(SolverBase):
         dev = model.device
         self.stiffness_block = wp.zeros(s, dtype=wp.mat33, device=dev)
         self.system_block = wp.zeros(s, dtype=wp.mat33, device=dev)
+        self.spring_compact = wp.zeros(s, dtype=wp.vec4, device=dev)  # B_s as a I + u u^T, for the CG's product
         self.bend_vector = wp.zeros(s, dtype=wp.vec3, device=dev)
         self.drag_vector = wp.zeros(t, dtype=wp.vec3, device=dev)
         # membrane elements: per element B_0, B_1, B_2, the Voigt matrix A (h^2 C + h C_d), the corner matrix of the
@@ -143,9 +148,10 @@ class SolverImplicitEuler(SolverBase):
         self.residual = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.preconditioned = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.search = wp.zeros(n, dtype=wp.vec3, device=dev)
-        self.product = wp.zeros(n, dtype=wp.vec3, device=dev)
-        self.cg_scalars = wp.zeros((self.max_iterations + 2, 3), dtype=wp.float64, device=dev)
-        self.warm_scalars = wp.zeros((1, 3), dtype=wp.float64, device=dev)  # a warm start's row 0
+        self.product = wp.zeros(n, dtype=wp.vec3, device=dev)  # A p (CG search direction p)
+        self.preconditioned_product = wp.zeros(n, dtype=wp.vec3, device=dev)  # A u (u = P r)
+        self.cg_scalars = wp.zeros((self.max_iterations + 2, ki.CG_COLUMNS), dtype=wp.float64, device=dev)
+        self.warm_scalars = wp.zeros((1, ki.CG_COLUMNS), dtype=wp.float64, device=dev)  # a warm start's row 0
         # the solve's state on the device (kernels/implicit.py LOOP_*, STATUS_*, RECORD_*): no host read inside a step
         self.loop = wp.zeros(ki.LOOP_SIZE, dtype=wp.int32, device=dev)
         self.solve_status = wp.zeros(ki.STATUS_SIZE, dtype=wp.float64, device=dev)
@@ -170,7 +176,7 @@ class SolverImplicitEuler(SolverBase):
                 dim=m.spring_count,
                 inputs=[m.spring_indices, m.spring_rest_length, m.spring_stiffness, m.spring_damping, m.spring_middle,
                         state_in.particle_q, dt],
-                outputs=[self.stiffness_block, self.system_block, self.bend_vector],
+                outputs=[self.stiffness_block, self.system_block, self.spring_compact, self.bend_vector],
                 device=dev,
             )
         if m.tri_count:
@@ -237,38 +243,51 @@ class SolverImplicitEuler(SolverBase):
                       device=m.device)
 
     def solve_cg(self, dt: float, warm: bool = False) -> wp.array:
-        """Filtered PCG on the assembled system (`warm`: a warm start may have replaced the cold one, see
-        :meth:`solve`), iterating on the device until the stop residual; returns the array holding dv."""
+        """Filtered PCG (Chronopoulos-Gear form, kernels/implicit.py) on the assembled system (`warm`: a warm start
+        may have replaced the cold one, see :meth:`solve`), iterating on the device until the stop residual;
+        returns the array holding dv."""
         self._begin_iterations(warm)
+        self.preconditioned_product.zero_()  # then each iteration's cg_step clears it for the next product
+        self._preconditioned_product(dt)  # A u_0 and u_0 . A u_0 (row 0)
         device_while(self.loop, self._cg_iteration, dt=dt)
         return self.dv
 
-    def _cg_iteration(self, dt: float):
+    def _preconditioned_product(self, dt: float):
+        """w = S A u (u: the preconditioned residual) and u . w into row loop[LOOP_ITERATION]; the element part
+        scattered by one kernel per kind of element (kernels/implicit.py scatter_*_product), then the mass term.
+        Nothing once the loop stopped."""
         m = self.model
         dev = m.device
+        u, w = self.preconditioned, self.preconditioned_product
         bends = m.spring_count - m.linear_spring_count
-        elements = m.linear_spring_count + bends + m.membrane_count + m.tri_count
-        self.product.zero_()
-        if elements:
-            wp.launch(
-                ki.scatter_system_product,
-                dim=elements,
-                inputs=[m.spring_ends, m.linear_spring_count, m.bend_triples, bends, m.membrane_vertices, m.membrane_count,
-                        m.tri_vertices, m.tri_corner_weights, self.system_block, self.bend_vector, self.membrane_block,
-                        self.drag_vector, self.search, dt],
-                outputs=[self.product],
-                device=dev,
-            )
-        self._plate_product(self.search, dt, self.product)
+        if m.linear_spring_count:
+            wp.launch(ki.scatter_spring_product, dim=m.linear_spring_count, inputs=[m.spring_ends, self.spring_compact, u, self.loop],
+                      outputs=[w], device=dev)
+        if bends:
+            wp.launch(ki.scatter_bend_product, dim=bends, inputs=[m.bend_triples, m.linear_spring_count, self.bend_vector, u, dt, self.loop],
+                      outputs=[w], device=dev)
+        if m.membrane_count:
+            wp.launch(ki.scatter_membrane_product, dim=m.membrane_count, inputs=[m.membrane_vertices, self.membrane_block, u, self.loop],
+                      outputs=[w], device=dev)
+        if m.tri_count:
+            wp.launch(ki.scatter_drag_product, dim=m.tri_count,
+                      inputs=[m.tri_vertices, m.tri_corner_weights, self.drag_vector, u, dt, self.loop], outputs=[w], device=dev)
+        self._plate_product(u, dt, w)
         wp.launch(ki.cg_product, dim=m.particle_count,
-                  inputs=[m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, self.search, m.global_damping, dt, self.loop],
-                  outputs=[self.product, self.cg_scalars], device=dev)
-        wp.launch(ki.cg_update, dim=m.particle_count, inputs=[self.precond, self.search, self.product, self.loop],
-                  outputs=[self.dv, self.residual, self.preconditioned, self.cg_scalars], device=dev)
+                  inputs=[m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, u, m.global_damping, dt, self.loop],
+                  outputs=[w, self.cg_scalars], device=dev)
+
+    def _cg_iteration(self, dt: float):
+        """The update from row k's dot products (with the next residual's), the count and stop test, then the next
+        iteration's product."""
+        m = self.model
+        dev = m.device
+        wp.launch(ki.cg_step, dim=m.particle_count, inputs=[self.precond, self.loop],
+                  outputs=[self.search, self.product, self.preconditioned_product, self.dv, self.residual, self.preconditioned,
+                           self.cg_scalars], device=dev)
         wp.launch(ki.end_cg_iteration, dim=1, inputs=[self.cg_scalars, self.check_every, self.max_iterations],
                   outputs=[self.solve_status, self.loop], device=dev)
-        wp.launch(ki.cg_direction, dim=m.particle_count, inputs=[self.preconditioned, self.cg_scalars, self.loop], outputs=[self.search],
-                  device=dev)
+        self._preconditioned_product(dt)
 
     def solve_jacobi(self, dt: float, warm: bool = False) -> wp.array:
         """Block Jacobi on the assembled system (`warm` as in :meth:`solve_cg`), iterating on the device; returns
