@@ -76,7 +76,7 @@ class ElementSet:
             return
         dev = self.device
         wp.launch(kb.element_bounds, dim=self.count, inputs=[self.elements, x_start, velocity, dt, pad, inv_cell_size],
-                  outputs=[self.lo, self.hi, self.cell_lo, self.cell_hi, self.cell_count, clamped], device=dev)
+                  outputs=[self.lo, self.hi, self.cell_lo, self.cell_hi, self.cell_count, clamped], device=dev, record_tape=False)
         if not self.grid:
             return
         wp.utils.array_scan(self.cell_count, self.offsets, inclusive=False)
@@ -84,13 +84,14 @@ class ElementSet:
         if total > self.entry_capacity:
             self._allocate_entries(_next_pow2(total))
         wp.launch(kb.fill_cells, dim=self.count, inputs=[self.cell_lo, self.cell_hi, self.offsets, self.table_size - 1, self.entry_capacity],
-                  outputs=[self.keys, self.values, self.entry_element, self.entry_cell], device=dev)
+                  outputs=[self.keys, self.values, self.entry_element, self.entry_cell], device=dev, record_tape=False)
         wp.utils.radix_sort_pairs(self.keys, self.values, total)
         wp.launch(kb.gather_sorted_entries, dim=total, inputs=[self.values, self.entry_element, self.entry_cell, self.lo, self.hi],
-                  outputs=[self.sorted_element, self.sorted_cell, self.sorted_lo, self.sorted_hi], device=dev)
+                  outputs=[self.sorted_element, self.sorted_cell, self.sorted_lo, self.sorted_hi], device=dev, record_tape=False)
         self.bucket_start.zero_()
         self.bucket_end.zero_()
-        wp.launch(kb.bucket_ranges, dim=total, inputs=[self.keys, total], outputs=[self.bucket_start, self.bucket_end], device=dev)
+        wp.launch(kb.bucket_ranges, dim=total, inputs=[self.keys, total], outputs=[self.bucket_start, self.bucket_end], device=dev,
+                  record_tape=False)
         self.entries = total
 
     def update_fixed(self, x_start: wp.array, velocity: wp.array, dt: float, pad: float, inv_cell_size: float, clamped: wp.array,
@@ -105,24 +106,25 @@ class ElementSet:
             return
         dev = self.device
         wp.launch(kb.element_bounds, dim=self.count, inputs=[self.elements, x_start, velocity, dt, pad, inv_cell_size],
-                  outputs=[self.lo, self.hi, self.cell_lo, self.cell_hi, self.cell_count, clamped], device=dev)
+                  outputs=[self.lo, self.hi, self.cell_lo, self.cell_hi, self.cell_count, clamped], device=dev, record_tape=False)
         if not self.grid:
             return
         cap = self.entry_capacity
         wp.utils.array_scan(self.cell_count, self.offsets, inclusive=False)
         wp.launch(kb.entry_total, dim=1, inputs=[self.cell_count, self.offsets, self.count, cap, slot], outputs=[self.entry_count, overflow],
-                  device=dev)
+                  device=dev, record_tape=False)
         wp.launch(kb.fill_cells, dim=self.count, inputs=[self.cell_lo, self.cell_hi, self.offsets, self.table_size - 1, cap],
-                  outputs=[self.keys, self.values, self.entry_element, self.entry_cell], device=dev)
-        wp.launch(kb.pad_entry_keys, dim=cap, inputs=[self.entry_count, self.table_size], outputs=[self.keys], device=dev)
+                  outputs=[self.keys, self.values, self.entry_element, self.entry_cell], device=dev, record_tape=False)
+        wp.launch(kb.pad_entry_keys, dim=cap, inputs=[self.entry_count, self.table_size], outputs=[self.keys], device=dev,
+                  record_tape=False)
         wp.utils.radix_sort_pairs(self.keys, self.values, cap, 0, self.table_size.bit_length())
         wp.launch(kb.gather_sorted_entries_listed, dim=cap, inputs=[self.entry_count, self.values, self.entry_element, self.entry_cell, self.lo,
                                                                    self.hi],
-                  outputs=[self.sorted_element, self.sorted_cell, self.sorted_lo, self.sorted_hi], device=dev)
+                  outputs=[self.sorted_element, self.sorted_cell, self.sorted_lo, self.sorted_hi], device=dev, record_tape=False)
         self.bucket_start.zero_()
         self.bucket_end.zero_()
         wp.launch(kb.bucket_ranges_listed, dim=cap, inputs=[self.keys, self.entry_count], outputs=[self.bucket_start, self.bucket_end],
-                  device=dev)
+                  device=dev, record_tape=False)
         self.entries = None  # on the device
 
 
@@ -156,7 +158,7 @@ class PairBuffer:
                                   target.elements, target.ids, target_skip, target.sorted_element, target.sorted_cell,
                                   target.sorted_lo, target.sorted_hi, target.bucket_start, target.bucket_end,
                                   target.table_size - 1, inv_cell_size, int(ordered), self.capacity],
-                          outputs=[self.pairs, self.count_array], device=self.device)
+                          outputs=[self.pairs, self.count_array], device=self.device, record_tape=False)
             n = int(self.count_array.numpy()[0])
             if n <= self.capacity:
                 self.count = n
@@ -178,8 +180,9 @@ class PairBuffer:
                               target.elements, target.ids, target_skip, target.sorted_element, target.sorted_cell,
                               target.sorted_lo, target.sorted_hi, target.bucket_start, target.bucket_end,
                               target.table_size - 1, inv_cell_size, int(ordered), self.capacity],
-                      outputs=[self.pairs, self.count_array], device=self.device)
-        wp.launch(kb.clamp_count, dim=1, inputs=[self.capacity, slot], outputs=[self.count_array, overflow], device=self.device)
+                      outputs=[self.pairs, self.count_array], device=self.device, record_tape=False)
+        wp.launch(kb.clamp_count, dim=1, inputs=[self.capacity, slot], outputs=[self.count_array, overflow], device=self.device,
+                  record_tape=False)
 
     def grow(self, needed: int) -> bool:
         """Make room for `needed` pairs (a power of two); False when they fit already."""
@@ -313,13 +316,13 @@ class SelfCollisionGrid:
             return "built"
         self._escaped.zero_()
         wp.launch(kb.take_escaped, dim=x_start.shape[0], inputs=[velocity, dt, margin], outputs=[ref[1], self._escaped_particles, self._escaped],
-                  device=self.device)
+                  device=self.device, record_tape=False)
         if int(self._escaped.numpy()[0]) == 0:
             return "kept"
         fresh_ids, old_ids = {}, {}
         for name, s in self.element_sets():
             wp.launch(kb.mark_dirty, dim=s.count, inputs=[s.elements, self._escaped_particles], outputs=[self.dirty[name], self.fresh[name]],
-                      device=self.device)
+                      device=self.device, record_tape=False)
             fresh = self.fresh[name].numpy()[: s.count] != 0
             fresh_ids[name] = np.flatnonzero(fresh)
             old_ids[name] = np.flatnonzero((self.dirty[name].numpy()[: s.count] != 0) & ~fresh)

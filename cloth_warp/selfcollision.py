@@ -25,8 +25,9 @@ The capturable path (``SelfCollision(model, capturable=True)``, forward only) ru
 reading the device on the host, so a frame can be recorded once as a graph (``wp.ScopedCapture``) and
 replayed: buffers have fixed capacities (what does not fit is dropped and the need recorded), counts stay
 on the device, the CCD sweeps are a ``wp.capture_while`` loop, the broad phase is built in full on the
-device when the step's start positions are new and built again (``wp.capture_if``) when an end point left
-the margin (no patches), and impacts left after the sweeps are not resolved but flagged. After the frame,
+device when the step's start positions are new; when end points left the margin it is patched on the device
+(``wp.capture_if``: the elements touching at most ``patch_limit`` escaped particles tested against every element)
+or, past that, built again; impacts left after the sweeps are not resolved but flagged. After the frame,
 :meth:`SelfCollision.status` (one read) says whether a buffer overflowed or a step needed impact zones;
 the caller then calls :meth:`SelfCollision.grow` and runs the frame again on the host path.
 """
@@ -109,6 +110,9 @@ class SelfCollision:
         self._read_masses()
         self.sweeps = int(sweeps)
         self.zone_iterations = int(zone_iterations)
+        self.patch_limit = 32
+        """The capturable path patches its broad phase when at most this many particles left the margin (testing the
+        elements touching them against every element), else builds it again."""
         self.counts = wp.zeros(ksc.COUNT_SIZE, dtype=wp.int32, device=dev)
         """Counters and status, int32 [ksc.COUNT_SIZE] (indices ksc.COUNT_* / ksc.NEED_*)."""
         self.grid.clamped = self.counts[ksc.COUNT_OVERSIZED:ksc.COUNT_OVERSIZED + 1]  # the broad phase counts into the block
@@ -180,6 +184,7 @@ class SelfCollision:
         out.update(self.host_counts)
         out["self_sweeps"] += int(c[ksc.COUNT_SWEEPS])
         out["broad_phase_builds"] += int(c[ksc.COUNT_BUILDS])
+        out["broad_phase_patches"] += int(c[ksc.COUNT_PATCHES])
         out["oversized"] = int(c[ksc.COUNT_OVERSIZED])
         out["pair_buffer_growths"] = self.grid.vertex_face.grown + self.grid.edge_edge.grown - self._grown0
         return out
@@ -270,7 +275,7 @@ class SelfCollision:
             if count:
                 wp.launch(ksc.eval_first_contact, dim=count,
                           inputs=[pairs, kind, self.tri_indices, self.edge_indices, x_start, vbar, dt, self.contact_tolerance()],
-                          outputs=[times], device=dev)
+                          outputs=[times], device=dev, record_tape=False)
             out[name] = (pairs.numpy()[:count].copy(), times.numpy()[:count].copy())
         return out
 
@@ -310,7 +315,7 @@ class SelfCollision:
         resumed = self._resolved is not None and self._resolved[0] is x_start and self._resolved[1] == float(dt)
         if resumed:
             changed = self._buffer("changed", float, False)
-            wp.launch(ksc.mark_changed, dim=n, inputs=[vbar, self._resolved[2]], outputs=[changed], device=dev)
+            wp.launch(ksc.mark_changed, dim=n, inputs=[vbar, self._resolved[2]], outputs=[changed], device=dev, record_tape=False)
             self._last_weight = changed
         resolved = True
         for sweep in range(self.sweeps + 1):
@@ -342,8 +347,9 @@ class SelfCollision:
     # -- the capturable path ----------------------------------------------------------------------
     # The same passes as the host path, launched over fixed capacities with the counts on the device. Its
     # results equal the host path's bit for bit while the host path builds or keeps its broad phase and both
-    # have the same grid capacities; where the host path patches, this one builds again, so the candidate
-    # lists (and the order in which impulses add up) differ: then the results differ by round-off.
+    # have the same grid capacities; where the host path patches, this one patches in its own way (or builds
+    # again), so the candidate lists (and the order in which impulses add up) differ: then the results differ
+    # by round-off.
     def _fixed_buffers(self) -> "_FixedBuffers":
         """The capturable path's arrays, allocated on the host (first use, and after :meth:`grow`)."""
         caps = (self.grid.vertex_face.capacity, self.grid.edge_edge.capacity)
@@ -373,15 +379,16 @@ class SelfCollision:
             wp.launch(ksc.self_proximity_listed, dim=f.close[kind].shape[0],
                       inputs=[f.close_count[kind], f.close[kind], kind, self.tri_indices, self.edge_indices, self.inv_mass, x_start, f.vbar0,
                               h_c, self.stiffness, self.friction, dt],
-                      outputs=[f.dv, f.weight, self.counts], device=dev)
+                      outputs=[f.dv, f.weight, self.counts], device=dev, record_tape=False)
         wp.launch(ksc.apply_velocity_changes, dim=n, inputs=[f.vbar0, f.dv, f.weight], outputs=[f.vbar], device=dev)
         # 3. CCD sweeps on the device: the first on every close pair (a later round of the step: on the pairs
         # with a particle whose vbar changed since the last round's result), then while impacts remain
         resumed = self._resolved is not None and self._resolved[0] is x_start and self._resolved[1] == float(dt)
         if resumed:
-            wp.launch(ksc.mark_changed, dim=n, inputs=[f.vbar, self._resolved[2]], outputs=[f.changed], device=dev)
+            wp.launch(ksc.mark_changed, dim=n, inputs=[f.vbar, self._resolved[2]], outputs=[f.changed], device=dev,
+                      record_tape=False)
         sweep = {"x_start": x_start, "dt": dt, "pad": pad, "tolerance": self.contact_tolerance(), "separation": 0.1 * h_c / dt}
-        wp.launch(ksc.begin_sweeps, dim=1, inputs=[self.sweeps], outputs=[f.loop], device=dev)
+        wp.launch(ksc.begin_sweeps, dim=1, inputs=[self.sweeps], outputs=[f.loop], device=dev, record_tape=False)
         self._sweep_fixed(first=True, weight=f.changed if resumed else None, **sweep)
         device_while(f.loop, self._sweep_fixed, first=False, weight=f.weight, **sweep)
         # 4. impacts left: counted in the block (COUNT_FALLBACKS) for the caller to run the frame on the host path
@@ -406,9 +413,9 @@ class SelfCollision:
             wp.launch(ksc.self_ccd_listed, dim=pairs.shape[0],
                       inputs=[count, pairs, kind, self.tri_indices, self.edge_indices, self.inv_mass, self.no_zone, x_start, f.vbar, dt,
                               tolerance, separation],
-                      outputs=[f.dv, f.weight, self.counts, f.loop], device=dev)
+                      outputs=[f.dv, f.weight, self.counts, f.loop], device=dev, record_tape=False)
         wp.launch(ksc.apply_velocity_changes, dim=self.model.particle_count, inputs=[f.vbar, f.dv, f.weight], outputs=[f.vbar], device=dev)
-        wp.launch(ksc.end_sweep, dim=1, inputs=[self.sweeps], outputs=[f.loop, self.counts], device=dev)
+        wp.launch(ksc.end_sweep, dim=1, inputs=[self.sweeps], outputs=[f.loop, self.counts], device=dev, record_tape=False)
 
     def _changed_pairs_fixed(self, weight) -> dict:
         """The close pairs with an element whose particle has weight > 0 (see :meth:`_active_lists`)."""
@@ -416,24 +423,70 @@ class SelfCollision:
         dev = self.model.device
         for name, elements in self.grid.element_sets():
             wp.launch(kbp.mark_changed_elements, dim=elements.count, inputs=[elements.elements, weight, self.no_zone], outputs=[f.flags[name]],
-                      device=dev)
+                      device=dev, record_tape=False)
         out = {}
         for kind in KINDS:
             first, second = (f.flags["triangles"], f.flags["points"]) if kind == 0 else (f.flags["edges"], f.flags["edges"])
             f.active_count[kind].zero_()
             wp.launch(kbp.select_flagged_pairs_listed, dim=f.active[kind].shape[0], inputs=[f.close_count[kind], f.close[kind], first, second, 1],
-                      outputs=[f.active[kind], f.active_count[kind]], device=dev)
+                      outputs=[f.active[kind], f.active_count[kind]], device=dev, record_tape=False)
             out[kind] = (f.active[kind], f.active_count[kind])
         return out
 
     def _refresh_fixed(self, x_start, vbar, dt, pad):
-        """Keep the broad phase while no end point left the margin around the one it was built with, else build
-        it again (a device-side branch)."""
+        """Keep the broad phase while no end point left the margin around the one it was built with; when at most
+        :attr:`patch_limit` particles did, patch it (:meth:`_patch_fixed`), else build it again (device-side branches)."""
         f = self._fixed
+        dev = self.model.device
         f.escaped.zero_()
         wp.launch(kbp.take_escaped, dim=self.model.particle_count, inputs=[vbar, dt, self.margin],
-                  outputs=[self.grid.fixed_reference, f.escaped_particles, f.escaped], device=self.model.device)
-        wp.capture_if(f.escaped, on_true=self._build_fixed, x_start=x_start, velocity=vbar, dt=dt, pad=pad)
+                  outputs=[self.grid.fixed_reference, f.escaped_particles, f.escaped], device=dev, record_tape=False)
+        wp.launch(kbp.patch_or_build, dim=1, inputs=[f.escaped, int(self.patch_limit)], outputs=[f.rebuild, f.patch], device=dev,
+                  record_tape=False)
+        wp.capture_if(f.rebuild, on_true=self._build_fixed, x_start=x_start, velocity=vbar, dt=dt, pad=pad)
+        wp.capture_if(f.patch, on_true=self._patch_fixed, x_start=x_start, dt=dt, pad=pad)
+
+    def _patch_fixed(self, x_start, dt, pad):
+        """The capturable path's patch (the host path's :meth:`SelfCollisionGrid.refresh` "patched", on the device):
+        the escaped particles took their current velocity as reference (:func:`take_escaped`); the elements touching
+        them get their new boxes, the close pairs with such an element are dropped and those pairs found again by
+        testing the few fresh elements against every element (no hash grid: the grid keeps its entries, unused until
+        the next build). The close lists stay within their capacity; a larger need is recorded as an overflow."""
+        f = self._fixed
+        g = self.grid
+        dev = self.model.device
+        grow = pad + self.margin
+        for name, s in g.element_sets():
+            f.fresh_count[name].zero_()
+            wp.launch(kbp.mark_fresh, dim=s.count, inputs=[s.elements, f.escaped_particles],
+                      outputs=[f.flags[name], f.fresh[name], f.fresh_count[name]], device=dev, record_tape=False)
+            wp.launch(kbp.fresh_bounds, dim=s.count, inputs=[f.flags[name], s.elements, x_start, g.fixed_reference, dt, grow],
+                      outputs=[s.lo, s.hi], device=dev, record_tape=False)
+        for kind in KINDS:  # the close pairs without a fresh element
+            first, second = (f.flags["triangles"], f.flags["points"]) if kind == 0 else (f.flags["edges"], f.flags["edges"])
+            f.active_count[kind].zero_()
+            wp.launch(kbp.select_flagged_pairs_listed, dim=f.close[kind].shape[0], inputs=[f.close_count[kind], f.close[kind], first, second, 0],
+                      outputs=[f.active[kind], f.active_count[kind]], device=dev, record_tape=False)
+            wp.launch(kbp.copy_pairs_listed, dim=f.close[kind].shape[0], inputs=[f.active_count[kind], f.active[kind]],
+                      outputs=[f.close[kind], f.close_count[kind]], device=dev, record_tape=False)
+        close = [x_start, g.fixed_reference, dt, self.margin, self.thickness + self.contact_tolerance()]
+        pts, tri, edg = g.points, g.triangles, g.edges
+        wp.launch(ksc.patch_vertex_face_points, dim=pts.count,
+                  inputs=[f.fresh_count["triangles"], f.fresh["triangles"], tri.lo, tri.hi, pts.lo, pts.hi, self.tri_indices, self.edge_indices,
+                          *close, f.capacities[0]],
+                  outputs=[f.close[0], f.close_count[0]], device=dev, record_tape=False)
+        wp.launch(ksc.patch_vertex_face_triangles, dim=tri.count,
+                  inputs=[f.flags["triangles"], f.fresh_count["points"], f.fresh["points"], tri.lo, tri.hi, pts.lo, pts.hi, self.tri_indices,
+                          self.edge_indices, *close, f.capacities[0]],
+                  outputs=[f.close[0], f.close_count[0]], device=dev, record_tape=False)
+        wp.launch(ksc.patch_edge_edge, dim=edg.count,
+                  inputs=[f.flags["edges"], f.fresh_count["edges"], f.fresh["edges"], edg.lo, edg.hi, self.tri_indices, self.edge_indices, *close,
+                          f.capacities[1]],
+                  outputs=[f.close[1], f.close_count[1]], device=dev, record_tape=False)
+        for kind, slot in zip(KINDS, (ksc.NEED_VERTEX_FACE, ksc.NEED_EDGE_EDGE)):
+            wp.launch(kbp.clamp_count, dim=1, inputs=[f.capacities[kind], slot], outputs=[f.close_count[kind], self.counts], device=dev,
+                      record_tape=False)
+        wp.launch(ksc.increment_count, dim=1, inputs=[ksc.COUNT_PATCHES], outputs=[self.counts], device=dev, record_tape=False)
 
     def _build_fixed(self, x_start, velocity, dt, pad):
         """A full broad phase on the device (boxes grown by the margin) and its close pairs."""
@@ -441,7 +494,7 @@ class SelfCollision:
         dev = self.model.device
         g = self.grid
         g.build_fixed(x_start, velocity, dt, pad, self.margin, self.counts, BUFFERS)
-        wp.launch(ksc.increment_count, dim=1, inputs=[ksc.COUNT_BUILDS], outputs=[self.counts], device=dev)
+        wp.launch(ksc.increment_count, dim=1, inputs=[ksc.COUNT_BUILDS], outputs=[self.counts], device=dev, record_tape=False)
         reach = self.thickness + self.contact_tolerance()
         for kind in KINDS:
             buf = g.vertex_face if kind == 0 else g.edge_edge
@@ -449,7 +502,7 @@ class SelfCollision:
             wp.launch(ksc.select_close_pairs_listed, dim=buf.capacity,
                       inputs=[buf.count_array, buf.pairs, kind, self.tri_indices, self.edge_indices, x_start, g.fixed_reference, dt, self.margin,
                               reach],
-                      outputs=[f.close[kind], f.close_count[kind]], device=dev)
+                      outputs=[f.close[kind], f.close_count[kind]], device=dev, record_tape=False)
 
     # -- the host path's broad phase -------------------------------------------------------------
     def _refresh_grid(self, x_start, vbar, dt, pad):
@@ -479,10 +532,10 @@ class SelfCollision:
             counter.zero_()
             if count:
                 wp.launch(kbp.select_flagged_pairs, dim=count, inputs=[pairs, *self.grid.fresh_flags(kind), 0], outputs=[selected, counter],
-                          device=dev)
+                          device=dev, record_tape=False)
             if patch.count:
                 wp.launch(ksc.select_close_pairs, dim=patch.count, inputs=[patch.pairs, kind, self.tri_indices, self.edge_indices, *close_inputs],
-                          outputs=[selected, counter], device=dev)
+                          outputs=[selected, counter], device=dev, record_tape=False)
             close[kind] = (selected, int(counter.numpy()[0]))
         self._close = close
 
@@ -495,7 +548,7 @@ class SelfCollision:
             counter.zero_()
             if count:
                 wp.launch(kernel, dim=count, inputs=[pairs, kind, self.tri_indices, self.edge_indices, *inputs],
-                          outputs=[selected, counter], device=self.model.device)
+                          outputs=[selected, counter], device=self.model.device, record_tape=False)
             out[kind] = (selected, int(counter.numpy()[0]))
         return out
 
@@ -534,7 +587,7 @@ class SelfCollision:
         for name, elements in self.grid.element_sets():
             flags[name] = self._buffer(f"changed_{name}", wp.int32, False, shape=max(elements.count, 1))
             wp.launch(kbp.mark_changed_elements, dim=elements.count, inputs=[elements.elements, self._last_weight, zone], outputs=[flags[name]],
-                      device=dev)
+                      device=dev, record_tape=False)
         out = {}
         for kind, (pairs, count) in lists.items():
             first, second = (flags["triangles"], flags["points"]) if kind == 0 else (flags["edges"], flags["edges"])
@@ -542,7 +595,8 @@ class SelfCollision:
             counter = self._buffer(f"active_count{kind}", wp.int32, False, shape=1)
             counter.zero_()
             if count:
-                wp.launch(kbp.select_flagged_pairs, dim=count, inputs=[pairs, first, second, 1], outputs=[selected, counter], device=dev)
+                wp.launch(kbp.select_flagged_pairs, dim=count, inputs=[pairs, first, second, 1], outputs=[selected, counter], device=dev,
+                          record_tape=False)
             out[kind] = (selected, int(counter.numpy()[0]))
         return out
 
@@ -682,6 +736,10 @@ class _FixedBuffers:
         self.active = [wp.zeros(c, dtype=wp.vec2i, device=dev) for c in caps]
         self.active_count = [wp.zeros(1, dtype=wp.int32, device=dev) for _ in caps]
         self.flags = {name: wp.zeros(max(s.count, 1), dtype=wp.int32, device=dev) for name, s in grid.element_sets()}
+        self.fresh = {name: wp.zeros(max(s.count, 1), dtype=wp.int32, device=dev) for name, s in grid.element_sets()}
+        self.fresh_count = {name: wp.zeros(1, dtype=wp.int32, device=dev) for name, _ in grid.element_sets()}
+        self.rebuild = wp.zeros(1, dtype=wp.int32, device=dev)
+        self.patch = wp.zeros(1, dtype=wp.int32, device=dev)
         if grid.fixed_reference is None:
             grid.fixed_reference = wp.zeros(n, dtype=wp.vec3, device=dev)
 

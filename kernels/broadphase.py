@@ -54,7 +54,7 @@ def element_row(elements: wp.array2d(dtype=wp.int32), e: int):
     return wp.vec3i(elements[e, 0], elements[e, 1], elements[e, 2])
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def element_bounds(
     elements: wp.array2d(dtype=wp.int32),
     x_start: wp.array(dtype=wp.vec3),
@@ -108,7 +108,7 @@ def element_bounds(
     cell_count_out[e] = (c_hi[0] - c_lo[0] + 1) * (c_hi[1] - c_lo[1] + 1) * (c_hi[2] - c_lo[2] + 1)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def fill_cells(
     cell_lo: wp.array(dtype=wp.vec3i),
     cell_hi: wp.array(dtype=wp.vec3i),
@@ -139,7 +139,7 @@ def fill_cells(
                 slot += 1
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def bucket_ranges(keys: wp.array(dtype=wp.int32), total: int, bucket_start_out: wp.array(dtype=wp.int32),
                   bucket_end_out: wp.array(dtype=wp.int32)):
     """[start, end) of each bucket's run in the sorted keys (buckets must be zeroed: empty = [0, 0))."""
@@ -151,7 +151,7 @@ def bucket_ranges(keys: wp.array(dtype=wp.int32), total: int, bucket_start_out: 
         bucket_end_out[k] = i + 1
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def gather_sorted_entries(sorted_entries: wp.array(dtype=wp.int32), entry_element: wp.array(dtype=wp.int32),
                           entry_cell: wp.array(dtype=wp.vec3i), lo: wp.array(dtype=wp.vec3), hi: wp.array(dtype=wp.vec3),
                           element_out: wp.array(dtype=wp.int32), cell_out: wp.array(dtype=wp.vec3i),
@@ -166,7 +166,7 @@ def gather_sorted_entries(sorted_entries: wp.array(dtype=wp.int32), entry_elemen
     hi_out[s] = hi[element]
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def gather_sorted_entries_listed(total: wp.array(dtype=wp.int32), sorted_entries: wp.array(dtype=wp.int32),
                                  entry_element: wp.array(dtype=wp.int32), entry_cell: wp.array(dtype=wp.vec3i),
                                  lo: wp.array(dtype=wp.vec3), hi: wp.array(dtype=wp.vec3), element_out: wp.array(dtype=wp.int32),
@@ -183,7 +183,7 @@ def gather_sorted_entries_listed(total: wp.array(dtype=wp.int32), sorted_entries
     hi_out[s] = hi[element]
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def entry_total(cell_count: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.int32), count: int, capacity: int, slot: int,
                 total_out: wp.array(dtype=wp.int32), overflow_out: wp.array(dtype=wp.int32)):
     """One thread: the number of grid entries (exclusive scan's last offset plus the last count), clamped to the
@@ -195,7 +195,7 @@ def entry_total(cell_count: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp
     total_out[0] = total
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def pad_entry_keys(total: wp.array(dtype=wp.int32), sentinel: int, keys_out: wp.array(dtype=wp.int32)):
     """Keys past the entry count take `sentinel` (above every bucket), so that sorting the whole capacity
     leaves the entries first, in the order a sort of the entries alone gives (the sort is stable)."""
@@ -204,7 +204,7 @@ def pad_entry_keys(total: wp.array(dtype=wp.int32), sentinel: int, keys_out: wp.
         keys_out[i] = sentinel
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def bucket_ranges_listed(keys: wp.array(dtype=wp.int32), total: wp.array(dtype=wp.int32), bucket_start_out: wp.array(dtype=wp.int32),
                          bucket_end_out: wp.array(dtype=wp.int32)):
     """:func:`bucket_ranges` launched over the capacity, with the entry count total[0] on the device."""
@@ -219,7 +219,7 @@ def bucket_ranges_listed(keys: wp.array(dtype=wp.int32), total: wp.array(dtype=w
         bucket_end_out[k] = i + 1
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def clamp_count(capacity: int, slot: int, count_out: wp.array(dtype=wp.int32), overflow_out: wp.array(dtype=wp.int32)):
     """One thread: a buffer counted count_out[0] items and kept the first `capacity`: record a larger need in
     overflow_out[slot] (max over the frame) and clamp the count to what the buffer holds."""
@@ -229,7 +229,7 @@ def clamp_count(capacity: int, slot: int, count_out: wp.array(dtype=wp.int32), o
         count_out[0] = capacity
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def find_pairs(
     query_elements: wp.array2d(dtype=wp.int32),
     query_ids: wp.array(dtype=wp.int32),
@@ -257,7 +257,7 @@ def find_pairs(
     """Pairs (query element, target element), as ids (`query_ids`, `target_ids` map a set's rows to the
     ids pairs report), whose boxes overlap and that share no vertex. Queries and targets whose id is
     flagged in `query_skip` / `target_skip` take no part; with `ordered`, each unordered pair is
-    reported once (query id < target id). Appends to the buffer (counts every pair, writes those that fit)."""
+    reported once (query id < target id; the target's ids must ascend with its rows). Appends to the buffer (counts every pair, writes those that fit)."""
     q = wp.tid()
     q_id = query_ids[q]
     if query_skip[q_id] != 0:
@@ -272,19 +272,30 @@ def find_pairs(
             for k in range(lo[2], hi[2] + 1):
                 c = wp.vec3i(i, j, k)
                 b = cell_hash(c, table_mask)
-                for s in range(bucket_start[b], bucket_end[b]):
+                first = bucket_start[b]
+                end = bucket_end[b]
+                if ordered != 0:
+                    # a bucket's entries come in the order of the target's rows (stable sort of entries filled row by
+                    # row), whose ids ascend: start at the first entry above q_id
+                    last = end
+                    while first < last:
+                        mid = (first + last) // 2
+                        if target_ids[sorted_element[mid]] <= q_id:
+                            first = mid + 1
+                        else:
+                            last = mid
+                for s in range(first, end):
                     ec = sorted_cell[s]
                     if ec[0] != i or ec[1] != j or ec[2] != k:
                         continue
-                    t = sorted_element[s]
-                    t_id = target_ids[t]
-                    if ordered != 0 and t_id <= q_id:
-                        continue
-                    if target_skip[t_id] != 0:
-                        continue
+                    # the box first (most entries fail it), then the indirect reads
                     t_lo = sorted_lo[s]
                     t_hi = sorted_hi[s]
                     if not boxes_overlap(q_lo, q_hi, t_lo, t_hi):
+                        continue
+                    t = sorted_element[s]
+                    t_id = target_ids[t]
+                    if target_skip[t_id] != 0:
                         continue
                     # report the pair only from the voxel of the boxes' intersection's lower corner
                     corner = cell_of(wp.max(q_lo, t_lo), inv_cell_size)
@@ -298,7 +309,7 @@ def find_pairs(
                         pairs_out[slot] = wp.vec2i(q_id, t_id)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def take_escaped(velocity: wp.array(dtype=wp.vec3), dt: float, margin: float, velocity_ref_out: wp.array(dtype=wp.vec3),
                  escaped_out: wp.array(dtype=wp.int32), count_out: wp.array(dtype=wp.int32)):
     """Particles whose end point left the margin around their reference step's end point: flag them, count
@@ -311,7 +322,7 @@ def take_escaped(velocity: wp.array(dtype=wp.vec3), dt: float, margin: float, ve
         wp.atomic_add(count_out, 0, 1)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def mark_dirty(elements: wp.array2d(dtype=wp.int32), escaped: wp.array(dtype=wp.int32), dirty_out: wp.array(dtype=wp.int32),
                fresh_out: wp.array(dtype=wp.int32)):
     """An element with an escaped vertex is fresh (registered again now) and dirty (flags accumulate until the next full build)."""
@@ -325,7 +336,7 @@ def mark_dirty(elements: wp.array2d(dtype=wp.int32), escaped: wp.array(dtype=wp.
                 dirty_out[e] = 1
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def mark_changed_elements(elements: wp.array2d(dtype=wp.int32), weight: wp.array(dtype=float), zone: wp.array(dtype=wp.int32),
                           flags_out: wp.array(dtype=wp.int32)):
     """An element changed when a vertex did: it received a velocity change (weight > 0) or is in an impact zone."""
@@ -338,7 +349,7 @@ def mark_changed_elements(elements: wp.array2d(dtype=wp.int32), weight: wp.array
                 flags_out[e] = 1
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def select_flagged_pairs(pairs: wp.array(dtype=wp.vec2i), first_flags: wp.array(dtype=wp.int32), second_flags: wp.array(dtype=wp.int32),
                          flagged: int, selected_out: wp.array(dtype=wp.vec2i), count_out: wp.array(dtype=wp.int32)):
     """Compact the pairs with a flagged element (`flagged` = 1) or with neither element flagged (0)."""
@@ -350,7 +361,7 @@ def select_flagged_pairs(pairs: wp.array(dtype=wp.vec2i), first_flags: wp.array(
         selected_out[slot] = p
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def select_flagged_pairs_listed(count: wp.array(dtype=wp.int32), pairs: wp.array(dtype=wp.vec2i), first_flags: wp.array(dtype=wp.int32),
                                 second_flags: wp.array(dtype=wp.int32), flagged: int, selected_out: wp.array(dtype=wp.vec2i),
                                 count_out: wp.array(dtype=wp.int32)):
@@ -364,3 +375,66 @@ def select_flagged_pairs_listed(count: wp.array(dtype=wp.int32), pairs: wp.array
     if hit == (flagged != 0):
         slot = wp.atomic_add(count_out, 0, 1)
         selected_out[slot] = p
+
+
+# -- the capturable path's patch: a few particles left the margin, so only the elements touching them are registered
+# again; their pairs are found by testing them against every element (see kernels.selfcollide.patch_*).
+
+
+@wp.kernel(enable_backward=False)
+def patch_or_build(escaped: wp.array(dtype=wp.int32), limit: int, build_out: wp.array(dtype=wp.int32), patch_out: wp.array(dtype=wp.int32)):
+    """One thread: after :func:`take_escaped`, build the broad phase again when more than `limit` particles left the
+    margin, patch it when some (at most `limit`) did, else keep it."""
+    n = escaped[0]
+    build_out[0] = wp.where(n > limit, 1, 0)
+    patch_out[0] = wp.where(n > 0 and n <= limit, 1, 0)
+
+
+@wp.kernel(enable_backward=False)
+def mark_fresh(elements: wp.array2d(dtype=wp.int32), escaped: wp.array(dtype=wp.int32), flags_out: wp.array(dtype=wp.int32),
+               list_out: wp.array(dtype=wp.int32), count_out: wp.array(dtype=wp.int32)):
+    """Flag the elements with an escaped vertex (1, else 0) and list them (count_out zeroed before)."""
+    e = wp.tid()
+    fresh = 0
+    for k in range(3):
+        i = elements[e, k]
+        if i >= 0:
+            if escaped[i] != 0:
+                fresh = 1
+    flags_out[e] = fresh
+    if fresh != 0:
+        list_out[wp.atomic_add(count_out, 0, 1)] = e
+
+
+@wp.kernel(enable_backward=False)
+def fresh_bounds(flags: wp.array(dtype=wp.int32), elements: wp.array2d(dtype=wp.int32), x_start: wp.array(dtype=wp.vec3),
+                 velocity: wp.array(dtype=wp.vec3), dt: float, pad: float, lo_out: wp.array(dtype=wp.vec3), hi_out: wp.array(dtype=wp.vec3)):
+    """:func:`element_bounds`' swept, padded box (same arithmetic) of the flagged elements; the others keep theirs."""
+    e = wp.tid()
+    if flags[e] == 0:
+        return
+    i0 = elements[e, 0]
+    x_end = x_start[i0] + dt * velocity[i0]
+    lo = wp.min(x_start[i0], x_end)
+    hi = wp.max(x_start[i0], x_end)
+    for k in range(1, 3):
+        i = elements[e, k]
+        if i >= 0:
+            x_end = x_start[i] + dt * velocity[i]
+            lo = wp.min(lo, wp.min(x_start[i], x_end))
+            hi = wp.max(hi, wp.max(x_start[i], x_end))
+    grow = wp.vec3(pad, pad, pad)
+    lo_out[e] = lo - grow
+    hi_out[e] = hi + grow
+
+
+@wp.kernel(enable_backward=False)
+def copy_pairs_listed(count: wp.array(dtype=wp.int32), pairs: wp.array(dtype=wp.vec2i), pairs_out: wp.array(dtype=wp.vec2i),
+                      count_out: wp.array(dtype=wp.int32)):
+    """Launched over the capacity: the first count[0] pairs and the count."""
+    tid = wp.tid()
+    n = count[0]
+    if tid == 0:
+        count_out[0] = n
+    if tid < n:
+        pairs_out[tid] = pairs[tid]

@@ -15,6 +15,8 @@ sequential).
 
 import warp as wp
 
+from .broadphase import boxes_overlap, share_vertex
+
 COPLANAR_BISECTIONS = wp.constant(32)
 NORMAL_EPS = wp.constant(1.0e-12)
 
@@ -26,11 +28,12 @@ COUNT_OVERSIZED = wp.constant(2)  # elements whose box the broad phase clamped
 COUNT_SWEEPS = wp.constant(3)  # CCD passes with impulses (capturable path)
 COUNT_BUILDS = wp.constant(4)  # full broad-phase builds (capturable path)
 COUNT_FALLBACKS = wp.constant(5)  # steps left with impacts after the sweeps: need impact zones (capturable path)
-NEED_POINT_ENTRIES = wp.constant(6)  # grid entries of the particles
-NEED_EDGE_ENTRIES = wp.constant(7)  # grid entries of the edges
-NEED_VERTEX_FACE = wp.constant(8)  # vertex-face candidate pairs
-NEED_EDGE_EDGE = wp.constant(9)  # edge-edge candidate pairs
-COUNT_SIZE = 10
+COUNT_PATCHES = wp.constant(6)  # broad-phase patches (capturable path)
+NEED_POINT_ENTRIES = wp.constant(7)  # grid entries of the particles
+NEED_EDGE_ENTRIES = wp.constant(8)  # grid entries of the edges
+NEED_VERTEX_FACE = wp.constant(9)  # vertex-face candidate pairs (close pairs after a patch)
+NEED_EDGE_EDGE = wp.constant(10)  # edge-edge candidate pairs (close pairs after a patch)
+COUNT_SIZE = 11
 
 # The capturable path's CCD loop state (int32 [4]): loop again, sweep index, impacts of this sweep, respond.
 LOOP_CONTINUE = wp.constant(0)
@@ -261,7 +264,7 @@ def self_proximity(
                        dv_out, weight_out, counts_out)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def self_proximity_listed(
     count: wp.array(dtype=wp.int32),
     pairs: wp.array(dtype=wp.vec2i),
@@ -531,7 +534,7 @@ def self_ccd(
                                 separation_speed, respond, dv_out, weight_out, counts_out)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def self_ccd_listed(
     count: wp.array(dtype=wp.int32),
     pairs: wp.array(dtype=wp.vec2i),
@@ -561,7 +564,7 @@ def self_ccd_listed(
         wp.atomic_add(loop_out, LOOP_HITS, 1)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def begin_sweeps(sweeps: int, loop_out: wp.array(dtype=wp.int32)):
     """One thread: the CCD loop starts at sweep 0 (responding unless `sweeps` is 0)."""
     loop_out[LOOP_CONTINUE] = 1
@@ -570,7 +573,7 @@ def begin_sweeps(sweeps: int, loop_out: wp.array(dtype=wp.int32)):
     loop_out[LOOP_RESPOND] = wp.where(sweeps > 0, 1, 0)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def end_sweep(sweeps: int, loop_out: wp.array(dtype=wp.int32), counts_out: wp.array(dtype=wp.int32)):
     """One thread after a CCD sweep: count it (if it responded); stop when it found no impact, or when it was
     the check after the last responding sweep (impacts remain: count a fallback to impact zones); otherwise
@@ -590,7 +593,7 @@ def end_sweep(sweeps: int, loop_out: wp.array(dtype=wp.int32), counts_out: wp.ar
         loop_out[LOOP_RESPOND] = wp.where(k + 1 < sweeps, 1, 0)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def increment_count(index: int, counts_out: wp.array(dtype=wp.int32)):
     """One thread: counts_out[index] += 1."""
     counts_out[index] = counts_out[index] + 1
@@ -617,7 +620,7 @@ def is_close(
     return gap <= reach + dt * closing_speed_bound(kind, velocity, idx) + 2.0 * margin
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def select_close_pairs(
     pairs: wp.array(dtype=wp.vec2i),
     kind: int,
@@ -638,7 +641,7 @@ def select_close_pairs(
         selected_out[slot] = pairs[tid]
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def select_close_pairs_listed(
     count: wp.array(dtype=wp.int32),
     pairs: wp.array(dtype=wp.vec2i),
@@ -662,7 +665,133 @@ def select_close_pairs_listed(
         selected_out[slot] = pairs[tid]
 
 
-@wp.kernel
+@wp.func
+def append_pair(pair: wp.vec2i, capacity: int, pairs_out: wp.array(dtype=wp.vec2i), count_out: wp.array(dtype=wp.int32)):
+    """Count the pair, store it when it fits (a larger count is clamped and recorded afterwards)."""
+    slot = wp.atomic_add(count_out, 0, 1)
+    if slot < capacity:
+        pairs_out[slot] = pair
+
+
+@wp.func
+def element_row(elements: wp.array2d(dtype=wp.int32), e: int):
+    return wp.vec3i(elements[e, 0], elements[e, 1], elements[e, 2])
+
+
+@wp.kernel(enable_backward=False)
+def patch_vertex_face_points(
+    fresh_triangle_count: wp.array(dtype=wp.int32),
+    fresh_triangles: wp.array(dtype=wp.int32),
+    triangle_lo: wp.array(dtype=wp.vec3),
+    triangle_hi: wp.array(dtype=wp.vec3),
+    point_lo: wp.array(dtype=wp.vec3),
+    point_hi: wp.array(dtype=wp.vec3),
+    tri_indices: wp.array2d(dtype=wp.int32),
+    edge_indices: wp.array2d(dtype=wp.int32),
+    x_start: wp.array(dtype=wp.vec3),
+    velocity: wp.array(dtype=wp.vec3),
+    dt: float,
+    margin: float,
+    reach: float,
+    capacity: int,
+    pairs_out: wp.array(dtype=wp.vec2i),
+    count_out: wp.array(dtype=wp.int32),
+):
+    """Per particle, its close pairs with the freshly registered triangles (boxes overlap, no shared vertex,
+    :func:`is_close`), appended to the close list (a patch of the capturable path's broad phase)."""
+    p = wp.tid()
+    p_lo = point_lo[p]
+    p_hi = point_hi[p]
+    p_row = wp.vec3i(p, -1, -1)
+    for k in range(fresh_triangle_count[0]):
+        t = fresh_triangles[k]
+        if not boxes_overlap(triangle_lo[t], triangle_hi[t], p_lo, p_hi):
+            continue
+        if share_vertex(element_row(tri_indices, t), p_row):
+            continue
+        pair = wp.vec2i(t, p)
+        if is_close(pair, 0, tri_indices, edge_indices, x_start, velocity, dt, margin, reach):
+            append_pair(pair, capacity, pairs_out, count_out)
+
+
+@wp.kernel(enable_backward=False)
+def patch_vertex_face_triangles(
+    triangle_flags: wp.array(dtype=wp.int32),
+    fresh_point_count: wp.array(dtype=wp.int32),
+    fresh_points: wp.array(dtype=wp.int32),
+    triangle_lo: wp.array(dtype=wp.vec3),
+    triangle_hi: wp.array(dtype=wp.vec3),
+    point_lo: wp.array(dtype=wp.vec3),
+    point_hi: wp.array(dtype=wp.vec3),
+    tri_indices: wp.array2d(dtype=wp.int32),
+    edge_indices: wp.array2d(dtype=wp.int32),
+    x_start: wp.array(dtype=wp.vec3),
+    velocity: wp.array(dtype=wp.vec3),
+    dt: float,
+    margin: float,
+    reach: float,
+    capacity: int,
+    pairs_out: wp.array(dtype=wp.vec2i),
+    count_out: wp.array(dtype=wp.int32),
+):
+    """Per triangle not registered again (a fresh one has all its pairs from :func:`patch_vertex_face_points`), its
+    close pairs with the freshly registered particles."""
+    t = wp.tid()
+    if triangle_flags[t] != 0:
+        return
+    t_lo = triangle_lo[t]
+    t_hi = triangle_hi[t]
+    t_row = element_row(tri_indices, t)
+    for k in range(fresh_point_count[0]):
+        p = fresh_points[k]
+        if not boxes_overlap(t_lo, t_hi, point_lo[p], point_hi[p]):
+            continue
+        if share_vertex(t_row, wp.vec3i(p, -1, -1)):
+            continue
+        pair = wp.vec2i(t, p)
+        if is_close(pair, 0, tri_indices, edge_indices, x_start, velocity, dt, margin, reach):
+            append_pair(pair, capacity, pairs_out, count_out)
+
+
+@wp.kernel(enable_backward=False)
+def patch_edge_edge(
+    edge_flags: wp.array(dtype=wp.int32),
+    fresh_edge_count: wp.array(dtype=wp.int32),
+    fresh_edges: wp.array(dtype=wp.int32),
+    edge_lo: wp.array(dtype=wp.vec3),
+    edge_hi: wp.array(dtype=wp.vec3),
+    tri_indices: wp.array2d(dtype=wp.int32),
+    edge_indices: wp.array2d(dtype=wp.int32),
+    x_start: wp.array(dtype=wp.vec3),
+    velocity: wp.array(dtype=wp.vec3),
+    dt: float,
+    margin: float,
+    reach: float,
+    capacity: int,
+    pairs_out: wp.array(dtype=wp.vec2i),
+    count_out: wp.array(dtype=wp.int32),
+):
+    """Per edge, its close pairs with the freshly registered edges (a pair of two fresh edges once, from the lower
+    id), as (lower id, higher id) like the full search."""
+    e = wp.tid()
+    own = edge_flags[e] != 0
+    e_lo = edge_lo[e]
+    e_hi = edge_hi[e]
+    e_row = element_row(edge_indices, e)
+    for k in range(fresh_edge_count[0]):
+        f = fresh_edges[k]
+        if f == e or (own and f < e):
+            continue
+        if not boxes_overlap(e_lo, e_hi, edge_lo[f], edge_hi[f]):
+            continue
+        if share_vertex(e_row, element_row(edge_indices, f)):
+            continue
+        pair = wp.vec2i(wp.min(e, f), wp.max(e, f))
+        if is_close(pair, 1, tri_indices, edge_indices, x_start, velocity, dt, margin, reach):
+            append_pair(pair, capacity, pairs_out, count_out)
+
+
+@wp.kernel(enable_backward=False)
 def mark_changed(vbar: wp.array(dtype=wp.vec3), vbar_ref: wp.array(dtype=wp.vec3), changed_out: wp.array(dtype=float)):
     """1 where vbar differs from the reference, else 0 (a change flag in the form of an impulse weight)."""
     i = wp.tid()
@@ -711,7 +840,7 @@ def finish_step(x_start: wp.array(dtype=wp.vec3), vbar: wp.array(dtype=wp.vec3),
     v_out[i] = v_end[i] + (vbar[i] - vbar_candidate[i])
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def eval_first_contact(
     pairs: wp.array(dtype=wp.vec2i),
     kind: int,

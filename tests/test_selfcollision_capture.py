@@ -221,3 +221,48 @@ def test_impacts_left_after_the_sweeps_flag_a_fallback_that_the_host_path_resolv
         d.finish()
         assert not intersecting_pairs(d.positions(), tris), k
     assert fallbacks > 0
+
+
+def test_broad_phase_patch_finds_the_close_pairs_of_a_full_build():
+    """Check the capturable path's device-side patch: after a build, a few particles' end points moved past the
+    margin are patched (no build), and the close pairs then are, as a set, those of a full build on the same
+    registered trajectories (the escaped particles' new velocities, the others' old ones), so the patch neither
+    loses nor invents a pair; more escaped particles than ``patch_limit`` build the broad phase again."""
+    model = two_sheets()
+    sc = SelfCollision(model, capturable=True, pair_capacity=1 << 14)
+    d = Driver(model, sc)
+    for _ in range(10):  # the sheets meet
+        d.step()
+    d.propose()
+    x = d.x_start
+    vbar = (d.x_end.numpy() - x.numpy()) / DT
+    pad = 0.5 * sc.thickness
+    f = sc._fixed_buffers()
+
+    def close_sets():
+        return [{tuple(p) for p in f.close[kind].numpy()[: int(f.close_count[kind].numpy()[0])]} for kind in (0, 1)]
+
+    rng = np.random.default_rng(3)
+    for limit, escaped in ((32, 6), (4, 6)):
+        sc.patch_limit = limit
+        sc._build_fixed(x, wp.array(vbar, dtype=wp.vec3), DT, pad)
+        built = close_sets()
+        assert sum(len(s) for s in built) > 0
+        sc.reset_counts()
+        moved = vbar.copy()
+        ids = rng.choice(np.arange(16 * 16, model.particle_count), escaped, replace=False)  # the falling sheet's particles
+        push = rng.normal(size=(escaped, 3))
+        moved[ids] += 3.0 * sc.margin / DT * push / np.linalg.norm(push, axis=1, keepdims=True)
+        sc._refresh_fixed(x, wp.array(moved, dtype=wp.vec3), DT, pad)
+        counts = sc.read_counts()
+        patched = close_sets()
+        registered = wp.clone(sc.grid.fixed_reference)
+        np.testing.assert_array_equal(registered.numpy()[ids], moved[ids].astype(np.float32))
+        if escaped > limit:
+            assert counts["broad_phase_builds"] == 1 and counts["broad_phase_patches"] == 0, counts
+            continue
+        assert counts["broad_phase_builds"] == 0 and counts["broad_phase_patches"] == 1, counts
+        assert patched != built  # the moved particles changed the candidates
+        sc._build_fixed(x, registered, DT, pad)
+        assert close_sets() == patched
+        assert not sc.status().needs_rerun
