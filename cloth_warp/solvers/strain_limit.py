@@ -106,7 +106,7 @@ class StrainLimiter(StepPass):
         if self.attachment_count:
             self.attachment_particle = wp.array(ids, dtype=wp.int32, device=dev)
             self.attachment_rest_distance = wp.array(dist.astype(np.float32), dtype=float, device=dev)
-        wp.launch(kc.reset_strain_excess, dim=1, outputs=[self._excess], device=dev)
+        wp.launch(kc.reset_strain_excess, dim=1, outputs=[self._excess], device=dev, record_tape=False)
 
     def notify_model_changed(self, flags: int) -> None:
         """Model fields changed (:class:`~cloth_warp.model.ModelFlags`): new rest lengths give new attachment
@@ -196,29 +196,30 @@ class StrainLimiter(StepPass):
     def _check(self) -> int:
         return int(self.tolerance is not None)
 
+    # the tolerance bookkeeping (counters and excess measures: no gradient) stays off a tape
     def _begin(self, x):
         m = self.model
-        wp.launch(kc.reset_strain_excess, dim=1, outputs=[self._excess], device=m.device)
+        wp.launch(kc.reset_strain_excess, dim=1, outputs=[self._excess], device=m.device, record_tape=False)
         self._measure(x)
         wp.launch(kc.begin_strain_limit, dim=1, inputs=[self.iterations, self.report_tolerance, self._check],
-                  outputs=[self._excess, self._status, self._loop], device=m.device)
+                  outputs=[self._excess, self._status, self._loop], device=m.device, record_tape=False)
 
     def _end_sweep(self, x):
         if self._check:
             self._measure(x)
         wp.launch(kc.end_strain_limit_sweep, dim=1, inputs=[self.iterations, self.report_tolerance, self._check],
-                  outputs=[self._excess, self._status, self._loop], device=self.model.device)
+                  outputs=[self._excess, self._status, self._loop], device=self.model.device, record_tape=False)
 
     def _finish(self, x):
         if not self._check:  # fixed sweeps: measure what they left, once
             self._measure(x)
-            wp.launch(kc.finish_strain_limit, dim=1, outputs=[self._excess, self._status], device=self.model.device)
+            wp.launch(kc.finish_strain_limit, dim=1, outputs=[self._excess, self._status], device=self.model.device, record_tape=False)
 
     def _measure(self, x):
         m = self.model
         wp.launch(kc.eval_strain_excess_kinds, dim=m.spring_count,
                   inputs=[m.spring_indices, m.spring_rest_length, m.spring_limited, m.spring_kind, x, self.max_strain],
-                  outputs=[self._excess], device=m.device)
+                  outputs=[self._excess], device=m.device, record_tape=False)
 
     def _apply_forward(self, x_in, v_in, state_out: State, dt: float):
         """Forward-only path: sweeps in place on state_out, one thread per spring of a colour."""
