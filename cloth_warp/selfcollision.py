@@ -45,6 +45,7 @@ from .graphs import device_while
 from .kernels import broadphase as kbp
 from .kernels import selfcollide as ksc
 from .model import ModelFlags
+from .records import record_values
 
 log = logging.getLogger(__name__)
 
@@ -194,8 +195,8 @@ class SelfCollision:
         return self._status_of(self.counts.numpy())
 
     def read_report(self) -> tuple[SelfCollisionStatus, dict]:
-        """(:meth:`status`, :meth:`read_counts`) from one read of the device block."""
-        c = self.counts.numpy()
+        """(:meth:`status`, :meth:`read_counts`) from one read of the device block (or the frame record's copy)."""
+        c = record_values(self.counts)
         return self._status_of(c), self._counts_of(c)
 
     def capacities(self) -> dict:

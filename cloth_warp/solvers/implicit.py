@@ -12,6 +12,7 @@ from ..autodiff import paused_tape
 from ..diagnostics import LinearSolveReport
 from ..graphs import device_while
 from ..profiling import stage
+from ..records import record_values
 from ..kernels import forces as kf
 from ..kernels import implicit as ki
 from ..model import Control, Model, State
@@ -360,9 +361,12 @@ class SolverImplicitEuler(SolverBase):
     def reset_report(self):
         self.solve_record.zero_()
 
+    def record_arrays(self) -> list:
+        return [(self, "solve_record")]
+
     def read_report(self) -> LinearSolveReport:
-        """The solves since :meth:`reset_report` (one read of a few numbers)."""
-        r = self.solve_record.numpy().astype(np.float64)
+        """The solves since :meth:`reset_report` (one read of a few numbers, or the frame record's copy)."""
+        r = record_values(self.solve_record).astype(np.float64)
         return LinearSolveReport(
             solves=int(r[ki.RECORD_SOLVES]), iterations=int(r[ki.RECORD_ITERATIONS]), most_iterations=int(r[ki.RECORD_MOST_ITERATIONS]),
             failed=int(r[ki.RECORD_FAILED]), first_failed=int(r[ki.RECORD_FIRST_FAILED]), unconverged=int(r[ki.RECORD_UNCONVERGED]),
