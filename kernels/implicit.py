@@ -21,11 +21,10 @@ Hard pins are constraints through the filter S_i = 0 (Baraff & Witkin's modified
 projected form): dv_i = z_i = (target_i - x0_i) / h - v0_i there.
 
 Reductions (dot products) accumulate in float64 through atomics into `cg_scalars`, one row per
-iteration, so no host round trip is needed inside an iteration: column 0 holds r.u (u = P r), column 1
-u.Au, column 2 r.r, column 3 the step length alpha. The CG is Chronopoulos & Gear's (1989) single-reduction
-form: A u is the iteration's one product, A p follows from it by recurrence (q = w + beta q), so an iteration
-is one vector update (with both dot products of the next) and one product: two passes over the particles
-where the textbook form needs three.
+iteration, so no host round trip is needed inside an iteration: column 0 holds r.s (s = P r), column 1
+c.Ac, column 2 r.r. (Chronopoulos & Gear's single-reduction CG, one pass over the particles fewer per
+iteration, was tried: its recurrence for A c loses accuracy over the thousands of iterations a 1e-5 solve of
+stiff membranes takes, 2500-3000+ iterations where this form needs 1300-2200, so it is not used.)
 """
 
 import warp as wp
@@ -50,8 +49,7 @@ LENGTH_EPS = wp.constant(1.0e-9)
 CG_RS = wp.constant(0)
 CG_CAC = wp.constant(1)
 CG_RR = wp.constant(2)
-CG_ALPHA = wp.constant(3)
-CG_COLUMNS = 4
+CG_COLUMNS = 3
 JACOBI_CHECK_ROW = wp.constant(1)  # block Jacobi's residual checks accumulate |r|^2 here (row 0 keeps |r_0|^2)
 # The solve's loop control (int32, read by wp.capture_while and the guarded kernels) and status (float64).
 LOOP_RUNNING = wp.constant(0)
@@ -472,7 +470,7 @@ def eval_implicit_system(
 # The element part of A p, one element per thread and scattered (each element's work done once, where the per-particle
 # gather of `system_product` repeats a triple's or triangle's dot for every member): one kernel per kind of element
 # (on the CPU backend three branch-free kernels take ~0.25 ms where one kernel branching on the kind took ~0.34 ms
-# for a 64^2 cloth). product_out holds their sum (zero on entry: `cg_step` clears it); `cg_product` adds the mass term.
+# for a 64^2 cloth). product_out holds their sum (zero on entry: `cg_update` clears it); `cg_product` adds the mass term.
 
 
 @wp.kernel(enable_backward=False)
@@ -480,15 +478,12 @@ def scatter_spring_product(
     spring_ends: wp.array(dtype=wp.vec2i),
     spring_compact: wp.array(dtype=wp.vec4),
     p: wp.array(dtype=wp.vec3),
-    loop: wp.array(dtype=wp.int32),
     # outputs (accumulated)
     product_out: wp.array(dtype=wp.vec3),
 ):
     """Linear springs (the first linear_spring_count springs): B_s (p_a - p_b) to a, its negative to b, from the
     compact block (`spring_compact`)."""
     e = wp.tid()
-    if loop[LOOP_RUNNING] == 0:
-        return
     ends = spring_ends[e]
     y = compact_product(spring_compact[e], p[ends[0]] - p[ends[1]])
     wp.atomic_add(product_out, ends[0], y)
@@ -502,14 +497,11 @@ def scatter_bend_product(
     bend_vector: wp.array(dtype=wp.vec3),
     p: wp.array(dtype=wp.vec3),
     dt: float,
-    loop: wp.array(dtype=wp.int32),
     # outputs (accumulated)
     product_out: wp.array(dtype=wp.vec3),
 ):
     """Bend triples (springs linear_spring_count + e): h^2 g_r (g . p_triple) to each member r."""
     e = wp.tid()
-    if loop[LOOP_RUNNING] == 0:
-        return
     t = bend_triples[e]
     g = bend_vector[e + linear_spring_count]
     d = (dt * dt) * triple_dot(g, p, t[0], t[1], t[2])
@@ -523,14 +515,11 @@ def scatter_membrane_product(
     membrane_vertices: wp.array(dtype=wp.vec3i),
     membrane_block: wp.array2d(dtype=wp.mat33),
     p: wp.array(dtype=wp.vec3),
-    loop: wp.array(dtype=wp.int32),
     # outputs (accumulated)
     product_out: wp.array(dtype=wp.vec3),
 ):
     """Membrane elements: (h D_e + h^2 K_e) p to their corners."""
     e = wp.tid()
-    if loop[LOOP_RUNNING] == 0:
-        return
     corners = membrane_vertices[e]
     y0, y1, y2 = membrane_block_product(membrane_vertices, membrane_block, e, p)
     wp.atomic_add(product_out, corners[0], y0)
@@ -545,14 +534,11 @@ def scatter_drag_product(
     drag_vector: wp.array(dtype=wp.vec3),
     p: wp.array(dtype=wp.vec3),
     dt: float,
-    loop: wp.array(dtype=wp.int32),
     # outputs (accumulated)
     product_out: wp.array(dtype=wp.vec3),
 ):
     """Triangles' air drag: h w_r (g . p_mean) g to each corner r."""
     e = wp.tid()
-    if loop[LOOP_RUNNING] == 0:
-        return
     c = tri_vertices[e]
     w = tri_corner_weights[e]
     g = drag_vector[e]
@@ -577,10 +563,8 @@ def cg_product(
     cg_scalars_out: wp.array2d(dtype=wp.float64),
 ):
     """q = S A c (the mass term added to the scattered element part, pinned rows filtered) and c . q (row
-    loop[LOOP_ITERATION]; nothing once the loop stopped)."""
+    loop[LOOP_ITERATION])."""
     i = wp.tid()
-    if loop[LOOP_RUNNING] == 0:
-        return
     iteration = loop[LOOP_ITERATION]
     if particle_pinned[i] != 0:
         product_out[i] = wp.vec3(0.0)
@@ -592,57 +576,54 @@ def cg_product(
 
 
 @wp.kernel(enable_backward=False)
-def cg_step(
+def cg_update(
     precond: wp.array(dtype=wp.mat33),
+    search: wp.array(dtype=wp.vec3),
     loop: wp.array(dtype=wp.int32),
     # outputs (updated in place: forward-only solve, its gradient comes from an adjoint solve)
-    search_out: wp.array(dtype=wp.vec3),
     product_out: wp.array(dtype=wp.vec3),
-    preconditioned_product_out: wp.array(dtype=wp.vec3),
     dv_out: wp.array(dtype=wp.vec3),
     residual_out: wp.array(dtype=wp.vec3),
     preconditioned_out: wp.array(dtype=wp.vec3),
     cg_scalars_out: wp.array2d(dtype=wp.float64),
 ):
-    """One Chronopoulos-Gear PCG iteration k = loop[LOOP_ITERATION] from gamma_k = r.u and delta_k = u.Au (row k):
-    beta = gamma_k / gamma_{k-1}, alpha = gamma_k / (delta_k - beta gamma_k / alpha_{k-1}) (k = 0: beta = 0,
-    alpha = gamma_0 / delta_0); p = u + beta p, q = Au + beta q (= A p), dv += alpha p, r -= alpha q, u = P r;
-    r.u and r.r of the new residual into row k + 1, alpha into row k. A u (`preconditioned_product`) is read and
-    cleared: the next product scatters into zero."""
+    """alpha = r.s / c.Ac; dv += alpha c; r -= alpha q; s = P r; accumulate r.s and r.r (iteration loop[LOOP_ITERATION]).
+    q (`cg_product`) is read and cleared: the next iteration's scatter starts from zero."""
     i = wp.tid()
-    k = loop[LOOP_ITERATION]
-    gamma = cg_scalars_out[k, CG_RS]
-    denominator = cg_scalars_out[k, CG_CAC]
-    beta = wp.float64(0.0)
-    if k > 0:
-        gamma_previous = cg_scalars_out[k - 1, CG_RS]
-        alpha_previous = cg_scalars_out[k - 1, CG_ALPHA]
-        if gamma_previous > wp.float64(0.0):
-            beta = gamma / gamma_previous
-        if alpha_previous > wp.float64(0.0):
-            denominator = denominator - beta * gamma / alpha_previous
-    alpha = wp.float64(0.0)
-    if denominator > wp.float64(0.0):
-        alpha = gamma / denominator
-    if i == 0:
-        cg_scalars_out[k, CG_ALPHA] = alpha
-    u = preconditioned_out[i]
-    w = preconditioned_product_out[i]
-    preconditioned_product_out[i] = wp.vec3(0.0)
-    p = u
-    q = w
-    if k > 0:  # (k = 0: p and q may hold anything, even a failed solve's NaN)
-        p = u + float(beta) * search_out[i]
-        q = w + float(beta) * product_out[i]
-    search_out[i] = p
-    product_out[i] = q
-    dv_out[i] = dv_out[i] + float(alpha) * p
-    r = residual_out[i] - float(alpha) * q
+    q = product_out[i]
+    product_out[i] = wp.vec3(0.0)
+    iteration = loop[LOOP_ITERATION]
+    cac = cg_scalars_out[iteration, CG_CAC]
+    alpha = float(0.0)
+    if cac > wp.float64(0.0):
+        alpha = float(cg_scalars_out[iteration, CG_RS] / cac)
+    dv_out[i] = dv_out[i] + alpha * search[i]
+    r = residual_out[i] - alpha * q
     residual_out[i] = r
     s = precond[i] * r
     preconditioned_out[i] = s
-    wp.atomic_add(cg_scalars_out, k + 1, CG_RS, wp.float64(wp.dot(r, s)))
-    wp.atomic_add(cg_scalars_out, k + 1, CG_RR, wp.float64(wp.dot(r, r)))
+    wp.atomic_add(cg_scalars_out, iteration + 1, CG_RS, wp.float64(wp.dot(r, s)))
+    wp.atomic_add(cg_scalars_out, iteration + 1, CG_RR, wp.float64(wp.dot(r, r)))
+
+
+@wp.kernel(enable_backward=False)
+def cg_direction(
+    preconditioned: wp.array(dtype=wp.vec3),
+    cg_scalars: wp.array2d(dtype=wp.float64),
+    loop: wp.array(dtype=wp.int32),
+    # outputs
+    search_out: wp.array(dtype=wp.vec3),
+):
+    """c = s + beta c, beta = r_new.s_new / r.s, after the iteration end_cg_iteration counted (none once the loop stopped)."""
+    i = wp.tid()
+    if loop[LOOP_RUNNING] == 0:
+        return
+    iteration = loop[LOOP_ITERATION] - 1
+    rs = cg_scalars[iteration, CG_RS]
+    beta = float(0.0)
+    if rs > wp.float64(0.0):
+        beta = float(cg_scalars[iteration + 1, CG_RS] / rs)
+    search_out[i] = preconditioned[i] + beta * search_out[i]
 
 
 @wp.kernel(enable_backward=False)

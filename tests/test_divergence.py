@@ -77,11 +77,14 @@ def test_captured_paths_are_checked(integrator, substeps):
 @pytest.mark.slow
 def test_slow_implicit_drift_is_caught():
     """Check implicit Euler with a loose solve (residual 3e-2) and no strain limit on the 64^2 hanging cloth, which
-    drifts into strain 60 and 140 m/s after 2 s while staying finite (it used to run to the end), is stopped by the
-    energy bound at about 2 s with a suggestion of two steps per frame."""
+    drifts into strain 60 and 140 m/s after 2-3 s while staying finite (it used to run to the end), is stopped by the
+    energy bound once it has drifted (strain well above the healthy ~0.15; measured: frame 103 with the convergence
+    tested every iteration, frame 143 when tested every 4th, whose overshoot made the solve tighter), before it runs
+    away, with a suggestion of two steps per frame."""
     sim = make_sim("hanging_cloth", {"solver.strain_limit": 0.0, "solver.tolerance": 3e-2})
     err = diverge(sim, 200)
-    assert 100 < err.frame < 160 and err.kind in BOUND_KINDS
+    assert err.frame < 160 and err.kind in BOUND_KINDS
+    assert 0.3 < err.max_strain < 5.0
     assert np.isfinite(sim.positions()).all()
     assert_diagnosis(err, sim)
     assert "solver.substeps >= 2" in str(err)

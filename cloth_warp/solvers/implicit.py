@@ -149,8 +149,7 @@ class SolverImplicitEuler(SolverBase):
         self.residual = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.preconditioned = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.search = wp.zeros(n, dtype=wp.vec3, device=dev)
-        self.product = wp.zeros(n, dtype=wp.vec3, device=dev)  # A p (CG search direction p)
-        self.preconditioned_product = wp.zeros(n, dtype=wp.vec3, device=dev)  # A u (u = P r)
+        self.product = wp.zeros(n, dtype=wp.vec3, device=dev)  # A c (c: the CG search direction)
         self.cg_scalars = wp.zeros((self.max_iterations + 2, ki.CG_COLUMNS), dtype=wp.float64, device=dev)
         self.warm_scalars = wp.zeros((1, ki.CG_COLUMNS), dtype=wp.float64, device=dev)  # a warm start's row 0
         # the solve's state on the device (kernels/implicit.py LOOP_*, STATUS_*, RECORD_*): no host read inside a step
@@ -244,51 +243,42 @@ class SolverImplicitEuler(SolverBase):
                       device=m.device)
 
     def solve_cg(self, dt: float, warm: bool = False) -> wp.array:
-        """Filtered PCG (Chronopoulos-Gear form, kernels/implicit.py) on the assembled system (`warm`: a warm start
-        may have replaced the cold one, see :meth:`solve`), iterating on the device until the stop residual;
-        returns the array holding dv."""
+        """Filtered PCG on the assembled system (`warm`: a warm start may have replaced the cold one, see
+        :meth:`solve`), iterating on the device until the stop residual; returns the array holding dv."""
         self._begin_iterations(warm)
-        self.preconditioned_product.zero_()  # then each iteration's cg_step clears it for the next product
-        self._preconditioned_product(dt)  # A u_0 and u_0 . A u_0 (row 0)
+        self.product.zero_()  # then each iteration's cg_update clears it for the next
         device_while(self.loop, self._cg_iteration, dt=dt)
         return self.dv
 
-    def _preconditioned_product(self, dt: float):
-        """w = S A u (u: the preconditioned residual) and u . w into row loop[LOOP_ITERATION]; the element part
-        scattered by one kernel per kind of element (kernels/implicit.py scatter_*_product), then the mass term.
-        Nothing once the loop stopped."""
+    def _cg_iteration(self, dt: float):
+        """q = S A c (the element part scattered by one kernel per kind of element, kernels/implicit.py
+        scatter_*_product, then the mass term), the update, the count and stop test, the next direction."""
         m = self.model
         dev = m.device
-        u, w = self.preconditioned, self.preconditioned_product
+        c, q = self.search, self.product
         bends = m.spring_count - m.linear_spring_count
         if m.linear_spring_count:
-            wp.launch(ki.scatter_spring_product, dim=m.linear_spring_count, inputs=[m.spring_ends, self.spring_compact, u, self.loop],
-                      outputs=[w], device=dev)
+            wp.launch(ki.scatter_spring_product, dim=m.linear_spring_count, inputs=[m.spring_ends, self.spring_compact, c],
+                      outputs=[q], device=dev)
         if bends:
-            wp.launch(ki.scatter_bend_product, dim=bends, inputs=[m.bend_triples, m.linear_spring_count, self.bend_vector, u, dt, self.loop],
-                      outputs=[w], device=dev)
+            wp.launch(ki.scatter_bend_product, dim=bends, inputs=[m.bend_triples, m.linear_spring_count, self.bend_vector, c, dt],
+                      outputs=[q], device=dev)
         if m.membrane_count:
-            wp.launch(ki.scatter_membrane_product, dim=m.membrane_count, inputs=[m.membrane_vertices, self.membrane_block, u, self.loop],
-                      outputs=[w], device=dev)
+            wp.launch(ki.scatter_membrane_product, dim=m.membrane_count, inputs=[m.membrane_vertices, self.membrane_block, c],
+                      outputs=[q], device=dev)
         if m.tri_count:
             wp.launch(ki.scatter_drag_product, dim=m.tri_count,
-                      inputs=[m.tri_vertices, m.tri_corner_weights, self.drag_vector, u, dt, self.loop], outputs=[w], device=dev)
-        self._plate_product(u, dt, w)
+                      inputs=[m.tri_vertices, m.tri_corner_weights, self.drag_vector, c, dt], outputs=[q], device=dev)
+        self._plate_product(c, dt, q)
         wp.launch(ki.cg_product, dim=m.particle_count,
-                  inputs=[m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, u, m.global_damping, dt, self.loop],
-                  outputs=[w, self.cg_scalars], device=dev)
-
-    def _cg_iteration(self, dt: float):
-        """The update from row k's dot products (with the next residual's), the count and stop test, then the next
-        iteration's product."""
-        m = self.model
-        dev = m.device
-        wp.launch(ki.cg_step, dim=m.particle_count, inputs=[self.precond, self.loop],
-                  outputs=[self.search, self.product, self.preconditioned_product, self.dv, self.residual, self.preconditioned,
-                           self.cg_scalars], device=dev)
+                  inputs=[m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, c, m.global_damping, dt, self.loop],
+                  outputs=[q, self.cg_scalars], device=dev)
+        wp.launch(ki.cg_update, dim=m.particle_count, inputs=[self.precond, c, self.loop],
+                  outputs=[q, self.dv, self.residual, self.preconditioned, self.cg_scalars], device=dev)
         wp.launch(ki.end_cg_iteration, dim=1, inputs=[self.cg_scalars, self.check_every, self.max_iterations],
                   outputs=[self.solve_status, self.loop], device=dev)
-        self._preconditioned_product(dt)
+        wp.launch(ki.cg_direction, dim=m.particle_count, inputs=[self.preconditioned, self.cg_scalars, self.loop], outputs=[c],
+                  device=dev)
 
     def solve_jacobi(self, dt: float, warm: bool = False) -> wp.array:
         """Block Jacobi on the assembled system (`warm` as in :meth:`solve_cg`), iterating on the device; returns
