@@ -3,15 +3,16 @@ which normal, and what end-of-step normal velocity puts them at the collider's t
 physics.md 3(c): contacts as constraints of the filtered PCG, S_i = I - n n^T, prescribed dv . n).
 
 A free particle is in contact with a collider when, at the start of the step, its distance to the surface
-(the collider in its start pose) is below ``thickness (1 + margin)`` (resting and sliding contact), or when its
-predicted end point x0 + h v0 (the collider in its end pose) is within the thickness (an approach this step
+(the collider in its start pose) is below ``thickness (1 + margin)`` and it is not lifting off (moving away
+fast enough to leave that band within the step), or when it is inside the thickness, or when
+its predicted end point x0 + h v0 (the collider in its end pose) is within the thickness (an approach this step
 would finish). The deepest such collider is kept. The constraint asks the end velocity's normal part,
 relative to the surface, to be
 
-    (v1 - u) . n = (thickness - d0) / h,
+    (v1 - u) . n = (thickness (1 + clearance) - d0) / h,
 
-so that the step ends at the thickness: a particle inside is pushed out, one within the margin comes down
-onto it; u is the surface velocity (rigid motion over the step, plus a deforming mesh's vertex velocities)
+so that the step ends at the thickness (plus a clearance of 2e-3 of it, against rounding): a particle inside is
+pushed out, one within the margin comes down onto it; u is the surface velocity (rigid motion over the step, plus a deforming mesh's vertex velocities)
 and n the outward normal in the end pose. Releasing a contact whose constraint force pulls, friction, and
 the filter itself belong to the solver; this module only finds the contacts.
 """
@@ -24,6 +25,10 @@ wp.set_module_options({"enable_backward": False})
 
 # Indices into a contact set's counters.
 COUNT_CONTACTS = wp.constant(0)
+# The solve lands a contact this fraction of the thickness above it, clear of the colliders pass's contact band
+# (1e-3 of the thickness, kernels/collide.py), so that float32 rounding does not leave the
+# end point a hair inside, where the colliders pass after the step would push it again (8 um for 4 mm).
+CLEARANCE = wp.constant(2.0e-3)
 
 
 @wp.kernel
@@ -52,15 +57,18 @@ def eval_collider_contacts(
     contact_normal_out: wp.array(dtype=wp.vec3),
     contact_velocity_out: wp.array(dtype=wp.vec3),
     contact_push_out: wp.array(dtype=float),
+    contact_dv_out: wp.array(dtype=wp.vec3),
     counts_out: wp.array(dtype=wp.int32),
 ):
-    """Per particle: the collider it touches (-1: none), the outward unit normal n (world, end pose), the surface
-    velocity u [m/s] there and the prescribed relative normal speed (thickness - d0) / h [m/s]."""
+    """Per particle: the collider it touches (-1: none), the outward unit normal n (world, end pose; zero without a
+    contact), the surface velocity u [m/s] there, the prescribed relative normal speed (thickness - d0) / h [m/s],
+    and the velocity change it prescribes, z = ((u . n + push) - v0 . n) n [m/s] (zero without a contact)."""
     i = wp.tid()
     contact_collider_out[i] = -1
     contact_normal_out[i] = wp.vec3(0.0)
     contact_velocity_out[i] = wp.vec3(0.0)
     contact_push_out[i] = 0.0
+    contact_dv_out[i] = wp.vec3(0.0)
     if particle_pinned[i] != 0:
         return
     xs = x0[i]
@@ -82,14 +90,21 @@ def eval_collider_contacts(
         d0, n_local = shape_distance(shape, size, mesh, mesh_max_distance, ps)
         pe = wp.transform_point(wp.transform_inverse(t_end), xp)
         d_end, n_end = shape_distance(shape, size, mesh, mesh_max_distance, pe)
-        touching = d0 < thickness * (1.0 + margin) or d_end < thickness
         depth = d0 - thickness
-        if touching and (found < 0 or depth < best):
-            found = c
-            best = depth
-            contact_normal_out[i] = wp.transform_vector(t_end, n_local)
-            contact_velocity_out[i] = surface_velocity(deforming, mesh, mesh_max_distance, t_start, t_end, ps, inv_dt)
-            contact_push_out[i] = (thickness - d0) * inv_dt
+        if d0 < thickness * (1.0 + margin) or d_end < thickness:
+            n = wp.transform_vector(t_end, n_local)
+            u = surface_velocity(deforming, mesh, mesh_max_distance, t_start, t_end, ps, inv_dt)
+            # within the margin: not when lifting off (moving away fast enough to leave the band this step; a
+            # slower one stays in contact, and is released by the solve if it pulls); inside, or arriving, always
+            leaving = d0 >= thickness and d0 + dt * wp.dot(v0[i] - u, n) >= thickness * (1.0 + margin)
+            if not leaving and (found < 0 or depth < best):
+                found = c
+                best = depth
+                contact_normal_out[i] = n
+                contact_velocity_out[i] = u
+                contact_push_out[i] = (thickness * (1.0 + CLEARANCE) - d0) * inv_dt
     contact_collider_out[i] = found
     if found >= 0:
+        n = contact_normal_out[i]
+        contact_dv_out[i] = (wp.dot(contact_velocity_out[i], n) + contact_push_out[i] - wp.dot(v0[i], n)) * n
         wp.atomic_add(counts_out, COUNT_CONTACTS, 1)

@@ -55,7 +55,12 @@ JACOBI_CHECK_ROW = wp.constant(1)  # block Jacobi's residual checks accumulate |
 LOOP_RUNNING = wp.constant(0)
 LOOP_ITERATION = wp.constant(1)
 LOOP_CHECK = wp.constant(2)  # block Jacobi: a residual check is due before the next iteration
-LOOP_SIZE = 3
+LOOP_CARRIED = wp.constant(3)  # iterations of the step's earlier solves (a re-solve after contacts were released)
+LOOP_SIZE = 4
+# Collider contacts in the solve: the release loop's state (int32) and its cap of re-solves per step.
+RELEASE_FLAG = wp.constant(0)  # a contact was released: solve again
+RELEASE_ROUNDS = wp.constant(1)
+RELEASE_SIZE = 2
 STATUS_REFERENCE = wp.constant(0)  # |S (b - A z)|^2 of the zero guess: the tolerance is relative to it
 STATUS_STOP = wp.constant(1)  # the relative residual at which this solve stops
 STATUS_RELATIVE = wp.constant(2)  # the last relative residual measured (NaN: the system is not finite)
@@ -180,6 +185,13 @@ def eval_triangle_drag_vectors(
 def effective_mass(i: int, particle_mass: wp.array(dtype=float), particle_pin_stiffness: wp.array(dtype=float), global_damping: float, dt: float):
     """M'_i = m_i (1 + h gamma) + h^2 k_pin."""
     return particle_mass[i] * (1.0 + dt * global_damping) + dt * dt * particle_pin_stiffness[i]
+
+
+@wp.func
+def contact_filter(n: wp.vec3, a: wp.vec3):
+    """S_i a for a particle whose velocity along the unit contact normal n is prescribed (a collider contact in the
+    solve: S_i = I - n n^T); n = 0 (no contact) leaves a as it is."""
+    return a - wp.dot(a, n) * n
 
 
 @wp.func
@@ -555,6 +567,7 @@ def cg_product(
     particle_pin_stiffness: wp.array(dtype=float),
     particle_pinned: wp.array(dtype=wp.int32),
     search: wp.array(dtype=wp.vec3),
+    contact_normal: wp.array(dtype=wp.vec3),
     global_damping: float,
     dt: float,
     loop: wp.array(dtype=wp.int32),
@@ -570,7 +583,7 @@ def cg_product(
         product_out[i] = wp.vec3(0.0)
         return
     c = search[i]
-    q = effective_mass(i, particle_mass, particle_pin_stiffness, global_damping, dt) * c + product_out[i]
+    q = contact_filter(contact_normal[i], effective_mass(i, particle_mass, particle_pin_stiffness, global_damping, dt) * c + product_out[i])
     product_out[i] = q
     wp.atomic_add(cg_scalars_out, iteration, CG_CAC, wp.float64(wp.dot(c, q)))
 
@@ -600,7 +613,7 @@ def cg_update(
     dv_out[i] = dv_out[i] + alpha * search[i]
     r = residual_out[i] - alpha * q
     residual_out[i] = r
-    s = precond[i] * r
+    s = precond[i] * r  # (filtered on a contact: `filter_contact_preconditioner`)
     preconditioned_out[i] = s
     wp.atomic_add(cg_scalars_out, iteration + 1, CG_RS, wp.float64(wp.dot(r, s)))
     wp.atomic_add(cg_scalars_out, iteration + 1, CG_RR, wp.float64(wp.dot(r, r)))
@@ -794,6 +807,7 @@ def cg_warm_start(
     precond: wp.array(dtype=wp.mat33),
     rhs: wp.array(dtype=wp.vec3),
     guess: wp.array(dtype=wp.vec3),
+    contact_normal: wp.array(dtype=wp.vec3),
     global_damping: float,
     dt: float,
     enabled: wp.array(dtype=wp.int32),
@@ -817,7 +831,8 @@ def cg_warm_start(
         search_out[i] = wp.vec3(0.0)
         return
     m_eff = effective_mass(i, particle_mass, particle_pin_stiffness, global_damping, dt)
-    r = rhs[i] - system_product(i, spring_offsets, spring_ids, spring_role, spring_indices, spring_middle, tri_offsets, tri_ids, tri_indices, tri_corner_weights, membrane_offsets, membrane_ids, membrane_vertices, system_block, bend_vector, drag_vector, membrane_block, plate_product, m_eff, guess, dt)
+    n = contact_normal[i]
+    r = contact_filter(n, rhs[i] - system_product(i, spring_offsets, spring_ids, spring_role, spring_indices, spring_middle, tri_offsets, tri_ids, tri_indices, tri_corner_weights, membrane_offsets, membrane_ids, membrane_vertices, system_block, bend_vector, drag_vector, membrane_block, plate_product, m_eff, guess, dt))
     s = precond[i] * r
     residual_out[i] = r
     preconditioned_out[i] = s
@@ -831,16 +846,147 @@ def compose_warm_start(
     particle_pinned: wp.array(dtype=wp.int32),
     dv_previous: wp.array(dtype=wp.vec3),
     dv_pinned: wp.array(dtype=wp.vec3),
+    contact_normal: wp.array(dtype=wp.vec3),
+    contact_dv: wp.array(dtype=wp.vec3),
+    use_previous: wp.array(dtype=wp.int32),
     # outputs
     guess_out: wp.array(dtype=wp.vec3),
 ):
-    """guess = previous step's dv on free particles, this step's prescribed z on pinned ones."""
+    """guess = this step's prescribed z on pinned particles; elsewhere the previous step's dv (when use_previous[0],
+    else 0) with, on a collider contact, its normal part replaced by the contact's prescribed z."""
     i = wp.tid()
     if particle_pinned[i] != 0:
         guess_out[i] = dv_pinned[i]
-    else:
-        guess_out[i] = dv_previous[i]
+        return
+    free = wp.vec3(0.0)
+    if use_previous[0] != 0:
+        free = dv_previous[i]
+    guess_out[i] = contact_filter(contact_normal[i], free) + contact_dv[i]
 
+
+@wp.kernel(enable_backward=False)
+def filter_contact_preconditioner(
+    contact_normal: wp.array(dtype=wp.vec3),
+    # outputs
+    precond_out: wp.array(dtype=wp.mat33),
+    precond_free_out: wp.array(dtype=wp.mat33),
+):
+    """On a collider contact: the preconditioner block P_i kept (`precond_free_out`, for a release) and replaced by
+    S_i P_i S_i, so that the CG's s = P r stays in the filtered space (symmetric, as the CG needs)."""
+    i = wp.tid()
+    n = contact_normal[i]
+    if wp.dot(n, n) == 0.0:
+        return
+    p = precond_out[i]
+    precond_free_out[i] = p
+    s = wp.identity(n=3, dtype=float) - wp.outer(n, n)
+    precond_out[i] = s * p * s
+
+
+@wp.kernel(enable_backward=False)
+def eval_contact_release(
+    # Model
+    spring_offsets: wp.array(dtype=wp.int32),
+    spring_ids: wp.array(dtype=wp.int32),
+    spring_role: wp.array(dtype=wp.int32),
+    spring_indices: wp.array2d(dtype=wp.int32),
+    spring_middle: wp.array(dtype=wp.int32),
+    tri_offsets: wp.array(dtype=wp.int32),
+    tri_ids: wp.array(dtype=wp.int32),
+    tri_indices: wp.array2d(dtype=wp.int32),
+    tri_corner_weights: wp.array(dtype=wp.vec3),
+    membrane_offsets: wp.array(dtype=wp.int32),
+    membrane_ids: wp.array(dtype=wp.int32),
+    membrane_vertices: wp.array(dtype=wp.vec3i),
+    particle_mass: wp.array(dtype=float),
+    particle_pin_stiffness: wp.array(dtype=float),
+    particle_pinned: wp.array(dtype=wp.int32),
+    system_block: wp.array(dtype=wp.mat33),
+    bend_vector: wp.array(dtype=wp.vec3),
+    drag_vector: wp.array(dtype=wp.vec3),
+    membrane_block: wp.array2d(dtype=wp.mat33),
+    plate_product: wp.array(dtype=wp.vec3),
+    rhs: wp.array(dtype=wp.vec3),
+    dv: wp.array(dtype=wp.vec3),
+    precond_free: wp.array(dtype=wp.mat33),
+    global_damping: float,
+    dt: float,
+    max_rounds: int,
+    # outputs
+    precond_out: wp.array(dtype=wp.mat33),
+    contact_normal_out: wp.array(dtype=wp.vec3),
+    contact_dv_out: wp.array(dtype=wp.vec3),
+    contact_impulse_out: wp.array(dtype=float),
+    release_out: wp.array(dtype=wp.int32),
+):
+    """The impulse [kg m/s] each collider contact exerts along its normal in the solved step, lambda = n . (A dv - b)_i
+    (the part of the momentum balance the filter took out); a contact that pulls (lambda < 0: the cloth wants to
+    leave the surface faster than prescribed) is released (n = 0, z = 0, its unfiltered preconditioner block back)
+    and release_out[RELEASE_FLAG] set, while
+    fewer than `max_rounds` re-solves were run this step."""
+    i = wp.tid()
+    n = contact_normal_out[i]
+    if particle_pinned[i] != 0 or wp.dot(n, n) == 0.0:
+        contact_impulse_out[i] = 0.0
+        return
+    m_eff = effective_mass(i, particle_mass, particle_pin_stiffness, global_damping, dt)
+    a_dv = system_product(i, spring_offsets, spring_ids, spring_role, spring_indices, spring_middle, tri_offsets, tri_ids, tri_indices,
+                          tri_corner_weights, membrane_offsets, membrane_ids, membrane_vertices, system_block, bend_vector, drag_vector,
+                          membrane_block, plate_product, m_eff, dv, dt)
+    impulse = wp.dot(n, a_dv - rhs[i])
+    contact_impulse_out[i] = impulse
+    if impulse < 0.0 and release_out[RELEASE_ROUNDS] < max_rounds:
+        contact_normal_out[i] = wp.vec3(0.0)
+        contact_dv_out[i] = wp.vec3(0.0)
+        contact_impulse_out[i] = 0.0
+        precond_out[i] = precond_free[i]
+        release_out[RELEASE_FLAG] = 1
+
+
+@wp.kernel(enable_backward=False)
+def begin_contact_resolve(
+    # outputs
+    release_out: wp.array(dtype=wp.int32),
+    loop_out: wp.array(dtype=wp.int32),
+):
+    """A re-solve starts (1 thread): one more round, the flag cleared, the last solve's iterations carried."""
+    release_out[RELEASE_FLAG] = 0
+    release_out[RELEASE_ROUNDS] = release_out[RELEASE_ROUNDS] + 1
+    loop_out[LOOP_CARRIED] = loop_out[LOOP_CARRIED] + loop_out[LOOP_ITERATION]
+
+
+@wp.kernel(enable_backward=False)
+def apply_contact_friction(
+    particle_mass: wp.array(dtype=float),
+    contact_collider: wp.array(dtype=wp.int32),
+    contact_normal: wp.array(dtype=wp.vec3),
+    contact_velocity: wp.array(dtype=wp.vec3),
+    contact_impulse: wp.array(dtype=float),
+    collider_static_friction: wp.array(dtype=float),
+    collider_kinetic_friction: wp.array(dtype=float),
+    v0: wp.array(dtype=wp.vec3),
+    # outputs
+    dv_out: wp.array(dtype=wp.vec3),
+):
+    """Coulomb friction from the solved normal impulse lambda (velocity level, Bridson et al. 2002): with
+    dv_N = lambda / m, the end velocity's tangential part relative to the surface, v_T, is stopped when
+    |v_T| <= mu_s dv_N, else shortened by mu_k dv_N."""
+    i = wp.tid()
+    n = contact_normal[i]
+    c = contact_collider[i]
+    if c < 0 or wp.dot(n, n) == 0.0:
+        return
+    impulse = contact_impulse[i]
+    if impulse <= 0.0 or particle_mass[i] <= 0.0:
+        return
+    normal_change = impulse / particle_mass[i]
+    rel = v0[i] + dv_out[i] - contact_velocity[i]
+    tangential = rel - wp.dot(rel, n) * n
+    speed = wp.length(tangential)
+    if speed <= collider_static_friction[c] * normal_change:
+        dv_out[i] = dv_out[i] - tangential
+    else:
+        dv_out[i] = dv_out[i] - (collider_kinetic_friction[c] * normal_change / speed) * tangential
 
 
 # -- the solve's loop on the device ---------------------------------------------------------------
@@ -870,6 +1016,8 @@ def begin_linear_solve(
     warm_scalars: wp.array2d(dtype=wp.float64),
     warm: wp.array(dtype=wp.int32),
     use_warm: int,
+    restarted: int,
+    resolve: int,
     tolerance: wp.float64,
     warm_reduction: wp.float64,
     warm_floor: wp.float64,
@@ -881,11 +1029,15 @@ def begin_linear_solve(
 ):
     """Start a solve (1 thread): the reference |r_0|^2 is row 0 of `cg_scalars_out` (the zero guess's residual, as
     assembled); a warm start (use_warm and warm[0]) replaces row 0 by its guess's (`warm_scalars`) and may stop
-    at warm_reduction times its starting residual (not below warm_floor). Iterates when the reference is
+    at warm_reduction times its starting residual (not below warm_floor); a restart from a composed guess
+    (`restarted`: collider contacts in the solve) replaces row 0 too; a re-solve of the step (`resolve`, rows
+    zeroed by the caller) keeps the step's reference and the iterations carried from its earlier solves. Iterates when the reference is
     positive and the starting residual above the stop."""
     reference = cg_scalars_out[0, CG_RR]
+    if resolve != 0:
+        reference = status_out[STATUS_REFERENCE]  # the step's, measured by its first solve
     is_warm = use_warm != 0 and warm[0] != 0
-    if is_warm:
+    if is_warm or restarted != 0:
         cg_scalars_out[0, CG_RS] = warm_scalars[0, CG_RS]
         cg_scalars_out[0, CG_RR] = warm_scalars[0, CG_RR]
     relative = relative_residual(cg_scalars_out[0, CG_RR], reference)
@@ -897,6 +1049,8 @@ def begin_linear_solve(
     status_out[STATUS_RELATIVE] = relative
     loop_out[LOOP_ITERATION] = 0
     loop_out[LOOP_CHECK] = 0
+    if resolve == 0:
+        loop_out[LOOP_CARRIED] = 0
     loop_out[LOOP_RUNNING] = 0
     if reference > wp.float64(1.0e-300) and relative > stop and max_iterations > 0:
         loop_out[LOOP_RUNNING] = 1
@@ -974,7 +1128,7 @@ def end_linear_solve(
 ):
     """Record a finished solve (1 thread); with `keep_start`, its dv starts the next solve unless it failed."""
     relative = status[STATUS_RELATIVE]
-    iterations = wp.float64(loop[LOOP_ITERATION])
+    iterations = wp.float64(loop[LOOP_ITERATION] + loop[LOOP_CARRIED])
     solves = record_out[RECORD_SOLVES] + wp.float64(1.0)
     record_out[RECORD_SOLVES] = solves
     record_out[RECORD_ITERATIONS] = record_out[RECORD_ITERATIONS] + iterations

@@ -1,6 +1,8 @@
 """Collider contacts found for the implicit solve (kernels/contact.py): which particles touch, the normal, the
 surface velocity and the prescribed normal speed that ends the step at the thickness."""
 
+import math
+
 import numpy as np
 import pytest
 import trimesh
@@ -20,14 +22,15 @@ def find_contacts(model, x, v, time=0.0, dt=DT):
     model.update_control(control, time + dt, dt, force=True)
     n = len(x)
     out = [wp.zeros(n, dtype=wp.int32), wp.zeros(n, dtype=wp.vec3), wp.zeros(n, dtype=wp.vec3), wp.zeros(n, dtype=float),
-           wp.zeros(1, dtype=wp.int32)]
+           wp.zeros(n, dtype=wp.vec3), wp.zeros(1, dtype=wp.int32)]
     wp.launch(kct.eval_collider_contacts, dim=n,
               inputs=[model.particle_pinned, model.collider_count, model.collider_shape, model.collider_size, model.collider_mesh,
                       model.collider_deforming, model.collider_thickness, model.collider_static_friction,
                       model.collider_kinetic_friction, model.collider_mesh_max_distance, control.collider_transform_start,
                       control.collider_transform_end, wp.array(x, dtype=wp.vec3), wp.array(v, dtype=wp.vec3), dt, MARGIN],
               outputs=out)
-    return [a.numpy() for a in out]
+    out = [a.numpy() for a in out]
+    return out[:4] + out[5:]  # (the prescribed dv: test_contact_prescribes_landing_at_the_thickness)
 
 
 def particles(builder, points):
@@ -52,7 +55,7 @@ def test_contacts_on_a_ground_plane():
     assert count[0] == 4
     np.testing.assert_allclose(normal[:4], [[0, 1, 0]] * 4, atol=1e-6)
     np.testing.assert_allclose(vel[:4], 0.0, atol=1e-6)
-    np.testing.assert_allclose(push[:4], (THICKNESS - np.array(heights[:4])) / DT, rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(push[:4], (THICKNESS * (1 + kct.CLEARANCE) - np.array(heights[:4])) / DT, rtol=1e-5, atol=1e-4)
     assert push[2] > 0.0 and push[3] < 0.0  # out from inside, down onto the surface from above
 
 
@@ -96,7 +99,7 @@ def test_contact_normals_match_the_collider_distance(shape, rng):
     clear = np.abs(d - THICKNESS * (1.0 + MARGIN)) > 1e-5  # away from the threshold's float32 rounding
     np.testing.assert_array_equal((col == 0)[clear], touching[clear])
     np.testing.assert_allclose(normal[touching], n[touching], atol=2e-5)
-    np.testing.assert_allclose(push[touching], (THICKNESS - d[touching]) / DT, rtol=1e-4, atol=2e-3)
+    np.testing.assert_allclose(push[touching], (THICKNESS * (1 + kct.CLEARANCE) - d[touching]) / DT, rtol=1e-4, atol=2e-3)
 
 
 def test_contact_takes_a_moving_collider_surface_velocity():
@@ -109,3 +112,91 @@ def test_contact_takes_a_moving_collider_surface_velocity():
     assert col[0] == 0
     np.testing.assert_allclose(normal[0], [0, 1, 0], atol=1e-6)
     np.testing.assert_allclose(vel[0], [0.0, 1.0, 0.0], atol=1e-4)
+
+
+def test_contact_prescribes_landing_at_the_thickness():
+    """Check the prescribed velocity change z = ((u . n + push) - v0 . n) n: a particle moving along the ground keeps
+    its tangential velocity, and its normal velocity becomes the one that ends the step at the thickness."""
+    b = cw.ModelBuilder()
+    b.add_particle((0.0, 0.013, 0.0))
+    b.add_ground(thickness=THICKNESS)
+    m = b.finalize("cpu")
+    control = m.control()
+    m.update_control(control, DT, DT, force=True)
+    x = wp.array([[0.0, 0.013, 0.0]], dtype=wp.vec3)
+    v0 = np.array([[0.5, -0.2, 0.0]], np.float32)
+    out = [wp.zeros(1, dtype=wp.int32), wp.zeros(1, dtype=wp.vec3), wp.zeros(1, dtype=wp.vec3), wp.zeros(1, dtype=float),
+           wp.zeros(1, dtype=wp.vec3), wp.zeros(1, dtype=wp.int32)]
+    wp.launch(kct.eval_collider_contacts, dim=1,
+              inputs=[m.particle_pinned, m.collider_count, m.collider_shape, m.collider_size, m.collider_mesh, m.collider_deforming,
+                      m.collider_thickness, m.collider_static_friction, m.collider_kinetic_friction, m.collider_mesh_max_distance,
+                      control.collider_transform_start, control.collider_transform_end, x, wp.array(v0, dtype=wp.vec3), DT, MARGIN],
+              outputs=out)
+    z = out[4].numpy()[0]
+    v1 = v0[0] + z
+    assert v1[0] == pytest.approx(0.5, abs=1e-6) and v1[2] == pytest.approx(0.0, abs=1e-6)
+    assert 0.013 + DT * v1[1] == pytest.approx(THICKNESS * (1 + kct.CLEARANCE), abs=1e-6)
+
+
+# -- contacts inside the implicit solve (SolverImplicitEuler(collider_contacts="solve")) ------------------------------
+
+
+def test_dropped_cloth_rests_exactly_on_the_ground():
+    """Check a cloth dropped flat onto the ground with the contacts in the solve ends every particle at the
+    thickness (plus the clearance) with no velocity at all: no jitter, and nothing left for the colliders pass."""
+    b = cw.ModelBuilder()
+    b.add_cloth_grid(resolution=(8, 8), size=(0.5, 0.5), material="cotton", position=(0, 0.05, 0),
+                     rotation=cw.quat_from_axis_angle((1, 0, 0), -90.0))
+    b.add_ground(thickness=THICKNESS, friction=0.5)
+    m = b.finalize("cpu")
+    sim = cw.Simulator(m, cw.SolverImplicitEuler(m, collider_contacts="solve"), fps=60, substeps=2)
+    for _ in range(30):
+        stats = sim.step_frame()
+    y = sim.positions()[:, 1]
+    np.testing.assert_allclose(y, THICKNESS * (1 + kct.CLEARANCE), atol=1e-6)
+    assert stats.max_speed < 1e-6
+    assert sim.frame_report.passes["colliders"].contacts == 0
+
+
+def test_a_contact_that_pulls_is_released():
+    """Check a particle resting on the ground under a gravity pointing away from it (the contact would have to
+    pull) leaves with the acceleration of that gravity: its contact is released and the step solved again."""
+    b = cw.ModelBuilder(gravity=(0.0, 9.81, 0.0))
+    b.add_particle((0.0, THICKNESS, 0.0), mass=0.01)
+    b.add_particle((0.1, THICKNESS, 0.0), mass=0.01)
+    b.add_spring(0, 1, stiffness=10.0)
+    b.add_ground(thickness=THICKNESS)
+    m = b.finalize("cpu")
+    solver = cw.SolverImplicitEuler(m, collider_contacts="solve", strain_limit=None, tolerance=1e-6)
+    s0, s1, control = m.state(), m.state(), m.control()
+    m.update_control(control, DT, DT, force=True)
+    solver.step(s0, s1, control, DT)
+    np.testing.assert_allclose(s1.particle_qd.numpy()[:, 1], 9.81 * DT, rtol=1e-4)
+    assert solver.release.numpy()[1] == 1  # one re-solve
+
+
+@pytest.mark.parametrize("theta,mu_s,mu_k", [(10.0, 0.3, 0.3), (30.0, 0.3, 0.3), (30.0, 0.5, 0.3)])
+def test_contact_in_the_solve_slides_and_sticks_by_coulomb(theta, mu_s, mu_k):
+    """Check a particle on an incline with the contact in the solve sticks iff tan(theta) <= mu_s and otherwise
+    slides at a = g (sin - mu_k cos) (velocity-level friction from the solved normal impulse), on the surface."""
+    th = math.radians(theta)
+    normal = np.array([-math.sin(th), math.cos(th), 0.0])
+    downhill = np.array([-math.cos(th), -math.sin(th), 0.0])
+    b = cw.ModelBuilder()
+    b.add_plane(normal=normal, thickness=THICKNESS, static_friction=mu_s, kinetic_friction=mu_k)
+    b.add_particle(tuple(normal * THICKNESS * (1 + kct.CLEARANCE)), mass=0.01)
+    m = b.finalize("cpu")
+    h = 1e-3
+    sim = cw.Simulator(m, cw.SolverImplicitEuler(m, collider_contacts="solve", strain_limit=None, tolerance=1e-6), fps=100, substeps=10)
+    x0 = sim.positions()[0]
+    for _ in range(100):
+        sim.step_frame()
+    x, v = sim.positions()[0], sim.state.particle_qd.numpy()[0]
+    s = float(np.dot(x - x0, downhill))
+    if math.tan(th) <= mu_s:
+        assert abs(s) < 1e-6 and np.linalg.norm(v) < 1e-6
+    else:
+        a = 9.81 * (math.sin(th) - mu_k * math.cos(th))
+        assert float(np.dot(v, downhill)) == pytest.approx(a * 1.0, rel=2e-3)
+        assert s == pytest.approx(a / 2 + a * h / 2, rel=2e-3)
+    assert float(np.dot(x, normal)) == pytest.approx(THICKNESS * (1 + kct.CLEARANCE), abs=2e-6)

@@ -14,6 +14,7 @@ from ..graphs import device_while
 from ..profiling import stage
 from ..records import record_values
 from ..kernels import forces as kf
+from ..kernels import contact as kct
 from ..kernels import implicit as ki
 from ..model import Control, Model, State
 from .base import SolverBase
@@ -65,6 +66,15 @@ class SolverImplicitEuler(SolverBase):
             cycle of cloth resting on colliders (~30 mm/s at the free edges of a drape, measured; 0.1 mm/s
             with 0.01).
         strain_limit, strain_limit_iterations, collisions: see :class:`~cloth_warp.solvers.base.SolverBase`.
+        collider_contacts: "pass" (collider contacts resolved after the step by the colliders pass only) or "solve"
+            (also inside the solve, Baraff & Witkin's filter: a particle touching a collider at the start of the step
+            gets its end-of-step normal velocity prescribed, the one that ends the step at the collider's thickness
+            (kernels/contact.py), the rest of its motion solved with the cloth; a contact whose solved impulse pulls
+            is released and the step solved again (at most `contact_release_rounds` times), and Coulomb friction
+            acts on the solved tangential velocity with that impulse; the colliders pass still runs after the step
+            as the guarantee). Forward steps only: taped steps keep the pass alone. CG only.
+        contact_margin: "solve" contacts: a particle within the thickness x (1 + margin) at the step's start is in
+            contact.
 
     Differentiation (taped steps, ``state_in.requires_grad``): with ``differentiation="adjoint"`` the solve
     runs outside the tape; the tape holds dv and the residual r = S (b - A dv), evaluated element by element
@@ -96,6 +106,9 @@ class SolverImplicitEuler(SolverBase):
         collisions: bool = True,
         collision_rounds: int = 2,
         differentiation: str = "adjoint",
+        collider_contacts: str = "pass",
+        contact_margin: float = 0.5,
+        contact_release_rounds: int = 2,
     ):
         super().__init__(model, strain_limit=strain_limit, strain_limit_iterations=strain_limit_iterations,
                          strain_limit_tolerance=strain_limit_tolerance, collisions=collisions, collision_rounds=collision_rounds)
@@ -108,6 +121,15 @@ class SolverImplicitEuler(SolverBase):
         if differentiation not in ("adjoint", "unrolled"):
             raise ValueError(f"unknown differentiation {differentiation!r}; allowed: adjoint, unrolled")
         self.differentiation = differentiation
+        if collider_contacts not in ("pass", "solve"):
+            raise ValueError(f"unknown collider_contacts {collider_contacts!r}; allowed: pass, solve")
+        if collider_contacts == "solve" and self.linear_solver != LinearSolver.CG:
+            raise ValueError("collider_contacts='solve' needs linear_solver='cg' (the contact filter is in the CG)")
+        self.collider_contacts = collider_contacts
+        if collider_contacts == "solve":
+            self.kernel_modules = (ki, kct)
+        self.contact_margin = float(contact_margin)
+        self.contact_release_rounds = int(contact_release_rounds)
         # Backward-pass report: adjoint solves run and their iterations (summed).
         self.adjoint_solves = 0
         self.adjoint_iterations = 0
@@ -158,6 +180,17 @@ class SolverImplicitEuler(SolverBase):
         self.solve_record = wp.zeros(ki.RECORD_SIZE, dtype=wp.float64, device=dev)
         self.previous_ready = wp.zeros(1, dtype=wp.int32, device=dev)  # 1: dv_previous starts the next forward solve
         self._enabled = wp.ones(1, dtype=wp.int32, device=dev)
+        self._disabled = wp.zeros(1, dtype=wp.int32, device=dev)
+        # collider contacts in the solve (kernels/contact.py; zero normals: none, as in every other solve)
+        self.contact_collider = wp.zeros(n, dtype=wp.int32, device=dev)
+        self.contact_normal = wp.zeros(n, dtype=wp.vec3, device=dev)
+        self.contact_velocity = wp.zeros(n, dtype=wp.vec3, device=dev)
+        self.contact_push = wp.zeros(n, dtype=float, device=dev)
+        self.contact_dv = wp.zeros(n, dtype=wp.vec3, device=dev)
+        self.contact_impulse = wp.zeros(n, dtype=float, device=dev)
+        self.precond_free = wp.zeros(n, dtype=wp.mat33, device=dev)  # contacts' unfiltered preconditioner blocks
+        self.contact_counts = wp.zeros(1, dtype=wp.int32, device=dev)
+        self.release = wp.zeros(ki.RELEASE_SIZE, dtype=wp.int32, device=dev)
 
     def notify_model_changed(self, flags: int) -> None:
         """Model fields changed: besides the passes (:meth:`SolverBase.notify_model_changed`), the previous step's
@@ -242,10 +275,11 @@ class SolverImplicitEuler(SolverBase):
                       inputs=[m.plate_offsets, m.plate_points, m.plate_weights, m.plate_stiffness, p, dt * dt], outputs=[out],
                       device=m.device)
 
-    def solve_cg(self, dt: float, warm: bool = False) -> wp.array:
+    def solve_cg(self, dt: float, warm: bool = False, restarted: bool = False, resolve: bool = False) -> wp.array:
         """Filtered PCG on the assembled system (`warm`: a warm start may have replaced the cold one, see
-        :meth:`solve`), iterating on the device until the stop residual; returns the array holding dv."""
-        self._begin_iterations(warm)
+        :meth:`solve`; `restarted`: the start is a composed guess; `resolve`: the step's solve again), iterating on
+        the device until the stop residual; returns the array holding dv."""
+        self._begin_iterations(warm, restarted, resolve)
         self.product.zero_()  # then each iteration's cg_update clears it for the next
         device_while(self.loop, self._cg_iteration, dt=dt)
         return self.dv
@@ -271,7 +305,7 @@ class SolverImplicitEuler(SolverBase):
                       inputs=[m.tri_vertices, m.tri_corner_weights, self.drag_vector, c, dt], outputs=[q], device=dev)
         self._plate_product(c, dt, q)
         wp.launch(ki.cg_product, dim=m.particle_count,
-                  inputs=[m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, c, m.global_damping, dt, self.loop],
+                  inputs=[m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, c, self.contact_normal, m.global_damping, dt, self.loop],
                   outputs=[q, self.cg_scalars], device=dev)
         wp.launch(ki.cg_update, dim=m.particle_count, inputs=[self.precond, c, self.loop],
                   outputs=[q, self.dv, self.residual, self.preconditioned, self.cg_scalars], device=dev)
@@ -316,10 +350,11 @@ class SolverImplicitEuler(SolverBase):
         wp.launch(ki.end_jacobi_iteration, dim=1, inputs=[self.check_every, self.max_iterations], outputs=[self.cg_scalars, self.loop],
                   device=dev)
 
-    def _begin_iterations(self, warm: bool):
+    def _begin_iterations(self, warm: bool, restarted: bool = False, resolve: bool = False):
         """The reference residual, the stop and whether to iterate, on the device (:func:`~cloth_warp.kernels.implicit.begin_linear_solve`)."""
         wp.launch(ki.begin_linear_solve, dim=1,
-                  inputs=[self.warm_scalars, self.previous_ready, int(warm), wp.float64(self.tolerance), wp.float64(self.warm_start_reduction),
+                  inputs=[self.warm_scalars, self.previous_ready, int(warm), int(restarted), int(resolve), wp.float64(self.tolerance),
+                          wp.float64(self.warm_start_reduction),
                           wp.float64(WARM_START_FLOOR), self.max_iterations],
                   outputs=[self.cg_scalars, self.solve_status, self.loop], device=self.model.device)
 
@@ -388,10 +423,16 @@ class SolverImplicitEuler(SolverBase):
         with stage("assemble"):
             self.assemble(state_in, control, dt)
         warm = self.warm_start and not state_in.requires_grad
+        contacts = self.collider_contacts == "solve" and self.model.collider_count > 0 and not state_in.requires_grad
         with stage("linear_solve"):
-            if warm:
-                self._restart_from_previous(dt)
-            dv = self._iterate(dt, warm)
+            if contacts:
+                dv = self._solve_with_contacts(state_in, control, dt, warm)
+            else:
+                if self.collider_contacts == "solve":
+                    self.contact_normal.zero_()  # a taped step: no contact filter
+                if warm:
+                    self._restart_from_previous(dt)
+                dv = self._iterate(dt, warm)
         m = self.model
         wp.launch(ki.end_linear_solve, dim=1, inputs=[self.solve_status, self.loop, wp.float64(self.tolerance), int(self.warm_start)],
                   outputs=[self.solve_record, self.previous_ready], device=m.device)
@@ -407,9 +448,60 @@ class SolverImplicitEuler(SolverBase):
         """When the last solve left a start (``previous_ready``, on the device): the guess = its dv on free
         particles and this step's z on pinned ones, and its residual in `warm_scalars`."""
         m = self.model
-        wp.launch(ki.compose_warm_start, dim=m.particle_count, inputs=[m.particle_pinned, self.dv_previous, self.dv],
+        wp.launch(ki.compose_warm_start, dim=m.particle_count,
+                  inputs=[m.particle_pinned, self.dv_previous, self.dv, self.contact_normal, self.contact_dv, self._enabled],
                   outputs=[self.dv_alt], device=m.device)
         self._start_from_guess(dt, self.previous_ready, self.warm_scalars)
+
+    # -- collider contacts in the solve ----------------------------------------------------------
+    def _solve_with_contacts(self, state_in: State, control: Control, dt: float, warm: bool) -> wp.array:
+        """Find the step's collider contacts, solve from the guess that meets them (the previous dv elsewhere when
+        warm), release contacts that pull and solve again, then apply friction (all on the device)."""
+        m = self.model
+        dev = m.device
+        self.contact_counts.zero_()
+        wp.launch(kct.eval_collider_contacts, dim=m.particle_count,
+                  inputs=[m.particle_pinned, m.collider_count, m.collider_shape, m.collider_size, m.collider_mesh, m.collider_deforming,
+                          m.collider_thickness, m.collider_static_friction, m.collider_kinetic_friction, m.collider_mesh_max_distance,
+                          control.collider_transform_start, control.collider_transform_end, state_in.particle_q, state_in.particle_qd,
+                          dt, self.contact_margin],
+                  outputs=[self.contact_collider, self.contact_normal, self.contact_velocity, self.contact_push, self.contact_dv,
+                           self.contact_counts], device=dev)
+        wp.launch(ki.filter_contact_preconditioner, dim=m.particle_count, inputs=[self.contact_normal],
+                  outputs=[self.precond, self.precond_free], device=dev)
+        wp.launch(ki.compose_warm_start, dim=m.particle_count,
+                  inputs=[m.particle_pinned, self.dv_previous, self.dv, self.contact_normal, self.contact_dv,
+                          self.previous_ready if warm else self._disabled],
+                  outputs=[self.dv_alt], device=dev)
+        self._start_from_guess(dt, self._enabled, self.warm_scalars)
+        self.solve_cg(dt, warm, restarted=True)
+        self.release.zero_()
+        self._check_release(dt)
+        device_while(self.release, self._resolve, dt=dt)
+        wp.launch(ki.apply_contact_friction, dim=m.particle_count,
+                  inputs=[m.particle_mass, self.contact_collider, self.contact_normal, self.contact_velocity, self.contact_impulse,
+                          m.collider_static_friction, m.collider_kinetic_friction, state_in.particle_qd],
+                  outputs=[self.dv], device=dev)
+        return self.dv
+
+    def _check_release(self, dt: float):
+        """Each contact's solved impulse; release those that pull (:func:`~cloth_warp.kernels.implicit.eval_contact_release`)."""
+        m = self.model
+        self._plate_product(self.dv, dt)
+        wp.launch(ki.eval_contact_release, dim=m.particle_count,
+                  inputs=[*self._product_args(), m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, self.system_block,
+                          self.bend_vector, self.drag_vector, self.membrane_block, self.plate_product, self.rhs, self.dv,
+                          self.precond_free, m.global_damping, dt, self.contact_release_rounds],
+                  outputs=[self.precond, self.contact_normal, self.contact_dv, self.contact_impulse, self.release], device=m.device)
+
+    def _resolve(self, dt: float):
+        """Solve the step again from its last dv with the released contacts free, then check again."""
+        wp.launch(ki.begin_contact_resolve, dim=1, outputs=[self.release, self.loop], device=self.model.device)
+        wp.copy(self.dv_alt, self.dv)
+        self._start_from_guess(dt, self._enabled, self.warm_scalars)
+        self.cg_scalars.zero_()  # the first solve's rows (the iterations accumulate into them)
+        self.solve_cg(dt, restarted=True, resolve=True)
+        self._check_release(dt)
 
     def _start_from_guess(self, dt: float, enabled: wp.array, scalars: wp.array):
         """Restart the iteration from the guess in dv_alt when enabled[0]: r0 = S (rhs - A guess), search direction,
@@ -422,7 +514,7 @@ class SolverImplicitEuler(SolverBase):
             dim=m.particle_count,
             inputs=[*self._product_args(), m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, self.system_block,
                     self.bend_vector, self.drag_vector, self.membrane_block, self.plate_product, self.precond, self.rhs, self.dv_alt,
-                    m.global_damping, dt, enabled],
+                    self.contact_normal, m.global_damping, dt, enabled],
             outputs=[self.dv, self.residual, self.preconditioned, self.search, scalars],
             device=m.device,
         )
@@ -504,6 +596,7 @@ class SolverImplicitEuler(SolverBase):
         m = self.model
         report = (wp.clone(self.loop), wp.clone(self.solve_status))  # the forward step's, kept as its report
         self.assemble(state_in, control, dt)  # the step's blocks and preconditioner (overwritten since)
+        self.contact_normal.zero_()  # taped steps have no contact filter
         wp.copy(self.rhs, dv.grad)
         self.dv_alt.zero_()
         self._start_from_guess(dt, self._enabled, self.cg_scalars)
