@@ -4,16 +4,18 @@ physics.md 3(c): contacts as constraints of the filtered PCG, S_i = I - n n^T, p
 
 A free particle is in contact with a collider when, at the start of the step, its distance to the surface
 (the collider in its start pose) is below ``thickness (1 + margin)`` and it is not lifting off (moving away
-fast enough to leave that band within the step), or when it is inside the thickness, or when
-its predicted end point x0 + h v0 (the collider in its end pose) is within the thickness (an approach this step
-would finish). The deepest such collider is kept. The constraint asks the end velocity's normal part,
+fast enough to leave that band within the step), or when it is inside the thickness, or when its predicted
+end point x0 + h v0 + h^2 g (the collider in its end pose) is within the thickness (an approach this step would
+finish, gravity included: cloth resting a hair above comes down). A particle hovering above the band and not
+predicted to reach the surface stays free: prescribing its landing would only pull it down (to be released).
+The deepest such collider is kept. The constraint asks the end velocity's normal part,
 relative to the surface, to be
 
     (v1 - u) . n = (thickness (1 + clearance) - d0) / h,
 
 so that the step ends at the thickness (plus a clearance of 2e-3 of it, against rounding): a particle inside is
-pushed out, one within the margin comes down onto it; u is the surface velocity (rigid motion over the step, plus a deforming mesh's vertex velocities)
-and n the outward normal in the end pose. Releasing a contact whose constraint force pulls, friction, and
+pushed out, one arriving lands on it; u is the surface velocity (rigid motion over the step, plus a deforming
+mesh's vertex velocities) and n the outward normal in the end pose. Releasing a contact whose constraint force pulls, friction, and
 the filter itself belong to the solver; this module only finds the contacts.
 """
 
@@ -50,6 +52,7 @@ def eval_collider_contacts(
     # State in
     x0: wp.array(dtype=wp.vec3),
     v0: wp.array(dtype=wp.vec3),
+    gravity: wp.vec3,
     dt: float,
     margin: float,
     # outputs
@@ -72,7 +75,7 @@ def eval_collider_contacts(
     if particle_pinned[i] != 0:
         return
     xs = x0[i]
-    xp = xs + dt * v0[i]
+    xp = xs + dt * v0[i] + (dt * dt) * gravity
     inv_dt = 1.0 / dt
     best = float(0.0)
     found = int(-1)

@@ -27,7 +27,8 @@ def find_contacts(model, x, v, time=0.0, dt=DT):
               inputs=[model.particle_pinned, model.collider_count, model.collider_shape, model.collider_size, model.collider_mesh,
                       model.collider_deforming, model.collider_thickness, model.collider_static_friction,
                       model.collider_kinetic_friction, model.collider_mesh_max_distance, control.collider_transform_start,
-                      control.collider_transform_end, wp.array(x, dtype=wp.vec3), wp.array(v, dtype=wp.vec3), dt, MARGIN],
+                      control.collider_transform_end, wp.array(x, dtype=wp.vec3), wp.array(v, dtype=wp.vec3), wp.vec3(0.0, 0.0, 0.0), dt,
+                      MARGIN],
               outputs=out)
     out = [a.numpy() for a in out]
     return out[:4] + out[5:]  # (the prescribed dv: test_contact_prescribes_landing_at_the_thickness)
@@ -130,7 +131,8 @@ def test_contact_prescribes_landing_at_the_thickness():
     wp.launch(kct.eval_collider_contacts, dim=1,
               inputs=[m.particle_pinned, m.collider_count, m.collider_shape, m.collider_size, m.collider_mesh, m.collider_deforming,
                       m.collider_thickness, m.collider_static_friction, m.collider_kinetic_friction, m.collider_mesh_max_distance,
-                      control.collider_transform_start, control.collider_transform_end, x, wp.array(v0, dtype=wp.vec3), DT, MARGIN],
+                      control.collider_transform_start, control.collider_transform_end, x, wp.array(v0, dtype=wp.vec3), wp.vec3(0.0, 0.0, 0.0), DT,
+                      MARGIN],
               outputs=out)
     z = out[4].numpy()[0]
     v1 = v0[0] + z

@@ -74,7 +74,7 @@ class SolverImplicitEuler(SolverBase):
             acts on the solved tangential velocity with that impulse; the colliders pass still runs after the step
             as the guarantee). Forward steps only: taped steps keep the pass alone. CG only.
         contact_margin: "solve" contacts: a particle within the thickness x (1 + margin) at the step's start is in
-            contact.
+            contact (as is one inside, or predicted to reach the surface within the step).
 
     Differentiation (taped steps, ``state_in.requires_grad``): with ``differentiation="adjoint"`` the solve
     runs outside the tape; the tape holds dv and the residual r = S (b - A dv), evaluated element by element
@@ -107,7 +107,7 @@ class SolverImplicitEuler(SolverBase):
         collision_rounds: int = 2,
         differentiation: str = "adjoint",
         collider_contacts: str = "pass",
-        contact_margin: float = 0.5,
+        contact_margin: float = 0.01,
         contact_release_rounds: int = 2,
     ):
         super().__init__(model, strain_limit=strain_limit, strain_limit_iterations=strain_limit_iterations,
@@ -439,6 +439,8 @@ class SolverImplicitEuler(SolverBase):
         if self.warm_start:  # a non-finite solve is no start for the next (nor for a retry of this step)
             wp.launch(ki.keep_velocity_change, dim=m.particle_count, inputs=[self.previous_ready, dv], outputs=[self.dv_previous],
                       device=m.device)
+        if contacts:
+            self._apply_contact_friction(state_in)
         return dv
 
     def _iterate(self, dt: float, warm: bool = False) -> wp.array:
@@ -456,7 +458,7 @@ class SolverImplicitEuler(SolverBase):
     # -- collider contacts in the solve ----------------------------------------------------------
     def _solve_with_contacts(self, state_in: State, control: Control, dt: float, warm: bool) -> wp.array:
         """Find the step's collider contacts, solve from the guess that meets them (the previous dv elsewhere when
-        warm), release contacts that pull and solve again, then apply friction (all on the device)."""
+        warm), release contacts that pull and solve again (all on the device; friction follows in :meth:`solve`)."""
         m = self.model
         dev = m.device
         self.contact_counts.zero_()
@@ -464,7 +466,7 @@ class SolverImplicitEuler(SolverBase):
                   inputs=[m.particle_pinned, m.collider_count, m.collider_shape, m.collider_size, m.collider_mesh, m.collider_deforming,
                           m.collider_thickness, m.collider_static_friction, m.collider_kinetic_friction, m.collider_mesh_max_distance,
                           control.collider_transform_start, control.collider_transform_end, state_in.particle_q, state_in.particle_qd,
-                          dt, self.contact_margin],
+                          wp.vec3(*m.gravity), dt, self.contact_margin],
                   outputs=[self.contact_collider, self.contact_normal, self.contact_velocity, self.contact_push, self.contact_dv,
                            self.contact_counts], device=dev)
         wp.launch(ki.filter_contact_preconditioner, dim=m.particle_count, inputs=[self.contact_normal],
@@ -478,11 +480,16 @@ class SolverImplicitEuler(SolverBase):
         self.release.zero_()
         self._check_release(dt)
         device_while(self.release, self._resolve, dt=dt)
+        return self.dv
+
+    def _apply_contact_friction(self, state_in: State):
+        """Coulomb friction on the solved dv of the contacts (after the warm start kept the solve's own dv: the next
+        solve, which has no friction term, starts from what it would find itself)."""
+        m = self.model
         wp.launch(ki.apply_contact_friction, dim=m.particle_count,
                   inputs=[m.particle_mass, self.contact_collider, self.contact_normal, self.contact_velocity, self.contact_impulse,
                           m.collider_static_friction, m.collider_kinetic_friction, state_in.particle_qd],
-                  outputs=[self.dv], device=dev)
-        return self.dv
+                  outputs=[self.dv], device=m.device)
 
     def _check_release(self, dt: float):
         """Each contact's solved impulse; release those that pull (:func:`~cloth_warp.kernels.implicit.eval_contact_release`)."""
