@@ -76,6 +76,8 @@ MEMBRANE_MODELS = tuple(m.value for m in MembraneModel)
 BENDING_MODELS = tuple(m.value for m in BendingModel)
 UP_AXES = ("Y", "Z")
 LINEAR_SOLVERS = ("cg", "jacobi")
+# The same names as cloth_warp.solvers.implicit.COLLIDER_CONTACTS (a test compares).
+COLLIDER_CONTACTS = ("pass", "solve")
 # The same names as cloth_warp.solvers.SOLVERS (kept here so validation does not import Warp; a test compares).
 INTEGRATORS = ("implicit_euler", "symplectic_euler", "explicit_euler", "midpoint", "rk4")
 PRESETS = tuple(MATERIAL_PRESETS)
@@ -215,6 +217,9 @@ SCHEMA: dict = {
     "solver": {
         "integrator": Key("str", "implicit_euler", "time integrator", allowed=INTEGRATORS),
         "linear_solver": Key("str", "cg", "implicit Euler's linear solver", allowed=LINEAR_SOLVERS),
+        "collider_contacts": Key("str", "pass", "where implicit Euler resolves collider contacts: after the step only (\"pass\"), "
+                                 "or also inside its CG solve as constraints (\"solve\": in progress, see the README)",
+                                 allowed=COLLIDER_CONTACTS),
         "substeps": Key("int", 1, "steps per frame: dt = 1 / (fps x substeps); output.frames x substeps is at most "
                         f"{format_number(MAX_STEPS)} steps", L["substeps"]),
         "strain_limit": Key("float", 0.1, "Provot strain limit on stretch/shear springs (0 disables)", L["strain_limit"]),
@@ -530,6 +535,10 @@ def _check_values(scene: Scene):
         check_grid_size("cloth.grid.resolution", *scene.get("cloth.grid.resolution"))
     check_run_length("output.frames x solver.substeps", scene.get("output.frames"), scene.get("solver.substeps"))
     dt = 1.0 / (scene.get("output.fps") * scene.get("solver.substeps"))
+    if scene.get("solver.collider_contacts") == "solve" and (scene.get("solver.integrator") != "implicit_euler"
+                                                            or scene.get("solver.linear_solver") != "cg"):
+        raise SceneError("solver.collider_contacts: \"solve\" needs solver.integrator = \"implicit_euler\" with "
+                         "solver.linear_solver = \"cg\" (the contacts are constraints of its CG)")
     if scene.get("solver.adaptive") and scene.get("solver.dt_min") >= dt:
         raise SceneError(f"solver.dt_min: {scene.get('solver.dt_min')!r} s must be below the step 1 / (output.fps x solver.substeps) "
                          f"= {dt:.4g} s, which the adaptive stepper halves down to it")
@@ -765,7 +774,7 @@ def build_solver(scene: Scene, model):
     opts = {"strain_limit": sl if sl > 0.0 else None, "strain_limit_iterations": int(scene.get("solver.strain_limit_iterations"))}
     if scene.get("solver.integrator") == "implicit_euler":
         opts.update(linear_solver=scene.get("solver.linear_solver"), tolerance=float(scene.get("solver.tolerance")),
-                    max_iterations=int(scene.get("solver.max_iterations")))
+                    max_iterations=int(scene.get("solver.max_iterations")), collider_contacts=scene.get("solver.collider_contacts"))
     return make_solver(scene.get("solver.integrator"), model, **opts)
 
 

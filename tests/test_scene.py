@@ -10,7 +10,8 @@ from analytic import elastic_catenary_sag
 from cloth_warp import materials
 from cloth_warp.cache import CacheReader
 from cloth_warp.runner import run_scene, shipped_scenes
-from cloth_warp.scene import INTEGRATORS, SceneError, load_scene, parse_scene, schema_markdown
+from cloth_warp.scene import COLLIDER_CONTACTS, INTEGRATORS, SceneError, load_scene, parse_scene, schema_markdown
+from cloth_warp.solvers.implicit import COLLIDER_CONTACTS as IMPLICIT_COLLIDER_CONTACTS
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SCENES = sorted((ROOT / "scenes").glob("*.toml"))
@@ -34,6 +35,7 @@ def test_schema_names_match_the_code():
     from cloth_warp.solvers import SOLVERS
 
     assert set(INTEGRATORS) == set(SOLVERS)
+    assert COLLIDER_CONTACTS == IMPLICIT_COLLIDER_CONTACTS
     assert set(load_scene(HANG).resolved()) >= {"cloth", "material", "solver", "output", "forces"}
     assert "material.preset" in schema_markdown() and all(p in schema_markdown() for p in materials.PRESETS)
 

@@ -23,6 +23,9 @@ from .strain_limit import DEFAULT_SWEEPS
 WARM_START_FLOOR = 1.0e-6  # the smallest relative residual a warm-started float32 solve is asked for
 
 
+# Where collider contacts are resolved: after the step by the colliders pass, or also inside the CG solve.
+COLLIDER_CONTACTS = ("pass", "solve")
+
 class LinearSolver(enum.IntEnum):
     """Linear solver of the implicit step."""
 
@@ -121,8 +124,8 @@ class SolverImplicitEuler(SolverBase):
         if differentiation not in ("adjoint", "unrolled"):
             raise ValueError(f"unknown differentiation {differentiation!r}; allowed: adjoint, unrolled")
         self.differentiation = differentiation
-        if collider_contacts not in ("pass", "solve"):
-            raise ValueError(f"unknown collider_contacts {collider_contacts!r}; allowed: pass, solve")
+        if collider_contacts not in COLLIDER_CONTACTS:
+            raise ValueError(f"unknown collider_contacts {collider_contacts!r}; allowed: {', '.join(COLLIDER_CONTACTS)}")
         if collider_contacts == "solve" and self.linear_solver != LinearSolver.CG:
             raise ValueError("collider_contacts='solve' needs linear_solver='cg' (the contact filter is in the CG)")
         self.collider_contacts = collider_contacts
