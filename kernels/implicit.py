@@ -911,6 +911,7 @@ def eval_contact_release(
     precond_free: wp.array(dtype=wp.mat33),
     global_damping: float,
     dt: float,
+    release_impulse: float,
     max_rounds: int,
     # outputs
     precond_out: wp.array(dtype=wp.mat33),
@@ -920,8 +921,9 @@ def eval_contact_release(
     release_out: wp.array(dtype=wp.int32),
 ):
     """The impulse [kg m/s] each collider contact exerts along its normal in the solved step, lambda = n . (A dv - b)_i
-    (the part of the momentum balance the filter took out); a contact that pulls (lambda < 0: the cloth wants to
-    leave the surface faster than prescribed) is released (n = 0, z = 0, its unfiltered preconditioner block back)
+    (the part of the momentum balance the filter took out); a contact that pulls (lambda < -release_impulse m_i
+    [m/s x kg]: the cloth wants to leave the surface faster than prescribed; the threshold keeps the solve's
+    round-off in lambda from releasing a contact that barely bears any load) is released (n = 0, z = 0, its unfiltered preconditioner block back)
     and release_out[RELEASE_FLAG] set, while
     fewer than `max_rounds` re-solves were run this step."""
     i = wp.tid()
@@ -935,7 +937,7 @@ def eval_contact_release(
                           membrane_block, plate_product, m_eff, dv, dt)
     impulse = wp.dot(n, a_dv - rhs[i])
     contact_impulse_out[i] = impulse
-    if impulse < 0.0 and release_out[RELEASE_ROUNDS] < max_rounds:
+    if impulse < -release_impulse * particle_mass[i] and release_out[RELEASE_ROUNDS] < max_rounds:
         contact_normal_out[i] = wp.vec3(0.0)
         contact_dv_out[i] = wp.vec3(0.0)
         contact_impulse_out[i] = 0.0

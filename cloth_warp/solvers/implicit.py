@@ -78,6 +78,9 @@ class SolverImplicitEuler(SolverBase):
             as the guarantee). Forward steps only: taped steps keep the pass alone. CG only.
         contact_margin: "solve" contacts: a particle within the thickness x (1 + margin) at the step's start is in
             contact (as is one inside, or predicted to reach the surface within the step).
+        contact_release_fraction: "solve" contacts: a contact is released when it pulls with more than this fraction
+            of the particle's weight (times the step): below it the pull is the solve's round-off, and a released
+            particle has no friction.
 
     Differentiation (taped steps, ``state_in.requires_grad``): with ``differentiation="adjoint"`` the solve
     runs outside the tape; the tape holds dv and the residual r = S (b - A dv), evaluated element by element
@@ -112,6 +115,7 @@ class SolverImplicitEuler(SolverBase):
         collider_contacts: str = "pass",
         contact_margin: float = 0.01,
         contact_release_rounds: int = 2,
+        contact_release_fraction: float = 0.05,
     ):
         super().__init__(model, strain_limit=strain_limit, strain_limit_iterations=strain_limit_iterations,
                          strain_limit_tolerance=strain_limit_tolerance, collisions=collisions, collision_rounds=collision_rounds)
@@ -133,6 +137,8 @@ class SolverImplicitEuler(SolverBase):
             self.kernel_modules = (ki, kct)
         self.contact_margin = float(contact_margin)
         self.contact_release_rounds = int(contact_release_rounds)
+        self.contact_release_fraction = float(contact_release_fraction)
+        self._gravity_norm = float(np.linalg.norm(np.asarray(model.gravity, np.float64)))
         # Backward-pass report: adjoint solves run and their iterations (summed).
         self.adjoint_solves = 0
         self.adjoint_iterations = 0
@@ -501,7 +507,8 @@ class SolverImplicitEuler(SolverBase):
         wp.launch(ki.eval_contact_release, dim=m.particle_count,
                   inputs=[*self._product_args(), m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, self.system_block,
                           self.bend_vector, self.drag_vector, self.membrane_block, self.plate_product, self.rhs, self.dv,
-                          self.precond_free, m.global_damping, dt, self.contact_release_rounds],
+                          self.precond_free, m.global_damping, dt, self.contact_release_fraction * self._gravity_norm * dt,
+                          self.contact_release_rounds],
                   outputs=[self.precond, self.contact_normal, self.contact_dv, self.contact_impulse, self.release], device=m.device)
 
     def _resolve(self, dt: float):
