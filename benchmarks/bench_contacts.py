@@ -1,0 +1,102 @@
+"""Benchmark: collider contacts resolved after the step (the colliders pass) or also inside the implicit solve.
+
+For each scene and mode (`solver.collider_contacts` = "pass" | "solve"), the shipped scene is run as `cloth-warp run`
+builds it for `--frames` frames (default 300: 5 s at 60 fps). Reported: ms per frame (median over the run), the
+largest particle speed over the last 20 frames (median and max: at rest means <= 1 mm/s, issue 17's target),
+the colliders pass's contacts per frame and the CG iterations per frame (means over the last 20 frames), and the
+frames re-run because a self-collision buffer overflowed or a step needed impact zones.
+
+Run:  python benchmarks/bench_contacts.py                      (pile and drape_sphere, a few minutes on 2 cores)
+      python benchmarks/bench_contacts.py --scenes pile --frames 120 --set cloth.grid.resolution=[48,48]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import platform
+import statistics
+import sys
+import time
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+MODES = ("pass", "solve")
+TAIL = 20
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--scenes", nargs="+", default=["pile", "drape_sphere"])
+    p.add_argument("--frames", type=int, default=300)
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="scene override (TOML value), repeatable")
+    p.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "bench_contacts.md"))
+    return p.parse_args(argv)
+
+
+def run(scene_name: str, mode: str, frames: int, overrides: dict) -> dict:
+    import warp as wp
+
+    from cloth_warp.runner import find_scene, load_kernels
+    from cloth_warp.scene import build_model, build_solver, build_wind, load_scene
+    from cloth_warp.simulator import Simulator
+
+    scene = load_scene(find_scene(scene_name), {**overrides, "solver.collider_contacts": mode})
+    model = build_model(scene, "cpu")
+    solver = build_solver(scene, model)
+    load_kernels(solver, model.device)
+    sim = Simulator(model, solver, fps=float(scene.get("output.fps")), substeps=int(scene.get("solver.substeps")),
+                    wind=build_wind(scene))
+    ms, speed, contacts, iterations = [], [], [], []
+    for _ in range(frames):
+        t = time.perf_counter()
+        stats = sim.step_frame()
+        wp.synchronize()
+        ms.append(1e3 * (time.perf_counter() - t))
+        report = sim.frame_report
+        speed.append(stats.max_speed)
+        contacts.append(report.passes["colliders"].contacts if "colliders" in report.passes else 0)
+        iterations.append(report.iterations)
+    return {"scene": scene_name, "mode": mode, "frames": frames, "ms_per_frame": statistics.median(ms),
+            "rest_speed_median": statistics.median(speed[-TAIL:]), "rest_speed_max": max(speed[-TAIL:]),
+            "pass_contacts": statistics.mean(contacts[-TAIL:]), "iterations": statistics.mean(iterations[-TAIL:]),
+            "reruns": sim.reruns}
+
+
+def main(argv=None) -> int:
+    import tomllib
+
+    import warp as wp
+
+    args = parse_args(argv)
+    wp.config.quiet = True
+    overrides = {}
+    for item in args.set:
+        key, value = item.split("=", 1)
+        overrides[key] = tomllib.loads(f"v = {value}")["v"]
+    rows = []
+    for name in args.scenes:
+        for mode in MODES:
+            r = run(name, mode, args.frames, overrides)
+            rows.append(r)
+            print(json.dumps(r), flush=True)
+    command = "python benchmarks/bench_contacts.py " + " ".join(sys.argv[1:] if argv is None else argv)
+    lines = ["# bench_contacts: collider contacts after the step (\"pass\") or also inside the implicit solve (\"solve\")", "",
+             f"Machine: {platform.machine()}, Python {platform.python_version()}, Warp {wp.config.version}, device cpu. "
+             f"Command: `{command.strip()}`" + (f"; overrides {overrides}" if overrides else ""), "",
+             f"{args.frames} frames per run; speeds and counts over the last {TAIL} frames (at rest: <= 1 mm/s).", "",
+             "| scene | contacts | ms/frame | largest speed, median [mm/s] | largest speed, max [mm/s] | colliders-pass contacts/frame "
+             "| CG iterations/frame | frames re-run |",
+             "|---|---|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        lines.append(f"| {r['scene']} | {r['mode']} | {r['ms_per_frame']:.1f} | {1e3 * r['rest_speed_median']:.2f} | "
+                     f"{1e3 * r['rest_speed_max']:.2f} | {r['pass_contacts']:.0f} | {r['iterations']:.0f} | {r['reruns']} |")
+    out = pathlib.Path(args.out)
+    out.write_text("\n".join(lines) + "\n")
+    out.with_suffix(".json").write_text(json.dumps({"command": command.strip(), "overrides": overrides, "rows": rows}, indent=1) + "\n")
+    print("\n".join(lines))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
