@@ -568,6 +568,7 @@ def cg_product(
     particle_pinned: wp.array(dtype=wp.int32),
     search: wp.array(dtype=wp.vec3),
     contact_normal: wp.array(dtype=wp.vec3),
+    filtered: int,
     global_damping: float,
     dt: float,
     loop: wp.array(dtype=wp.int32),
@@ -583,7 +584,9 @@ def cg_product(
         product_out[i] = wp.vec3(0.0)
         return
     c = search[i]
-    q = contact_filter(contact_normal[i], effective_mass(i, particle_mass, particle_pin_stiffness, global_damping, dt) * c + product_out[i])
+    q = effective_mass(i, particle_mass, particle_pin_stiffness, global_damping, dt) * c + product_out[i]
+    if filtered != 0:  # collider contacts in the solve (`contact_normal`; the per-particle read only then)
+        q = contact_filter(contact_normal[i], q)
     product_out[i] = q
     wp.atomic_add(cg_scalars_out, iteration, CG_CAC, wp.float64(wp.dot(c, q)))
 

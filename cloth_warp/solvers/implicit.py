@@ -198,6 +198,7 @@ class SolverImplicitEuler(SolverBase):
         self.contact_dv = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.contact_impulse = wp.zeros(n, dtype=float, device=dev)
         self.precond_free = wp.zeros(n, dtype=wp.mat33, device=dev)  # contacts' unfiltered preconditioner blocks
+        self._contacts_on = False  # whether the solve being recorded filters contacts
         self.contact_counts = wp.zeros(1, dtype=wp.int32, device=dev)
         self.release = wp.zeros(ki.RELEASE_SIZE, dtype=wp.int32, device=dev)
 
@@ -314,7 +315,8 @@ class SolverImplicitEuler(SolverBase):
                       inputs=[m.tri_vertices, m.tri_corner_weights, self.drag_vector, c, dt], outputs=[q], device=dev)
         self._plate_product(c, dt, q)
         wp.launch(ki.cg_product, dim=m.particle_count,
-                  inputs=[m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, c, self.contact_normal, m.global_damping, dt, self.loop],
+                  inputs=[m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, c, self.contact_normal, int(self._contacts_on),
+                          m.global_damping, dt, self.loop],
                   outputs=[q, self.cg_scalars], device=dev)
         wp.launch(ki.cg_update, dim=m.particle_count, inputs=[self.precond, c, self.loop],
                   outputs=[q, self.dv, self.residual, self.preconditioned, self.cg_scalars], device=dev)
@@ -434,6 +436,7 @@ class SolverImplicitEuler(SolverBase):
         warm = self.warm_start and not state_in.requires_grad
         contacts = self.collider_contacts == "solve" and self.model.collider_count > 0 and not state_in.requires_grad
         with stage("linear_solve"):
+            self._contacts_on = contacts
             if contacts:
                 dv = self._solve_with_contacts(state_in, control, dt, warm)
             else:
@@ -614,6 +617,7 @@ class SolverImplicitEuler(SolverBase):
         report = (wp.clone(self.loop), wp.clone(self.solve_status))  # the forward step's, kept as its report
         self.assemble(state_in, control, dt)  # the step's blocks and preconditioner (overwritten since)
         self.contact_normal.zero_()  # taped steps have no contact filter
+        self._contacts_on = False
         wp.copy(self.rhs, dv.grad)
         self.dv_alt.zero_()
         self._start_from_guess(dt, self._enabled, self.cg_scalars)
