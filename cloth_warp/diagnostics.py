@@ -139,6 +139,8 @@ class LinearSolveReport:
         unconverged: finite solves that ended above the tolerance (at the cap of iterations).
         worst_residual, last_residual: the largest finite and the last relative residual |r_k| / |r_0|.
         tolerance: the solver's relative tolerance.
+        contacts: collider contacts constrained inside the solves (``collider_contacts="solve"``), summed over them;
+            contact_resolves: solves run again because contacts that pulled were released.
     """
 
     solves: int
@@ -150,6 +152,8 @@ class LinearSolveReport:
     worst_residual: float
     last_residual: float
     tolerance: float
+    contacts: int = 0
+    contact_resolves: int = 0
 
     @property
     def converged(self) -> bool:
@@ -247,6 +251,8 @@ class FrameReport:
             out["rejected"] = self.rejected
         else:
             out["frame_reruns"] = self.reruns
+        if self.solves is not None and self.solves.contacts:
+            out.update(solve_contacts=self.solves.contacts, contact_resolves=self.solves.contact_resolves)
         for report in self.passes.values():
             out.update(report.counters())
         return out

@@ -74,7 +74,9 @@ RECORD_FIRST_FAILED = wp.constant(4)  # the 1-based solve (since the reset) that
 RECORD_UNCONVERGED = wp.constant(5)  # finite, above the tolerance at the cap of iterations
 RECORD_WORST_RESIDUAL = wp.constant(6)  # the largest finite relative residual a solve ended with
 RECORD_LAST_RESIDUAL = wp.constant(7)
-RECORD_SIZE = 8
+RECORD_CONTACTS = wp.constant(8)  # collider contacts constrained in the solves (summed over them)
+RECORD_RESOLVES = wp.constant(9)  # re-solves after contacts were released
+RECORD_SIZE = 10
 # A membrane element's diagonal blocks enter the block-diagonal preconditioner P^-1 this many times over.
 # Block Jacobi (dv <- dv + P (b - A dv)) converges when 2 P^-1 - A is positive definite: a spring's 6x6 block
 # satisfies it with weight 1, a 3-corner element only with 3/2 (a PSD matrix of 3x3 blocks is <= 3x its block
@@ -1127,6 +1129,8 @@ def end_linear_solve(
     loop: wp.array(dtype=wp.int32),
     tolerance: wp.float64,
     keep_start: int,
+    contact_counts: wp.array(dtype=wp.int32),
+    release: wp.array(dtype=wp.int32),
     # outputs
     record_out: wp.array(dtype=wp.float64),
     previous_ready_out: wp.array(dtype=wp.int32),
@@ -1137,6 +1141,8 @@ def end_linear_solve(
     solves = record_out[RECORD_SOLVES] + wp.float64(1.0)
     record_out[RECORD_SOLVES] = solves
     record_out[RECORD_ITERATIONS] = record_out[RECORD_ITERATIONS] + iterations
+    record_out[RECORD_CONTACTS] = record_out[RECORD_CONTACTS] + wp.float64(contact_counts[0])
+    record_out[RECORD_RESOLVES] = record_out[RECORD_RESOLVES] + wp.float64(release[RELEASE_ROUNDS])
     record_out[RECORD_MOST_ITERATIONS] = wp.max(record_out[RECORD_MOST_ITERATIONS], iterations)
     record_out[RECORD_LAST_RESIDUAL] = relative
     failed = not wp.isfinite(relative)

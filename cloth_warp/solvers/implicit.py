@@ -406,7 +406,8 @@ class SolverImplicitEuler(SolverBase):
         return LinearSolveReport(
             solves=int(r[ki.RECORD_SOLVES]), iterations=int(r[ki.RECORD_ITERATIONS]), most_iterations=int(r[ki.RECORD_MOST_ITERATIONS]),
             failed=int(r[ki.RECORD_FAILED]), first_failed=int(r[ki.RECORD_FIRST_FAILED]), unconverged=int(r[ki.RECORD_UNCONVERGED]),
-            worst_residual=float(r[ki.RECORD_WORST_RESIDUAL]), last_residual=float(r[ki.RECORD_LAST_RESIDUAL]), tolerance=self.tolerance)
+            worst_residual=float(r[ki.RECORD_WORST_RESIDUAL]), last_residual=float(r[ki.RECORD_LAST_RESIDUAL]), tolerance=self.tolerance,
+            contacts=int(r[ki.RECORD_CONTACTS]), contact_resolves=int(r[ki.RECORD_RESOLVES]))
 
     def carried_arrays(self) -> list:
         return [self.dv_previous, self.previous_ready]
@@ -440,13 +441,16 @@ class SolverImplicitEuler(SolverBase):
             if contacts:
                 dv = self._solve_with_contacts(state_in, control, dt, warm)
             else:
-                if self.collider_contacts == "solve":
-                    self.contact_normal.zero_()  # a taped step: no contact filter
+                if self.collider_contacts == "solve":  # a taped step: no contact filter, nothing to record
+                    self.contact_normal.zero_()
+                    self.contact_counts.zero_()
+                    self.release.zero_()
                 if warm:
                     self._restart_from_previous(dt)
                 dv = self._iterate(dt, warm)
         m = self.model
-        wp.launch(ki.end_linear_solve, dim=1, inputs=[self.solve_status, self.loop, wp.float64(self.tolerance), int(self.warm_start)],
+        wp.launch(ki.end_linear_solve, dim=1, inputs=[self.solve_status, self.loop, wp.float64(self.tolerance), int(self.warm_start),
+                                                      self.contact_counts, self.release],
                   outputs=[self.solve_record, self.previous_ready], device=m.device)
         if self.warm_start:  # a non-finite solve is no start for the next (nor for a retry of this step)
             wp.launch(ki.keep_velocity_change, dim=m.particle_count, inputs=[self.previous_ready, dv], outputs=[self.dv_previous],
