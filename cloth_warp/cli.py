@@ -132,6 +132,9 @@ def format_summary(s: dict) -> str:
             c = s.get("contacts", {})
             lines.append(f"  contacts    {c.get('collider_contacts', 0)} particle-collider contacts with {s['colliders']} "
                          f"collider{'s' if s['colliders'] != 1 else ''} ({c.get('collider_ccd', 0)} caught only by the swept test)")
+            if c.get("solve_contacts"):
+                lines.append(f"              and {c['solve_contacts']} held inside the implicit solve "
+                             f"({c.get('contact_resolves', 0)} re-solves after releasing contacts that pulled)")
         if s.get("self_collision"):
             c = s.get("contacts", {})
             lines.append(f"  self        {c.get('self_proximity', 0)} repulsions, {c.get('self_ccd', 0)} CCD impacts in "

@@ -217,6 +217,10 @@ class StrainLimitReport:
             self.frames + other.frames, self.missed_frames + other.missed_frames)
 
 
+SOLVE_CONTACT_COUNTERS = ("solve_contacts", "contact_resolves")
+"""The frame counters of collider contacts inside the implicit solve (:attr:`LinearSolveReport.contacts`, ``contact_resolves``)."""
+
+
 @dataclass(frozen=True)
 class FrameReport:
     """What one frame did (:attr:`Simulator.frame_report <cloth_warp.simulator.Simulator.frame_report>`), read
@@ -252,7 +256,7 @@ class FrameReport:
         else:
             out["frame_reruns"] = self.reruns
         if self.solves is not None and self.solves.contacts:
-            out.update(solve_contacts=self.solves.contacts, contact_resolves=self.solves.contact_resolves)
+            out.update(zip(SOLVE_CONTACT_COUNTERS, (self.solves.contacts, self.solves.contact_resolves)))
         for report in self.passes.values():
             out.update(report.counters())
         return out

@@ -21,6 +21,7 @@ import numpy as np
 from . import profiling
 from .cache import COUNTER_DIAGNOSTICS, STRAIN_LIMIT_DIAGNOSTICS
 from .collision import ALL_COUNTERS as COLLISION_COUNTERS
+from .diagnostics import SOLVE_CONTACT_COUNTERS
 from .profiling import stage
 from .scene import Scene, SceneError, build_model, build_solver, build_wind, load_scene
 
@@ -325,7 +326,7 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
             with stage("cache"):
                 writer.write(sim.state.particle_q.numpy(), sim.state.particle_qd.numpy(), diag,
                              checkpoint=sim.checkpoint() if writer.save_due else None)
-            for key in COLLISION_COUNTERS:
+            for key in COLLISION_COUNTERS + SOLVE_CONTACT_COUNTERS:
                 if key in info:
                     contacts[key] = contacts.get(key, 0) + info[key]
             max_strain = max(max_strain, stats.max_strain)

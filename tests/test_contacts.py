@@ -217,4 +217,15 @@ def test_pile_comes_to_rest_with_contacts_in_the_solve():
     sim = make_sim("pile", {"solver.collider_contacts": "solve"})
     speeds = [sim.step_frame().max_speed for _ in range(300)]
     assert max(speeds[-20:]) <= 1e-3, speeds[-20:]
-    assert sim.frame_report.passes["colliders"].contacts == 0
+    assert sim.frame_report.passes["colliders"].contacts == 0 < sim.frame_report.solves.contacts
+
+
+def test_run_summary_counts_the_contacts_held_in_the_solve(tmp_path):
+    """Check `cloth-warp run` with solver.collider_contacts = "solve" sums the solve's contacts and re-solves into
+    the summary (--stats) and prints them under the colliders pass's contacts."""
+    from cloth_warp.runner import run_scene
+
+    summary = run_scene("pile", {"solver.collider_contacts": "solve", "cloth.grid.resolution": [12, 12]},
+                        output=tmp_path / "pile.npz", frames=30, progress=None)
+    assert summary["status"] == "complete"
+    assert summary["contacts"]["solve_contacts"] > 0 and "contact_resolves" in summary["contacts"]
