@@ -229,3 +229,23 @@ def test_run_summary_counts_the_contacts_held_in_the_solve(tmp_path):
                         output=tmp_path / "pile.npz", frames=30, progress=None)
     assert summary["status"] == "complete"
     assert summary["contacts"]["solve_contacts"] > 0 and "contact_resolves" in summary["contacts"]
+
+
+@pytest.mark.slow
+def test_cusick_rim_holds_the_strain_limit_with_contacts_in_the_solve():
+    """Check the shipped Cusick drape (a disc on a pedestal, 2 s) with the collider contacts in the solve keeps every
+    strain-limited spring within the 10 % limit + 1 % (measured: 2.5 % at most; with the contacts after the solve
+    only the ring over the rim stays stretched, 39-55 % and 83 springs above 11 %: the limiter shortens them through
+    the pedestal and the pass pushes their ends back out) and comes to rest."""
+    from test_checkpoint import make_sim
+
+    sim = make_sim("cusick", {"solver.collider_contacts": "solve"})
+    for _ in range(120):
+        stats = sim.step_frame()
+    m = sim.model
+    x = sim.positions()
+    ends = m.spring_indices.numpy().reshape(-1, 2)
+    limited = m.spring_limited.numpy() != 0
+    strain = np.linalg.norm(x[ends[:, 0]] - x[ends[:, 1]], axis=1) / m.spring_rest_length.numpy() - 1.0
+    assert strain[limited].max() <= 0.11, strain[limited].max()
+    assert stats.max_speed < 0.05
