@@ -2,7 +2,9 @@
 
 For each scene and mode (`solver.collider_contacts` = "pass" | "solve"), the shipped scene is run as `cloth-warp run`
 builds it for `--frames` frames (default 300: 5 s at 60 fps). Reported: ms per frame (median over the run), the
-largest particle speed over the last 20 frames (median and max: at rest means <= 1 mm/s, issue 17's target),
+largest particle speed over the last 20 frames (median and max: at rest means <= 1 mm/s, issue 17's target), the
+largest strain of a strain-limited spring at the end and how many exceed the limit by more than 1 % (a ring
+stretched over a collider's rim),
 the colliders pass's contacts per frame and the CG iterations per frame (means over the last 20 frames), and the
 frames re-run because a self-collision buffer overflowed or a step needed impact zones.
 
@@ -57,7 +59,16 @@ def run(scene_name: str, mode: str, frames: int, overrides: dict) -> dict:
         speed.append(stats.max_speed)
         contacts.append(report.passes["colliders"].contacts if "colliders" in report.passes else 0)
         iterations.append(report.iterations)
+    import numpy as np
+
+    x = sim.positions()
+    ends = model.spring_indices.numpy().reshape(-1, 2)
+    limited = model.spring_limited.numpy() != 0
+    strain = np.linalg.norm(x[ends[:, 0]] - x[ends[:, 1]], axis=1) / model.spring_rest_length.numpy() - 1.0
+    limit = solver.strain_limiter.max_strain if solver.strain_limiter is not None else None
     return {"scene": scene_name, "mode": mode, "frames": frames, "ms_per_frame": statistics.median(ms),
+            "max_limited_strain": float(strain[limited].max()) if limited.any() else 0.0,
+            "springs_over_limit": int((strain[limited] > limit + 0.01).sum()) if limit is not None else None,
             "rest_speed_median": statistics.median(speed[-TAIL:]), "rest_speed_max": max(speed[-TAIL:]),
             "pass_contacts": statistics.mean(contacts[-TAIL:]), "iterations": statistics.mean(iterations[-TAIL:]),
             "reruns": sim.reruns}
@@ -86,11 +97,12 @@ def main(argv=None) -> int:
              f"Command: `{command.strip()}`" + (f"; overrides {overrides}" if overrides else ""), "",
              f"{args.frames} frames per run; speeds and counts over the last {TAIL} frames (at rest: <= 1 mm/s).", "",
              "| scene | contacts | ms/frame | largest speed, median [mm/s] | largest speed, max [mm/s] | colliders-pass contacts/frame "
-             "| CG iterations/frame | frames re-run |",
-             "|---|---|---:|---:|---:|---:|---:|---:|"]
+             "| CG iterations/frame | frames re-run | max limited strain (end) | springs > limit + 1 % |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         lines.append(f"| {r['scene']} | {r['mode']} | {r['ms_per_frame']:.1f} | {1e3 * r['rest_speed_median']:.2f} | "
-                     f"{1e3 * r['rest_speed_max']:.2f} | {r['pass_contacts']:.0f} | {r['iterations']:.0f} | {r['reruns']} |")
+                     f"{1e3 * r['rest_speed_max']:.2f} | {r['pass_contacts']:.0f} | {r['iterations']:.0f} | {r['reruns']} | "
+                     f"{r['max_limited_strain']:.3f} | {r['springs_over_limit']} |")
     out = pathlib.Path(args.out)
     out.write_text("\n".join(lines) + "\n")
     out.with_suffix(".json").write_text(json.dumps({"command": command.strip(), "overrides": overrides, "rows": rows}, indent=1) + "\n")
