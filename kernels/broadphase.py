@@ -139,11 +139,10 @@ def fill_cells(
                 slot += 1
 
 
-@wp.kernel(enable_backward=False)
-def bucket_ranges(keys: wp.array(dtype=wp.int32), total: int, bucket_start_out: wp.array(dtype=wp.int32),
-                  bucket_end_out: wp.array(dtype=wp.int32)):
-    """[start, end) of each bucket's run in the sorted keys (buckets must be zeroed: empty = [0, 0))."""
-    i = wp.tid()
+@wp.func
+def mark_bucket(i: int, keys: wp.array(dtype=wp.int32), total: int, bucket_start_out: wp.array(dtype=wp.int32),
+                bucket_end_out: wp.array(dtype=wp.int32)):
+    """Sorted entry i opens and/or closes its bucket's [start, end) run."""
     k = keys[i]
     if i == 0 or keys[i - 1] != k:
         bucket_start_out[k] = i
@@ -152,18 +151,33 @@ def bucket_ranges(keys: wp.array(dtype=wp.int32), total: int, bucket_start_out: 
 
 
 @wp.kernel(enable_backward=False)
-def gather_sorted_entries(sorted_entries: wp.array(dtype=wp.int32), entry_element: wp.array(dtype=wp.int32),
-                          entry_cell: wp.array(dtype=wp.vec3i), lo: wp.array(dtype=wp.vec3), hi: wp.array(dtype=wp.vec3),
-                          element_out: wp.array(dtype=wp.int32), cell_out: wp.array(dtype=wp.vec3i),
-                          lo_out: wp.array(dtype=wp.vec3), hi_out: wp.array(dtype=wp.vec3)):
-    """Entries' element, voxel and box in bucket order, so that a bucket's scan reads memory sequentially."""
-    s = wp.tid()
+def bucket_ranges(keys: wp.array(dtype=wp.int32), total: int, bucket_start_out: wp.array(dtype=wp.int32),
+                  bucket_end_out: wp.array(dtype=wp.int32)):
+    """[start, end) of each bucket's run in the sorted keys (buckets must be zeroed: empty = [0, 0))."""
+    mark_bucket(wp.tid(), keys, total, bucket_start_out, bucket_end_out)
+
+
+@wp.func
+def gather_sorted_entry(s: int, sorted_entries: wp.array(dtype=wp.int32), entry_element: wp.array(dtype=wp.int32),
+                        entry_cell: wp.array(dtype=wp.vec3i), lo: wp.array(dtype=wp.vec3), hi: wp.array(dtype=wp.vec3),
+                        element_out: wp.array(dtype=wp.int32), cell_out: wp.array(dtype=wp.vec3i),
+                        lo_out: wp.array(dtype=wp.vec3), hi_out: wp.array(dtype=wp.vec3)):
+    """Sorted entry s's element, voxel and box."""
     e = sorted_entries[s]
     element = entry_element[e]
     element_out[s] = element
     cell_out[s] = entry_cell[e]
     lo_out[s] = lo[element]
     hi_out[s] = hi[element]
+
+
+@wp.kernel(enable_backward=False)
+def gather_sorted_entries(sorted_entries: wp.array(dtype=wp.int32), entry_element: wp.array(dtype=wp.int32),
+                          entry_cell: wp.array(dtype=wp.vec3i), lo: wp.array(dtype=wp.vec3), hi: wp.array(dtype=wp.vec3),
+                          element_out: wp.array(dtype=wp.int32), cell_out: wp.array(dtype=wp.vec3i),
+                          lo_out: wp.array(dtype=wp.vec3), hi_out: wp.array(dtype=wp.vec3)):
+    """Entries' element, voxel and box in bucket order, so that a bucket's scan reads memory sequentially."""
+    gather_sorted_entry(wp.tid(), sorted_entries, entry_element, entry_cell, lo, hi, element_out, cell_out, lo_out, hi_out)
 
 
 @wp.kernel(enable_backward=False)
@@ -173,14 +187,8 @@ def gather_sorted_entries_listed(total: wp.array(dtype=wp.int32), sorted_entries
                                  cell_out: wp.array(dtype=wp.vec3i), lo_out: wp.array(dtype=wp.vec3), hi_out: wp.array(dtype=wp.vec3)):
     """:func:`gather_sorted_entries` launched over the capacity: the first total[0] entries (capturable path)."""
     s = wp.tid()
-    if s >= total[0]:
-        return
-    e = sorted_entries[s]
-    element = entry_element[e]
-    element_out[s] = element
-    cell_out[s] = entry_cell[e]
-    lo_out[s] = lo[element]
-    hi_out[s] = hi[element]
+    if s < total[0]:
+        gather_sorted_entry(s, sorted_entries, entry_element, entry_cell, lo, hi, element_out, cell_out, lo_out, hi_out)
 
 
 @wp.kernel(enable_backward=False)
@@ -210,13 +218,8 @@ def bucket_ranges_listed(keys: wp.array(dtype=wp.int32), total: wp.array(dtype=w
     """:func:`bucket_ranges` launched over the capacity, with the entry count total[0] on the device."""
     i = wp.tid()
     n = total[0]
-    if i >= n:
-        return
-    k = keys[i]
-    if i == 0 or keys[i - 1] != k:
-        bucket_start_out[k] = i
-    if i == n - 1 or keys[i + 1] != k:
-        bucket_end_out[k] = i + 1
+    if i < n:
+        mark_bucket(i, keys, n, bucket_start_out, bucket_end_out)
 
 
 @wp.kernel(enable_backward=False)
@@ -349,16 +352,21 @@ def mark_changed_elements(elements: wp.array2d(dtype=wp.int32), weight: wp.array
                 flags_out[e] = 1
 
 
-@wp.kernel(enable_backward=False)
-def select_flagged_pairs(pairs: wp.array(dtype=wp.vec2i), first_flags: wp.array(dtype=wp.int32), second_flags: wp.array(dtype=wp.int32),
-                         flagged: int, selected_out: wp.array(dtype=wp.vec2i), count_out: wp.array(dtype=wp.int32)):
-    """Compact the pairs with a flagged element (`flagged` = 1) or with neither element flagged (0)."""
-    tid = wp.tid()
-    p = pairs[tid]
+@wp.func
+def select_if_flagged(p: wp.vec2i, first_flags: wp.array(dtype=wp.int32), second_flags: wp.array(dtype=wp.int32), flagged: int,
+                      selected_out: wp.array(dtype=wp.vec2i), count_out: wp.array(dtype=wp.int32)):
+    """Append pair p when it has a flagged element (`flagged` = 1) or neither element flagged (0)."""
     hit = first_flags[p[0]] != 0 or second_flags[p[1]] != 0
     if hit == (flagged != 0):
         slot = wp.atomic_add(count_out, 0, 1)
         selected_out[slot] = p
+
+
+@wp.kernel(enable_backward=False)
+def select_flagged_pairs(pairs: wp.array(dtype=wp.vec2i), first_flags: wp.array(dtype=wp.int32), second_flags: wp.array(dtype=wp.int32),
+                         flagged: int, selected_out: wp.array(dtype=wp.vec2i), count_out: wp.array(dtype=wp.int32)):
+    """Compact the pairs with a flagged element (`flagged` = 1) or with neither element flagged (0)."""
+    select_if_flagged(pairs[wp.tid()], first_flags, second_flags, flagged, selected_out, count_out)
 
 
 @wp.kernel(enable_backward=False)
@@ -368,13 +376,8 @@ def select_flagged_pairs_listed(count: wp.array(dtype=wp.int32), pairs: wp.array
     """:func:`select_flagged_pairs` launched over the capacity: the first count[0] pairs (capturable path; the
     selection is a subset, so it never exceeds the capacity)."""
     tid = wp.tid()
-    if tid >= count[0]:
-        return
-    p = pairs[tid]
-    hit = first_flags[p[0]] != 0 or second_flags[p[1]] != 0
-    if hit == (flagged != 0):
-        slot = wp.atomic_add(count_out, 0, 1)
-        selected_out[slot] = p
+    if tid < count[0]:
+        select_if_flagged(pairs[tid], first_flags, second_flags, flagged, selected_out, count_out)
 
 
 # -- the capturable path's patch: a few particles left the margin, so only the elements touching them are registered
