@@ -59,18 +59,17 @@ def eval_collider_contacts(
     contact_collider_out: wp.array(dtype=wp.int32),
     contact_normal_out: wp.array(dtype=wp.vec3),
     contact_velocity_out: wp.array(dtype=wp.vec3),
-    contact_push_out: wp.array(dtype=float),
     contact_dv_out: wp.array(dtype=wp.vec3),
     counts_out: wp.array(dtype=wp.int32),
 ):
     """Per particle: the collider it touches (-1: none), the outward unit normal n (world, end pose; zero without a
-    contact), the surface velocity u [m/s] there, the prescribed relative normal speed (thickness - d0) / h [m/s],
-    and the velocity change it prescribes, z = ((u . n + push) - v0 . n) n [m/s] (zero without a contact)."""
+    contact), the surface velocity u [m/s] there and the velocity change it prescribes, z = ((u . n + push) - v0 . n) n
+    [m/s] with push = (thickness (1 + clearance) - d0) / h the relative normal speed that ends the step at the
+    thickness (zero without a contact)."""
     i = wp.tid()
     contact_collider_out[i] = -1
     contact_normal_out[i] = wp.vec3(0.0)
     contact_velocity_out[i] = wp.vec3(0.0)
-    contact_push_out[i] = 0.0
     contact_dv_out[i] = wp.vec3(0.0)
     if particle_pinned[i] != 0:
         return
@@ -78,6 +77,7 @@ def eval_collider_contacts(
     xp = xs + dt * v0[i] + (dt * dt) * gravity
     inv_dt = 1.0 / dt
     best = float(0.0)
+    push = float(0.0)
     found = int(-1)
     for c in range(collider_count):
         shape = collider_shape[c]
@@ -105,9 +105,9 @@ def eval_collider_contacts(
                 best = depth
                 contact_normal_out[i] = n
                 contact_velocity_out[i] = u
-                contact_push_out[i] = (thickness * (1.0 + CLEARANCE) - d0) * inv_dt
+                push = (thickness * (1.0 + CLEARANCE) - d0) * inv_dt
     contact_collider_out[i] = found
     if found >= 0:
         n = contact_normal_out[i]
-        contact_dv_out[i] = (wp.dot(contact_velocity_out[i], n) + contact_push_out[i] - wp.dot(v0[i], n)) * n
+        contact_dv_out[i] = (wp.dot(contact_velocity_out[i], n) + push - wp.dot(v0[i], n)) * n
         wp.atomic_add(counts_out, COUNT_CONTACTS, 1)

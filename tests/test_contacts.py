@@ -21,8 +21,8 @@ def find_contacts(model, x, v, time=0.0, dt=DT):
     control = model.control()
     model.update_control(control, time + dt, dt, force=True)
     n = len(x)
-    out = [wp.zeros(n, dtype=wp.int32), wp.zeros(n, dtype=wp.vec3), wp.zeros(n, dtype=wp.vec3), wp.zeros(n, dtype=float),
-           wp.zeros(n, dtype=wp.vec3), wp.zeros(1, dtype=wp.int32)]
+    out = [wp.zeros(n, dtype=wp.int32), wp.zeros(n, dtype=wp.vec3), wp.zeros(n, dtype=wp.vec3), wp.zeros(n, dtype=wp.vec3),
+           wp.zeros(1, dtype=wp.int32)]
     wp.launch(kct.eval_collider_contacts, dim=n,
               inputs=[model.particle_pinned, model.collider_count, model.collider_shape, model.collider_size, model.collider_mesh,
                       model.collider_deforming, model.collider_thickness, model.collider_static_friction,
@@ -30,8 +30,7 @@ def find_contacts(model, x, v, time=0.0, dt=DT):
                       control.collider_transform_end, wp.array(x, dtype=wp.vec3), wp.array(v, dtype=wp.vec3), wp.vec3(0.0, 0.0, 0.0), dt,
                       MARGIN],
               outputs=out)
-    out = [a.numpy() for a in out]
-    return out[:4] + out[5:]  # (the prescribed dv: test_contact_prescribes_landing_at_the_thickness)
+    return [a.numpy() for a in out]  # collider, normal, surface velocity, prescribed dv, count
 
 
 def particles(builder, points):
@@ -41,7 +40,8 @@ def particles(builder, points):
 
 def test_contacts_on_a_ground_plane():
     """Check who touches the ground (y = 0): resting within the margin, inside (pushed out), approaching fast
-    enough to arrive this step; not: above the margin and slow, pinned; the push lands the step at the thickness."""
+    enough to arrive this step; not: above the margin and slow, pinned; the prescribed velocity change lands the step
+    at the thickness."""
     b = cw.ModelBuilder()
     heights = [0.01, 0.012, 0.004, 0.1, 0.02, 0.01]
     speeds = [0.0, 0.0, 0.0, -12.0, 0.0, 0.0]  # the 4th covers 10 cm in one 1/120 s step
@@ -51,19 +51,22 @@ def test_contacts_on_a_ground_plane():
     m = b.finalize("cpu")
     x = np.array([(0.1 * k, y, 0.0) for k, y in enumerate(heights)], np.float32)
     v = np.array([(0.0, s, 0.0) for s in speeds], np.float32)
-    col, normal, vel, push, count = find_contacts(m, x, v)
+    col, normal, vel, dv, count = find_contacts(m, x, v)
     np.testing.assert_array_equal(col, [0, 0, 0, 0, -1, -1])
     assert count[0] == 4
     np.testing.assert_allclose(normal[:4], [[0, 1, 0]] * 4, atol=1e-6)
     np.testing.assert_allclose(vel[:4], 0.0, atol=1e-6)
-    np.testing.assert_allclose(push[:4], (THICKNESS * (1 + kct.CLEARANCE) - np.array(heights[:4])) / DT, rtol=1e-5, atol=1e-4)
-    assert push[2] > 0.0 and push[3] < 0.0  # out from inside, down onto the surface from above
+    landing = x[:4, 1] + DT * (v[:4, 1] + dv[:4, 1])
+    np.testing.assert_allclose(landing, THICKNESS * (1 + kct.CLEARANCE), atol=1e-6)
+    assert dv[2, 1] > 0.0 and v[3, 1] + dv[3, 1] < 0.0  # out from inside, down onto the surface from above
+    np.testing.assert_array_equal(dv[4:], 0.0)
 
 
 @pytest.mark.parametrize("shape", ["sphere", "box", "capsule", "cylinder", "mesh"])
 def test_contact_normals_match_the_collider_distance(shape, rng):
-    """Check, on every shape, that a particle near the surface gets the collider's outward normal and the push
-    computed from its signed distance (`collision.collider_distance`, the post-solve pass's function)."""
+    """Check, on every shape, that a particle near the surface gets the collider's outward normal and a velocity
+    change that ends the step at the thickness, from its signed distance (`collision.collider_distance`, the post-solve
+    pass's function)."""
     centre = (0.0, 0.5, 0.0)
 
     def with_collider(points):
@@ -95,12 +98,13 @@ def test_contact_normals_match_the_collider_distance(shape, rng):
     pts = (pts + heights[:, None] * n).astype(np.float32)
     d, n = collider_distance(model0, 0, pts)
     m = with_collider(pts)
-    col, normal, vel, push, _ = find_contacts(m, pts, np.zeros_like(pts))
+    col, normal, vel, dv, _ = find_contacts(m, pts, np.zeros_like(pts))
     touching = d < THICKNESS * (1.0 + MARGIN)
     clear = np.abs(d - THICKNESS * (1.0 + MARGIN)) > 1e-5  # away from the threshold's float32 rounding
     np.testing.assert_array_equal((col == 0)[clear], touching[clear])
     np.testing.assert_allclose(normal[touching], n[touching], atol=2e-5)
-    np.testing.assert_allclose(push[touching], (THICKNESS * (1 + kct.CLEARANCE) - d[touching]) / DT, rtol=1e-4, atol=2e-3)
+    landing = d[touching] + DT * np.einsum("ij,ij->i", dv[touching], n[touching])  # at rest, on a resting collider
+    np.testing.assert_allclose(landing, THICKNESS * (1 + kct.CLEARANCE), atol=2e-5)
 
 
 def test_contact_takes_a_moving_collider_surface_velocity():
@@ -109,7 +113,7 @@ def test_contact_takes_a_moving_collider_surface_velocity():
     b.add_particle((0.0, 0.11, 0.0))
     b.add_box((0.0, 0.0, 0.0), (1.0, 0.2, 1.0), thickness=THICKNESS, keyframes=[(0.0, (0, 0, 0)), (2.0, (0, 2.0, 0))])
     m = b.finalize("cpu")
-    col, normal, vel, push, _ = find_contacts(m, np.array([[0.0, 0.11, 0.0]], np.float32), np.zeros((1, 3), np.float32))
+    col, normal, vel, _, _ = find_contacts(m, np.array([[0.0, 0.11, 0.0]], np.float32), np.zeros((1, 3), np.float32))
     assert col[0] == 0
     np.testing.assert_allclose(normal[0], [0, 1, 0], atol=1e-6)
     np.testing.assert_allclose(vel[0], [0.0, 1.0, 0.0], atol=1e-4)
@@ -126,15 +130,15 @@ def test_contact_prescribes_landing_at_the_thickness():
     m.update_control(control, DT, DT, force=True)
     x = wp.array([[0.0, 0.013, 0.0]], dtype=wp.vec3)
     v0 = np.array([[0.5, -0.2, 0.0]], np.float32)
-    out = [wp.zeros(1, dtype=wp.int32), wp.zeros(1, dtype=wp.vec3), wp.zeros(1, dtype=wp.vec3), wp.zeros(1, dtype=float),
-           wp.zeros(1, dtype=wp.vec3), wp.zeros(1, dtype=wp.int32)]
+    out = [wp.zeros(1, dtype=wp.int32), wp.zeros(1, dtype=wp.vec3), wp.zeros(1, dtype=wp.vec3), wp.zeros(1, dtype=wp.vec3),
+           wp.zeros(1, dtype=wp.int32)]
     wp.launch(kct.eval_collider_contacts, dim=1,
               inputs=[m.particle_pinned, m.collider_count, m.collider_shape, m.collider_size, m.collider_mesh, m.collider_deforming,
                       m.collider_thickness, m.collider_static_friction, m.collider_kinetic_friction, m.collider_mesh_max_distance,
                       control.collider_transform_start, control.collider_transform_end, x, wp.array(v0, dtype=wp.vec3), wp.vec3(0.0, 0.0, 0.0), DT,
                       MARGIN],
               outputs=out)
-    z = out[4].numpy()[0]
+    z = out[3].numpy()[0]
     v1 = v0[0] + z
     assert v1[0] == pytest.approx(0.5, abs=1e-6) and v1[2] == pytest.approx(0.0, abs=1e-6)
     assert 0.013 + DT * v1[1] == pytest.approx(THICKNESS * (1 + kct.CLEARANCE), abs=1e-6)

@@ -194,7 +194,6 @@ class SolverImplicitEuler(SolverBase):
         self.contact_collider = wp.zeros(n, dtype=wp.int32, device=dev)
         self.contact_normal = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.contact_velocity = wp.zeros(n, dtype=wp.vec3, device=dev)
-        self.contact_push = wp.zeros(n, dtype=float, device=dev)
         self.contact_dv = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.contact_impulse = wp.zeros(n, dtype=float, device=dev)
         self.precond_free = wp.zeros(n, dtype=wp.mat33, device=dev)  # contacts' unfiltered preconditioner blocks
@@ -483,7 +482,7 @@ class SolverImplicitEuler(SolverBase):
                           m.collider_thickness, m.collider_static_friction, m.collider_kinetic_friction, m.collider_mesh_max_distance,
                           control.collider_transform_start, control.collider_transform_end, state_in.particle_q, state_in.particle_qd,
                           wp.vec3(*m.gravity), dt, self.contact_margin],
-                  outputs=[self.contact_collider, self.contact_normal, self.contact_velocity, self.contact_push, self.contact_dv,
+                  outputs=[self.contact_collider, self.contact_normal, self.contact_velocity, self.contact_dv,
                            self.contact_counts], device=dev)
         wp.launch(ki.filter_contact_preconditioner, dim=m.particle_count, inputs=[self.contact_normal],
                   outputs=[self.precond, self.precond_free], device=dev)
