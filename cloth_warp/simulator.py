@@ -236,7 +236,7 @@ class Simulator:
                 self.solver.reset_pass_reports()
                 self.solver.reset_report()
                 self.stepper.advance(self.state, self.control, self.time, self.frame_dt)
-                self.diagnostics.launch(self.state)
+                # (the statistics: the stepper's of its last, accepted, trial step, which the state now holds)
                 with self._frame_record().fetched():  # one read: every report below comes from it
                     self.pass_reports = self.solver.read_pass_reports()
                     stats = self.diagnostics.read()
