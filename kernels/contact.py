@@ -33,6 +33,28 @@ COUNT_CONTACTS = wp.constant(0)
 CLEARANCE = wp.constant(2.0e-3)
 
 
+@wp.func
+def surface_contact(shape: int, size: wp.vec3, mesh: wp.uint64, mesh_max_distance: float, deforming: int, t_start: wp.transform,
+                    t_end: wp.transform, x: wp.vec3, dt: float):
+    """A particle at x against one collider over a step: its distance d0 [m] to the surface (start pose), the outward
+    unit normal n (world, end pose) and the surface velocity u [m/s] there."""
+    p = wp.transform_point(wp.transform_inverse(t_start), x)
+    if deforming != 0:
+        p = p + dt * mesh_surface_velocity(mesh, mesh_max_distance, p)
+    d0, n_local = shape_distance(shape, size, mesh, mesh_max_distance, p)
+    u = surface_velocity(deforming, mesh, mesh_max_distance, t_start, t_end, p, 1.0 / dt)
+    return d0, wp.transform_vector(t_end, n_local), u
+
+
+@wp.func
+def prescribed_velocity_change(n: wp.vec3, u: wp.vec3, v0: wp.vec3, d0: float, thickness: float, dt: float):
+    """z = ((u . n + push) - v0 . n) n [m/s], push = (thickness (1 + clearance) - d0) / h: the normal velocity change
+    that ends the step at the thickness."""
+    push = (thickness * (1.0 + CLEARANCE) - d0) * (1.0 / dt)
+    return (wp.dot(u, n) + push - wp.dot(v0, n)) * n
+
+
+
 @wp.kernel
 def eval_collider_contacts(
     # Model
@@ -75,9 +97,7 @@ def eval_collider_contacts(
         return
     xs = x0[i]
     xp = xs + dt * v0[i] + (dt * dt) * gravity
-    inv_dt = 1.0 / dt
     best = float(0.0)
-    push = float(0.0)
     found = int(-1)
     for c in range(collider_count):
         shape = collider_shape[c]
@@ -87,16 +107,11 @@ def eval_collider_contacts(
         t_start = collider_transform_start[c]
         t_end = collider_transform_end[c]
         deforming = collider_deforming[c]
-        ps = wp.transform_point(wp.transform_inverse(t_start), xs)
-        if deforming != 0:
-            ps = ps + dt * mesh_surface_velocity(mesh, mesh_max_distance, ps)
-        d0, n_local = shape_distance(shape, size, mesh, mesh_max_distance, ps)
+        d0, n, u = surface_contact(shape, size, mesh, mesh_max_distance, deforming, t_start, t_end, xs, dt)
         pe = wp.transform_point(wp.transform_inverse(t_end), xp)
         d_end, n_end = shape_distance(shape, size, mesh, mesh_max_distance, pe)
         depth = d0 - thickness
         if d0 < thickness * (1.0 + margin) or d_end < thickness:
-            n = wp.transform_vector(t_end, n_local)
-            u = surface_velocity(deforming, mesh, mesh_max_distance, t_start, t_end, ps, inv_dt)
             # within the margin: not when lifting off (moving away fast enough to leave the band this step; a
             # slower one stays in contact, and is released by the solve if it pulls); inside, or arriving, always
             leaving = d0 >= thickness and d0 + dt * wp.dot(v0[i] - u, n) >= thickness * (1.0 + margin)
@@ -105,9 +120,44 @@ def eval_collider_contacts(
                 best = depth
                 contact_normal_out[i] = n
                 contact_velocity_out[i] = u
-                push = (thickness * (1.0 + CLEARANCE) - d0) * inv_dt
+                contact_dv_out[i] = prescribed_velocity_change(n, u, v0[i], d0, thickness, dt)
     contact_collider_out[i] = found
     if found >= 0:
-        n = contact_normal_out[i]
-        contact_dv_out[i] = (wp.dot(contact_velocity_out[i], n) + push - wp.dot(v0[i], n)) * n
         wp.atomic_add(counts_out, COUNT_CONTACTS, 1)
+
+
+@wp.kernel(enable_backward=True)
+def eval_contact_constraints(
+    # Model
+    collider_shape: wp.array(dtype=wp.int32),
+    collider_size: wp.array(dtype=wp.vec3),
+    collider_mesh: wp.array(dtype=wp.uint64),
+    collider_deforming: wp.array(dtype=wp.int32),
+    collider_thickness: wp.array(dtype=float),
+    mesh_max_distance: float,
+    # Control
+    collider_transform_start: wp.array(dtype=wp.transform),
+    collider_transform_end: wp.array(dtype=wp.transform),
+    # the contact set, held fixed (a solved step's: `eval_collider_contacts`, less the released)
+    contact_collider: wp.array(dtype=wp.int32),
+    # State in
+    x0: wp.array(dtype=wp.vec3),
+    v0: wp.array(dtype=wp.vec3),
+    dt: float,
+    # outputs
+    contact_normal_out: wp.array(dtype=wp.vec3),
+    contact_velocity_out: wp.array(dtype=wp.vec3),
+    contact_dv_out: wp.array(dtype=wp.vec3),
+):
+    """The normal, surface velocity and prescribed velocity change of each contact of a given set, as
+    `eval_collider_contacts` finds them, as differentiable functions of x0, v0 and the colliders' poses (a taped
+    step's contacts: the set itself, a discrete choice, is held fixed)."""
+    i = wp.tid()
+    c = contact_collider[i]
+    if c < 0:
+        return
+    d0, n, u = surface_contact(collider_shape[c], collider_size[c], collider_mesh[c], mesh_max_distance, collider_deforming[c],
+                               collider_transform_start[c], collider_transform_end[c], x0[i], dt)
+    contact_normal_out[i] = n
+    contact_velocity_out[i] = u
+    contact_dv_out[i] = prescribed_velocity_change(n, u, v0[i], d0, collider_thickness[c], dt)

@@ -920,6 +920,7 @@ def eval_contact_release(
     max_rounds: int,
     # outputs
     precond_out: wp.array(dtype=wp.mat33),
+    contact_collider_out: wp.array(dtype=wp.int32),
     contact_normal_out: wp.array(dtype=wp.vec3),
     contact_dv_out: wp.array(dtype=wp.vec3),
     contact_impulse_out: wp.array(dtype=float),
@@ -928,7 +929,7 @@ def eval_contact_release(
     """The impulse [kg m/s] each collider contact exerts along its normal in the solved step, lambda = n . (A dv - b)_i
     (the part of the momentum balance the filter took out); a contact that pulls (lambda < -release_impulse m_i
     [m/s x kg]: the cloth wants to leave the surface faster than prescribed; the threshold keeps the solve's
-    round-off in lambda from releasing a contact that barely bears any load) is released (n = 0, z = 0, its unfiltered preconditioner block back)
+    round-off in lambda from releasing a contact that barely bears any load) is released (collider -1, n = 0, z = 0, its unfiltered preconditioner block back)
     and release_out[RELEASE_FLAG] set, while
     fewer than `max_rounds` re-solves were run this step."""
     i = wp.tid()
@@ -943,6 +944,7 @@ def eval_contact_release(
     impulse = wp.dot(n, a_dv - rhs[i])
     contact_impulse_out[i] = impulse
     if impulse < -release_impulse * particle_mass[i] and release_out[RELEASE_ROUNDS] < max_rounds:
+        contact_collider_out[i] = -1
         contact_normal_out[i] = wp.vec3(0.0)
         contact_dv_out[i] = wp.vec3(0.0)
         contact_impulse_out[i] = 0.0
@@ -962,6 +964,23 @@ def begin_contact_resolve(
     loop_out[LOOP_CARRIED] = loop_out[LOOP_CARRIED] + loop_out[LOOP_ITERATION]
 
 
+@wp.func
+def coulomb_friction(dv: wp.vec3, v0: wp.vec3, surface_velocity: wp.vec3, n: wp.vec3, impulse: float, mass: float,
+                     static_friction: float, kinetic_friction: float):
+    """A contact's velocity change after Coulomb friction from its normal impulse lambda [kg m/s] (velocity level,
+    Bridson et al. 2002): with dv_N = lambda / m, the end velocity's tangential part relative to the surface, v_T, is
+    stopped when |v_T| <= mu_s dv_N, else shortened by mu_k dv_N. No friction without a pushing impulse."""
+    if impulse <= 0.0 or mass <= 0.0:
+        return dv
+    normal_change = impulse / mass
+    rel = v0 + dv - surface_velocity
+    tangential = rel - wp.dot(rel, n) * n
+    speed = wp.length(tangential)
+    if speed <= static_friction * normal_change:
+        return dv - tangential
+    return dv - (kinetic_friction * normal_change / speed) * tangential
+
+
 @wp.kernel(enable_backward=False)
 def apply_contact_friction(
     particle_mass: wp.array(dtype=float),
@@ -975,25 +994,65 @@ def apply_contact_friction(
     # outputs
     dv_out: wp.array(dtype=wp.vec3),
 ):
-    """Coulomb friction from the solved normal impulse lambda (velocity level, Bridson et al. 2002): with
-    dv_N = lambda / m, the end velocity's tangential part relative to the surface, v_T, is stopped when
-    |v_T| <= mu_s dv_N, else shortened by mu_k dv_N."""
+    """Coulomb friction (`coulomb_friction`) on each contact's solved dv, from the impulse the release check measured."""
     i = wp.tid()
-    n = contact_normal[i]
     c = contact_collider[i]
-    if c < 0 or wp.dot(n, n) == 0.0:
+    if c < 0:
         return
-    impulse = contact_impulse[i]
-    if impulse <= 0.0 or particle_mass[i] <= 0.0:
+    dv_out[i] = coulomb_friction(dv_out[i], v0[i], contact_velocity[i], contact_normal[i], contact_impulse[i], particle_mass[i],
+                                 collider_static_friction[c], collider_kinetic_friction[c])
+
+
+@wp.kernel
+def eval_contact_friction(
+    particle_mass: wp.array(dtype=float),
+    contact_collider: wp.array(dtype=wp.int32),
+    contact_normal: wp.array(dtype=wp.vec3),
+    contact_velocity: wp.array(dtype=wp.vec3),
+    collider_static_friction: wp.array(dtype=float),
+    collider_kinetic_friction: wp.array(dtype=float),
+    v0: wp.array(dtype=wp.vec3),
+    dv: wp.array(dtype=wp.vec3),
+    unfiltered_residual: wp.array(dtype=wp.vec3),
+    # outputs
+    dv_out: wp.array(dtype=wp.vec3),
+):
+    """A taped step's friction: `coulomb_friction` with lambda = -n . (b - A dv)_i from the unfiltered residual, into a
+    fresh array (differentiable; whether a contact sticks or slides is held fixed, as the contact set is)."""
+    i = wp.tid()
+    c = contact_collider[i]
+    if c < 0:
+        dv_out[i] = dv[i]
         return
-    normal_change = impulse / particle_mass[i]
-    rel = v0[i] + dv_out[i] - contact_velocity[i]
-    tangential = rel - wp.dot(rel, n) * n
-    speed = wp.length(tangential)
-    if speed <= collider_static_friction[c] * normal_change:
-        dv_out[i] = dv_out[i] - tangential
-    else:
-        dv_out[i] = dv_out[i] - (collider_kinetic_friction[c] * normal_change / speed) * tangential
+    n = contact_normal[i]
+    dv_out[i] = coulomb_friction(dv[i], v0[i], contact_velocity[i], n, -wp.dot(n, unfiltered_residual[i]), particle_mass[i],
+                                 collider_static_friction[c], collider_kinetic_friction[c])
+
+
+@wp.kernel
+def constrain_contact_velocity_change(
+    contact_normal: wp.array(dtype=wp.vec3),
+    contact_dv: wp.array(dtype=wp.vec3),
+    dv: wp.array(dtype=wp.vec3),
+    # outputs
+    dv_out: wp.array(dtype=wp.vec3),
+):
+    """A taped step's dv with its contacts' normal part prescribed: S_i dv + z_i (z_i a function of x0, v0 and the
+    collider, `kernels/contact.py` eval_contact_constraints), as pins are in `compose_velocity_change`."""
+    i = wp.tid()
+    dv_out[i] = contact_filter(contact_normal[i], dv[i]) + contact_dv[i]
+
+
+@wp.kernel
+def filter_contact_residual(
+    contact_normal: wp.array(dtype=wp.vec3),
+    residual: wp.array(dtype=wp.vec3),
+    # outputs
+    residual_out: wp.array(dtype=wp.vec3),
+):
+    """S r: the residual of a step whose contacts are constrained (differentiable, the normal included)."""
+    i = wp.tid()
+    residual_out[i] = contact_filter(contact_normal[i], residual[i])
 
 
 # -- the solve's loop on the device ---------------------------------------------------------------

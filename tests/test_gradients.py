@@ -243,6 +243,17 @@ for name in SOLVERS:
     setup = Setup({device!r}, name, np.random.default_rng(0))
     setup.rollout.gradient(setup.loss, setup.state0())
     print("SOLVER-DONE", name, flush=True)
+# collider contacts in the implicit solve (their constraints, filter and friction on the tape)
+b = cw.ModelBuilder()
+b.add_cloth_grid(resolution=(4, 4), size=(0.2, 0.2), position=(0.0, 0.01, 0.0), rotation=cw.quat_from_axis_angle((1, 0, 0), -90.0))
+b.add_ground(thickness=0.01, friction=0.3)
+model = b.finalize({device!r}, requires_grad=True)
+solver = cw.SolverImplicitEuler(model, collider_contacts="solve")
+state0 = model.state(requires_grad=True)
+state0.particle_qd.fill_(wp.vec3(0.5, -0.1, 0.0))
+cw.Rollout(model, solver, dt=1.0 / 120.0, steps=4).gradient(cw.PositionLoss({{4: model.particle_q.numpy()}}, device={device!r}), state0)
+assert solver.read_report().contacts > 0
+print("SOLVER-DONE contacts", flush=True)
 """
 
 
@@ -260,7 +271,7 @@ def test_taped_steps_never_overwrite_what_the_tape_read(device):
     assert "already been read from" in control, "the deliberate overwrite was not reported: the check is not active"
     found = [line for line in solvers.splitlines() if "already been read from" in line]
     assert not found, found[:2]
-    assert solvers.count("SOLVER-DONE") == len(SOLVERS)
+    assert solvers.count("SOLVER-DONE") == len(SOLVERS) + 1
 
 
 def test_gradients_stay_finite_through_collisions(device):

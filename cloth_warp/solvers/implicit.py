@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import math
 
@@ -25,6 +26,17 @@ WARM_START_FLOOR = 1.0e-6  # the smallest relative residual a warm-started float
 
 # Where collider contacts are resolved: after the step by the colliders pass, or also inside the CG solve.
 COLLIDER_CONTACTS = ("pass", "solve")
+
+@dataclasses.dataclass(frozen=True)
+class TapedContacts:
+    """A taped step's collider contacts (per particle): the collider (-1: none; the set held fixed), and on the tape
+    the unit normal, the surface velocity [m/s] and the prescribed velocity change z [m/s]."""
+
+    collider: wp.array
+    normal: wp.array
+    velocity: wp.array
+    dv: wp.array
+
 
 class LinearSolver(enum.IntEnum):
     """Linear solver of the implicit step."""
@@ -75,7 +87,7 @@ class SolverImplicitEuler(SolverBase):
             (kernels/contact.py), the rest of its motion solved with the cloth; a contact whose solved impulse pulls
             is released and the step solved again (at most `contact_release_rounds` times), and Coulomb friction
             acts on the solved tangential velocity with that impulse; the colliders pass still runs after the step
-            as the guarantee). Forward steps only: taped steps keep the pass alone. CG only.
+            as the guarantee). Taped steps differentiated by the adjoint hold them too (below); CG only.
         contact_margin: "solve" contacts: a particle within the thickness x (1 + margin) at the step's start is in
             contact (as is one inside, or predicted to reach the surface within the step).
         contact_release_fraction: "solve" contacts: a contact is released when it pulls with more than this fraction
@@ -90,6 +102,11 @@ class SolverImplicitEuler(SolverBase):
     gradient checks. ``differentiation="unrolled"`` instead tapes `max_iterations` block-Jacobi
     iterations dv <- dv + P r (the reference the adjoint is tested against; memory grows with the
     iterations). Taped steps never warm-start, so a re-run (checkpointing) reproduces the forward run.
+    With ``collider_contacts="solve"`` (adjoint only), the step's contact set (less the released) is held fixed and
+    its normals, surface velocities and prescribed velocity changes are evaluated again on the tape
+    (kernels/contact.py eval_contact_constraints): dv = S dv_solved + z, r = S (b - A dv), the transposed system is
+    filtered alike, and friction acts on the tape with lambda = -n . (b - A dv) (whether a contact sticks is held
+    fixed too). The unrolled reference has no contact filter.
     """
 
     name = "implicit_euler"
@@ -434,7 +451,7 @@ class SolverImplicitEuler(SolverBase):
         with stage("assemble"):
             self.assemble(state_in, control, dt)
         warm = self.warm_start and not state_in.requires_grad
-        contacts = self.collider_contacts == "solve" and self.model.collider_count > 0 and not state_in.requires_grad
+        contacts = self._contacts_in_solve(state_in)
         with stage("linear_solve"):
             self._contacts_on = contacts
             if contacts:
@@ -454,9 +471,15 @@ class SolverImplicitEuler(SolverBase):
         if self.warm_start:  # a non-finite solve is no start for the next (nor for a retry of this step)
             wp.launch(ki.keep_velocity_change, dim=m.particle_count, inputs=[self.previous_ready, dv], outputs=[self.dv_previous],
                       device=m.device)
-        if contacts:
+        if contacts and not state_in.requires_grad:  # a taped step's friction is on the tape (_taped_velocity_change)
             self._apply_contact_friction(state_in)
         return dv
+
+    def _contacts_in_solve(self, state_in: State) -> bool:
+        """Whether this step constrains collider contacts in its solve: forward steps, and taped steps differentiated
+        by the adjoint (the unrolled reference has no filter)."""
+        return (self.collider_contacts == "solve" and self.model.collider_count > 0
+                and (not state_in.requires_grad or self.differentiation == "adjoint"))
 
     def _iterate(self, dt: float, warm: bool = False) -> wp.array:
         return self.solve_cg(dt, warm) if self.linear_solver == LinearSolver.CG else self.solve_jacobi(dt, warm)
@@ -515,7 +538,8 @@ class SolverImplicitEuler(SolverBase):
                           self.bend_vector, self.drag_vector, self.membrane_block, self.plate_product, self.rhs, self.dv,
                           self.precond_free, m.global_damping, dt, self.contact_release_fraction * self._gravity_norm * dt,
                           self.contact_release_rounds],
-                  outputs=[self.precond, self.contact_normal, self.contact_dv, self.contact_impulse, self.release], device=m.device)
+                  outputs=[self.precond, self.contact_collider, self.contact_normal, self.contact_dv, self.contact_impulse, self.release],
+                  device=m.device)
 
     def _resolve(self, dt: float):
         """Solve the step again from its last dv with the released contacts free, then check again."""
@@ -609,18 +633,57 @@ class SolverImplicitEuler(SolverBase):
                 wp.launch(ki.jacobi_correct, dim=m.particle_count, inputs=[m.particle_pinned, precond, dv, r], outputs=[nxt], device=m.device)
                 dv = nxt
             return dv
+        contacts = self._taped_contacts(state_in, control, dt) if self._contacts_in_solve(state_in) else None
+        if contacts is not None:
+            dv = self._taped_launch(ki.constrain_contact_velocity_change, [contacts.normal, contacts.dv, dv])
         r = self.system_residual(state_in, control, dt, dv)
+        if contacts is not None:
+            r = self._taped_launch(ki.filter_contact_residual, [contacts.normal, r])
         if tape is not None:
-            tape.record_func(lambda: self._adjoint_solve(state_in, control, dt, dv, r), [dv, r])
+            normal = None if contacts is None else wp.clone(contacts.normal, requires_grad=False)
+            tape.record_func(lambda dv=dv, r=r: self._adjoint_solve(state_in, control, dt, dv, r, normal), [dv, r])
+        if contacts is not None:  # friction from the contacts' impulses n . (A dv - b), evaluated after the adjoint's input
+            unfiltered = self.system_residual(state_in, control, dt, dv)
+            dv = self._taped_launch(ki.eval_contact_friction, [m.particle_mass, contacts.collider, contacts.normal, contacts.velocity,
+                                                               m.collider_static_friction, m.collider_kinetic_friction, state_in.particle_qd,
+                                                               dv, unfiltered])
         return dv
 
-    def _adjoint_solve(self, state_in: State, control: Control, dt: float, dv: wp.array, residual: wp.array):
-        """Backward of one taped step: solve S A S lam = S dL/d(dv) and add lam to dL/dr."""
+    def _taped_launch(self, kernel, inputs: list) -> wp.array:
+        """Launch a per-particle kernel with one vec3 output into a fresh taped array; returns it."""
+        m = self.model
+        out = wp.zeros(m.particle_count, dtype=wp.vec3, device=m.device, requires_grad=True)
+        wp.launch(kernel, dim=m.particle_count, inputs=inputs, outputs=[out], device=m.device)
+        return out
+
+    def _taped_contacts(self, state_in: State, control: Control, dt: float) -> "TapedContacts":
+        """The contact set the (untaped) solve held, less the released, and its normals, surface velocities and
+        prescribed velocity changes evaluated again on the tape (kernels/contact.py eval_contact_constraints)."""
+        m = self.model
+        dev = m.device
+        collider = wp.clone(self.contact_collider, requires_grad=False)
+        normal, velocity, dv = (wp.zeros(m.particle_count, dtype=wp.vec3, device=dev, requires_grad=True) for _ in range(3))
+        wp.launch(kct.eval_contact_constraints, dim=m.particle_count,
+                  inputs=[m.collider_shape, m.collider_size, m.collider_mesh, m.collider_deforming, m.collider_thickness,
+                          m.collider_mesh_max_distance, control.collider_transform_start, control.collider_transform_end, collider,
+                          state_in.particle_q, state_in.particle_qd, dt],
+                  outputs=[normal, velocity, dv], device=dev)
+        return TapedContacts(collider, normal, velocity, dv)
+
+    def _adjoint_solve(self, state_in: State, control: Control, dt: float, dv: wp.array, residual: wp.array,
+                       contact_normal: wp.array | None = None):
+        """Backward of one taped step: solve S A S lam = S dL/d(dv) and add lam to dL/dr (S: the pins' and, given
+        `contact_normal`, the step's collider contacts' filter)."""
         m = self.model
         report = (wp.clone(self.loop), wp.clone(self.solve_status))  # the forward step's, kept as its report
         self.assemble(state_in, control, dt)  # the step's blocks and preconditioner (overwritten since)
-        self.contact_normal.zero_()  # taped steps have no contact filter
-        self._contacts_on = False
+        if contact_normal is None:
+            self.contact_normal.zero_()
+        else:
+            wp.copy(self.contact_normal, contact_normal)
+            wp.launch(ki.filter_contact_preconditioner, dim=m.particle_count, inputs=[self.contact_normal],
+                      outputs=[self.precond, self.precond_free], device=m.device)
+        self._contacts_on = contact_normal is not None
         wp.copy(self.rhs, dv.grad)
         self.dv_alt.zero_()
         self._start_from_guess(dt, self._enabled, self.cg_scalars)
