@@ -140,6 +140,8 @@ def format_summary(s: dict) -> str:
             lines.append(f"  self        {c.get('self_proximity', 0)} repulsions, {c.get('self_ccd', 0)} CCD impacts in "
                          f"{c.get('self_sweeps', 0)} sweeps, {c.get('impact_zones', 0)} impact zones "
                          f"({c.get('impact_zone_particles', 0)} particles), {c.get('unresolved', 0)} steps unresolved")
+            if c.get("solve_self_contacts"):
+                lines.append(f"              after {c['solve_self_contacts']} contact elements held inside the implicit solve")
         if s.get("drape_coefficient") is not None:
             lines.append(f"  drape       Cusick drape coefficient {s['drape_coefficient']:.3f}")
     lines.append(f"  cache       {s['output']} (frames {s['start_frame']}..{s['end_frame']}, "

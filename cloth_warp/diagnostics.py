@@ -140,7 +140,8 @@ class LinearSolveReport:
         worst_residual, last_residual: the largest finite and the last relative residual |r_k| / |r_0|.
         tolerance: the solver's relative tolerance.
         contacts: collider contacts constrained inside the solves (``collider_contacts="solve"``), summed over them;
-            contact_resolves: solves run again because contacts that pulled were released.
+            contact_resolves: solves run again because contacts that pulled were released; self_contacts: self-contact
+            elements in the systems (``self_contacts="solve"``), summed over the solves.
     """
 
     solves: int
@@ -154,6 +155,7 @@ class LinearSolveReport:
     tolerance: float
     contacts: int = 0
     contact_resolves: int = 0
+    self_contacts: int = 0
 
     @property
     def converged(self) -> bool:
@@ -217,7 +219,7 @@ class StrainLimitReport:
             self.frames + other.frames, self.missed_frames + other.missed_frames)
 
 
-SOLVE_CONTACT_COUNTERS = ("solve_contacts", "contact_resolves")
+SOLVE_CONTACT_COUNTERS = ("solve_contacts", "contact_resolves", "solve_self_contacts")
 """The frame counters of collider contacts inside the implicit solve (:attr:`LinearSolveReport.contacts`, ``contact_resolves``)."""
 
 
@@ -255,8 +257,8 @@ class FrameReport:
             out["rejected"] = self.rejected
         else:
             out["frame_reruns"] = self.reruns
-        if self.solves is not None and self.solves.contacts:
-            out.update(zip(SOLVE_CONTACT_COUNTERS, (self.solves.contacts, self.solves.contact_resolves)))
+        if self.solves is not None and (self.solves.contacts or self.solves.self_contacts):
+            out.update(zip(SOLVE_CONTACT_COUNTERS, (self.solves.contacts, self.solves.contact_resolves, self.solves.self_contacts)))
         for report in self.passes.values():
             out.update(report.counters())
         return out

@@ -220,6 +220,9 @@ SCHEMA: dict = {
         "collider_contacts": Key("str", "pass", "where implicit Euler resolves collider contacts: after the step only (\"pass\"), "
                                  "or also inside its CG solve as constraints (\"solve\": in progress, see the README)",
                                  allowed=COLLIDER_CONTACTS),
+        "self_contacts": Key("str", "pass", "where implicit Euler resolves cloth-cloth contacts: after the step only (\"pass\"), "
+                             "or also inside its CG solve as repulsion elements (\"solve\": in progress, see the README)",
+                             allowed=COLLIDER_CONTACTS),
         "substeps": Key("int", 1, "steps per frame: dt = 1 / (fps x substeps); output.frames x substeps is at most "
                         f"{format_number(MAX_STEPS)} steps", L["substeps"]),
         "strain_limit": Key("float", 0.1, "Provot strain limit on stretch/shear springs (0 disables)", L["strain_limit"]),
@@ -535,10 +538,10 @@ def _check_values(scene: Scene):
         check_grid_size("cloth.grid.resolution", *scene.get("cloth.grid.resolution"))
     check_run_length("output.frames x solver.substeps", scene.get("output.frames"), scene.get("solver.substeps"))
     dt = 1.0 / (scene.get("output.fps") * scene.get("solver.substeps"))
-    if scene.get("solver.collider_contacts") == "solve" and (scene.get("solver.integrator") != "implicit_euler"
-                                                            or scene.get("solver.linear_solver") != "cg"):
-        raise SceneError("solver.collider_contacts: \"solve\" needs solver.integrator = \"implicit_euler\" with "
-                         "solver.linear_solver = \"cg\" (the contacts are constraints of its CG)")
+    for key in ("solver.collider_contacts", "solver.self_contacts"):
+        if scene.get(key) == "solve" and (scene.get("solver.integrator") != "implicit_euler" or scene.get("solver.linear_solver") != "cg"):
+            raise SceneError(f"{key}: \"solve\" needs solver.integrator = \"implicit_euler\" with "
+                             "solver.linear_solver = \"cg\" (the contacts are in its CG)")
     if scene.get("solver.adaptive") and scene.get("solver.dt_min") >= dt:
         raise SceneError(f"solver.dt_min: {scene.get('solver.dt_min')!r} s must be below the step 1 / (output.fps x solver.substeps) "
                          f"= {dt:.4g} s, which the adaptive stepper halves down to it")
@@ -774,7 +777,8 @@ def build_solver(scene: Scene, model):
     opts = {"strain_limit": sl if sl > 0.0 else None, "strain_limit_iterations": int(scene.get("solver.strain_limit_iterations"))}
     if scene.get("solver.integrator") == "implicit_euler":
         opts.update(linear_solver=scene.get("solver.linear_solver"), tolerance=float(scene.get("solver.tolerance")),
-                    max_iterations=int(scene.get("solver.max_iterations")), collider_contacts=scene.get("solver.collider_contacts"))
+                    max_iterations=int(scene.get("solver.max_iterations")), collider_contacts=scene.get("solver.collider_contacts"),
+                    self_contacts=scene.get("solver.self_contacts"))
     return make_solver(scene.get("solver.integrator"), model, **opts)
 
 

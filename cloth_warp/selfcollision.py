@@ -43,6 +43,7 @@ import warp as wp
 from .broadphase import SelfCollisionGrid
 from .graphs import device_while
 from .kernels import broadphase as kbp
+from .kernels import contact as kct
 from .kernels import selfcollide as ksc
 from .model import ModelFlags
 from .records import record_values
@@ -258,6 +259,31 @@ class SelfCollision:
         buf = self.grid.vertex_face if kind == 0 else self.grid.edge_edge
         return buf.pairs, buf.count
 
+    def contact_candidates(self) -> list[tuple[wp.array, wp.array]]:
+        """Per pair kind, (pairs, device count): the close pairs of the last step either path ran (the capturable
+        path's lists; the host path copies its own there), empty before one ran. What is close at the end of a step
+        is close at the start of the next: the candidates of the next step's self-contacts in the implicit solve,
+        which checks their distance itself."""
+        f = self._fixed_buffers()
+        return [(f.close[kind], f.close_count[kind]) for kind in KINDS]
+
+    def _keep_close_pairs(self):
+        """The host path's close pairs into the capturable path's lists (:meth:`contact_candidates`)."""
+        f = self._fixed_buffers()
+        for kind in KINDS:
+            pairs, count = self._close[kind]
+            count = min(count, f.close[kind].shape[0])
+            if count:
+                wp.copy(f.close[kind], pairs, count=count)
+            f.close_count[kind].fill_(count)
+
+    def close_reach(self) -> float:
+        """Distance [m] (beyond what their vertices travel in the step) within which candidate pairs are kept as close:
+        the thickness and the clearance the implicit solve's self-contacts hold layers at (kernels/contact.py
+        SELF_CLEARANCE: a pair resting there stays a candidate of the next step's solve), plus CCD's tolerance. Pairs
+        farther than the thickness get no impulse from the pass, so the pass's results do not depend on it."""
+        return self.thickness * (1.0 + float(kct.SELF_CLEARANCE)) + self.contact_tolerance()
+
     def contact_tolerance(self) -> float:
         """Distance [m] at which CCD counts two elements as touching."""
         return max(1.0e-3 * self.thickness, 1.0e-6)
@@ -338,6 +364,8 @@ class SelfCollision:
             wp.copy(final, vbar)
             self._resolved = (x_start, float(dt), final)
         wp.launch(ksc.finish_step, dim=n, inputs=[x_start, vbar, vbar0, v_end, dt], outputs=[x_out, v_out], device=dev)
+        if not rg:
+            self._keep_close_pairs()
 
     def begin_step(self):
         """A new step starts: the start positions changed, so the broad phase and the last round's result are stale."""
@@ -470,7 +498,7 @@ class SelfCollision:
                       outputs=[f.active[kind], f.active_count[kind]], device=dev, record_tape=False)
             wp.launch(kbp.copy_pairs_listed, dim=f.close[kind].shape[0], inputs=[f.active_count[kind], f.active[kind]],
                       outputs=[f.close[kind], f.close_count[kind]], device=dev, record_tape=False)
-        close = [x_start, g.fixed_reference, dt, self.margin, self.thickness + self.contact_tolerance()]
+        close = [x_start, g.fixed_reference, dt, self.margin, self.close_reach()]
         pts, tri, edg = g.points, g.triangles, g.edges
         wp.launch(ksc.patch_vertex_face_points, dim=pts.count,
                   inputs=[f.fresh_count["triangles"], f.fresh["triangles"], tri.lo, tri.hi, pts.lo, pts.hi, self.tri_indices, self.edge_indices,
@@ -496,7 +524,7 @@ class SelfCollision:
         g = self.grid
         g.build_fixed(x_start, velocity, dt, pad, self.margin, self.counts, BUFFERS)
         wp.launch(ksc.increment_count, dim=1, inputs=[ksc.COUNT_BUILDS], outputs=[self.counts], device=dev, record_tape=False)
-        reach = self.thickness + self.contact_tolerance()
+        reach = self.close_reach()
         for kind in KINDS:
             buf = g.vertex_face if kind == 0 else g.edge_edge
             f.close_count[kind].zero_()
@@ -517,7 +545,7 @@ class SelfCollision:
         self.host_counts[f"broad_phase_{'patches' if done == 'patched' else 'builds'}"] += done != "kept"
         if done == "kept":
             return
-        close_inputs = [x_start, self.grid.reference_velocity, dt, self.margin, self.thickness + self.contact_tolerance()]
+        close_inputs = [x_start, self.grid.reference_velocity, dt, self.margin, self.close_reach()]
         if done == "built":
             self._close = self._select("close", ksc.select_close_pairs, {kind: self._grid_pairs(kind) for kind in KINDS}, close_inputs)
             return

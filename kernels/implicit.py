@@ -76,7 +76,8 @@ RECORD_WORST_RESIDUAL = wp.constant(6)  # the largest finite relative residual a
 RECORD_LAST_RESIDUAL = wp.constant(7)
 RECORD_CONTACTS = wp.constant(8)  # collider contacts constrained in the solves (summed over them)
 RECORD_RESOLVES = wp.constant(9)  # re-solves after contacts were released
-RECORD_SIZE = 10
+RECORD_SELF_CONTACTS = wp.constant(10)  # self-contact elements in the systems (summed over the solves)
+RECORD_SIZE = 11
 # A membrane element's diagonal blocks enter the block-diagonal preconditioner P^-1 this many times over.
 # Block Jacobi (dv <- dv + P (b - A dv)) converges when 2 P^-1 - A is positive definite: a spring's 6x6 block
 # satisfies it with weight 1, a 3-corner element only with 3/2 (a PSD matrix of 3x3 blocks is <= 3x its block
@@ -1201,6 +1202,7 @@ def end_linear_solve(
     record_out[RECORD_SOLVES] = solves
     record_out[RECORD_ITERATIONS] = record_out[RECORD_ITERATIONS] + iterations
     record_out[RECORD_CONTACTS] = record_out[RECORD_CONTACTS] + wp.float64(contact_counts[0])
+    record_out[RECORD_SELF_CONTACTS] = record_out[RECORD_SELF_CONTACTS] + wp.float64(contact_counts[1])  # kernels/contact.py COUNT_SELF_CONTACTS
     record_out[RECORD_RESOLVES] = record_out[RECORD_RESOLVES] + wp.float64(release[RELEASE_ROUNDS])
     record_out[RECORD_MOST_ITERATIONS] = wp.max(record_out[RECORD_MOST_ITERATIONS], iterations)
     record_out[RECORD_LAST_RESIDUAL] = relative

@@ -24,6 +24,7 @@ CONFIGS = {
                                        "solver.strain_limit_iterations": 8}, 6),
     "self_collision": ("pile", {"cloth.grid.resolution": [10, 10]}, 30),
     "twist": ("twist", {"cloth.grid.resolution": [6, 16]}, 12),
+    "contacts_in_solve": ("pile", {"cloth.grid.resolution": [12, 12], "solver.collider_contacts": "solve", "solver.self_contacts": "solve"}, 40),
 }
 
 

@@ -89,6 +89,9 @@ def test_scene_reference_page_is_current():
         ({"measure.cusick": {"disc_radius": 0.15}}, "measure.cusick.pedestal_radius: the pedestal radius [m] is needed"),
         ({"measure.cusick": {"pedestal_radius": 0.09}}, "measure.cusick.disc_radius: give the specimen radius"),
         ({"measure.cusick": {"pedestal_radius": 0.2, "disc_radius": 0.15}}, "must exceed the pedestal radius 0.2 m"),
+        ({"solver.self_contacts": "solve", "solver.integrator": "symplectic_euler"},
+         'solver.self_contacts: "solve" needs solver.integrator = "implicit_euler" with solver.linear_solver = "cg"'),
+        ({"solver.collider_contacts": "solve", "solver.linear_solver": "jacobi"}, 'solver.collider_contacts: "solve" needs'),
     ],
 )
 def test_scene_errors_name_the_key(overrides, message):

@@ -93,6 +93,11 @@ class SolverImplicitEuler(SolverBase):
         contact_release_fraction: "solve" contacts: a contact is released when it pulls with more than this fraction
             of the particle's weight (times the step): below it the pull is the solve's round-off, and a released
             particle has no friction.
+        self_contacts: "pass" (cloth-cloth contacts resolved after the step by the self-collision pass only) or "solve"
+            (also inside the solve: each vertex-face or edge-edge pair closer than the cloth thickness (1 + 5 %) at the
+            step's start, among the pairs the self-collision pass found close in the last step, is a repulsion element
+            with the model's self-collision stiffness in the system, kernels/contact.py; the pass still runs after the
+            step as the guarantee). Forward steps only; CG only; needs self-collision on.
 
     Differentiation (taped steps, ``state_in.requires_grad``): with ``differentiation="adjoint"`` the solve
     runs outside the tape; the tape holds dv and the residual r = S (b - A dv), evaluated element by element
@@ -133,6 +138,7 @@ class SolverImplicitEuler(SolverBase):
         contact_margin: float = 0.01,
         contact_release_rounds: int = 2,
         contact_release_fraction: float = 0.05,
+        self_contacts: str = "pass",
     ):
         super().__init__(model, strain_limit=strain_limit, strain_limit_iterations=strain_limit_iterations,
                          strain_limit_tolerance=strain_limit_tolerance, collisions=collisions, collision_rounds=collision_rounds)
@@ -150,7 +156,12 @@ class SolverImplicitEuler(SolverBase):
         if collider_contacts == "solve" and self.linear_solver != LinearSolver.CG:
             raise ValueError("collider_contacts='solve' needs linear_solver='cg' (the contact filter is in the CG)")
         self.collider_contacts = collider_contacts
-        if collider_contacts == "solve":
+        if self_contacts not in COLLIDER_CONTACTS:
+            raise ValueError(f"unknown self_contacts {self_contacts!r}; allowed: {', '.join(COLLIDER_CONTACTS)}")
+        if self_contacts == "solve" and self.linear_solver != LinearSolver.CG:
+            raise ValueError("self_contacts='solve' needs linear_solver='cg' (the contact elements are in the CG's product)")
+        self.self_contacts = self_contacts
+        if "solve" in (collider_contacts, self_contacts):
             self.kernel_modules = (ki, kct)
         self.contact_margin = float(contact_margin)
         self.contact_release_rounds = int(contact_release_rounds)
@@ -214,8 +225,14 @@ class SolverImplicitEuler(SolverBase):
         self.contact_dv = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.contact_impulse = wp.zeros(n, dtype=float, device=dev)
         self.precond_free = wp.zeros(n, dtype=wp.mat33, device=dev)  # contacts' unfiltered preconditioner blocks
+        # self-contact elements in the solve (kernels/contact.py eval_self_contacts; capacity: the candidates')
+        self.self_contact_count = wp.zeros(1, dtype=wp.int32, device=dev)
+        self._self_contact_elements = None  # (indices, weights, normals, overlaps) at the candidates' total capacity
+        self._self_contacts_on = False  # whether the step being solved has self-contact elements
+        self.friction_dv = wp.zeros(n, dtype=wp.vec3, device=dev)  # self-contact friction: summed changes and their count
+        self.friction_weight = wp.zeros(n, dtype=float, device=dev)
         self._contacts_on = False  # whether the solve being recorded filters contacts
-        self.contact_counts = wp.zeros(1, dtype=wp.int32, device=dev)
+        self.contact_counts = wp.zeros(kct.COUNT_SIZE, dtype=wp.int32, device=dev)
         self.release = wp.zeros(ki.RELEASE_SIZE, dtype=wp.int32, device=dev)
 
     def notify_model_changed(self, flags: int) -> None:
@@ -246,7 +263,7 @@ class SolverImplicitEuler(SolverBase):
                 outputs=[self.drag_vector],
                 device=dev,
             )
-        if m.membrane_count or m.plate_count:
+        if m.membrane_count or m.plate_count or self._self_contacts_on:
             self.membrane_kv.zero_()
             self.membrane_diag.zero_()
             self.membrane_az.zero_()
@@ -271,6 +288,8 @@ class SolverImplicitEuler(SolverBase):
             )
         self.cg_scalars.zero_()
         force = self.element_forces(state_in.particle_q, state_in.particle_qd, control)
+        if self._self_contacts_on:
+            self._find_self_contacts(state_in, force, dt)
         wp.launch(
             ki.eval_implicit_system,
             dim=m.particle_count,
@@ -282,6 +301,48 @@ class SolverImplicitEuler(SolverBase):
             device=dev,
         )
 
+    def _find_self_contacts(self, state_in: State, force: wp.array, dt: float):
+        """This step's self-contact elements from the self-collision pass's candidates (kernels/contact.py
+        eval_self_contacts): their forces into `force`, K v0 and diagonal blocks into the per-particle arrays the
+        membrane elements and plate stencils also scatter into."""
+        m = self.model
+        dev = m.device
+        candidates = self.pass_named("self_collision").self_collision.contact_candidates()
+        capacity = sum(pairs.shape[0] for pairs, _ in candidates)
+        if self._self_contact_elements is None or self._self_contact_elements[0].shape[0] != capacity:
+            self._self_contact_elements = (wp.zeros(capacity, dtype=wp.vec4i, device=dev), wp.zeros(capacity, dtype=wp.vec4, device=dev),
+                                           wp.zeros(capacity, dtype=wp.vec3, device=dev), wp.zeros(capacity, dtype=float, device=dev))
+        self.self_contact_count.zero_()
+        thickness = float(m.cloth_thickness)
+        for kind, (pairs, count) in enumerate(candidates):
+            wp.launch(kct.eval_self_contacts, dim=pairs.shape[0],
+                      inputs=[count, pairs, kind, m.tri_indices, self.pass_named("self_collision").self_collision.edge_indices,
+                              m.particle_pinned, state_in.particle_q, state_in.particle_qd,
+                              thickness * (1.0 + float(kct.SELF_CLEARANCE)), float(m.self_collision_stiffness), dt, capacity],
+                      outputs=[*self._self_contact_elements, self.self_contact_count, force, self.membrane_kv, self.membrane_diag,
+                               self.contact_counts], device=dev)
+
+    def _self_contact_product(self, p: wp.array, dt: float, out: wp.array):
+        """Add the self-contact elements' part of A p to `out`."""
+        m = self.model
+        wp.launch(kct.scatter_self_contact_product, dim=self._self_contact_elements[0].shape[0],
+                  inputs=[self.self_contact_count, *self._self_contact_elements[:3], dt * dt * float(m.self_collision_stiffness), p],
+                  outputs=[out], device=m.device)
+
+    def _apply_self_contact_friction(self, state_in: State, dt: float):
+        """Coulomb friction between the layers the self-contact elements hold (kernels/contact.py
+        eval_self_contact_friction), averaged per particle, on the solved dv (after the warm start kept it)."""
+        m = self.model
+        dev = m.device
+        self.friction_dv.zero_()
+        self.friction_weight.zero_()
+        wp.launch(kct.eval_self_contact_friction, dim=self._self_contact_elements[0].shape[0],
+                  inputs=[self.self_contact_count, *self._self_contact_elements, self.pass_named("self_collision").self_collision.inv_mass,
+                          state_in.particle_qd, self.dv, float(m.self_collision_stiffness), float(m.cloth_friction), dt],
+                  outputs=[self.friction_dv, self.friction_weight], device=dev)
+        wp.launch(kct.apply_contact_velocity_changes, dim=m.particle_count, inputs=[self.friction_dv, self.friction_weight],
+                  outputs=[self.dv], device=dev)
+
     def _product_args(self):
         m = self.model
         return [m.particle_spring_offsets, m.particle_spring_ids, m.particle_spring_role, m.spring_indices, m.spring_middle,
@@ -289,17 +350,20 @@ class SolverImplicitEuler(SolverBase):
                 m.particle_membrane_ids, m.membrane_vertices]
 
     def _plate_product(self, p: wp.array, dt: float, out: wp.array | None = None):
-        """Add the plate stencils' part of A p to `out` (default: set `plate_product` to it, zero without stencils)."""
+        """Add the scattered elements' part of A p (plate stencils, self-contact elements) to `out` (default: set
+        `plate_product` to it, zero without either); the per-particle (gather) kernels add it to theirs."""
         m = self.model
         if out is None:
             out = self.plate_product
-            if not m.plate_count:
+            if not m.plate_count and self.self_contacts != "solve":
                 return  # stays zero
             out.zero_()
         if m.plate_count:
             wp.launch(kf.scatter_plate_product, dim=m.plate_count,
                       inputs=[m.plate_offsets, m.plate_points, m.plate_weights, m.plate_stiffness, p, dt * dt], outputs=[out],
                       device=m.device)
+        if self._self_contacts_on:
+            self._self_contact_product(p, dt, out)
 
     def solve_cg(self, dt: float, warm: bool = False, restarted: bool = False, resolve: bool = False) -> wp.array:
         """Filtered PCG on the assembled system (`warm`: a warm start may have replaced the cold one, see
@@ -423,7 +487,8 @@ class SolverImplicitEuler(SolverBase):
             solves=int(r[ki.RECORD_SOLVES]), iterations=int(r[ki.RECORD_ITERATIONS]), most_iterations=int(r[ki.RECORD_MOST_ITERATIONS]),
             failed=int(r[ki.RECORD_FAILED]), first_failed=int(r[ki.RECORD_FIRST_FAILED]), unconverged=int(r[ki.RECORD_UNCONVERGED]),
             worst_residual=float(r[ki.RECORD_WORST_RESIDUAL]), last_residual=float(r[ki.RECORD_LAST_RESIDUAL]), tolerance=self.tolerance,
-            contacts=int(r[ki.RECORD_CONTACTS]), contact_resolves=int(r[ki.RECORD_RESOLVES]))
+            contacts=int(r[ki.RECORD_CONTACTS]), contact_resolves=int(r[ki.RECORD_RESOLVES]),
+            self_contacts=int(r[ki.RECORD_SELF_CONTACTS]))
 
     def carried_arrays(self) -> list:
         return [self.dv_previous, self.previous_ready]
@@ -448,6 +513,9 @@ class SolverImplicitEuler(SolverBase):
         """Assemble and solve the step's linear system; returns the array holding dv [m/s]. No host reads: a
         forward solve (warm-started from the last one's dv when there is one, decided on the device) can be
         recorded in a graph."""
+        self._self_contacts_on = self._self_contacts_in_solve(state_in)
+        if "solve" in (self.collider_contacts, self.self_contacts):
+            self.contact_counts.zero_()
         with stage("assemble"):
             self.assemble(state_in, control, dt)
         warm = self.warm_start and not state_in.requires_grad
@@ -457,9 +525,8 @@ class SolverImplicitEuler(SolverBase):
             if contacts:
                 dv = self._solve_with_contacts(state_in, control, dt, warm)
             else:
-                if self.collider_contacts == "solve":  # a taped step: no contact filter, nothing to record
+                if self.collider_contacts == "solve":  # none this step (no collider, an unrolled taped step): no filter
                     self.contact_normal.zero_()
-                    self.contact_counts.zero_()
                     self.release.zero_()
                 if warm:
                     self._restart_from_previous(dt)
@@ -473,7 +540,13 @@ class SolverImplicitEuler(SolverBase):
                       device=m.device)
         if contacts and not state_in.requires_grad:  # a taped step's friction is on the tape (_taped_velocity_change)
             self._apply_contact_friction(state_in)
+        if self._self_contacts_on:
+            self._apply_self_contact_friction(state_in, dt)
         return dv
+
+    def _self_contacts_in_solve(self, state_in: State) -> bool:
+        """Whether this step has self-contact elements in its system: forward steps with self-collision on."""
+        return self.self_contacts == "solve" and not state_in.requires_grad and self.pass_named("self_collision") is not None
 
     def _contacts_in_solve(self, state_in: State) -> bool:
         """Whether this step constrains collider contacts in its solve: forward steps, and taped steps differentiated
@@ -499,7 +572,6 @@ class SolverImplicitEuler(SolverBase):
         warm), release contacts that pull and solve again (all on the device; friction follows in :meth:`solve`)."""
         m = self.model
         dev = m.device
-        self.contact_counts.zero_()
         wp.launch(kct.eval_collider_contacts, dim=m.particle_count,
                   inputs=[m.particle_pinned, m.collider_count, m.collider_shape, m.collider_size, m.collider_mesh, m.collider_deforming,
                           m.collider_thickness, m.collider_static_friction, m.collider_kinetic_friction, m.collider_mesh_max_distance,
@@ -676,6 +748,7 @@ class SolverImplicitEuler(SolverBase):
         `contact_normal`, the step's collider contacts' filter)."""
         m = self.model
         report = (wp.clone(self.loop), wp.clone(self.solve_status))  # the forward step's, kept as its report
+        self._self_contacts_on = False
         self.assemble(state_in, control, dt)  # the step's blocks and preconditioner (overwritten since)
         if contact_normal is None:
             self.contact_normal.zero_()
