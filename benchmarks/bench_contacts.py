@@ -1,11 +1,13 @@
-"""Benchmark: collider contacts resolved after the step (the colliders pass) or also inside the implicit solve.
+"""Benchmark: contacts resolved after the step (the colliders and self-collision passes) or also inside the implicit solve.
 
-For each scene and mode (`solver.collider_contacts` = "pass" | "solve"), the shipped scene is run as `cloth-warp run`
+For each scene and mode ("pass": both after the step; "solve": `solver.collider_contacts = "solve"`; "solve+self": also
+`solver.self_contacts = "solve"`, in scenes with self-collision), the shipped scene is run as `cloth-warp run`
 builds it for `--frames` frames (default 300: 5 s at 60 fps). Reported: ms per frame (median over the run), the
 largest particle speed over the last 20 frames (median and max: at rest means <= 1 mm/s, issue 17's target), the
 largest strain of a strain-limited spring at the end and how many exceed the limit by more than 1 % (a ring
 stretched over a collider's rim),
-the colliders pass's contacts per frame and the CG iterations per frame (means over the last 20 frames), and the
+the colliders pass's contacts and the self-collision pass's impulses (proximity + CCD) per frame, the self-contact
+elements held in the solve per frame and the CG iterations per frame (means over the last 20 frames), and the
 frames re-run because a self-collision buffer overflowed or a step needed impact zones.
 
 Run:  python benchmarks/bench_contacts.py                      (pile and drape_sphere, a few minutes on 2 cores)
@@ -23,7 +25,7 @@ import sys
 import time
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
-MODES = ("pass", "solve")
+MODES = {"pass": ("pass", "pass"), "solve": ("solve", "pass"), "solve+self": ("solve", "solve")}  # -> (collider, self) contacts
 TAIL = 20
 
 
@@ -43,13 +45,14 @@ def run(scene_name: str, mode: str, frames: int, overrides: dict) -> dict:
     from cloth_warp.scene import build_model, build_solver, build_wind, load_scene
     from cloth_warp.simulator import Simulator
 
-    scene = load_scene(find_scene(scene_name), {**overrides, "solver.collider_contacts": mode})
+    collider, self_contacts = MODES[mode]
+    scene = load_scene(find_scene(scene_name), {**overrides, "solver.collider_contacts": collider, "solver.self_contacts": self_contacts})
     model = build_model(scene, "cpu")
     solver = build_solver(scene, model)
     load_kernels(solver, model.device)
     sim = Simulator(model, solver, fps=float(scene.get("output.fps")), substeps=int(scene.get("solver.substeps")),
                     wind=build_wind(scene))
-    ms, speed, contacts, iterations = [], [], [], []
+    ms, speed, contacts, iterations, impulses, elements = [], [], [], [], [], []
     for _ in range(frames):
         t = time.perf_counter()
         stats = sim.step_frame()
@@ -59,6 +62,9 @@ def run(scene_name: str, mode: str, frames: int, overrides: dict) -> dict:
         speed.append(stats.max_speed)
         contacts.append(report.passes["colliders"].contacts if "colliders" in report.passes else 0)
         iterations.append(report.iterations)
+        counters = report.counters()
+        impulses.append(counters.get("self_proximity", 0) + counters.get("self_ccd", 0))
+        elements.append(counters.get("solve_self_contacts", 0))
     import numpy as np
 
     x = sim.positions()
@@ -71,6 +77,7 @@ def run(scene_name: str, mode: str, frames: int, overrides: dict) -> dict:
             "springs_over_limit": int((strain[limited] > limit + 0.01).sum()) if limit is not None else None,
             "rest_speed_median": statistics.median(speed[-TAIL:]), "rest_speed_max": max(speed[-TAIL:]),
             "pass_contacts": statistics.mean(contacts[-TAIL:]), "iterations": statistics.mean(iterations[-TAIL:]),
+            "self_impulses": statistics.mean(impulses[-TAIL:]), "self_elements": statistics.mean(elements[-TAIL:]),
             "reruns": sim.reruns}
 
 
@@ -86,22 +93,31 @@ def main(argv=None) -> int:
         key, value = item.split("=", 1)
         overrides[key] = tomllib.loads(f"v = {value}")["v"]
     rows = []
+    from cloth_warp.runner import find_scene
+    from cloth_warp.scene import load_scene
+
     for name in args.scenes:
+        self_collision = bool(load_scene(find_scene(name), overrides).get("collision.self_collision"))
         for mode in MODES:
+            if mode == "solve+self" and not self_collision:
+                continue
             r = run(name, mode, args.frames, overrides)
             rows.append(r)
             print(json.dumps(r), flush=True)
     command = "python benchmarks/bench_contacts.py " + " ".join(sys.argv[1:] if argv is None else argv)
-    lines = ["# bench_contacts: collider contacts after the step (\"pass\") or also inside the implicit solve (\"solve\")", "",
+    lines = ["# bench_contacts: contacts after the step (\"pass\") or also inside the implicit solve (\"solve\": collider contacts; "
+             "\"solve+self\": and self-contacts)", "",
              f"Machine: {platform.machine()}, Python {platform.python_version()}, Warp {wp.config.version}, device cpu. "
              f"Command: `{command.strip()}`" + (f"; overrides {overrides}" if overrides else ""), "",
              f"{args.frames} frames per run; speeds and counts over the last {TAIL} frames (at rest: <= 1 mm/s).", "",
              "| scene | contacts | ms/frame | largest speed, median [mm/s] | largest speed, max [mm/s] | colliders-pass contacts/frame "
+             "| self-collision pass impulses/frame | self-contact elements in the solve/frame "
              "| CG iterations/frame | frames re-run | max limited strain (end) | springs > limit + 1 % |",
-             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         lines.append(f"| {r['scene']} | {r['mode']} | {r['ms_per_frame']:.1f} | {1e3 * r['rest_speed_median']:.2f} | "
-                     f"{1e3 * r['rest_speed_max']:.2f} | {r['pass_contacts']:.0f} | {r['iterations']:.0f} | {r['reruns']} | "
+                     f"{1e3 * r['rest_speed_max']:.2f} | {r['pass_contacts']:.0f} | {r['self_impulses']:.0f} | {r['self_elements']:.0f} | "
+                     f"{r['iterations']:.0f} | {r['reruns']} | "
                      f"{r['max_limited_strain']:.3f} | {r['springs_over_limit']} |")
     out = pathlib.Path(args.out)
     out.write_text("\n".join(lines) + "\n")
