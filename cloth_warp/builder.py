@@ -314,10 +314,14 @@ class ModelBuilder:
     def add_cloth_disc(self, *, radius: float, rings: int = 16, **kwargs) -> ClothRef:
         """Add a circular cloth of `radius` [m] meshed in `rings` concentric rings
         (:func:`~cloth_warp.topology.disc_mesh`; e.g. the 30 cm specimen of a Cusick drape test). Placed
-        like a grid (local xy-plane, centre at the origin, then `rotation` and `position`); other keyword
-        arguments as for :meth:`add_cloth_mesh`."""
+        like a grid (local xy-plane, centre at the origin, then `rotation` and `position`), with texture
+        coordinates projected from that plane (u, v = x / 2r + 1/2, y / 2r + 1/2) and the warp along x unless
+        given; other keyword arguments as for :meth:`add_cloth_mesh`."""
         v, t = topo.disc_mesh(radius, rings)
         kwargs.setdefault("name", f"disc{len(self.cloths)}")
+        if kwargs.get("uvs") is None:
+            kwargs["uvs"] = v[:, :2] / (2.0 * radius) + 0.5
+            kwargs.setdefault("warp_direction", (1.0, 0.0, 0.0))
         return self.add_cloth_mesh(v, t, **kwargs)
 
     def add_cloth_mesh_file(self, path: str | os.PathLike, *, prim_path: str | None = None, **kwargs) -> ClothRef:

@@ -8,15 +8,21 @@ A USD cache is what DCC tools (usdview, Houdini, Blender, Maya, Omniverse) play:
 * a root ``Xform`` (``/World``) that is the ``defaultPrim`` with one ``Mesh`` per cloth: static topology
   (authored once, never time-sampled), ``subdivisionScheme = "none"``, ``doubleSided = 1``, indexed
   face-varying ``primvars:st`` (per corner, so UV seams of a welded mesh survive); ``points`` time-sampled
-  plus a default value (the rest pose), ``extent``, vertex ``normals`` and ``velocities`` [m/s] per frame;
+  plus a default value (the rest pose), ``extent``, vertex ``normals`` and ``velocities`` [m/s] per frame, and
+  ``primvars:strain`` per vertex and per frame (indexed; each vertex's largest strain l / L - 1 over its mesh edges:
+  DCC tools keep vertex primvars they read per frame, where Blender drops per-frame constant attributes); bound to a
+  UsdPreviewSurface material of its fabric's colour (``/World/Looks``, :mod:`cloth_warp.looks`), the same colour as
+  ``displayColor``;
 * per-frame diagnostics as custom attributes on each cloth prim (``clothWarp:maxStrain``,
   ``clothWarp:dt`` [s], ``clothWarp:solverIterations``, ``clothWarp:solverResidual``,
   ``clothWarp:colliderContacts``, ``clothWarp:colliderCcd`` and, with self-collision, ``clothWarp:selfProximity``,
   ``selfCcd``, ``selfSweeps``, ``impactZones``, ``selfUnresolved`` and, with strain limiting,
   ``strainExcessStructural``, ``strainExcessShear``, ``strainLimitSweeps``, ``strainLimitMissed``);
-* colliders under ``/World/colliders`` as UsdGeom Sphere / Capsule / Cylinder (axis Z) / Cube (scaled) /
-  Plane / Mesh prims with a translate and an orient op (time-sampled per frame when animated), grey
-  ``displayColor``, and their shape, thickness and friction in the prim's customData;
+* colliders under ``/World/colliders`` as UsdGeom Cube (scaled) / Plane / Mesh prims -- spheres, capsules and
+  cylinders (axis Z) as meshes whose facets stay within 0.5 mm of the surface (:data:`ROUND_SAGITTA`; a DCC's own
+  tessellation of an implicit sphere leaves cloth floating above it), their radius and height in customData -- with
+  a translate and an orient op (time-sampled per frame when animated), bound to a ground / solid / body material,
+  and their shape, thickness and friction in the prim's customData;
 * provenance in the layer's ``customLayerData["cloth_warp"]``: versions, scene, resolved settings,
   status (``running`` / ``complete`` / ``interrupted`` / ``diverged`` / ``failed``), frames written.
 
@@ -47,6 +53,7 @@ import platform
 
 import numpy as np
 
+from . import looks
 from .outputs import (USD_SUFFIXES, CacheWriteError, CrateRollback, OutputLock, atomic_path, check_output, partial_path,
                       usd_error_text)
 
@@ -77,6 +84,8 @@ COUNTER_DIAGNOSTICS = {"colliderContacts": "collider_contacts", "colliderCcd": "
 STRAIN_LIMIT_DIAGNOSTICS = {"strainExcessStructural": "strain_excess_structural", "strainExcessShear": "strain_excess_shear",
                             "strainLimitSweeps": "strain_limit_sweeps", "strainLimitMissed": "strain_limit_missed"}
 COLLIDER_SCOPE = "colliders"  # colliders are written under /World/colliders
+LOOKS_SCOPE = "Looks"  # materials under /World/Looks
+STRAIN_PRIMVAR = "strain"  # per-vertex strain, time-sampled (primvars:strain)
 
 
 def vertex_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
@@ -118,7 +127,7 @@ def _prim_name(name: str) -> str:
 
 
 def _cloth_meshes(model):
-    """(name, particle slice, triangles local to the cloth, corner uvs or None) per cloth of the model."""
+    """(name, particle slice, triangles local to the cloth, corner uvs or None, fabric name) per cloth of the model."""
     tris = model.tri_indices.numpy()
     out, used = [], set()
     for info in model.cloths:
@@ -128,8 +137,51 @@ def _cloth_meshes(model):
         used.add(name)
         t = tris[info.triangles] - info.particle_start
         uv = info.topology.corner_uv
-        out.append((name, info.particles, t.astype(np.int32), None if uv is None else np.asarray(uv)))
+        fabric = getattr(info.material, "name", None) or "custom"
+        out.append((name, info.particles, t.astype(np.int32), None if uv is None else np.asarray(uv), fabric))
     return out
+
+
+def triangle_edges(tris: np.ndarray) -> np.ndarray:
+    """The unique edges (e, 2) of a triangle mesh."""
+    e = np.sort(np.asarray(tris, np.int64)[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    return np.unique(e, axis=0)
+
+
+def vertex_strain(x: np.ndarray, edges: np.ndarray, rest_length: np.ndarray) -> np.ndarray:
+    """Per vertex the largest strain l / L - 1 of its mesh edges (0 for a vertex without edges)."""
+    strain = np.linalg.norm(x[edges[:, 0]] - x[edges[:, 1]], axis=1) / rest_length - 1.0
+    out = np.full(len(x), -np.inf)
+    np.maximum.at(out, edges[:, 0], strain)
+    np.maximum.at(out, edges[:, 1], strain)
+    return np.where(np.isfinite(out), out, 0.0).astype(np.float32)
+
+
+ROUND_SAGITTA = 5.0e-4
+"""Round colliders (sphere, capsule, cylinder) are written as meshes whose facets lie at most this far [m] inside
+the true surface (a DCC tessellates implicit spheres coarsely: a 10-segment ball shows cloth floating 1-2 cm above it)."""
+
+
+def round_segments(radius: float, sagitta: float = ROUND_SAGITTA) -> int:
+    """Segments around a circle of `radius` [m] whose chords stay within `sagitta` [m] of it (at least 16)."""
+    if radius <= sagitta:
+        return 16
+    return max(16, int(np.ceil(np.pi / np.arccos(1.0 - sagitta / radius))))
+
+
+def round_collider_mesh(col):
+    """(vertices, triangles) in the collider's local frame (axis Z for capsules and cylinders) for a round collider."""
+    import trimesh
+
+    n = round_segments(col.radius)
+    if col.shape == "sphere":
+        m = trimesh.creation.uv_sphere(radius=col.radius, count=[n, n])
+    elif col.shape == "capsule":
+        m = trimesh.creation.capsule(height=col.height, radius=col.radius, count=[n, n])
+        m.apply_translation(-0.5 * (m.bounds[0] + m.bounds[1]))
+    else:
+        m = trimesh.creation.cylinder(radius=col.radius, height=col.height, sections=n)
+    return np.asarray(m.vertices, np.float32), np.asarray(m.faces, np.int32)
 
 
 def _indexed_corner_uvs(corner_uv: np.ndarray):
@@ -139,9 +191,10 @@ def _indexed_corner_uvs(corner_uv: np.ndarray):
     return values.astype(np.float32), indices.reshape(-1).astype(np.int32)
 
 
-def _define_colliders(stage, model) -> list:
-    """Collider prims under /World/colliders (UsdGeom shapes, meshes for mesh colliders) with a translate and
-    an orient op; returns (collider, translate op, orient op, geom) per collider."""
+def _define_colliders(stage, model, materials: dict) -> list:
+    """Collider prims under /World/colliders (UsdGeom Cube and Plane; meshes for mesh colliders and, tessellated, for
+    round ones) with a translate and an orient op, bound to their look's material (created in `materials`, look ->
+    UsdShade.Material, as needed); returns (collider, translate op, orient op, geom) per collider."""
     from pxr import Gf, UsdGeom, Vt
 
     if not getattr(model, "colliders", None):
@@ -150,19 +203,7 @@ def _define_colliders(stage, model) -> list:
     out = []
     for col in model.colliders:
         path = f"/World/{COLLIDER_SCOPE}/{_prim_name(col.name)}"
-        half = col.local_size
-        if col.shape == "sphere":
-            geom = UsdGeom.Sphere.Define(stage, path)
-            geom.CreateRadiusAttr(col.radius)
-            extent = [(-half[0],) * 3, (half[0],) * 3]
-        elif col.shape in ("capsule", "cylinder"):
-            geom = (UsdGeom.Capsule if col.shape == "capsule" else UsdGeom.Cylinder).Define(stage, path)
-            geom.CreateRadiusAttr(col.radius)
-            geom.CreateHeightAttr(col.height)
-            geom.CreateAxisAttr(UsdGeom.Tokens.z)
-            top = half[1] + (half[0] if col.shape == "capsule" else 0.0)
-            extent = [(-half[0], -half[0], -top), (half[0], half[0], top)]
-        elif col.shape == "box":
+        if col.shape == "box":
             geom = UsdGeom.Cube.Define(stage, path)
             geom.CreateSizeAttr(1.0)
             extent = [(-0.5,) * 3, (0.5,) * 3]
@@ -173,21 +214,28 @@ def _define_colliders(stage, model) -> list:
             geom.CreateLengthAttr(20.0)
             geom.CreateDoubleSidedAttr(False)
             extent = [(-10.0, -10.0, 0.0), (10.0, 10.0, 0.0)]
-        else:
+        else:  # mesh colliders, and round ones tessellated finely (round_collider_mesh)
             geom = UsdGeom.Mesh.Define(stage, path)
             geom.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
-            tris = np.asarray(col.triangles, np.int32)
-            pts = np.asarray(col.vertices, np.float32)
+            if col.shape == "mesh":
+                tris, pts = np.asarray(col.triangles, np.int32), np.asarray(col.vertices, np.float32)
+            else:
+                pts, tris = round_collider_mesh(col)
             geom.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(pts))
             geom.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(tris), 3, np.int32)))
             geom.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(np.ascontiguousarray(tris.reshape(-1))))
             extent = [tuple(pts.min(0)), tuple(pts.max(0))]
         geom.CreateExtentAttr([Gf.Vec3f(*map(float, e)) for e in extent])
-        geom.CreateDisplayColorAttr(Vt.Vec3fArray.FromNumpy(np.array([[0.55, 0.57, 0.60]], np.float32)))
+        look = looks.collider_look(col.shape, bool(col.deforming))
+        if look not in materials:
+            materials[look] = looks.define_material(stage, f"/World/{LOOKS_SCOPE}/{look}", looks.COLLIDER_COLORS[look], looks.ROUGHNESS[look])
+        looks.bind_look(geom, materials[look], looks.COLLIDER_COLORS[look])
         prim = geom.GetPrim()
-        prim.SetCustomDataByKey("clothWarp:collider", {"shape": col.shape, "thickness": float(col.thickness),
-                                                        "staticFriction": float(col.static_friction),
-                                                        "kineticFriction": float(col.kinetic_friction)})
+        shape = {"shape": col.shape, "thickness": float(col.thickness), "staticFriction": float(col.static_friction),
+                 "kineticFriction": float(col.kinetic_friction)}
+        if col.shape in ("sphere", "capsule", "cylinder"):  # the exact shape beside its tessellation
+            shape.update(radius=float(col.radius), **({"height": float(col.height), "axis": "Z"} if col.shape != "sphere" else {}))
+        prim.SetCustomDataByKey("clothWarp:collider", shape)
         translate = geom.AddTranslateOp()
         orient = geom.AddOrientOp()
         if col.shape == "box":
@@ -292,7 +340,7 @@ def read_frames(path, model, count: int):
     with usd_errors(path):
         stage = Usd.Stage.Open(str(path), Usd.Stage.LoadAll)
         start = int(stage.GetStartTimeCode())
-        prims = [(stage.GetPrimAtPath(f"/World/{name}"), particles) for name, particles, _, _ in _cloth_meshes(model)]
+        prims = [(stage.GetPrimAtPath(f"/World/{name}"), particles) for name, particles, _, _, _ in _cloth_meshes(model)]
         if not all(p.IsValid() for p, _ in prims):
             raise CacheError(f"{path}: its meshes are not this scene's cloths")
         diag_attrs = {d: prims[0][0].GetAttribute(f"clothWarp:{d}") for d in DIAGNOSTICS}
@@ -515,14 +563,19 @@ class UsdCacheWriter(CacheWriter):
         self._set_metadata()
         rest = model.rest_positions
         self.meshes = []
-        for name, particles, tris, corner_uv in _cloth_meshes(model):
+        materials = {}
+        UsdGeom.Scope.Define(stage, f"/World/{LOOKS_SCOPE}")
+        for name, particles, tris, corner_uv, fabric in _cloth_meshes(model):
             mesh = UsdGeom.Mesh.Define(stage, f"/World/{name}")
             mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
             mesh.CreateDoubleSidedAttr(True)
             mesh.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
             mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(tris), 3, np.int32)))
             mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(np.ascontiguousarray(tris.reshape(-1))))
-            mesh.CreateDisplayColorAttr(Vt.Vec3fArray.FromNumpy(np.array([[0.75, 0.45, 0.30]], np.float32)))
+            color = looks.fabric_color(fabric)
+            if fabric not in materials:
+                materials[fabric] = looks.define_material(stage, f"/World/{LOOKS_SCOPE}/{_prim_name(fabric)}", color, looks.ROUGHNESS["fabric"])
+            looks.bind_look(mesh, materials[fabric], color)
             if corner_uv is not None:
                 values, indices = _indexed_corner_uvs(corner_uv)
                 st = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.faceVarying)
@@ -539,6 +592,13 @@ class UsdCacheWriter(CacheWriter):
             if velocities:
                 attrs["velocities"] = mesh.CreateVelocitiesAttr()
                 attrs["velocities"].Set(Vt.Vec3fArray.FromNumpy(np.zeros_like(x0)))
+            edges = triangle_edges(tris)
+            rest_length = np.linalg.norm(x0[edges[:, 0]] - x0[edges[:, 1]], axis=1)
+            strain = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar(STRAIN_PRIMVAR, Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex)
+            strain.GetAttr().SetDocumentation("per vertex, the largest strain l / L - 1 of its mesh edges, per frame")
+            strain.Set(Vt.FloatArray.FromNumpy(np.zeros(1, np.float32)))  # the rest pose: 0 everywhere (indexed, as per frame)
+            strain.SetIndices(Vt.IntArray.FromNumpy(np.zeros(len(x0), np.int32)))
+            attrs["strain"] = (strain, edges, rest_length)
             prim = mesh.GetPrim()
             for diag, (type_name, doc) in DIAGNOSTICS.items():
                 vtype = Sdf.ValueTypeNames.Float if type_name == "float" else Sdf.ValueTypeNames.Int
@@ -546,7 +606,7 @@ class UsdCacheWriter(CacheWriter):
                 attr.SetDocumentation(doc)
                 attrs[diag] = attr
             self.meshes.append((particles, tris, attrs))
-        self.colliders = _define_colliders(stage, model)
+        self.colliders = _define_colliders(stage, model, {})
         self._write_collider_poses(0)
         self._checkpoint_attr = None
         try:
@@ -585,6 +645,10 @@ class UsdCacheWriter(CacheWriter):
                 attrs["normals"].Set(Vt.Vec3fArray.FromNumpy(vertex_normals(x, tris)), tc)
             if "velocities" in attrs:
                 attrs["velocities"].Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(qd[particles])), tc)
+            strain, edges, rest_length = attrs["strain"]
+            values, indices = np.unique(vertex_strain(x, edges, rest_length), return_inverse=True)  # indexed: at rest, mostly 0
+            strain.Set(Vt.FloatArray.FromNumpy(values), tc)
+            strain.SetIndices(Vt.IntArray.FromNumpy(indices.astype(np.int32)), tc)
             for key, value in diagnostics.items():
                 if key in DIAGNOSTICS and value is not None:
                     attrs[key].Set(int(value) if DIAGNOSTICS[key][0] == "int" else float(value), tc)

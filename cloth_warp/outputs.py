@@ -56,11 +56,22 @@ def usd_error_text(exc: BaseException) -> str:
         where = f" in <{m.group(4)}>" if m.group(4) else ""
         cut = " (the file ends early: truncated?)" if m.group(3) == "" else ""
         return f"USD text parse error at line {m.group(1)}, column {m.group(2)}{where}{cut}"
-    m = re.match(r"\S*?:(\d+):(\d+): (.*)", msg, re.S)  # "/abs/path.usda:4:2: Expected } at '...'"
+    m = re.match(r"(\S*?):(\d+):(\d+): (.*)", msg, re.S)  # "/abs/path.usda:4:2: Expected } at '...'"
     if m:
-        msg = f"USD text error at line {m.group(1)}, column {m.group(2)}: {m.group(3)}"
+        cut = " (the error is on the file's last line: truncated?)" if _last_line(m.group(1)) == int(m.group(2)) else ""
+        msg = f"USD text error at line {m.group(2)}, column {m.group(3)}: {m.group(4)}{cut}"
     msg = " ".join(msg.split())
     return msg if len(msg) <= 300 else msg[:297] + "..."
+
+
+def _last_line(path: str) -> int | None:
+    """The number of the last line of a text file (None when it cannot be read)."""
+    try:
+        with open(path, "rb") as f:
+            data = f.read()
+    except OSError:
+        return None
+    return data.count(b"\n") + (0 if data.endswith(b"\n") else 1)
 
 
 @contextlib.contextmanager

@@ -257,3 +257,122 @@ def test_vertex_normals_of_a_flat_grid():
     c = b.add_cloth_grid(resolution=(3, 3), size=(1.0, 1.0))
     n = vertex_normals(c.topology.positions, c.topology.triangles)
     np.testing.assert_allclose(n, np.tile([0.0, 0.0, 1.0], (16, 1)), atol=1e-7)
+
+
+# -- what a DCC shows: materials, per-vertex strain, round colliders, the frame rate --------------------------------
+
+def _looks_sim(tmp_path):
+    """A denim and a silk cloth over a ball on the ground, 3 frames cached."""
+    from cloth_warp.cache import UsdCacheWriter
+
+    b = cw.ModelBuilder()
+    flat = cw.quat_from_axis_angle((1, 0, 0), -90.0)
+    jeans = b.add_cloth_grid(resolution=(6, 6), size=(0.4, 0.4), position=(-0.2, 0.6, 0.2), rotation=flat, material="denim", name="jeans")
+    b.pin(jeans.select("corner:top_left"))  # it swings and stretches
+    b.add_cloth_disc(radius=0.15, rings=4, position=(0.0, 0.8, 0.0), rotation=flat, material="silk", name="scarf")
+    b.add_sphere((0.0, 0.3, 0.0), 0.25, name="ball")
+    b.add_ground(name="ground")
+    model = b.finalize("cpu")
+    sim = cw.Simulator(model, cw.SolverImplicitEuler(model), fps=30, substeps=2)
+    path = tmp_path / "looks.usdc"
+    with UsdCacheWriter(path, model, fps=30) as w:
+        for _ in range(3):
+            w.write(sim.state.particle_q.numpy(), sim.state.particle_qd.numpy())
+            sim.step_frame()
+    return model, sim, Usd.Stage.Open(str(path))
+
+
+def _bound_color(prim):
+    from pxr import UsdShade
+
+    material, _ = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()
+    assert material, f"{prim.GetPath()} has no material"
+    shader = UsdShade.Shader(material.GetSurfaceOutput().GetConnectedSources()[0][0].source.GetPrim())
+    assert shader.GetIdAttr().Get() == "UsdPreviewSurface"
+    return tuple(round(c, 6) for c in shader.GetInput("diffuseColor").Get())
+
+
+def test_cloths_and_colliders_are_bound_to_their_own_materials(tmp_path):
+    """Check each cloth is bound to a UsdPreviewSurface material of its fabric's colour (displayColor the same), the
+    ball and the ground to theirs, and that cloth, ball and ground do not share a colour."""
+    from cloth_warp import looks
+
+    _, _, stage = _looks_sim(tmp_path)
+    colors = {}
+    for path in ("/World/jeans", "/World/scarf", "/World/colliders/ball", "/World/colliders/ground"):
+        prim = stage.GetPrimAtPath(path)
+        colors[path] = _bound_color(prim)
+        display = tuple(round(c, 6) for c in UsdGeom.Gprim(prim).GetDisplayColorAttr().Get()[0])
+        assert display == colors[path]
+    assert colors["/World/jeans"] == tuple(round(c, 6) for c in looks.FABRIC_COLORS["denim"])
+    assert colors["/World/scarf"] == tuple(round(c, 6) for c in looks.FABRIC_COLORS["silk"])
+    assert len(set(colors.values())) == 4
+    assert UsdValidation.ValidationRegistry  # the stage's materials validate with the rest (test_usd_validation...)
+
+
+def test_per_vertex_strain_is_a_time_sampled_vertex_primvar(tmp_path):
+    """Check the cache carries primvars:strain per vertex and per frame (a DCC keeps vertex primvars it reads per
+    frame, where it drops per-frame constants), indexed (at rest most values repeat): each vertex's largest strain
+    l / L - 1 over its mesh edges."""
+    from cloth_warp.cache import triangle_edges, vertex_strain
+
+    model, _, stage = _looks_sim(tmp_path)
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/World/jeans"))
+    primvar = UsdGeom.PrimvarsAPI(mesh).GetPrimvar("strain")
+    assert primvar and primvar.GetInterpolation() == UsdGeom.Tokens.vertex
+    assert primvar.GetAttr().GetTimeSamples() == [1.0, 2.0, 3.0]
+    tris = np.asarray(mesh.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3)
+    edges = triangle_edges(tris)
+    rest = np.asarray(mesh.GetPointsAttr().Get())  # the default value: the rest pose
+    x = np.asarray(mesh.GetPointsAttr().Get(3))
+    expected = vertex_strain(x, edges, np.linalg.norm(rest[edges[:, 0]] - rest[edges[:, 1]], axis=1))
+    np.testing.assert_allclose(np.asarray(primvar.ComputeFlattened(3)), expected, atol=1e-6)
+    assert np.abs(expected).max() > 1e-4  # the cloth did deform
+    # a hand check of the definition on one stretched edge
+    np.testing.assert_allclose(vertex_strain(np.array([[0, 0, 0], [1.1, 0, 0.0]]), np.array([[0, 1]]), np.array([1.0])), [0.1, 0.1],
+                               atol=1e-6)
+
+
+def test_round_colliders_are_written_as_fine_meshes(tmp_path):
+    """Check a ball is written as a mesh whose vertices lie on the sphere and whose facets stay within 0.5 mm of it
+    (a DCC's own 10-segment tessellation of an implicit sphere sits 12 mm inside a 25 cm ball), its exact radius kept in
+    the prim's customData."""
+    from cloth_warp.cache import ROUND_SAGITTA
+
+    _, _, stage = _looks_sim(tmp_path)
+    prim = stage.GetPrimAtPath("/World/colliders/ball")
+    assert prim.IsA(UsdGeom.Mesh)
+    assert prim.GetCustomDataByKey("clothWarp:collider")["radius"] == pytest.approx(0.25)
+    mesh = UsdGeom.Mesh(prim)
+    v = np.asarray(mesh.GetPointsAttr().Get(), np.float64)
+    tris = np.asarray(mesh.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3)
+    np.testing.assert_allclose(np.linalg.norm(v, axis=1), 0.25, atol=1e-6)
+    centroid = np.linalg.norm(v[tris].mean(axis=1), axis=1)
+    assert 0.25 - centroid.min() <= ROUND_SAGITTA
+
+
+def test_cusick_disc_has_uvs(tmp_path):
+    """Check a disc cloth gets texture coordinates (projected from its plane, in [0, 1]) in the cache."""
+    _, _, stage = _looks_sim(tmp_path)
+    st = UsdGeom.PrimvarsAPI(UsdGeom.Mesh(stage.GetPrimAtPath("/World/scarf"))).GetPrimvar("st")
+    assert st and st.GetInterpolation() == UsdGeom.Tokens.faceVarying
+    uv = np.asarray(st.ComputeFlattened())
+    assert uv.min() >= 0.0 and uv.max() <= 1.0 and uv.max() - uv.min() > 0.9
+
+
+@pytest.mark.parametrize("fps,expected", [(60.0, (60, 1.0)), (24.0, (24, 1.0)), (29.97, (30, 30 / 29.97)), (23.976, (24, 24 / 23.976))])
+def test_blender_import_helper_sets_the_cache_frame_rate(tmp_path, fps, expected):
+    """Check the Blender import helper turns a cache's rate into Blender's integer fps and fps_base (Blender plays
+    fps / fps_base) and reads the rate and frame range from the stage."""
+    from cloth_warp.blender_import import blender_frame_rate, cache_timing
+
+    whole, base = blender_frame_rate(fps)
+    assert whole == expected[0] and base == pytest.approx(expected[1]) and whole / base == pytest.approx(fps)
+    model, sim = _grid_sim()
+    path = tmp_path / "rate.usdc"
+    with UsdCacheWriter(path, model, fps=fps, start_frame=1001) as w:
+        for _ in range(3):
+            w.write(sim.state.particle_q.numpy(), sim.state.particle_qd.numpy())
+    assert cache_timing(path) == (pytest.approx(fps), 1001.0, 1003.0)
+    with pytest.raises(ValueError):
+        blender_frame_rate(0.0)
