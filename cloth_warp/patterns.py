@@ -1,0 +1,350 @@
+"""Sewing patterns: GarmentCode's JSON pattern specification, read and meshed into panels ready to sew.
+
+The format (GarmentCode and GarmentCodeData, ``*_specification.json``): ``pattern.panels`` maps a name to a panel
+with 2D ``vertices``, a closed loop of ``edges`` (``endpoints`` [i, j], an optional ``curvature`` and ``label``), a
+3D placement (``translation``, ``rotation`` as XYZ Euler angles in degrees, applied to the panel's plane z = 0) and a
+``label``; ``pattern.stitches`` lists pairs of ``{"panel", "edge"}`` to sew together; ``properties.units_in_meter``
+gives the length unit (100: centimetres) and ``properties.curvature_coords`` must be ``"relative"``. Curvature:
+
+* ``quadratic`` / ``cubic``: Bezier control points relative to the edge, (u, v) -> start + u e + v perp(e), with e the
+  edge vector and perp(e) = (-e_y, e_x) (the edge's left);
+* ``circle``: [radius, large_arc, right]: an SVG arc from start to end (``right`` is SVG's sweep flag: the arc runs
+  counter-clockwise in the panel's y-up frame).
+
+:func:`mesh_pattern` meshes every panel with Shewchuk's Triangle (the ``triangle`` package: a constrained Delaunay
+mesher with quality bounds, not worth writing by hand) at a target edge length: each edge's outline is sampled
+uniformly in arc length with as many segments on both sides of a stitch, no point added on the outline, so each
+stitched pair of edges has matching vertices (paired from the two ends that meet when the panels are placed).
+Texture coordinates are the panel's own 2D coordinates [m] (a woven panel's warp along its x axis).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .validation import InvalidValue
+
+CURVATURE_SAMPLES = 256  # points per edge on which a curve's arc length is measured
+
+
+class PatternError(InvalidValue):
+    """A pattern specification that cannot be read; the message names the key path."""
+
+
+@dataclass(frozen=True)
+class PatternEdge:
+    """One edge of a panel's outline, in the panel's 2D frame [m].
+
+    Attributes:
+        start, end: endpoints (2,).
+        kind: "line", "quadratic", "cubic" or "circle".
+        controls: Bezier control points (absolute, [m]) for "quadratic" (1) and "cubic" (2).
+        radius, large_arc, sweep: a "circle" arc's radius [m] and SVG flags.
+        label: GarmentCode's edge label ("" when none).
+    """
+
+    start: np.ndarray
+    end: np.ndarray
+    kind: str = "line"
+    controls: tuple = ()
+    radius: float = 0.0
+    large_arc: bool = False
+    sweep: bool = False
+    label: str = ""
+
+    def points(self, t: np.ndarray) -> np.ndarray:
+        """Points (len(t), 2) at curve parameters t in [0, 1]."""
+        t = np.asarray(t, np.float64)[:, None]
+        p0, p1 = self.start, self.end
+        if self.kind == "quadratic":
+            (c,) = self.controls
+            return (1 - t) ** 2 * p0 + 2 * (1 - t) * t * c + t**2 * p1
+        if self.kind == "cubic":
+            c1, c2 = self.controls
+            return (1 - t) ** 3 * p0 + 3 * (1 - t) ** 2 * t * c1 + 3 * (1 - t) * t**2 * c2 + t**3 * p1
+        if self.kind == "circle":
+            centre, a0, sweep = self.arc()
+            a = a0 + t[:, 0] * sweep
+            return centre + self.arc_radius() * np.stack([np.cos(a), np.sin(a)], axis=1)
+        return (1 - t) * p0 + t * p1
+
+    def arc_radius(self) -> float:
+        """The arc's radius [m], at least half the chord (SVG scales a radius too small to reach)."""
+        return max(self.radius, 0.5 * float(np.linalg.norm(self.end - self.start)))
+
+    def arc(self) -> tuple[np.ndarray, float, float]:
+        """(centre, start angle, signed sweep angle [rad]) of a "circle" edge: SVG's endpoint-to-centre conversion
+        with equal radii and no rotation, in a y-up frame (sweep flag 1: counter-clockwise)."""
+        p0, p1 = self.start, self.end
+        r = self.arc_radius()
+        half = 0.5 * (p0 - p1)
+        d2 = float(half @ half)
+        k = math.sqrt(max(r * r - d2, 0.0) / d2) if d2 > 0.0 else 0.0
+        if self.large_arc == self.sweep:
+            k = -k
+        centre = 0.5 * (p0 + p1) + k * np.array([half[1], -half[0]])
+        a0 = math.atan2(*(p0 - centre)[::-1])
+        a1 = math.atan2(*(p1 - centre)[::-1])
+        sweep = a1 - a0
+        if self.sweep and sweep < 0.0:
+            sweep += 2.0 * math.pi
+        elif not self.sweep and sweep > 0.0:
+            sweep -= 2.0 * math.pi
+        return centre, a0, sweep
+
+    def length(self) -> float:
+        """Arc length [m]."""
+        p = self.points(np.linspace(0.0, 1.0, CURVATURE_SAMPLES + 1))
+        return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
+
+    def sample(self, segments: int) -> np.ndarray:
+        """`segments` + 1 points from start to end, uniform in arc length."""
+        t = np.linspace(0.0, 1.0, CURVATURE_SAMPLES + 1)
+        p = self.points(t)
+        s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
+        target = np.linspace(0.0, s[-1], segments + 1)
+        out = self.points(np.interp(target, s, t))
+        out[0], out[-1] = self.start, self.end
+        return out
+
+
+@dataclass(frozen=True)
+class Panel:
+    """A pattern piece: its outline (a closed loop of edges) in its own 2D frame [m] and its 3D placement."""
+
+    name: str
+    edges: tuple[PatternEdge, ...]
+    translation: np.ndarray  # [m]
+    rotation: np.ndarray  # XYZ Euler angles [deg]
+    label: str = ""
+
+    def placement(self) -> np.ndarray:
+        """The 3x3 rotation of the panel's plane: extrinsic rotations about x, then y, then z (R = Rz Ry Rx)."""
+        ax, ay, az = np.radians(self.rotation)
+        cx, sx, cy, sy, cz, sz = math.cos(ax), math.sin(ax), math.cos(ay), math.sin(ay), math.cos(az), math.sin(az)
+        rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+        ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+        rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+        return rz @ ry @ rx
+
+    def place(self, points2d: np.ndarray) -> np.ndarray:
+        """3D positions [m] of points in the panel's 2D frame."""
+        p = np.c_[np.asarray(points2d, np.float64), np.zeros(len(points2d))]
+        return p @ self.placement().T + self.translation
+
+
+@dataclass(frozen=True)
+class Pattern:
+    """A sewing pattern: panels by name, stitches as pairs of (panel name, edge index)."""
+
+    panels: dict
+    stitches: tuple
+    units_in_meter: float = 100.0
+
+
+def _error(path: str, message: str) -> PatternError:
+    return PatternError(f"{path}: {message}")
+
+
+def _number(value, path: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise _error(path, f"expected a finite number, got {value!r}")
+    return float(value)
+
+
+def _vector(value, size: int, path: str) -> np.ndarray:
+    if not isinstance(value, (list, tuple)) or len(value) != size:
+        raise _error(path, f"expected {size} numbers, got {value!r}")
+    return np.array([_number(v, f"{path}[{k}]") for k, v in enumerate(value)])
+
+
+def _edge(spec, vertices: np.ndarray, path: str) -> PatternEdge:
+    if not isinstance(spec, dict):
+        raise _error(path, "expected a table with 'endpoints'")
+    ends = spec.get("endpoints")
+    if (not isinstance(ends, (list, tuple)) or len(ends) != 2
+            or not all(isinstance(i, int) and not isinstance(i, bool) and 0 <= i < len(vertices) for i in ends)):
+        raise _error(f"{path}.endpoints", f"expected two vertex indices in [0, {len(vertices)}), got {ends!r}")
+    p0, p1 = vertices[ends[0]], vertices[ends[1]]
+    label = str(spec.get("label", ""))
+    curvature = spec.get("curvature")
+    if curvature is None:
+        return PatternEdge(p0, p1, label=label)
+    cpath = f"{path}.curvature"
+    if isinstance(curvature, list):  # GarmentCode's older form: one relative quadratic control point
+        curvature = {"type": "quadratic", "params": [curvature]}
+    if not isinstance(curvature, dict):
+        raise _error(cpath, f"expected a table with 'type' and 'params', got {curvature!r}")
+    kind, params = curvature.get("type"), curvature.get("params")
+    e = p1 - p0
+    perp = np.array([-e[1], e[0]])
+    if kind in ("quadratic", "cubic"):
+        count = 1 if kind == "quadratic" else 2
+        if not isinstance(params, list) or len(params) != count:
+            raise _error(f"{cpath}.params", f"a {kind} edge needs {count} control point(s), got {params!r}")
+        controls = tuple(p0 + u * e + v * perp for u, v in (_vector(c, 2, f"{cpath}.params[{k}]") for k, c in enumerate(params)))
+        return PatternEdge(p0, p1, kind, controls=controls, label=label)
+    if kind == "circle":
+        if not isinstance(params, list) or len(params) != 3:
+            raise _error(f"{cpath}.params", f"a circle edge needs [radius, large_arc, right], got {params!r}")
+        radius = _number(params[0], f"{cpath}.params[0]")
+        if radius <= 0.0:
+            raise _error(f"{cpath}.params[0]", f"the radius must be > 0, got {radius}")
+        flags = []
+        for k in (1, 2):
+            if params[k] not in (0, 1, True, False):
+                raise _error(f"{cpath}.params[{k}]", f"expected 0 or 1, got {params[k]!r}")
+            flags.append(bool(params[k]))
+        return PatternEdge(p0, p1, "circle", radius=radius, large_arc=flags[0], sweep=flags[1], label=label)
+    raise _error(f"{cpath}.type", f"{kind!r} is not allowed; allowed: quadratic, cubic, circle")
+
+
+def read_garmentcode(source) -> Pattern:
+    """A :class:`Pattern` from a GarmentCode specification: a path to its JSON file, or the parsed dict. Lengths are
+    converted to metres (``properties.units_in_meter``); bad input raises :class:`PatternError` naming the key."""
+    if isinstance(source, (str, os.PathLike)):
+        try:
+            with open(source, encoding="utf-8") as f:
+                spec = json.load(f)
+        except OSError as exc:
+            raise PatternError(f"{os.fspath(source)}: cannot read: {exc.strerror or exc}") from None
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise PatternError(f"{os.fspath(source)}: not JSON: {exc}") from None
+    else:
+        spec = source
+    if not isinstance(spec, dict) or not isinstance(spec.get("pattern"), dict):
+        raise PatternError("pattern: a GarmentCode specification holds a 'pattern' table")
+    props = spec.get("properties", {}) or {}
+    unit = _number(props.get("units_in_meter", 100), "properties.units_in_meter")
+    if unit <= 0.0:
+        raise _error("properties.units_in_meter", f"must be > 0, got {unit}")
+    coords = props.get("curvature_coords", "relative")
+    if coords != "relative":
+        raise _error("properties.curvature_coords", f"only 'relative' control points are read, got {coords!r}")
+    scale = 1.0 / unit
+    panels_spec = spec["pattern"].get("panels")
+    if not isinstance(panels_spec, dict) or not panels_spec:
+        raise PatternError("pattern.panels: expected a table of panels")
+    panels = {}
+    for name, p in panels_spec.items():
+        path = f"pattern.panels.{name}"
+        if not isinstance(p, dict):
+            raise _error(path, "expected a table")
+        raw = p.get("vertices")
+        if not isinstance(raw, list) or len(raw) < 3:
+            raise _error(f"{path}.vertices", "expected at least 3 points")
+        vertices = np.array([_vector(v, 2, f"{path}.vertices[{k}]") for k, v in enumerate(raw)]) * scale
+        edges_spec = p.get("edges")
+        if not isinstance(edges_spec, list) or len(edges_spec) < 2:
+            raise _error(f"{path}.edges", "expected a loop of at least 2 edges")
+        edges = tuple(_edge(e, vertices, f"{path}.edges[{k}]") for k, e in enumerate(edges_spec))
+        for k, (a, b) in enumerate(zip(edges, edges[1:] + edges[:1])):
+            if not np.array_equal(a.end, b.start):
+                raise _error(f"{path}.edges[{(k + 1) % len(edges)}]", "the edges do not form a loop: an edge must start where "
+                             "the one before it ends")
+        panels[name] = Panel(name, edges, _vector(p.get("translation", [0, 0, 0]), 3, f"{path}.translation") * scale,
+                             _vector(p.get("rotation", [0, 0, 0]), 3, f"{path}.rotation"), str(p.get("label", "")))
+    stitches = []
+    for k, st in enumerate(spec["pattern"].get("stitches", []) or []):
+        path = f"pattern.stitches[{k}]"
+        if not isinstance(st, list) or len(st) != 2:
+            raise _error(path, "expected two {panel, edge} sides")
+        sides = []
+        for j, side in enumerate(st):
+            spath = f"{path}[{j}]"
+            if not isinstance(side, dict) or side.get("panel") not in panels:
+                raise _error(f"{spath}.panel", f"{(side or {}).get('panel') if isinstance(side, dict) else side!r} is not a panel "
+                             f"of the pattern; panels: {', '.join(panels)}")
+            edge = side.get("edge")
+            n = len(panels[side["panel"]].edges)
+            if not isinstance(edge, int) or isinstance(edge, bool) or not 0 <= edge < n:
+                raise _error(f"{spath}.edge", f"expected an edge index in [0, {n}), got {edge!r}")
+            sides.append((side["panel"], edge))
+        stitches.append(tuple(sides))
+    return Pattern(panels, tuple(stitches), unit)
+
+
+@dataclass
+class PatternMesh:
+    """A pattern meshed panel by panel, placed in 3D, with its seams.
+
+    Attributes:
+        vertices: (n, 3) placed positions [m]; uvs: (n, 2) the panels' own 2D coordinates [m].
+        triangles: (t, 3) vertex indices (each panel's outline counter-clockwise in its frame).
+        panel: (n,) the panel index of each vertex; panel_names: the panels in that order.
+        seams: (s, 2) vertex pairs to sew, one pair per matching point of each stitch (a pair per stitch end too).
+        outline: per panel, its outline's vertex indices in order (the loop of its edges' samples).
+        edge_vertices: (panel name, edge index) -> that edge's vertex indices from its start to its end.
+    """
+
+    vertices: np.ndarray
+    uvs: np.ndarray
+    triangles: np.ndarray
+    panel: np.ndarray
+    panel_names: list
+    seams: np.ndarray
+    outline: list = field(default_factory=list)
+    edge_vertices: dict = field(default_factory=dict)
+
+
+def edge_segments(pattern: Pattern, edge_length: float) -> dict:
+    """(panel, edge) -> segments: ceil(length / edge_length), at least 1; both sides of a stitch get the larger."""
+    counts = {(name, k): max(1, math.ceil(e.length() / edge_length)) for name, p in pattern.panels.items() for k, e in enumerate(p.edges)}
+    for a, b in pattern.stitches:
+        counts[a] = counts[b] = max(counts[a], counts[b])
+    return counts
+
+
+def mesh_pattern(pattern: Pattern, edge_length: float, min_angle: float = 25.0) -> PatternMesh:
+    """Mesh every panel (Triangle: constrained Delaunay with quality, triangles of area at most that of an
+    equilateral one of side `edge_length` [m], smallest angle `min_angle` [deg] away from the outline, no point added
+    on the outline), place it in 3D and pair the vertices of stitched edges."""
+    import triangle
+
+    if not (math.isfinite(edge_length) and edge_length > 0.0):
+        raise InvalidValue(f"edge_length: must be a length > 0 m, got {edge_length!r}")
+    segments = edge_segments(pattern, edge_length)
+    area = math.sqrt(3.0) / 4.0 * edge_length**2
+    vertices, uvs, tris, panel_of, outline, edge_vertices = [], [], [], [], [], {}
+    offset = 0
+    names = list(pattern.panels)
+    for index, name in enumerate(names):
+        panel = pattern.panels[name]
+        loop, spans = [], []
+        for k, e in enumerate(panel.edges):
+            pts = e.sample(segments[(name, k)])
+            spans.append((len(loop), len(pts) - 1))
+            loop.extend(pts[:-1])
+        loop = np.asarray(loop)
+        n = len(loop)
+        signed = 0.5 * float(np.sum(loop[:, 0] * np.roll(loop[:, 1], -1) - np.roll(loop[:, 0], -1) * loop[:, 1]))
+        ring = np.c_[np.arange(n), (np.arange(n) + 1) % n]
+        out = triangle.triangulate({"vertices": loop, "segments": ring}, f"pq{min_angle:g}a{area:.12g}YQ")
+        pts2d = np.asarray(out["vertices"], np.float64)
+        if len(pts2d) < n or not np.allclose(pts2d[:n], loop):
+            raise PatternError(f"pattern.panels.{name}: the mesher moved the outline (self-intersecting outline?)")
+        t = np.asarray(out["triangles"], np.int64)
+        if signed < 0.0:  # the outline runs clockwise in the panel's frame: keep its triangles' winding consistent
+            t = t[:, [0, 2, 1]]
+        vertices.append(panel.place(pts2d))
+        uvs.append(pts2d)
+        tris.append(t + offset)
+        panel_of.append(np.full(len(pts2d), index))
+        outline.append(np.arange(n) + offset)
+        for k, (start, count) in enumerate(spans):
+            edge_vertices[(name, k)] = (np.arange(start, start + count + 1) % n) + offset
+        offset += len(pts2d)
+    x = np.concatenate(vertices)
+    seams = []
+    for a, b in pattern.stitches:
+        va, vb = edge_vertices[a], edge_vertices[b]
+        direct = np.linalg.norm(x[va[0]] - x[vb[0]]) + np.linalg.norm(x[va[-1]] - x[vb[-1]])
+        crossed = np.linalg.norm(x[va[0]] - x[vb[-1]]) + np.linalg.norm(x[va[-1]] - x[vb[0]])
+        seams.append(np.c_[va, vb if direct <= crossed else vb[::-1]])
+    return PatternMesh(x, np.concatenate(uvs), np.concatenate(tris).astype(np.int32), np.concatenate(panel_of), names,
+                       np.concatenate(seams).astype(np.int32) if seams else np.zeros((0, 2), np.int32), outline, edge_vertices)
