@@ -324,6 +324,48 @@ class ModelBuilder:
             kwargs.setdefault("warp_direction", (1.0, 0.0, 0.0))
         return self.add_cloth_mesh(v, t, **kwargs)
 
+    def add_cloth_pattern(self, pattern, *, edge_length: float = 0.02, seam_stiffness: float | None = None,
+                          seam_damping: float | None = None, **kwargs) -> ClothRef:
+        """Add a garment from a sewing pattern (:mod:`cloth_warp.patterns`): a GarmentCode specification (its JSON file
+        or dict), a :class:`~cloth_warp.patterns.Pattern`, or a :class:`~cloth_warp.patterns.PatternMesh`.
+
+        Its panels are meshed at `edge_length` [m] and placed as the pattern places them, as one cloth whose texture
+        coordinates are each panel's 2D coordinates [m] (so a woven fabric's warp runs along each panel's x axis);
+        points that coincide where panels meet are welded. Each stitch is sewn by zero-length seam springs
+        (:attr:`~cloth_warp.topology.SpringKind.SEAM`, never strain-limited) between its matching points: they pull
+        the panels together over the first frames and then hold them, a stiff seam. `seam_stiffness` [N/m] (default:
+        the material's stretch stiffness, as stiff as the cloth's own springs) and `seam_damping` [N s/m] (default:
+        critical for the lightest seam point against that stiffness). Other keyword arguments as for
+        :meth:`add_cloth_mesh` (no `uvs`: the pattern's are used); returns the cloth, with its mesh as
+        ``ref.pattern_mesh`` and its seam springs' particle pairs as ``ref.seams``."""
+        from . import patterns
+
+        if isinstance(pattern, patterns.PatternMesh):
+            mesh = pattern
+        else:
+            if not isinstance(pattern, patterns.Pattern):
+                pattern = patterns.read_garmentcode(pattern)
+            mesh = patterns.mesh_pattern(pattern, edge_length)
+        if "uvs" in kwargs:
+            raise ValueError("add_cloth_pattern: the texture coordinates are the panels' own; do not pass uvs")
+        kwargs.setdefault("name", f"garment{len(self.cloths)}")
+        ref = self.add_cloth_mesh(mesh.vertices, mesh.triangles, uvs=mesh.uvs, **kwargs)
+        r2p = ref.topology.render_to_particle
+        pairs = mesh.seams if r2p is None else r2p[mesh.seams]
+        pairs = np.unique(np.sort(pairs[pairs[:, 0] != pairs[:, 1]], axis=1), axis=0)
+        pairs = ref.indices(pairs.reshape(-1)).reshape(-1, 2)
+        material = self.cloths[-1][1]
+        k = check_number("seam_stiffness", material.stretch_stiffness if seam_stiffness is None else seam_stiffness, LIMITS["spring_stiffness"])
+        if seam_damping is None:
+            lightest = float(np.min(self.particle_mass[pairs])) if len(pairs) else 0.0
+            seam_damping = 2.0 * math.sqrt(k * 0.5 * lightest)
+        c = check_number("seam_damping", seam_damping, LIMITS["spring_damping"])
+        for i, j in pairs:
+            self.add_spring(int(i), int(j), k, c, rest_length=LIMITS["rest_length"].lo, kind=SpringKind.SEAM)
+        ref.pattern_mesh = mesh
+        ref.seams = pairs
+        return ref
+
     def add_cloth_mesh_file(self, path: str | os.PathLike, *, prim_path: str | None = None, **kwargs) -> ClothRef:
         """Add a cloth from a mesh file: OBJ, PLY, STL, GLB/GLTF, OFF (trimesh) or USD (.usd/.usda/.usdc).
 

@@ -40,6 +40,8 @@ class SpringKind(enum.IntEnum):
     STRUCTURAL = 0
     SHEAR = 1
     BEND = 2
+    SEAM = 3
+    """A sewing seam: a zero-length spring pulling two stitched points together (not strain-limited)."""
 
 
 class SpringLaw(enum.IntEnum):
