@@ -116,6 +116,18 @@ class ControlAnimator:
                     wp.array(np.asarray(c.point_cache, np.float32), dtype=wp.vec3, device=device),
                 ))
 
+        # -- attachments: per attachment its particles, triangles, weights and offsets, uploaded once ----------
+        self.attachments: list[tuple[int, wp.array, wp.array, wp.array, wp.array]] = []
+        """Per attachment: (collider index, particles int32 (a,), triangles vec3i (a,), weights vec3 (a,), offsets [m] (a,))."""
+        for a in model.attachments:
+            self.attachments.append((
+                a.collider,
+                wp.array(np.asarray(a.particles, np.int32), dtype=wp.int32, device=device),
+                wp.array(np.asarray(a.triangles, np.int32), dtype=wp.vec3i, device=device),
+                wp.array(np.asarray(a.weights, np.float32), dtype=wp.vec3, device=device),
+                wp.array(np.asarray(a.offset, np.float32), dtype=float, device=device),
+            ))
+
         # -- gusty wind ------------------------------------------------------------------------------
         self.wind = wind
         """The GustyWind :meth:`apply_wind` evaluates (None: none)."""
@@ -129,8 +141,8 @@ class ControlAnimator:
     # -- what is animated ---------------------------------------------------------------------------
     @property
     def active(self) -> bool:
-        """True when anything is animated: handles, moving or deforming colliders, or a gusty wind."""
-        return self.handle_member_count > 0 or self.colliders_animated or self.gusty
+        """True when anything is animated: handles, attachments, moving or deforming colliders, or a gusty wind."""
+        return self.handle_member_count > 0 or bool(self.attachments) or self.colliders_animated or self.gusty
 
     @property
     def gusty(self) -> bool:
@@ -172,8 +184,8 @@ class ControlAnimator:
 
     # -- the control --------------------------------------------------------------------------------
     def apply(self, control: Control):
-        """Write the control for the step the clock describes: handles' pin targets at its end, colliders'
-        poses at its start and end, deforming colliders' vertices and vertex velocities (and their BVH
+        """Write the control for the step the clock describes: handles' and attachments' pin targets at its end,
+        colliders' poses at its start and end, deforming colliders' vertices and vertex velocities (and their BVH
         refits). Launches only (no host reads, no allocation), so it can be captured where :attr:`capturable`."""
         if self.point_caches and self.device.is_capturing and self.capture_blocker is not None:
             raise RuntimeError(f"ControlAnimator.apply cannot be captured: {self.capture_blocker}")
@@ -192,6 +204,11 @@ class ControlAnimator:
             wp.launch(ka.point_cache_vertices, dim=cache.shape[1], inputs=[self.clock, times, cache],
                       outputs=[mesh.points, mesh.velocities], device=self.device)
             mesh.refit()
+        for collider, particles, triangles, weights, offset in self.attachments:
+            wp.launch(ka.attachment_pin_targets, dim=len(particles),
+                      inputs=[particles, triangles, weights, offset, self.model.collider_meshes[collider].points, collider,
+                              control.collider_transform_end],
+                      outputs=[control.pin_target], device=self.device)
 
     def apply_wind(self, control: Control, time_offset: float = 0.0):
         """Write the wind velocity at clock time + `time_offset` [s] into control.wind (one kernel; the

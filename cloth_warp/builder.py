@@ -15,7 +15,7 @@ from . import topology as topo
 from .colliders import Collider, rotation_to_axis
 from .elasticity import TWISTS, membrane_element_stiffness, membrane_tensor, plate_tensor
 from .materials import FabricMaterial, preset
-from .model import ClothInfo, Handle, Keyframe, Model
+from .model import Attachment, ClothInfo, Handle, Keyframe, Model
 from .outputs import USD_SUFFIXES, usd_error_text
 from .plate import plate_stencils
 from .topology import BendingModel, ClothTopology, MembraneModel, MeshError, SpringKind, SpringLaw, SpringModel
@@ -173,6 +173,7 @@ class ModelBuilder:
         self._element_structural_stiffness: list[np.ndarray] = []
         self.cloths: list[tuple[ClothRef, FabricMaterial, int]] = []
         self.handles: list[Handle] = []
+        self.attachments: list = []
         self.colliders: list[Collider] = []
         self.self_collision = False
         self.cloth_thickness = 0.0
@@ -471,6 +472,35 @@ class ModelBuilder:
             self.particle_pin_stiffness[idx] = check_number("stiffness", stiffness, LIMITS["pin_stiffness"])
         return idx
 
+    def attach(self, indices, collider: Collider, *, offset: float | None = None, name: str | None = None) -> Attachment:
+        """Bind particles to a mesh collider's surface (a waistband, a strap, a cuff on a body): each is hard-pinned to
+        the closest point of the collider's mesh in its initial pose (a triangle and barycentric weights) and follows
+        it as the collider moves and deforms (its point cache), `offset` [m] along the triangle's normal (default:
+        where it is now, so a particle set 5 mm above the surface stays 5 mm above)."""
+        from .model import quat_to_matrix
+
+        if collider not in self.colliders or collider.shape != "mesh":
+            raise ValueError("attach: the collider must be a mesh collider of this builder (add_collider_mesh / _file)")
+        import trimesh
+
+        from .colliders import closest_mesh_points
+
+        idx = self._check_indices(indices)
+        v = np.asarray(collider.vertices_at(0.0), np.float64)
+        p, q = collider.pose_at(0.0)
+        local = (self.particle_positions[idx] - p) @ quat_to_matrix(q)  # world -> the collider's frame (row vectors)
+        closest, tri = closest_mesh_points(v, collider.triangles, local)
+        corners = v[collider.triangles[tri]]
+        weights = trimesh.triangles.points_to_barycentric(corners, closest)
+        normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-30)
+        off = np.einsum("aj,aj->a", local - closest, normal) if offset is None else np.full(len(idx), check_number("offset", offset, LIMITS["position"]))
+        self.pin(idx)
+        a = Attachment(name or f"attachment{len(self.attachments)}", self.colliders.index(collider), idx,
+                       collider.triangles[tri].astype(np.int32), weights.astype(np.float64), off.astype(np.float64))
+        self.attachments.append(a)
+        return a
+
     def add_handle(self, indices, keyframes, *, pivot=None, name: str | None = None) -> Handle:
         """Hard-pin `indices` to a keyframed rigid transform (list of Keyframe or (t, translation[, quat])).
 
@@ -703,6 +733,7 @@ class ModelBuilder:
         for ref, material, tri_start in self.cloths:
             m.cloths.append(ClothInfo(ref.name, ref.particle_start, ref.particle_count, tri_start, len(ref.topology.triangles), material, ref.topology))
         m.handles = list(self.handles)
+        m.attachments = list(self.attachments)
         self._finalize_colliders(m, arr)
         m.self_collision = self.self_collision
         m.cloth_thickness = self.cloth_thickness

@@ -226,6 +226,24 @@ def rotation_to_axis(axis, name: str = "axis") -> tuple[float, float, float, flo
     return tuple((q / np.linalg.norm(q)).tolist())
 
 
+def closest_mesh_points(vertices, triangles, points, chunk: int = 200_000) -> tuple[np.ndarray, np.ndarray]:
+    """Brute force: per point, the closest point [m] of a triangle mesh and its triangle's index (trimesh's per-pair
+    closest point over all triangles). O(points x triangles): for binding a few hundred points at set-up."""
+    from trimesh.triangles import closest_point
+
+    tri = np.asarray(vertices, float)[np.asarray(triangles)]
+    p = np.atleast_2d(np.asarray(points, float))
+    per = max(1, chunk // len(tri))
+    out, which = np.empty_like(p), np.empty(len(p), np.int64)
+    for s in range(0, len(p), per):
+        q = p[s : s + per]
+        pairs = np.repeat(q, len(tri), axis=0)
+        cp = closest_point(np.tile(tri, (len(q), 1, 1)), pairs).reshape(len(q), len(tri), 3)
+        k = np.argmin(np.linalg.norm(cp - q[:, None, :], axis=2), axis=1)
+        out[s : s + per], which[s : s + per] = cp[np.arange(len(q)), k], k
+    return out, which
+
+
 def mesh_signed_distance(vertices, triangles, points, chunk: int = 200_000) -> np.ndarray:
     """Brute-force signed distance [m] of points to a triangle mesh (negative inside): the nearest point
     over all triangles (trimesh's per-pair closest point) and the sign of the generalised winding number

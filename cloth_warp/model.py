@@ -66,6 +66,35 @@ class Handle:
         return (rest_positions - self.pivot) @ r.T + self.pivot + t
 
 
+@dataclass
+class Attachment:
+    """Hard-pinned particles bound to a mesh collider's surface (a waistband, a strap, a cuff on a body): each follows
+    the point of its triangle at fixed barycentric weights, `offset` [m] along the triangle's unit normal, as the
+    collider moves and deforms (its point cache), with the surface's velocity.
+
+    Attributes: name; collider: index into the model's colliders; particles (a,); triangles (a, 3) the collider's local
+    vertex indices; weights (a, 3) barycentric; offset (a,) [m].
+    """
+
+    name: str
+    collider: int
+    particles: np.ndarray
+    triangles: np.ndarray
+    weights: np.ndarray
+    offset: np.ndarray
+
+    def targets(self, collider, time: float) -> np.ndarray:
+        """World target positions [m] of the attached particles at `time` [s] on `collider` (the model's Collider)."""
+        v = np.asarray(collider.vertices_at(time), np.float64)
+        corners = v[self.triangles]
+        point = np.einsum("ar,arj->aj", self.weights, corners)
+        normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-30)
+        local = point + self.offset[:, None] * normal
+        p, q = collider.pose_at(time)
+        return local @ quat_to_matrix(q).T + p
+
+
 def interpolate_keyframes(keyframes: list[Keyframe], time: float) -> tuple[np.ndarray, np.ndarray]:
     """(translation [m], quaternion (x, y, z, w)) at `time` [s]: linear / slerp between keyframes, held
     before the first and after the last."""
@@ -366,6 +395,7 @@ class Model:
         self.cloths: list[ClothInfo] = []
         """Where each cloth lives in the flat arrays, with its material and topology (host-side, as built)."""
         self.handles: list[Handle] = []
+        self.attachments: list[Attachment] = []
         """Keyframed groups of hard-pinned particles (their targets go to Control.pin_target)."""
 
         # -- forces ----------------------------------------------------------------------------------
@@ -410,8 +440,8 @@ class Model:
 
     @property
     def animated(self) -> bool:
-        """True when the control changes during a run (animated handles or colliders)."""
-        return bool(self.handles) or any(c.animated for c in self.colliders)
+        """True when the control changes during a run (animated handles, attachments or colliders)."""
+        return bool(self.handles) or bool(self.attachments) or any(c.animated for c in self.colliders)
 
     # -- factories (the only other places requires_grad is decided) ---------------------------
     def state(self, requires_grad: bool | None = None) -> State:
@@ -459,18 +489,20 @@ class Model:
             mesh.refit()
 
     def update_control(self, control: Control, time: float, dt: float = 0.0, force: bool = False):
-        """Set the control for the step that ends at `time` [s] and lasts `dt` [s]: animated handles'
+        """Set the control for the step that ends at `time` [s] and lasts `dt` [s]: animated handles' and attachments'
         pin targets at `time`, colliders' poses at `time - dt` and `time` (static ones only when `force`)."""
         control.time = time
         if self.colliders and (force or any(c.animated for c in self.colliders)):
             control.collider_transform_start.assign(self.collider_transforms(time - dt))
             control.collider_transform_end.assign(self.collider_transforms(time))
             self.set_collider_geometry(time, dt)
-        if not self.handles:
+        if not (self.handles or self.attachments):
             return
         targets = control.pin_target.numpy()
         for h in self.handles:
             targets[h.particles] = h.targets(self.rest_positions[h.particles], time)
+        for a in self.attachments:
+            targets[a.particles] = a.targets(self.colliders[a.collider], time)
         control.pin_target.assign(targets.astype(np.float32))
 
     # -- launch argument bundles ----------------------------------------------------------------

@@ -223,6 +223,34 @@ def point_cache_vertices(
     velocities_out[i] = to_vec3(v)
 
 
+@wp.kernel
+def attachment_pin_targets(
+    particles: wp.array(dtype=wp.int32),
+    triangles: wp.array(dtype=wp.vec3i),
+    weights: wp.array(dtype=wp.vec3),
+    offset: wp.array(dtype=float),
+    points: wp.array(dtype=wp.vec3),
+    collider: int,
+    collider_transform_end: wp.array(dtype=wp.transform),
+    # outputs
+    pin_target_out: wp.array(dtype=wp.vec3),
+):
+    """An attached particle's target [m]: its triangle's point at fixed barycentric weights, `offset` along the
+    triangle's unit normal, on the collider's current local vertices (`points`), placed by its end-of-step pose."""
+    k = wp.tid()
+    t = triangles[k]
+    w = weights[k]
+    a = points[t[0]]
+    b = points[t[1]]
+    c = points[t[2]]
+    n = wp.cross(b - a, c - a)
+    length = wp.length(n)
+    if length > 0.0:
+        n = n / length
+    local = w[0] * a + w[1] * b + w[2] * c + offset[k] * n
+    pin_target_out[particles[k]] = wp.transform_point(collider_transform_end[collider], local)
+
+
 @wp.func
 def gust_signal(omega: wp.vec4d, phase: wp.vec4d, time: wp.float64):
     """sqrt(1/2) sum_j sin(omega_j time + phase_j): unit RMS (omega [rad/s], phase [rad]), summed in index order
