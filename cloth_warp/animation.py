@@ -118,14 +118,15 @@ class ControlAnimator:
 
         # -- attachments: per attachment its particles, triangles, weights and offsets, uploaded once ----------
         self.attachments: list[tuple[int, wp.array, wp.array, wp.array, wp.array]] = []
-        """Per attachment: (collider index, particles int32 (a,), triangles vec3i (a,), weights vec3 (a,), offsets [m] (a,))."""
+        """Per attachment: (collider index, particles int32 (a,), triangles vec3i (a,), weights vec3 (a,), offsets [m] in the
+        triangle frame vec3 (a,))."""
         for a in model.attachments:
             self.attachments.append((
                 a.collider,
                 wp.array(np.asarray(a.particles, np.int32), dtype=wp.int32, device=device),
                 wp.array(np.asarray(a.triangles, np.int32), dtype=wp.vec3i, device=device),
                 wp.array(np.asarray(a.weights, np.float32), dtype=wp.vec3, device=device),
-                wp.array(np.asarray(a.offset, np.float32), dtype=float, device=device),
+                wp.array(np.asarray(a.offset, np.float32), dtype=wp.vec3, device=device),
             ))
 
         # -- gusty wind ------------------------------------------------------------------------------

@@ -474,27 +474,32 @@ class ModelBuilder:
 
     def attach(self, indices, collider: Collider, *, offset: float | None = None, name: str | None = None) -> Attachment:
         """Bind particles to a mesh collider's surface (a waistband, a strap, a cuff on a body): each is hard-pinned to
-        the closest point of the collider's mesh in its initial pose (a triangle and barycentric weights) and follows
-        it as the collider moves and deforms (its point cache), `offset` [m] along the triangle's normal (default:
-        where it is now, so a particle set 5 mm above the surface stays 5 mm above)."""
-        from .model import quat_to_matrix
+        the closest point of the collider's mesh in its initial pose (a triangle and barycentric weights) plus its
+        offset from there in the triangle's frame, and follows them as the collider moves and deforms (its point
+        cache). `offset` [m]: instead, put each particle that far along its triangle's normal (0: onto the surface)."""
+        from .colliders import closest_mesh_points
+        from .model import quat_to_matrix, triangle_frames
 
         if collider not in self.colliders or collider.shape != "mesh":
             raise ValueError("attach: the collider must be a mesh collider of this builder (add_collider_mesh / _file)")
         import trimesh
 
-        from .colliders import closest_mesh_points
-
         idx = self._check_indices(indices)
         v = np.asarray(collider.vertices_at(0.0), np.float64)
         p, q = collider.pose_at(0.0)
-        local = (self.particle_positions[idx] - p) @ quat_to_matrix(q)  # world -> the collider's frame (row vectors)
+        rot = quat_to_matrix(q)
+        local = (self.particle_positions[idx] - p) @ rot  # world -> the collider's frame (row vectors)
         closest, tri = closest_mesh_points(v, collider.triangles, local)
         corners = v[collider.triangles[tri]]
         weights = trimesh.triangles.points_to_barycentric(corners, closest)
-        normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-        normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-30)
-        off = np.einsum("aj,aj->a", local - closest, normal) if offset is None else np.full(len(idx), check_number("offset", offset, LIMITS["position"]))
+        frames = triangle_frames(corners)
+        if offset is None:
+            off = np.einsum("aij,aj->ai", frames, local - closest)
+        else:
+            off = np.zeros((len(idx), 3))
+            off[:, 2] = check_number("offset", offset, LIMITS["position"])
+            placed = (closest + np.einsum("aij,ai->aj", frames, off)) @ rot.T + p
+            self.particle_positions[idx] = placed
         self.pin(idx)
         a = Attachment(name or f"attachment{len(self.attachments)}", self.colliders.index(collider), idx,
                        collider.triangles[tri].astype(np.int32), weights.astype(np.float64), off.astype(np.float64))

@@ -139,7 +139,8 @@ class Mannequin:
                 out[f"{side}_shin"] = (x, ramp * 35.0 * max(0.0, math.sin(phase + shift + 0.6)))  # the knee bends in the swing
                 out[f"{side}_upper_arm"] = (x, ramp * 18.0 * swing)  # arms swing against the legs
                 out[f"{side}_forearm"] = (x, -ramp * 12.0)
-            out["chest"] = ((0.0, 1.0, 0.0), ramp * 5.0 * math.sin(phase))
+            # the torso (pelvis, abdomen, chest) moves as one: a turn of the chest against the pelvis would shear the
+            # overlapping segments under a waistband bound to both (attachments bind to one triangle each)
             return out
         # arm_raise: both arms raised sideways to 75 degrees over 2 s (smooth), elbows straight
         s = min(1.0, max(0.0, time / 2.0))

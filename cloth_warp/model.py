@@ -66,14 +66,25 @@ class Handle:
         return (rest_positions - self.pivot) @ r.T + self.pivot + t
 
 
+def triangle_frames(corners: np.ndarray) -> np.ndarray:
+    """Per triangle (corners (t, 3, 3)) its orthonormal frame as rows: the first edge's direction, the in-plane
+    direction across it, the unit normal (t, 3, 3)."""
+    e1 = corners[:, 1] - corners[:, 0]
+    n = np.cross(e1, corners[:, 2] - corners[:, 0])
+    e1 = e1 / np.maximum(np.linalg.norm(e1, axis=1, keepdims=True), 1e-30)
+    n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+    return np.stack([e1, np.cross(n, e1), n], axis=1)
+
+
 @dataclass
 class Attachment:
     """Hard-pinned particles bound to a mesh collider's surface (a waistband, a strap, a cuff on a body): each follows
-    the point of its triangle at fixed barycentric weights, `offset` [m] along the triangle's unit normal, as the
-    collider moves and deforms (its point cache), with the surface's velocity.
+    the point of its triangle at fixed barycentric weights plus a fixed `offset` in the triangle's own frame (along
+    its first edge, across it in its plane, along its unit normal), as the collider moves and deforms (its point
+    cache), with the surface's velocity.
 
     Attributes: name; collider: index into the model's colliders; particles (a,); triangles (a, 3) the collider's local
-    vertex indices; weights (a, 3) barycentric; offset (a,) [m].
+    vertex indices; weights (a, 3) barycentric; offset (a, 3) [m] in the triangle frame (:func:`triangle_frames`).
     """
 
     name: str
@@ -85,12 +96,9 @@ class Attachment:
 
     def targets(self, collider, time: float) -> np.ndarray:
         """World target positions [m] of the attached particles at `time` [s] on `collider` (the model's Collider)."""
-        v = np.asarray(collider.vertices_at(time), np.float64)
-        corners = v[self.triangles]
+        corners = np.asarray(collider.vertices_at(time), np.float64)[self.triangles]
         point = np.einsum("ar,arj->aj", self.weights, corners)
-        normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-        normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-30)
-        local = point + self.offset[:, None] * normal
+        local = point + np.einsum("aij,ai->aj", triangle_frames(corners), self.offset)
         p, q = collider.pose_at(time)
         return local @ quat_to_matrix(q).T + p
 

@@ -228,26 +228,26 @@ def attachment_pin_targets(
     particles: wp.array(dtype=wp.int32),
     triangles: wp.array(dtype=wp.vec3i),
     weights: wp.array(dtype=wp.vec3),
-    offset: wp.array(dtype=float),
+    offset: wp.array(dtype=wp.vec3),
     points: wp.array(dtype=wp.vec3),
     collider: int,
     collider_transform_end: wp.array(dtype=wp.transform),
     # outputs
     pin_target_out: wp.array(dtype=wp.vec3),
 ):
-    """An attached particle's target [m]: its triangle's point at fixed barycentric weights, `offset` along the
-    triangle's unit normal, on the collider's current local vertices (`points`), placed by its end-of-step pose."""
+    """An attached particle's target [m]: its triangle's point at fixed barycentric weights plus its `offset` in the
+    triangle's frame (first edge, across it, unit normal; cloth_warp.model.triangle_frames), on the collider's current
+    local vertices (`points`), placed by its end-of-step pose."""
     k = wp.tid()
     t = triangles[k]
     w = weights[k]
     a = points[t[0]]
     b = points[t[1]]
     c = points[t[2]]
-    n = wp.cross(b - a, c - a)
-    length = wp.length(n)
-    if length > 0.0:
-        n = n / length
-    local = w[0] * a + w[1] * b + w[2] * c + offset[k] * n
+    e1 = wp.normalize(b - a)
+    n = wp.normalize(wp.cross(b - a, c - a))
+    o = offset[k]
+    local = w[0] * a + w[1] * b + w[2] * c + o[0] * e1 + o[1] * wp.cross(n, e1) + o[2] * n
     pin_target_out[particles[k]] = wp.transform_point(collider_transform_end[collider], local)
 
 

@@ -42,12 +42,14 @@ def test_attached_particles_follow_a_deforming_body_every_frame():
     body = b.add_collider_mesh(ico.vertices, ico.faces, position=(0.0, 1.0, 0.0), point_cache=cache, point_cache_times=times, name="body")
     strip = strip_on(b, 1.0)
     top = strip.select("edge:top")
+    start = b.particle_positions[top].copy()
     attachment = b.attach(top, body)
-    # bound where they are: the offset is each particle's distance from the (faceted) surface, 2-11 mm here
+    # bound where they are (2-11 mm off the faceted surface): the target at time 0 is the particle itself
+    np.testing.assert_allclose(attachment.targets(body, 0.0), start, atol=1e-12)
     from cloth_warp.colliders import mesh_signed_distance
 
-    np.testing.assert_allclose(attachment.offset, mesh_signed_distance(ico.vertices, ico.faces, b.particle_positions[top] - [0.0, 1.0, 0.0]),
-                               atol=1e-5)  # along the triangle normal where the closest point is on an edge
+    np.testing.assert_allclose(np.linalg.norm(attachment.offset, axis=1),
+                               mesh_signed_distance(ico.vertices, ico.faces, start - [0.0, 1.0, 0.0]), atol=1e-12)
     model = b.finalize("cpu")
     sim = cw.Simulator(model, cw.SolverImplicitEuler(model), fps=FPS, substeps=2)
     errors = follow_errors(sim, model, top, 60)
@@ -60,7 +62,7 @@ def test_attached_particles_follow_a_deforming_body_every_frame():
 
 
 def test_attachments_on_a_keyframed_body_replay_captured():
-    """Check particles bound (offset 0: onto the surface) to a rigid mesh collider that turns and travels by keyframes
+    """Check particles bound (offset 0: put onto the surface) to a rigid mesh collider that turns and travels by keyframes
     follow it to 1e-4 m in every frame, and that a recorded run (the targets written on the device) gives the
     uncaptured run's frames bit for bit."""
     ico = trimesh.creation.icosphere(subdivisions=3, radius=0.2)
@@ -71,7 +73,9 @@ def test_attachments_on_a_keyframed_body_replay_captured():
         body = b.add_collider_mesh(ico.vertices, ico.faces, position=(0.0, 1.0, 0.0), keyframes=keys, name="body")
         strip = strip_on(b, 1.0)
         top = strip.select("edge:top")
-        b.attach(top, body, offset=0.0)
+        a = b.attach(top, body, offset=0.0)
+        np.testing.assert_allclose(body.distance(b.particle_positions[top]), 0.0, atol=1e-9)  # moved onto the surface
+        np.testing.assert_allclose(a.targets(body, 0.0), b.particle_positions[top], atol=1e-12)
         return b.finalize("cpu"), top
 
     runs = []
