@@ -426,8 +426,6 @@ def test_self_contact_elements_are_the_gradient_and_gauss_newton_hessian_of_thei
     """Check each self-contact element the solve builds (kernels/contact.py eval_self_contacts) for random close
     vertex-face and edge-edge pairs: the forces it scatters are -dE/dx of E = k/2 (r - d)^2 (central differences of
     the distance), its K v0 is k G (G . v0) and its diagonal blocks h^2 k alpha_r^2 n n^T, G_r = alpha_r n."""
-    from cloth_warp.kernels import selfcollide as ksc
-
     k, h, r = 300.0, 1.0 / 120.0, CLOTH_THICKNESS * (1 + float(kct.SELF_CLEARANCE))
     tri = np.array([[0, 1, 2]], np.int32)
     edges = np.array([[0, 1, -1], [2, 3, -1]], np.int32)
