@@ -96,9 +96,9 @@ class Mannequin:
     """
 
     def __init__(self, height: float = 1.75, resolution: int = 16):
-        if not (math.isfinite(height) and 0.5 <= height <= 2.5):
-            raise ValueError(f"height: a body between 0.5 and 2.5 m, got {height!r}")
-        self.height = float(height)
+        from .validation import LIMITS, check_number
+
+        self.height = float(check_number("height", height, LIMITS["stature"]))
         self.segments = _segments()
         self.index = {s.name: k for k, s in enumerate(self.segments)}
         verts, tris, owner = [], [], []

@@ -83,10 +83,13 @@ INTEGRATORS = ("implicit_euler", "symplectic_euler", "explicit_euler", "midpoint
 PRESETS = tuple(MATERIAL_PRESETS)
 # The same names as cloth_warp.fitting.LOSSES (kept here so validation does not import Warp).
 FIT_LOSSES = ("positions", "final", "chamfer")
-COLLIDER_SHAPES = ("plane", "sphere", "capsule", "box", "cylinder", "mesh")
+COLLIDER_SHAPES = ("plane", "sphere", "capsule", "box", "cylinder", "mesh", "mannequin")
+# The same names as cloth_warp.mannequin.MOTIONS (a test compares).
+MANNEQUIN_MOTIONS = ("still", "walk", "arm_raise")
 # Which geometry keys each collider shape takes (the others are rejected with a message).
 COLLIDER_GEOMETRY = {"plane": ("axis",), "sphere": ("radius",), "capsule": ("radius", "height", "axis"), "box": ("size", "rotation"),
-                     "cylinder": ("radius", "height", "axis"), "mesh": ("mesh", "mesh_prim", "scale", "rotation", "deforming")}
+                     "cylinder": ("radius", "height", "axis"), "mesh": ("mesh", "mesh_prim", "scale", "rotation", "deforming"),
+                     "mannequin": ("stature", "motion", "rotation")}
 COLLIDER_REQUIRED = {"sphere": ("radius",), "capsule": ("radius", "height"), "box": ("size",), "cylinder": ("radius", "height"),
                      "mesh": ("mesh",)}
 SELECTION = {
@@ -122,6 +125,9 @@ SCHEMA: dict = {
                     "USD (.usd/.usda/.usdc); UV seams are welded for simulation and kept in the cache; inconsistent "
                     "winding is repaired with a warning"),
         "mesh_prim": Key("str", None, "prim path of the mesh inside a USD file (default: the first Mesh)"),
+        "pattern": Key("path", None, "a sewing pattern instead of a grid: GarmentCode's JSON specification, its panels "
+                       "meshed and placed as it places them, its stitches sewn by seam springs (cloth_warp/patterns.py)"),
+        "edge_length": Key("float", 0.02, "pattern: target edge length of the panels' meshes", L["edge_length"]),
         "scale": Key("float", 1.0, "mesh units to metres (e.g. 0.01 for a centimetre mesh)", L["scale"]),
         "position": Key("vec3", [0.0, 0.0, 0.0], "translation applied after the rotation", L["position"]),
         "rotation": ROTATION,
@@ -195,6 +201,9 @@ SCHEMA: dict = {
                     "made consistent and outward), open = solid behind its triangles"),
         "mesh_prim": Key("str", None, "prim path of the mesh inside a USD file (default: the first Mesh)"),
         "scale": Key("float", 1.0, "mesh units to metres", L["scale"]),
+        "stature": Key("float", 1.75, "mannequin: standing height (cloth_warp/mannequin.py; feet on its position, facing "
+                       "+z in its frame)", L["stature"]),
+        "motion": Key("str", "still", "mannequin: its animation, a point cache over the run", allowed=MANNEQUIN_MOTIONS),
         "deforming": Key("bool", False, "mesh: follow the USD mesh's time-sampled points (a point cache, e.g. an animated "
                          "body; its start time code is t = 0, timeCodesPerSecond its rate), linear between samples"),
         "thickness": Key("float", 0.004, "contact offset: cloth vertices stay this far from the surface", L["thickness"]),
@@ -514,9 +523,12 @@ def _check_values(scene: Scene):
     disc = scene.data.get("cloth", {}).get("disc")
     if disc is not None and "radius" not in disc:
         raise SceneError("cloth.disc.radius: a disc cloth needs its radius [m]")
-    shapes = [k for k in ("grid", "disc", "mesh") if scene.data.get("cloth", {}).get(k) is not None]
+    shapes = [k for k in ("grid", "disc", "mesh", "pattern") if scene.data.get("cloth", {}).get(k) is not None]
     if len(shapes) > 1:
-        raise SceneError(f"cloth: give one of cloth.grid, cloth.disc or cloth.mesh, not {' and '.join(shapes)}")
+        raise SceneError(f"cloth: give one of cloth.grid, cloth.disc, cloth.mesh or cloth.pattern, not {' and '.join(shapes)}")
+    pattern = scene.data.get("cloth", {}).get("pattern")
+    if pattern is not None and not scene.resolve(pattern).is_file():
+        raise SceneError(f"cloth.pattern: file not found: {scene.resolve(pattern)} (paths are relative to the scene file)")
     cusick = scene.data.get("measure", {}).get("cusick")
     if cusick is not None:
         if cusick.get("pedestal_radius") is None:
@@ -702,8 +714,11 @@ def _add_cloth(b, scene: Scene):
     warp_angle = scene.get("cloth.warp_angle")
     warp = None if warp_angle is None else (math.cos(math.radians(warp_angle)), math.sin(math.radians(warp_angle)), 0.0)
     mesh = scene.data.get("cloth", {}).get("mesh")
-    with _scene_key("cloth.mesh" if mesh is not None else "cloth"):
-        if scene.data.get("cloth", {}).get("disc") is not None:
+    pattern = scene.data.get("cloth", {}).get("pattern")
+    with _scene_key("cloth.mesh" if mesh is not None else "cloth.pattern" if pattern is not None else "cloth"):
+        if pattern is not None:
+            cloth = b.add_cloth_pattern(scene.resolve(pattern), edge_length=float(scene.get("cloth.edge_length")), **common)
+        elif scene.data.get("cloth", {}).get("disc") is not None:
             cloth = b.add_cloth_disc(radius=float(scene.get("cloth.disc.radius")), rings=int(scene.get("cloth.disc.rings")),
                                      warp_direction=warp, **common)
         elif mesh is not None:
@@ -747,12 +762,29 @@ def _add_collider(b, scene: Scene, col: dict, i: int):
             b.add_cylinder(pos, float(col["radius"]), float(col["height"]), axis=axis, **common)
         elif shape == "box":
             b.add_box(pos, tuple(col["size"]), rotation=_rotation_q(col.get("rotation")), **common)
+        elif shape == "mannequin":
+            _add_mannequin(b, scene, col, pos, common)
         else:
             b.add_collider_mesh_file(scene.resolve(col["mesh"]), prim_path=col.get("mesh_prim"), position=pos,
                                      rotation=_rotation_q(col.get("rotation")), scale=float(col.get("scale", 1.0)),
                                      deforming=bool(col.get("deforming", False)), **common)
     except (ValueError, MeshError) as exc:
         raise SceneError(f"colliders[{i}]: {exc}") from exc
+
+
+def _add_mannequin(b, scene: Scene, col: dict, position, common: dict):
+    """The parametric mannequin as a mesh collider: a point cache of its motion over the whole run (120 samples per
+    second; a still one is a rigid mesh)."""
+    from .mannequin import Mannequin
+
+    body = Mannequin(float(col.get("stature", 1.75)))
+    motion = col.get("motion", "still")
+    extra = {}
+    if motion != "still":
+        seconds = (int(scene.get("output.frames")) + 1) / float(scene.get("output.fps"))
+        times, cache = body.point_cache(motion, seconds, 120.0)
+        extra = dict(point_cache=cache, point_cache_times=times)
+    b.add_collider_mesh(body.rest_vertices, body.triangles, position=position, rotation=_rotation_q(col.get("rotation")), **extra, **common)
 
 
 def _jitter(builder, cloth, amplitude: float, seed: int):

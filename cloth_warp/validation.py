@@ -91,6 +91,8 @@ LIMITS: dict[str, Range] = {
     # geometry and placement
     "position": Range(-1e6, 1e6, "m"),  # any coordinate; see also check_float32_resolution
     "length": Range(1e-5, 1e4, "m"),  # sizes, radii, box edges: 10 um .. 10 km
+    "stature": Range(0.5, 2.5, "m"),  # the mannequin's standing height
+    "edge_length": Range(1e-3, 1.0, "m"),  # a meshed sewing pattern's target edge length
     "height": Range(0.0, 1e4, "m"),  # capsule: straight part (0 = a sphere)
     "thickness": Range(1e-5, 1.0, "m"),  # contact offsets
     "scale": Range(1e-6, 1e6),  # mesh units to metres

@@ -169,3 +169,28 @@ def test_a_pattern_sews_into_a_garment():
     assert stats.max_strain < 0.11
     corner_uv = skirt.topology.corner_uv.reshape(-1, 2)
     np.testing.assert_allclose(np.unique(np.round(corner_uv, 9), axis=0), np.unique(np.round(mesh.uvs, 9), axis=0))
+
+
+def test_a_scene_sews_a_pattern_next_to_a_walking_mannequin(tmp_path):
+    """Check a scene file with cloth.pattern (a GarmentCode specification beside it) and a mannequin collider that
+    walks runs to completion: the garment is one cloth with its panels' UVs in the cache, the body a deforming mesh
+    collider written frame by frame."""
+    import json
+
+    from pxr import Usd, UsdGeom
+
+    from cloth_warp.runner import run_scene
+
+    (tmp_path / "skirt_specification.json").write_text(json.dumps(skirt_spec(gap_cm=4.0)))
+    (tmp_path / "skirt.toml").write_text(
+        '[cloth]\npattern = "skirt_specification.json"\nedge_length = 0.04\nname = "skirt"\n'
+        '[[pins]]\nbox = { min = [-1.0, 0.99, -1.0], max = [1.0, 1.1, 1.0] }\n'
+        '[[colliders]]\ntype = "mannequin"\nmotion = "walk"\nposition = [0.0, -0.7, -0.6]\n'
+        '[solver]\nintegrator = "implicit_euler"\nsubsteps = 2\n[output]\nframes = 6\nfps = 60\n')
+    summary = run_scene(tmp_path / "skirt.toml", {}, output=tmp_path / "skirt.usdc", frames=6, progress=None)
+    assert summary["status"] == "complete"
+    stage = Usd.Stage.Open(str(tmp_path / "skirt.usdc"))
+    skirt = UsdGeom.Mesh(stage.GetPrimAtPath("/World/skirt"))
+    assert UsdGeom.PrimvarsAPI(skirt).GetPrimvar("st")
+    body = UsdGeom.Mesh(stage.GetPrimAtPath("/World/colliders/mannequin0"))
+    assert body and len(body.GetPointsAttr().GetTimeSamples()) == 7  # the walking body, frame by frame

@@ -36,6 +36,10 @@ def test_schema_names_match_the_code():
 
     assert set(INTEGRATORS) == set(SOLVERS)
     assert COLLIDER_CONTACTS == IMPLICIT_COLLIDER_CONTACTS
+    from cloth_warp.mannequin import MOTIONS
+    from cloth_warp.scene import MANNEQUIN_MOTIONS
+
+    assert MANNEQUIN_MOTIONS == MOTIONS
     assert set(load_scene(HANG).resolved()) >= {"cloth", "material", "solver", "output", "forces"}
     assert "material.preset" in schema_markdown() and all(p in schema_markdown() for p in materials.PRESETS)
 
@@ -70,7 +74,7 @@ def test_scene_reference_page_is_current():
         ({"forces.up_axis": "X"}, "forces.up_axis: 'X' is not allowed; allowed: Y, Z"),
         ({"output.path": "out/a.abc"}, "output.path: 'out/a.abc' has an unknown extension; allowed: .usdc, .usda, .usd, .npz"),
         # missing files and inconsistent keys
-        ({"cloth.mesh": "missing.obj"}, "give one of cloth.grid, cloth.disc or cloth.mesh, not grid and mesh"),
+        ({"cloth.mesh": "missing.obj"}, "give one of cloth.grid, cloth.disc, cloth.mesh or cloth.pattern, not grid and mesh"),
         ({"pins[0].indices": [0]}, "pins[0]: give exactly one of select, indices, box (got select, indices)"),
         # colliders: required and misplaced geometry, friction order, shapes
         ({"colliders": [{"type": "sphere"}]}, "colliders[0].radius: a sphere collider needs it"),
@@ -85,7 +89,10 @@ def test_scene_reference_page_is_current():
         ({"colliders": [{"type": "plane"}, {"type": "plane", "name": "plane0"}]}, "colliders[1].name: 'plane0' is used"),
         ({"collision.friction": -0.1}, "collision.friction: must be >= 0"),
         ({"cloth.disc": {"rings": 4}}, "cloth.disc.radius: a disc cloth needs its radius"),
-        ({"cloth.disc": {"radius": 0.1}}, "cloth: give one of cloth.grid, cloth.disc or cloth.mesh, not grid and disc"),
+        ({"cloth.disc": {"radius": 0.1}}, "cloth: give one of cloth.grid, cloth.disc, cloth.mesh or cloth.pattern, not grid and disc"),
+        ({"colliders": [{"type": "mannequin", "radius": 0.2}]}, "colliders[0].radius: not used by a mannequin collider"),
+        ({"colliders": [{"type": "mannequin", "stature": 3.0}]}, "colliders[0].stature: must be <= 2.5"),
+        ({"colliders": [{"type": "mannequin", "motion": "dance"}]}, "colliders[0].motion: 'dance' is not allowed; allowed: still, walk"),
         ({"measure.cusick": {"disc_radius": 0.15}}, "measure.cusick.pedestal_radius: the pedestal radius [m] is needed"),
         ({"measure.cusick": {"pedestal_radius": 0.09}}, "measure.cusick.disc_radius: give the specimen radius"),
         ({"measure.cusick": {"pedestal_radius": 0.2, "disc_radius": 0.15}}, "must exceed the pedestal radius 0.2 m"),
