@@ -176,6 +176,12 @@ SCHEMA: dict = {
          "rotation": ROTATION},
         "rigid transforms about the selection's centroid; linear / slerp between keyframes, held outside")},
         "animated pins: particles that follow keyframed rigid transforms"),
+    "attachments": Tables({**SELECTION,
+                           "collider": Key("str", None, "name of the mesh or mannequin collider to bind to (required)"),
+                           "offset": Key("float", None, "put the particles this far along the surface normal (default: "
+                                         "where they are)", L["position"])},
+                          "particles bound to a body's surface (waistbands, straps, cuffs): exactly one of select, indices, "
+                          "box per entry; they follow the collider as it moves and deforms"),
     "forces": {
         "up_axis": Key("str", "Y", "the up axis of the scene and of the cache (points are never rotated)", allowed=UP_AXES),
         "gravity": Key("vec3", None, "gravitational acceleration (default: 9.81 down the up axis)", L["gravity"]),
@@ -570,7 +576,7 @@ def _check_values(scene: Scene):
 
         if pathlib.Path(out).suffix.lower() not in CACHE_SUFFIXES:
             raise SceneError(f"output.path: {out!r} has an unknown extension; allowed: {', '.join(CACHE_SUFFIXES)}")
-    for table in ("pins", "handles"):
+    for table in ("pins", "handles", "attachments"):
         for i, entry in enumerate(scene.data.get(table, [])):
             given = [k for k in SELECTION if k in entry]
             if len(given) != 1:
@@ -628,6 +634,12 @@ def _check_values(scene: Scene):
         if name in names:
             raise SceneError(f"{where}.name: {name!r} is used by another collider")
         names.add(name)
+    bodies = {col.get("name", f"{col.get('type')}{i}") for i, col in enumerate(scene.data.get("colliders", []))
+              if col.get("type") in ("mesh", "mannequin")}
+    for i, a in enumerate(scene.data.get("attachments", [])):
+        if a.get("collider") not in bodies:
+            raise SceneError(f"attachments[{i}].collider: {a.get('collider')!r} is not a mesh or mannequin collider of the scene; "
+                             f"those: {', '.join(sorted(bodies)) or 'none'}")
 
 
 # -- construction ---------------------------------------------------------------------------------------------
@@ -683,6 +695,10 @@ def build_model(scene: Scene, device=None, requires_grad: bool = False):
             b.add_handle(_selection(cloth, h, f"handles[{i}]"), kfs, name=f"handle{i}")
     for i, col in enumerate(scene.data.get("colliders", [])):
         _add_collider(b, scene, col, i)
+    for i, a in enumerate(scene.data.get("attachments", [])):
+        with _scene_key(f"attachments[{i}]"):
+            col = next(c for c in b.colliders if c.name == a["collider"])  # checked in _check_values
+            b.attach(_selection(cloth, a, f"attachments[{i}]"), col, offset=a.get("offset"), name=f"attachment{i}")
     if scene.get("collision.self_collision"):
         with _scene_key("collision"):
             b.enable_self_collision(float(scene.get("collision.thickness")), float(scene.get("collision.friction")),
