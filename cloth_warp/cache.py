@@ -163,10 +163,11 @@ the true surface (a DCC tessellates implicit spheres coarsely: a 10-segment ball
 
 
 def round_segments(radius: float, sagitta: float = ROUND_SAGITTA) -> int:
-    """Segments around a circle of `radius` [m] whose chords stay within `sagitta` [m] of it (at least 16)."""
+    """Segments around a circle of `radius` [m] whose chords stay within `sagitta` [m] of it (16 to 256: past a
+    2.6 m radius the chords sit farther in, by 0.5 mm x (radius / 2.6 m))."""
     if radius <= sagitta:
         return 16
-    return max(16, int(np.ceil(np.pi / np.arccos(1.0 - sagitta / radius))))
+    return int(np.clip(np.ceil(np.pi / np.arccos(1.0 - sagitta / radius)), 16, 256))
 
 
 def round_collider_mesh(col):

@@ -125,6 +125,9 @@ class SelfCollision:
         self._last_weight = None
         self._resolved = None  # (x_start, dt, vbar) of the last round that ended without impacts
         self._close: dict = {}
+        self.share_close_pairs = False
+        """Whether the host path copies its close pairs into the capturable path's lists after each step, where the
+        implicit solve's self-contacts read their candidates (:meth:`contact_candidates`; set by that solver)."""
         self._flip = False
         self._fixed = None  # the capturable path's buffers (see _fixed_buffers)
         self._fixed_step = None  # (x_start, dt) the capturable path's broad phase was built for
@@ -261,7 +264,7 @@ class SelfCollision:
 
     def contact_candidates(self) -> list[tuple[wp.array, wp.array]]:
         """Per pair kind, (pairs, device count): the close pairs of the last step either path ran (the capturable
-        path's lists; the host path copies its own there), empty before one ran. What is close at the end of a step
+        path's lists; the host path copies its own there when :attr:`share_close_pairs`), empty before one ran. What is close at the end of a step
         is close at the start of the next: the candidates of the next step's self-contacts in the implicit solve,
         which checks their distance itself."""
         f = self._fixed_buffers()
@@ -364,7 +367,7 @@ class SelfCollision:
             wp.copy(final, vbar)
             self._resolved = (x_start, float(dt), final)
         wp.launch(ksc.finish_step, dim=n, inputs=[x_start, vbar, vbar0, v_end, dt], outputs=[x_out, v_out], device=dev)
-        if not rg:
+        if not rg and self.share_close_pairs:
             self._keep_close_pairs()
 
     def begin_step(self):

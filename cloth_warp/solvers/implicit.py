@@ -161,6 +161,8 @@ class SolverImplicitEuler(SolverBase):
         if self_contacts == "solve" and self.linear_solver != LinearSolver.CG:
             raise ValueError("self_contacts='solve' needs linear_solver='cg' (the contact elements are in the CG's product)")
         self.self_contacts = self_contacts
+        if self_contacts == "solve" and self.pass_named("self_collision") is not None:
+            self.pass_named("self_collision").self_collision.share_close_pairs = True
         if "solve" in (collider_contacts, self_contacts):
             self.kernel_modules = (ki, kct)
         self.contact_margin = float(contact_margin)
