@@ -277,7 +277,7 @@ def eval_self_contact_friction(
     stiffness: float,
     friction: float,
     dt: float,
-    # outputs (accumulated; averaged per particle by `apply_contact_velocity_changes`)
+    # outputs (accumulated; averaged per particle by kernels/selfcollide.py apply_velocity_changes)
     dv_sum_out: wp.array(dtype=wp.vec3),
     weight_out: wp.array(dtype=float),
 ):
@@ -302,17 +302,3 @@ def eval_self_contact_friction(
         return
     keep = wp.max(1.0 - friction * impulse * mass_weight / speed, 0.0)
     add_impulse(idx, alpha, inv_mass, ((keep - 1.0) / mass_weight) * v_t, dv_sum_out, weight_out)
-
-
-@wp.kernel
-def apply_contact_velocity_changes(
-    dv_sum: wp.array(dtype=wp.vec3),
-    weight: wp.array(dtype=float),
-    # outputs
-    dv_out: wp.array(dtype=wp.vec3),
-):
-    """Each particle's dv takes the average of the changes its elements proposed."""
-    i = wp.tid()
-    w = weight[i]
-    if w > 0.0:
-        dv_out[i] = dv_out[i] + dv_sum[i] / w

@@ -17,6 +17,7 @@ from ..records import record_values
 from ..kernels import forces as kf
 from ..kernels import contact as kct
 from ..kernels import implicit as ki
+from ..kernels import selfcollide as ksc
 from ..model import Control, Model, State
 from .base import SolverBase
 from .strain_limit import DEFAULT_SWEEPS
@@ -342,8 +343,8 @@ class SolverImplicitEuler(SolverBase):
                   inputs=[self.self_contact_count, *self._self_contact_elements, self.pass_named("self_collision").self_collision.inv_mass,
                           state_in.particle_qd, self.dv, float(m.self_collision_stiffness), float(m.cloth_friction), dt],
                   outputs=[self.friction_dv, self.friction_weight], device=dev)
-        wp.launch(kct.apply_contact_velocity_changes, dim=m.particle_count, inputs=[self.friction_dv, self.friction_weight],
-                  outputs=[self.dv], device=dev)
+        wp.launch(ksc.apply_velocity_changes, dim=m.particle_count, inputs=[self.dv, self.friction_dv, self.friction_weight],
+                  outputs=[self.dv], device=dev)  # in place: each thread reads and writes its own particle
 
     def _product_args(self):
         m = self.model
