@@ -54,6 +54,24 @@ def element_row(elements: wp.array2d(dtype=wp.int32), e: int):
     return wp.vec3i(elements[e, 0], elements[e, 1], elements[e, 2])
 
 
+@wp.func
+def swept_box(elements: wp.array2d(dtype=wp.int32), e: int, x_start: wp.array(dtype=wp.vec3), velocity: wp.array(dtype=wp.vec3),
+              dt: float, pad: float):
+    """(lo, hi) of element e's swept box, its vertices from x_start to x_start + dt velocity, grown by `pad`."""
+    i0 = elements[e, 0]
+    x_end = x_start[i0] + dt * velocity[i0]
+    lo = wp.min(x_start[i0], x_end)
+    hi = wp.max(x_start[i0], x_end)
+    for k in range(1, 3):
+        i = elements[e, k]
+        if i >= 0:
+            x_end = x_start[i] + dt * velocity[i]
+            lo = wp.min(lo, wp.min(x_start[i], x_end))
+            hi = wp.max(hi, wp.max(x_start[i], x_end))
+    grow = wp.vec3(pad, pad, pad)
+    return lo - grow, hi + grow
+
+
 @wp.kernel(enable_backward=False)
 def element_bounds(
     elements: wp.array2d(dtype=wp.int32),
@@ -72,19 +90,7 @@ def element_bounds(
     """Swept, padded box of each element (its vertices from x_start to x_start + dt velocity) and the
     voxel range it touches."""
     e = wp.tid()
-    i0 = elements[e, 0]
-    x_end = x_start[i0] + dt * velocity[i0]
-    lo = wp.min(x_start[i0], x_end)
-    hi = wp.max(x_start[i0], x_end)
-    for k in range(1, 3):
-        i = elements[e, k]
-        if i >= 0:
-            x_end = x_start[i] + dt * velocity[i]
-            lo = wp.min(lo, wp.min(x_start[i], x_end))
-            hi = wp.max(hi, wp.max(x_start[i], x_end))
-    grow = wp.vec3(pad, pad, pad)
-    lo = lo - grow
-    hi = hi + grow
+    lo, hi = swept_box(elements, e, x_start, velocity, dt, pad)
     lo_out[e] = lo
     hi_out[e] = hi
     c_lo = cell_of(lo, inv_cell_size)
@@ -412,23 +418,13 @@ def mark_fresh(elements: wp.array2d(dtype=wp.int32), escaped: wp.array(dtype=wp.
 @wp.kernel(enable_backward=False)
 def fresh_bounds(flags: wp.array(dtype=wp.int32), elements: wp.array2d(dtype=wp.int32), x_start: wp.array(dtype=wp.vec3),
                  velocity: wp.array(dtype=wp.vec3), dt: float, pad: float, lo_out: wp.array(dtype=wp.vec3), hi_out: wp.array(dtype=wp.vec3)):
-    """:func:`element_bounds`' swept, padded box (same arithmetic) of the flagged elements; the others keep theirs."""
+    """:func:`element_bounds`' swept, padded box (:func:`swept_box`) of the flagged elements; the others keep theirs."""
     e = wp.tid()
     if flags[e] == 0:
         return
-    i0 = elements[e, 0]
-    x_end = x_start[i0] + dt * velocity[i0]
-    lo = wp.min(x_start[i0], x_end)
-    hi = wp.max(x_start[i0], x_end)
-    for k in range(1, 3):
-        i = elements[e, k]
-        if i >= 0:
-            x_end = x_start[i] + dt * velocity[i]
-            lo = wp.min(lo, wp.min(x_start[i], x_end))
-            hi = wp.max(hi, wp.max(x_start[i], x_end))
-    grow = wp.vec3(pad, pad, pad)
-    lo_out[e] = lo - grow
-    hi_out[e] = hi + grow
+    lo, hi = swept_box(elements, e, x_start, velocity, dt, pad)
+    lo_out[e] = lo
+    hi_out[e] = hi
 
 
 @wp.kernel(enable_backward=False)
