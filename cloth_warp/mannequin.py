@@ -52,13 +52,6 @@ def _segments() -> list[Segment]:
     return s
 
 
-def _rotation(axis, angle_deg: float) -> np.ndarray:
-    a = np.asarray(axis, float) / np.linalg.norm(axis)
-    t = math.radians(angle_deg)
-    k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    return np.eye(3) + math.sin(t) * k + (1 - math.cos(t)) * (k @ k)
-
-
 def _capsule(p0, p1, rx: float, rz: float, count: int) -> tuple[np.ndarray, np.ndarray]:
     """A closed capsule mesh from p0 to p1 with an elliptical cross-section (rx across x, rz across z)."""
     import trimesh
@@ -149,6 +142,9 @@ class Mannequin:
 
     def segment_transforms(self, motion: str, time: float) -> list[tuple[np.ndarray, np.ndarray]]:
         """Per segment, (rotation 3x3, translation) mapping its rest points to posed world points [m]."""
+        from .builder import quat_from_axis_angle
+        from .model import quat_to_matrix
+
         angles = self.joint_angles(motion, time)
         bob = 0.0
         if motion == "walk":
@@ -156,7 +152,7 @@ class Mannequin:
         out = []
         for s in self.segments:
             joint = np.asarray(s.joint) * self.height
-            local = _rotation(*angles[s.name]) if s.name in angles else np.eye(3)
+            local = quat_to_matrix(quat_from_axis_angle(*angles[s.name])) if s.name in angles else np.eye(3)
             if s.parent is None:
                 r, t = local, np.array([0.0, bob, 0.0]) + joint - local @ joint
             else:
