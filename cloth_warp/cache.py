@@ -192,16 +192,16 @@ def _indexed_corner_uvs(corner_uv: np.ndarray):
     return values.astype(np.float32), indices.reshape(-1).astype(np.int32)
 
 
-def _define_colliders(stage, model, materials: dict) -> list:
+def _define_colliders(stage, model) -> list:
     """Collider prims under /World/colliders (UsdGeom Cube and Plane; meshes for mesh colliders and, tessellated, for
-    round ones) with a translate and an orient op, bound to their look's material (created in `materials`, look ->
-    UsdShade.Material, as needed); returns (collider, translate op, orient op, geom) per collider."""
+    round ones) with a translate and an orient op, bound to their look's material (defined once per look used);
+    returns (collider, translate op, orient op, geom) per collider."""
     from pxr import Gf, UsdGeom, Vt
 
     if not getattr(model, "colliders", None):
         return []
     UsdGeom.Scope.Define(stage, f"/World/{COLLIDER_SCOPE}")
-    out = []
+    out, materials = [], {}
     for col in model.colliders:
         path = f"/World/{COLLIDER_SCOPE}/{_prim_name(col.name)}"
         if col.shape == "box":
@@ -607,7 +607,7 @@ class UsdCacheWriter(CacheWriter):
                 attr.SetDocumentation(doc)
                 attrs[diag] = attr
             self.meshes.append((particles, tris, attrs))
-        self.colliders = _define_colliders(stage, model, {})
+        self.colliders = _define_colliders(stage, model)
         self._write_collider_poses(0)
         self._checkpoint_attr = None
         try:

@@ -162,8 +162,10 @@ class SolverImplicitEuler(SolverBase):
         if self_contacts == "solve" and self.linear_solver != LinearSolver.CG:
             raise ValueError("self_contacts='solve' needs linear_solver='cg' (the contact elements are in the CG's product)")
         self.self_contacts = self_contacts
+        self._self_collision = None  # the self-collision pass's SelfCollision, whose close pairs the self-contacts read
         if self_contacts == "solve" and self.pass_named("self_collision") is not None:
-            self.pass_named("self_collision").self_collision.share_close_pairs = True
+            self._self_collision = self.pass_named("self_collision").self_collision
+            self._self_collision.share_close_pairs = True
         if "solve" in (collider_contacts, self_contacts):
             self.kernel_modules = (ki, kct)
         self.contact_margin = float(contact_margin)
@@ -310,7 +312,7 @@ class SolverImplicitEuler(SolverBase):
         membrane elements and plate stencils also scatter into."""
         m = self.model
         dev = m.device
-        candidates = self.pass_named("self_collision").self_collision.contact_candidates()
+        candidates = self._self_collision.contact_candidates()
         capacity = sum(pairs.shape[0] for pairs, _ in candidates)
         if self._self_contact_elements is None or self._self_contact_elements[0].shape[0] != capacity:
             self._self_contact_elements = (wp.zeros(capacity, dtype=wp.vec4i, device=dev), wp.zeros(capacity, dtype=wp.vec4, device=dev),
@@ -319,7 +321,7 @@ class SolverImplicitEuler(SolverBase):
         thickness = float(m.cloth_thickness)
         for kind, (pairs, count) in enumerate(candidates):
             wp.launch(kct.eval_self_contacts, dim=pairs.shape[0],
-                      inputs=[count, pairs, kind, m.tri_indices, self.pass_named("self_collision").self_collision.edge_indices,
+                      inputs=[count, pairs, kind, m.tri_indices, self._self_collision.edge_indices,
                               m.particle_pinned, state_in.particle_q, state_in.particle_qd,
                               thickness * (1.0 + float(kct.SELF_CLEARANCE)), float(m.self_collision_stiffness), dt, capacity],
                       outputs=[*self._self_contact_elements, self.self_contact_count, force, self.membrane_kv, self.membrane_diag,
@@ -340,7 +342,7 @@ class SolverImplicitEuler(SolverBase):
         self.friction_dv.zero_()
         self.friction_weight.zero_()
         wp.launch(kct.eval_self_contact_friction, dim=self._self_contact_elements[0].shape[0],
-                  inputs=[self.self_contact_count, *self._self_contact_elements, self.pass_named("self_collision").self_collision.inv_mass,
+                  inputs=[self.self_contact_count, *self._self_contact_elements, self._self_collision.inv_mass,
                           state_in.particle_qd, self.dv, float(m.self_collision_stiffness), float(m.cloth_friction), dt],
                   outputs=[self.friction_dv, self.friction_weight], device=dev)
         wp.launch(ksc.apply_velocity_changes, dim=m.particle_count, inputs=[self.dv, self.friction_dv, self.friction_weight],
@@ -549,7 +551,7 @@ class SolverImplicitEuler(SolverBase):
 
     def _self_contacts_in_solve(self, state_in: State) -> bool:
         """Whether this step has self-contact elements in its system: forward steps with self-collision on."""
-        return self.self_contacts == "solve" and not state_in.requires_grad and self.pass_named("self_collision") is not None
+        return self._self_collision is not None and not state_in.requires_grad
 
     def _contacts_in_solve(self, state_in: State) -> bool:
         """Whether this step constrains collider contacts in its solve: forward steps, and taped steps differentiated
