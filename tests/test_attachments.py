@@ -85,6 +85,13 @@ def test_attachments_on_a_keyframed_body_replay_captured():
         assert sim.capture == capture
         errors = follow_errors(sim, model, top, 45)
         assert errors.max() < 1e-4, errors.max()
+        # and independently of the targets' formula: on the surface of the body as posed at the end
+        from cloth_warp.colliders import mesh_signed_distance
+        from cloth_warp.model import quat_to_matrix
+
+        p, q = model.colliders[0].pose_at(45 / FPS)
+        local = (sim.positions()[top] - p) @ quat_to_matrix(q)
+        np.testing.assert_allclose(mesh_signed_distance(ico.vertices, ico.faces, local), 0.0, atol=1e-5)
         runs.append(sim.positions())
     np.testing.assert_array_equal(runs[0], runs[1])
 
