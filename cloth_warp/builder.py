@@ -325,12 +325,13 @@ class ModelBuilder:
             kwargs.setdefault("warp_direction", (1.0, 0.0, 0.0))
         return self.add_cloth_mesh(v, t, **kwargs)
 
-    def add_cloth_pattern(self, pattern, *, edge_length: float = 0.02, seam_stiffness: float | None = None,
+    def add_cloth_pattern(self, pattern, *, edge_length: float = 0.02, wraps=(), seam_stiffness: float | None = None,
                           seam_damping: float | None = None, **kwargs) -> ClothRef:
         """Add a garment from a sewing pattern (:mod:`cloth_warp.patterns`): a GarmentCode specification (its JSON file
         or dict), a :class:`~cloth_warp.patterns.Pattern`, or a :class:`~cloth_warp.patterns.PatternMesh`.
 
-        Its panels are meshed at `edge_length` [m] and placed as the pattern places them, as one cloth whose texture
+        Its panels are meshed at `edge_length` [m] and placed as the pattern places them (and wrapped about the axes
+        of `wraps`, :class:`~cloth_warp.patterns.Wrap`: round the body parts they cover), as one cloth whose texture
         coordinates are each panel's 2D coordinates [m] (so a woven fabric's warp runs along each panel's x axis);
         points that coincide where panels meet are welded. Each stitch is sewn by zero-length seam springs
         (:attr:`~cloth_warp.topology.SpringKind.SEAM`, never strain-limited) between its matching points: they pull
@@ -346,7 +347,7 @@ class ModelBuilder:
         else:
             if not isinstance(pattern, patterns.Pattern):
                 pattern = patterns.read_garmentcode(pattern)
-            mesh = patterns.mesh_pattern(pattern, edge_length)
+            mesh = patterns.mesh_pattern(pattern, edge_length, wraps=wraps)
         if "uvs" in kwargs:
             raise ValueError("add_cloth_pattern: the texture coordinates are the panels' own; do not pass uvs")
         kwargs.setdefault("name", f"garment{len(self.cloths)}")

@@ -163,7 +163,8 @@ def _vector(value, size: int, path: str) -> np.ndarray:
     return np.array([_number(v, f"{path}[{k}]") for k, v in enumerate(value)])
 
 
-def _edge(spec, vertices: np.ndarray, path: str) -> PatternEdge:
+def _edge(spec, vertices: np.ndarray, path: str, scale: float = 1.0) -> PatternEdge:
+    """One edge of a panel (vertices already in metres; `scale`: the pattern's length unit in metres)."""
     if not isinstance(spec, dict):
         raise _error(path, "expected a table with 'endpoints'")
     ends = spec.get("endpoints")
@@ -200,7 +201,7 @@ def _edge(spec, vertices: np.ndarray, path: str) -> PatternEdge:
             if params[k] not in (0, 1, True, False):
                 raise _error(f"{cpath}.params[{k}]", f"expected 0 or 1, got {params[k]!r}")
             flags.append(bool(params[k]))
-        return PatternEdge(p0, p1, "circle", radius=radius, large_arc=flags[0], sweep=flags[1], label=label)
+        return PatternEdge(p0, p1, "circle", radius=radius * scale, large_arc=flags[0], sweep=flags[1], label=label)
     raise _error(f"{cpath}.type", f"{kind!r} is not allowed; allowed: quadratic, cubic, circle")
 
 
@@ -242,7 +243,7 @@ def read_garmentcode(source) -> Pattern:
         edges_spec = p.get("edges")
         if not isinstance(edges_spec, list) or len(edges_spec) < 2:
             raise _error(f"{path}.edges", "expected a loop of at least 2 edges")
-        edges = tuple(_edge(e, vertices, f"{path}.edges[{k}]") for k, e in enumerate(edges_spec))
+        edges = tuple(_edge(e, vertices, f"{path}.edges[{k}]", scale) for k, e in enumerate(edges_spec))
         for k, (a, b) in enumerate(zip(edges, edges[1:] + edges[:1])):
             if not np.array_equal(a.end, b.start):
                 raise _error(f"{path}.edges[{(k + 1) % len(edges)}]", "the edges do not form a loop: an edge must start where "
@@ -267,6 +268,61 @@ def read_garmentcode(source) -> Pattern:
             sides.append((side["panel"], edge))
         stitches.append(tuple(sides))
     return Pattern(panels, tuple(stitches), unit)
+
+
+@dataclass(frozen=True)
+class Wrap:
+    """Panels wrapped about an axis when placed (a garment arranged round the body parts it covers, as a designer
+    puts panels on a body's arrangement cylinders), without stretching them: a panel placed parallel to the axis is
+    bent onto the cylinder about it at the plane's own distance; a panel tilted to it, onto the cone whose apex is
+    where the axis meets the plane and whose half-angle is the tilt (an A-line or flared panel: a cone's development).
+    The panel's line nearest the axis stays where it is placed. `point`, `direction`: the axis [m]."""
+
+    panels: tuple
+    point: tuple
+    direction: tuple = (0.0, 1.0, 0.0)
+
+
+def wrap_points(points: np.ndarray, normal, point, direction) -> np.ndarray:
+    """`points` [m] of a plane with unit `normal`, bent about the axis (`point`, `direction`) without stretching.
+
+    Parallel to the axis, at distance R: a point at in-plane distance s from the plane's line nearest the axis goes
+    to angle s / R round the axis at the same height. Tilted by alpha: the axis meets the plane at the apex; a point
+    at distance rho from the apex and angle psi from the plane's steepest line through it goes to the cone of
+    half-angle alpha, at distance rho from the apex along the generator at angle psi / sin(alpha) round the axis."""
+    x = np.asarray(points, np.float64)
+    a = np.asarray(direction, np.float64)
+    a = a / np.linalg.norm(a)
+    n = np.asarray(normal, np.float64)
+    n = n / np.linalg.norm(n)
+    c = np.asarray(point, np.float64)
+    tilt = float(n @ a)
+    if abs(tilt) < 1e-9:  # a cylinder
+        depth = float((x[0] - c) @ n)  # signed distance of the plane from the axis
+        if abs(depth) < 1e-9:
+            raise InvalidValue("wrap: the panel's plane passes through the wrap axis (place it at a distance from the axis)")
+        out = n if depth > 0.0 else -n  # from the axis to the plane
+        side = np.cross(a, out)
+        rel = x - c
+        theta = (rel @ side) / abs(depth)
+        return c + np.outer(rel @ a, a) + abs(depth) * (np.outer(np.cos(theta), out) + np.outer(np.sin(theta), side))
+    apex = c + a * float((x[0] - c) @ n) / tilt  # where the axis meets the plane
+    rel = x - apex
+    if float(np.mean(rel @ a)) < 0.0:
+        a = -a  # the cone opens towards the panel
+    generator = a - (a @ n) * n
+    generator /= np.linalg.norm(generator)
+    sin_alpha = math.sqrt(max(0.0, 1.0 - float(generator @ a) ** 2))
+    cos_alpha = float(generator @ a)
+    out = generator - cos_alpha * a
+    out /= np.linalg.norm(out)
+    side = np.cross(a, out)
+    across = side - (side @ n) * n  # = side: the plane's direction across its steepest line
+    across /= np.linalg.norm(across)
+    rho = np.linalg.norm(rel, axis=1)
+    theta = np.arctan2(rel @ across, rel @ generator) / sin_alpha
+    ring = np.outer(np.cos(theta), out) + np.outer(np.sin(theta), side)
+    return apex + rho[:, None] * (cos_alpha * a + sin_alpha * ring)
 
 
 @dataclass
@@ -300,14 +356,23 @@ def edge_segments(pattern: Pattern, edge_length: float) -> dict:
     return counts
 
 
-def mesh_pattern(pattern: Pattern, edge_length: float, min_angle: float = 25.0) -> PatternMesh:
+def mesh_pattern(pattern: Pattern, edge_length: float, min_angle: float = 25.0, wraps=()) -> PatternMesh:
     """Mesh every panel (Triangle: constrained Delaunay with quality, triangles of area at most that of an
     equilateral one of side `edge_length` [m], smallest angle `min_angle` [deg] away from the outline, no point added
-    on the outline), place it in 3D and pair the vertices of stitched edges."""
+    on the outline), place it in 3D (wrapped about an axis when one of `wraps` (:class:`Wrap`) names it) and pair the
+    vertices of stitched edges from where they are placed."""
     import triangle
 
     if not (math.isfinite(edge_length) and edge_length > 0.0):
         raise InvalidValue(f"edge_length: must be a length > 0 m, got {edge_length!r}")
+    wrap_of = {}
+    for k, w in enumerate(wraps):
+        for name in w.panels:
+            if name not in pattern.panels:
+                raise InvalidValue(f"wraps[{k}].panels: {name!r} is not a panel of the pattern; panels: {', '.join(pattern.panels)}")
+            if name in wrap_of:
+                raise InvalidValue(f"wraps[{k}].panels: {name!r} is wrapped twice")
+            wrap_of[name] = w
     segments = edge_segments(pattern, edge_length)
     area = math.sqrt(3.0) / 4.0 * edge_length**2
     vertices, uvs, tris, panel_of, outline, edge_vertices = [], [], [], [], [], {}
@@ -331,7 +396,11 @@ def mesh_pattern(pattern: Pattern, edge_length: float, min_angle: float = 25.0) 
         t = np.asarray(out["triangles"], np.int64)
         if signed < 0.0:  # the outline runs clockwise in the panel's frame: keep its triangles' winding consistent
             t = t[:, [0, 2, 1]]
-        vertices.append(panel.place(pts2d))
+        placed = panel.place(pts2d)
+        if name in wrap_of:
+            w = wrap_of[name]
+            placed = wrap_points(placed, panel.placement()[:, 2], w.point, w.direction)
+        vertices.append(placed)
         uvs.append(pts2d)
         tris.append(t + offset)
         panel_of.append(np.full(len(pts2d), index))
