@@ -23,7 +23,7 @@ class ElementSet:
     """Elements (rows of up to three vertex indices, -1 padded) and their per-step boxes and voxels;
     with `grid=True` also the hash-grid entries other elements search."""
 
-    def __init__(self, elements: np.ndarray, device, grid: bool, ids: np.ndarray | None = None):
+    def __init__(self, elements: np.ndarray, device, grid: bool, ids: np.ndarray | None = None, particle_root: np.ndarray | None = None):
         rows = np.full((max(len(elements), 1), 3), -1, np.int32)
         if len(elements):
             e = np.asarray(elements, np.int32).reshape(len(elements), -1)
@@ -31,6 +31,12 @@ class ElementSet:
         self.count = len(elements)
         self.device = device
         self.elements = wp.array(rows, dtype=wp.int32, device=device)
+        self.particle_root = particle_root
+        # the rows as vertex identities, what "sharing a vertex" compares: a sewn pair of particles is one vertex
+        self.adjacency = self.elements
+        if particle_root is not None:
+            self.adjacency = wp.array(np.where(rows >= 0, np.asarray(particle_root, np.int32)[np.maximum(rows, 0)], -1).astype(np.int32),
+                                      dtype=wp.int32, device=device)
         # the id pairs report for each row (its index in the full set; a patch's subsets keep the full set's ids)
         ids = np.arange(self.count) if ids is None else np.asarray(ids)
         self.ids = wp.array(np.append(ids, 0).astype(np.int32)[: max(self.count, 1)], dtype=wp.int32, device=device)
@@ -67,7 +73,7 @@ class ElementSet:
 
     def subset(self, ids: np.ndarray, grid: bool) -> "ElementSet":
         """The elements with these ids, keeping their ids."""
-        return ElementSet(self.elements.numpy()[ids], self.device, grid, ids=ids)
+        return ElementSet(self.elements.numpy()[ids], self.device, grid, ids=ids, particle_root=self.particle_root)
 
     def update(self, x_start: wp.array, velocity: wp.array, dt: float, pad: float, inv_cell_size: float, clamped: wp.array):
         """Boxes of the step x_start -> x_start + dt velocity grown by `pad` [m]; re-registers the grid's entries."""
@@ -154,8 +160,8 @@ class PairBuffer:
             self.count_array.zero_()
             for query, target, ordered, query_skip, target_skip in searches:
                 wp.launch(kb.find_pairs, dim=query.count,
-                          inputs=[query.elements, query.ids, query_skip, query.lo, query.hi, query.cell_lo, query.cell_hi,
-                                  target.elements, target.ids, target_skip, target.sorted_element, target.sorted_cell,
+                          inputs=[query.adjacency, query.ids, query_skip, query.lo, query.hi, query.cell_lo, query.cell_hi,
+                                  target.adjacency, target.ids, target_skip, target.sorted_element, target.sorted_cell,
                                   target.sorted_lo, target.sorted_hi, target.bucket_start, target.bucket_end,
                                   target.table_size - 1, inv_cell_size, int(ordered), self.capacity],
                           outputs=[self.pairs, self.count_array], device=self.device, record_tape=False)
@@ -176,8 +182,8 @@ class PairBuffer:
             if not (query.count and target.count):
                 continue
             wp.launch(kb.find_pairs, dim=query.count,
-                      inputs=[query.elements, query.ids, query_skip, query.lo, query.hi, query.cell_lo, query.cell_hi,
-                              target.elements, target.ids, target_skip, target.sorted_element, target.sorted_cell,
+                      inputs=[query.adjacency, query.ids, query_skip, query.lo, query.hi, query.cell_lo, query.cell_hi,
+                              target.adjacency, target.ids, target_skip, target.sorted_element, target.sorted_cell,
                               target.sorted_lo, target.sorted_hi, target.bucket_start, target.bucket_end,
                               target.table_size - 1, inv_cell_size, int(ordered), self.capacity],
                       outputs=[self.pairs, self.count_array], device=self.device, record_tape=False)
@@ -202,12 +208,14 @@ class SelfCollisionGrid:
     Args:
         triangles: (T, 3) vertex indices; edges: (E, 2) (the unique edges of the triangles by default).
         particle_count: number of particles.
+        particle_root: (particle_count,) per particle, the vertex it is one with (a seam's particles: the smallest of
+            them); elements sharing such a vertex are adjacent and never paired. Default: each particle its own.
         cell_size: voxel edge [m] (Choi & Ko: about an element's size; default twice the mean edge length,
             the fastest on piled cloth: 30 % less pair search than one edge length, same pairs).
     """
 
     def __init__(self, triangles: np.ndarray, particle_count: int, device, cell_size: float | None = None, edges: np.ndarray | None = None,
-                 rest_positions: np.ndarray | None = None, pair_capacity: int = 1024):
+                 rest_positions: np.ndarray | None = None, pair_capacity: int = 1024, particle_root: np.ndarray | None = None):
         tris = np.asarray(triangles, np.int64).reshape(-1, 3)
         if edges is None:
             edges = unique_edges(tris)
@@ -221,9 +229,10 @@ class SelfCollisionGrid:
             raise ValueError(f"voxel size must be positive [m], got {cell_size!r}")
         self.cell_size = float(cell_size)
         self.device = device
-        self.points = ElementSet(np.arange(particle_count).reshape(-1, 1), device, grid=True)
-        self.edges = ElementSet(self.edges_np, device, grid=True)
-        self.triangles = ElementSet(tris, device, grid=False)
+        root = None if particle_root is None else np.asarray(particle_root, np.int64)
+        self.points = ElementSet(np.arange(particle_count).reshape(-1, 1), device, grid=True, particle_root=root)
+        self.edges = ElementSet(self.edges_np, device, grid=True, particle_root=root)
+        self.triangles = ElementSet(tris, device, grid=False, particle_root=root)
         self.vertex_face = PairBuffer(device, pair_capacity)
         self.edge_edge = PairBuffer(device, pair_capacity)
         # pairs with an element the last patch registered again

@@ -46,6 +46,7 @@ from .kernels import broadphase as kbp
 from .kernels import contact as kct
 from .kernels import selfcollide as ksc
 from .model import ModelFlags
+from .topology import seam_roots
 from .records import record_values
 
 log = logging.getLogger(__name__)
@@ -100,7 +101,8 @@ class SelfCollision:
         self.model = model
         dev = model.device
         tris = model.tri_indices.numpy().reshape(-1, 3)
-        self.grid = SelfCollisionGrid(tris, model.particle_count, dev, rest_positions=model.rest_positions, pair_capacity=pair_capacity)
+        self.grid = SelfCollisionGrid(tris, model.particle_count, dev, rest_positions=model.rest_positions, pair_capacity=pair_capacity,
+                                      particle_root=seam_roots(model))
         self.edge_indices = self.grid.edges.elements  # (E, 3) rows, -1 padded: columns 0, 1 used
         self.tri_indices = model.tri_indices
         self.mass = np.zeros(0)
@@ -505,15 +507,15 @@ class SelfCollision:
         pts, tri, edg = g.points, g.triangles, g.edges
         wp.launch(ksc.patch_vertex_face_points, dim=pts.count,
                   inputs=[f.fresh_count["triangles"], f.fresh["triangles"], tri.lo, tri.hi, pts.lo, pts.hi, self.tri_indices, self.edge_indices,
-                          *close, f.capacities[0]],
+                          tri.adjacency, pts.adjacency, *close, f.capacities[0]],
                   outputs=[f.close[0], f.close_count[0]], device=dev, record_tape=False)
         wp.launch(ksc.patch_vertex_face_triangles, dim=tri.count,
                   inputs=[f.flags["triangles"], f.fresh_count["points"], f.fresh["points"], tri.lo, tri.hi, pts.lo, pts.hi, self.tri_indices,
-                          self.edge_indices, *close, f.capacities[0]],
+                          self.edge_indices, tri.adjacency, pts.adjacency, *close, f.capacities[0]],
                   outputs=[f.close[0], f.close_count[0]], device=dev, record_tape=False)
         wp.launch(ksc.patch_edge_edge, dim=edg.count,
-                  inputs=[f.flags["edges"], f.fresh_count["edges"], f.fresh["edges"], edg.lo, edg.hi, self.tri_indices, self.edge_indices, *close,
-                          f.capacities[1]],
+                  inputs=[f.flags["edges"], f.fresh_count["edges"], f.fresh["edges"], edg.lo, edg.hi, self.tri_indices, self.edge_indices,
+                          edg.adjacency, *close, f.capacities[1]],
                   outputs=[f.close[1], f.close_count[1]], device=dev, record_tape=False)
         for kind, slot in zip(KINDS, (ksc.NEED_VERTEX_FACE, ksc.NEED_EDGE_EDGE)):
             wp.launch(kbp.clamp_count, dim=1, inputs=[f.capacities[kind], slot], outputs=[f.close_count[kind], self.counts], device=dev,

@@ -817,3 +817,25 @@ def color_springs(springs: np.ndarray, particle_count: int, mask: np.ndarray | N
         table[color[s], a] = s
         table[color[s], b] = s
     return table
+
+
+def seam_roots(model) -> np.ndarray | None:
+    """Per particle, the smallest particle it is sewn to through a chain of seam springs (itself when none), or None
+    without seams: a seam's particles are one vertex of the garment (to self-collision's adjacency, and in caches)."""
+    kind = model.spring_kind.numpy()
+    seams = model.spring_indices.numpy().reshape(-1, 2)[kind == int(SpringKind.SEAM)]
+    if len(seams) == 0:
+        return None
+    root = np.arange(model.particle_count)
+
+    def find(i):
+        while root[i] != i:
+            root[i] = root[root[i]]
+            i = root[i]
+        return i
+
+    for a, b in seams:
+        ra, rb = find(a), find(b)
+        if ra != rb:
+            root[max(ra, rb)] = min(ra, rb)
+    return np.array([find(i) for i in range(len(root))])

@@ -688,6 +688,8 @@ def patch_vertex_face_points(
     point_hi: wp.array(dtype=wp.vec3),
     tri_indices: wp.array2d(dtype=wp.int32),
     edge_indices: wp.array2d(dtype=wp.int32),
+    tri_adjacency: wp.array2d(dtype=wp.int32),
+    point_adjacency: wp.array2d(dtype=wp.int32),
     x_start: wp.array(dtype=wp.vec3),
     velocity: wp.array(dtype=wp.vec3),
     dt: float,
@@ -702,12 +704,12 @@ def patch_vertex_face_points(
     p = wp.tid()
     p_lo = point_lo[p]
     p_hi = point_hi[p]
-    p_row = wp.vec3i(p, -1, -1)
+    p_row = element_row(point_adjacency, p)
     for k in range(fresh_triangle_count[0]):
         t = fresh_triangles[k]
         if not boxes_overlap(triangle_lo[t], triangle_hi[t], p_lo, p_hi):
             continue
-        if share_vertex(element_row(tri_indices, t), p_row):
+        if share_vertex(element_row(tri_adjacency, t), p_row):
             continue
         pair = wp.vec2i(t, p)
         if is_close(pair, 0, tri_indices, edge_indices, x_start, velocity, dt, margin, reach):
@@ -725,6 +727,8 @@ def patch_vertex_face_triangles(
     point_hi: wp.array(dtype=wp.vec3),
     tri_indices: wp.array2d(dtype=wp.int32),
     edge_indices: wp.array2d(dtype=wp.int32),
+    tri_adjacency: wp.array2d(dtype=wp.int32),
+    point_adjacency: wp.array2d(dtype=wp.int32),
     x_start: wp.array(dtype=wp.vec3),
     velocity: wp.array(dtype=wp.vec3),
     dt: float,
@@ -741,12 +745,12 @@ def patch_vertex_face_triangles(
         return
     t_lo = triangle_lo[t]
     t_hi = triangle_hi[t]
-    t_row = element_row(tri_indices, t)
+    t_row = element_row(tri_adjacency, t)
     for k in range(fresh_point_count[0]):
         p = fresh_points[k]
         if not boxes_overlap(t_lo, t_hi, point_lo[p], point_hi[p]):
             continue
-        if share_vertex(t_row, wp.vec3i(p, -1, -1)):
+        if share_vertex(t_row, element_row(point_adjacency, p)):
             continue
         pair = wp.vec2i(t, p)
         if is_close(pair, 0, tri_indices, edge_indices, x_start, velocity, dt, margin, reach):
@@ -762,6 +766,7 @@ def patch_edge_edge(
     edge_hi: wp.array(dtype=wp.vec3),
     tri_indices: wp.array2d(dtype=wp.int32),
     edge_indices: wp.array2d(dtype=wp.int32),
+    edge_adjacency: wp.array2d(dtype=wp.int32),
     x_start: wp.array(dtype=wp.vec3),
     velocity: wp.array(dtype=wp.vec3),
     dt: float,
@@ -777,14 +782,14 @@ def patch_edge_edge(
     own = edge_flags[e] != 0
     e_lo = edge_lo[e]
     e_hi = edge_hi[e]
-    e_row = element_row(edge_indices, e)
+    e_row = element_row(edge_adjacency, e)
     for k in range(fresh_edge_count[0]):
         f = fresh_edges[k]
         if f == e or (own and f < e):
             continue
         if not boxes_overlap(e_lo, e_hi, edge_lo[f], edge_hi[f]):
             continue
-        if share_vertex(e_row, element_row(edge_indices, f)):
+        if share_vertex(e_row, element_row(edge_adjacency, f)):
             continue
         pair = wp.vec2i(wp.min(e, f), wp.max(e, f))
         if is_close(pair, 1, tri_indices, edge_indices, x_start, velocity, dt, margin, reach):
