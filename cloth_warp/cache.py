@@ -43,6 +43,7 @@ checkpoint at the last frame written (:func:`read_checkpoint`), a custom attribu
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import io
 import json
 import logging
@@ -54,6 +55,7 @@ import platform
 import numpy as np
 
 from . import looks
+from .topology import seam_roots
 from .outputs import (USD_SUFFIXES, CacheWriteError, CrateRollback, OutputLock, atomic_path, check_output, partial_path,
                       usd_error_text)
 
@@ -126,19 +128,59 @@ def _prim_name(name: str) -> str:
     return Tf.MakeValidIdentifier(name or "cloth")
 
 
+@dataclasses.dataclass(frozen=True)
+class ClothMesh:
+    """A cloth as the cache writes it: its prim name, particle slice, triangles (local particle indices), corner UVs
+    (t, 3, 2) or None, fabric name, its own rest positions [m] (as built: lengths are the rest lengths), and for a
+    sewn garment `weld`: per local particle the seam point it is one with."""
+
+    name: str
+    particles: slice
+    sewn_triangles: np.ndarray
+    corner_uv: np.ndarray | None
+    fabric: str
+    rest_positions: np.ndarray
+    weld: np.ndarray | None = None
+
+    @property
+    def triangles(self) -> np.ndarray:
+        """The triangles written: a sewn garment is one surface, its seams' triangles share each seam point's first
+        particle (the others stay as points)."""
+        return self.sewn_triangles if self.weld is None else self.weld[self.sewn_triangles].astype(np.int32)
+
+    def edges(self) -> tuple[np.ndarray, np.ndarray]:
+        """(the written mesh's unique edges (e, 2), their rest lengths [m])."""
+        edges = triangle_edges(self.sewn_triangles)
+        rest = self.rest_positions
+        length = np.linalg.norm(rest[edges[:, 0]] - rest[edges[:, 1]], axis=1)
+        if self.weld is None:
+            return edges, length
+        edges, first = np.unique(np.sort(self.weld[edges], axis=1), axis=0, return_index=True)
+        return edges, length[first]
+
+
 def _cloth_meshes(model):
-    """(name, particle slice, triangles local to the cloth, corner uvs or None, fabric name) per cloth of the model."""
+    """(name, particle slice, triangles local to the cloth, corner uvs or None, fabric name) per cloth of the model; a
+    sewn garment's triangles refer to the first particle of each seam point (its other particles stay as points)."""
     tris = model.tri_indices.numpy()
+    roots = seam_roots(model)
     out, used = [], set()
     for info in model.cloths:
         name = _prim_name(info.name)
         while name in used:
             name += "_"
         used.add(name)
-        t = tris[info.triangles] - info.particle_start
+        start = info.particle_start
+        t = tris[info.triangles] - start
+        weld = None
+        if roots is not None:
+            local = roots[info.particles] - start
+            if np.any(local != np.arange(len(local))):
+                weld = local
         uv = info.topology.corner_uv
         fabric = getattr(info.material, "name", None) or "custom"
-        out.append((name, info.particles, t.astype(np.int32), None if uv is None else np.asarray(uv), fabric))
+        out.append(ClothMesh(name, info.particles, t.astype(np.int32), None if uv is None else np.asarray(uv), fabric,
+                             np.asarray(info.topology.positions, np.float64), weld))
     return out
 
 
@@ -341,7 +383,7 @@ def read_frames(path, model, count: int):
     with usd_errors(path):
         stage = Usd.Stage.Open(str(path), Usd.Stage.LoadAll)
         start = int(stage.GetStartTimeCode())
-        prims = [(stage.GetPrimAtPath(f"/World/{name}"), particles) for name, particles, _, _, _ in _cloth_meshes(model)]
+        prims = [(stage.GetPrimAtPath(f"/World/{c.name}"), c.particles) for c in _cloth_meshes(model)]
         if not all(p.IsValid() for p, _ in prims):
             raise CacheError(f"{path}: its meshes are not this scene's cloths")
         diag_attrs = {d: prims[0][0].GetAttribute(f"clothWarp:{d}") for d in DIAGNOSTICS}
@@ -566,7 +608,8 @@ class UsdCacheWriter(CacheWriter):
         self.meshes = []
         materials = {}
         UsdGeom.Scope.Define(stage, f"/World/{LOOKS_SCOPE}")
-        for name, particles, tris, corner_uv, fabric in _cloth_meshes(model):
+        for cloth in _cloth_meshes(model):
+            name, particles, tris, corner_uv, fabric = cloth.name, cloth.particles, cloth.triangles, cloth.corner_uv, cloth.fabric
             mesh = UsdGeom.Mesh.Define(stage, f"/World/{name}")
             mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
             mesh.CreateDoubleSidedAttr(True)
@@ -593,8 +636,7 @@ class UsdCacheWriter(CacheWriter):
             if velocities:
                 attrs["velocities"] = mesh.CreateVelocitiesAttr()
                 attrs["velocities"].Set(Vt.Vec3fArray.FromNumpy(np.zeros_like(x0)))
-            edges = triangle_edges(tris)
-            rest_length = np.linalg.norm(x0[edges[:, 0]] - x0[edges[:, 1]], axis=1)
+            edges, rest_length = cloth.edges()
             strain = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar(STRAIN_PRIMVAR, Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex)
             strain.GetAttr().SetDocumentation("per vertex, the largest strain l / L - 1 of its mesh edges, per frame")
             strain.Set(Vt.FloatArray.FromNumpy(np.zeros(1, np.float32)))  # the rest pose: 0 everywhere (indexed, as per frame)

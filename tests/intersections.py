@@ -52,3 +52,25 @@ def intersecting_pairs(x, tris, chunk=256):
         hit = segment_crosses_triangle(x[e[:, 0]], x[e[:, 1]], x[tris[ti, 0]], x[tris[ti, 1]], x[tris[ti, 2]])
         found.extend(zip((ei[hit] + s).tolist(), ti[hit].tolist()))
     return found
+
+
+def crossing_pairs(xa, tris_a, xb, tris_b, chunk=256):
+    """(mesh, edge, triangle) triples where an edge of one mesh crosses a triangle of the other (mesh 0: an edge of
+    a crossing b's triangle; 1: the other way): two surfaces intersect iff some edge of one crosses the other."""
+    out = []
+    for side, (x, t, y, u) in enumerate(((xa, tris_a, xb, tris_b), (xb, tris_b, xa, tris_a))):
+        x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+        edges = unique_edges(np.asarray(t, np.int64))
+        u = np.asarray(u, np.int64)
+        tlo, thi = y[u].min(1), y[u].max(1)
+        elo = np.minimum(x[edges[:, 0]], x[edges[:, 1]])
+        ehi = np.maximum(x[edges[:, 0]], x[edges[:, 1]])
+        for s in range(0, len(edges), chunk):
+            lo, hi, ed = elo[s:s + chunk], ehi[s:s + chunk], edges[s:s + chunk]
+            ei, ti = np.nonzero(np.all((lo[:, None] <= thi[None]) & (tlo[None] <= hi[:, None]), axis=2))
+            if len(ei) == 0:
+                continue
+            e = ed[ei]
+            hit = segment_crosses_triangle(x[e[:, 0]], x[e[:, 1]], y[u[ti, 0]], y[u[ti, 1]], y[u[ti, 2]])
+            out.extend((side, int(a + s), int(b)) for a, b in zip(ei[hit], ti[hit]))
+    return out
