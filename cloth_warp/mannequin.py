@@ -35,7 +35,7 @@ class Segment:
 
 
 def _segments() -> list[Segment]:
-    """The segments at rest (fractions of the height; standing adult proportions, arms slightly out)."""
+    """The segments at rest (fractions of the height; standing adult proportions, arms in an A-pose)."""
     s = []
     s.append(Segment("pelvis", None, (0.0, 0.53, 0.0), (0.0, 0.47, 0.0), (0.105, 0.075)))
     s.append(Segment("abdomen", "pelvis", (0.0, 0.53, 0.0), (0.0, 0.62, 0.0), (0.095, 0.065)))
@@ -43,9 +43,10 @@ def _segments() -> list[Segment]:
     s.append(Segment("neck", "chest", (0.0, 0.80, 0.0), (0.0, 0.86, 0.0), (0.032, 0.032)))
     s.append(Segment("head", "neck", (0.0, 0.86, 0.0), (0.0, 1.0, 0.0), (0.056, 0.07, 0.064), "ellipsoid"))
     for side, x in (("left", 1.0), ("right", -1.0)):
-        s.append(Segment(f"{side}_upper_arm", "chest", (x * 0.125, 0.80, 0.0), (x * 0.16, 0.63, 0.0), (0.030, 0.030)))
-        s.append(Segment(f"{side}_forearm", f"{side}_upper_arm", (x * 0.16, 0.63, 0.0), (x * 0.18, 0.48, 0.0), (0.024, 0.024)))
-        s.append(Segment(f"{side}_hand", f"{side}_forearm", (x * 0.18, 0.48, 0.0), (x * 0.19, 0.42, 0.0), (0.022, 0.032, 0.011), "ellipsoid"))
+        # arms in an A-pose, 25 degrees out from the sides: room for a sleeve round the arm and a bodice under it
+        s.append(Segment(f"{side}_upper_arm", "chest", (x * 0.125, 0.80, 0.0), (x * 0.198, 0.643, 0.0), (0.030, 0.030)))
+        s.append(Segment(f"{side}_forearm", f"{side}_upper_arm", (x * 0.198, 0.643, 0.0), (x * 0.262, 0.506, 0.0), (0.024, 0.024)))
+        s.append(Segment(f"{side}_hand", f"{side}_forearm", (x * 0.262, 0.506, 0.0), (x * 0.288, 0.451, 0.0), (0.022, 0.032, 0.011), "ellipsoid"))
         s.append(Segment(f"{side}_thigh", "pelvis", (x * 0.055, 0.49, 0.0), (x * 0.055, 0.28, 0.0), (0.048, 0.048)))
         s.append(Segment(f"{side}_shin", f"{side}_thigh", (x * 0.055, 0.28, 0.0), (x * 0.055, 0.045, 0.0), (0.034, 0.034)))
         s.append(Segment(f"{side}_foot", f"{side}_shin", (x * 0.055, 0.045, 0.0), (x * 0.055, 0.0, 0.07), (0.026, 0.022, 0.062), "ellipsoid"))

@@ -128,6 +128,11 @@ SCHEMA: dict = {
         "pattern": Key("path", None, "a sewing pattern instead of a grid: GarmentCode's JSON specification, its panels "
                        "meshed and placed as it places them, its stitches sewn by seam springs (cloth_warp/patterns.py)"),
         "edge_length": Key("float", 0.02, "pattern: target edge length of the panels' meshes", L["edge_length"]),
+        "wraps": Tables({"panels": Key("strs", None, "the pattern's panels wrapped about this axis (required)"),
+                         "point": Key("vec3", [0.0, 0.0, 0.0], "a point of the axis", L["position"]),
+                         "direction": Key("vec3", [0.0, 1.0, 0.0], "the axis direction", L["axis"])},
+                        "pattern: panels wrapped round a body part when placed, without stretching (onto a cylinder "
+                        "when placed parallel to the axis, a cone when tilted: cloth_warp.patterns.Wrap)"),
         "scale": Key("float", 1.0, "mesh units to metres (e.g. 0.01 for a centimetre mesh)", L["scale"]),
         "position": Key("vec3", [0.0, 0.0, 0.0], "translation applied after the rotation", L["position"]),
         "rotation": ROTATION,
@@ -182,6 +187,13 @@ SCHEMA: dict = {
                                          "where they are)", L["position"])},
                           "particles bound to a body's surface (waistbands, straps, cuffs): exactly one of select, indices, "
                           "box per entry; they follow the collider as it moves and deforms"),
+    "dressing": {
+        "seconds": Key("float", 0.0, "sew the garment onto the colliders before the run: this long without gravity, the "
+                       "seams closing and the colliders held in their first pose (cloth_warp.dressing); attachments are "
+                       "bound after it", L["time"]),
+        "settle": Key("float", 0.0, "then let it hang this long with gravity, the attachments holding, before the run "
+                      "starts from rest", L["time"]),
+    },
     "forces": {
         "up_axis": Key("str", "Y", "the up axis of the scene and of the cache (points are never rotated)", allowed=UP_AXES),
         "gravity": Key("vec3", None, "gravitational acceleration (default: 9.81 down the up axis)", L["gravity"]),
@@ -535,6 +547,11 @@ def _check_values(scene: Scene):
     pattern = scene.data.get("cloth", {}).get("pattern")
     if pattern is not None and not scene.resolve(pattern).is_file():
         raise SceneError(f"cloth.pattern: file not found: {scene.resolve(pattern)} (paths are relative to the scene file)")
+    for i, w in enumerate(scene.data.get("cloth", {}).get("wraps", [])):
+        if pattern is None:
+            raise SceneError(f"cloth.wraps[{i}]: wraps place a pattern's panels; give cloth.pattern")
+        if not w.get("panels"):
+            raise SceneError(f"cloth.wraps[{i}].panels: name the panels to wrap (required)")
     cusick = scene.data.get("measure", {}).get("cusick")
     if cusick is not None:
         if cusick.get("pedestal_radius") is None:
@@ -695,19 +712,37 @@ def build_model(scene: Scene, device=None, requires_grad: bool = False):
             b.add_handle(_selection(cloth, h, f"handles[{i}]"), kfs, name=f"handle{i}")
     for i, col in enumerate(scene.data.get("colliders", [])):
         _add_collider(b, scene, col, i)
-    for i, a in enumerate(scene.data.get("attachments", [])):
-        with _scene_key(f"attachments[{i}]"):
-            col = next(c for c in b.colliders if c.name == a["collider"])  # checked in _check_values
-            b.attach(_selection(cloth, a, f"attachments[{i}]"), col, offset=a.get("offset"), name=f"attachment{i}")
     if scene.get("collision.self_collision"):
         with _scene_key("collision"):
             b.enable_self_collision(float(scene.get("collision.thickness")), float(scene.get("collision.friction")),
                                     scene.get("collision.stiffness"))
+    _dressing(b, scene, "seconds", device)
+    for i, a in enumerate(scene.data.get("attachments", [])):
+        with _scene_key(f"attachments[{i}]"):
+            col = next(c for c in b.colliders if c.name == a["collider"])  # checked in _check_values
+            b.attach(_selection(cloth, a, f"attachments[{i}]"), col, offset=a.get("offset"), name=f"attachment{i}")
+    _dressing(b, scene, "settle", device)
     jitter = float(scene.get("cloth.jitter"))
     if jitter > 0.0:
         _jitter(b, cloth, jitter, int(scene.get("scene.seed")))
     with _scene_key("cloth"):
         return b.finalize(device, requires_grad=requires_grad)
+
+
+def _dressing(b, scene: Scene, stage: str, device):
+    """Dress (stage "seconds") or settle the builder's garment as the scene's [dressing] table says, with its solver's
+    contact and tolerance settings."""
+    from . import dressing
+
+    seconds = float(scene.get(f"dressing.{stage}"))
+    if seconds <= 0.0:
+        return
+    options = {"tolerance": float(scene.get("solver.tolerance")), "collider_contacts": scene.get("solver.collider_contacts"),
+               "self_contacts": scene.get("solver.self_contacts")}
+    run = dressing.dress if stage == "seconds" else dressing.settle
+    with _scene_key(f"dressing.{stage}"):
+        report = run(b, seconds, fps=float(scene.get("output.fps")), device=device, solver_options=options)
+    log.info("dressing.%s: %s", stage, report)
 
 
 @contextlib.contextmanager
@@ -722,7 +757,9 @@ def _scene_key(path: str):
 
 
 def _add_cloth(b, scene: Scene):
-    """Add the scene's cloth (grid, disc or mesh) to builder `b`; returns its handle."""
+    """Add the scene's cloth (grid, disc, mesh or pattern) to builder `b`; returns its handle."""
+    from .patterns import Wrap
+
     common = dict(position=tuple(scene.get("cloth.position")), rotation=_rotation_q(scene.data.get("cloth", {}).get("rotation")),
                   velocity=tuple(scene.get("cloth.velocity")), material=build_material(scene),
                   spring_model=scene.get("cloth.spring_model"), membrane=scene.get("cloth.membrane"),
@@ -733,7 +770,9 @@ def _add_cloth(b, scene: Scene):
     pattern = scene.data.get("cloth", {}).get("pattern")
     with _scene_key("cloth.mesh" if mesh is not None else "cloth.pattern" if pattern is not None else "cloth"):
         if pattern is not None:
-            cloth = b.add_cloth_pattern(scene.resolve(pattern), edge_length=float(scene.get("cloth.edge_length")), **common)
+            wraps = [Wrap(tuple(w["panels"]), tuple(w.get("point", (0.0, 0.0, 0.0))), tuple(w.get("direction", (0.0, 1.0, 0.0))))
+                     for w in scene.data.get("cloth", {}).get("wraps", [])]
+            cloth = b.add_cloth_pattern(scene.resolve(pattern), edge_length=float(scene.get("cloth.edge_length")), wraps=wraps, **common)
         elif scene.data.get("cloth", {}).get("disc") is not None:
             cloth = b.add_cloth_disc(radius=float(scene.get("cloth.disc.radius")), rings=int(scene.get("cloth.disc.rings")),
                                      warp_direction=warp, **common)
