@@ -768,7 +768,8 @@ class ModelBuilder:
                       self.membrane_damping.ravel()]), hint=": lower the stiffness or the damping")
         check_float32("plate-bending stiffness (material bend stiffness x dual area)", self.plate_stiffness,
                       hint=": raise the bend stiffness or use larger cells")
-        check_float32_resolution("springs", self.particle_positions, self.spring_rest_length)
+        # seams are zero-length by design (no strain to resolve)
+        check_float32_resolution("springs", self.particle_positions, self.spring_rest_length[self.spring_kind != SpringKind.SEAM])
 
     def _finalize_colliders(self, m: Model, arr):
         from .colliders import SHAPE_IDS

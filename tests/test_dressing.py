@@ -1,0 +1,196 @@
+"""Garments dressed onto a body (cloth_warp/dressing.py): panels wrapped round the body without stretching
+(patterns.Wrap), seams closed in a dressing phase, a sewn garment one vertex per seam point to self-collision and in
+the cache, nothing inside the body or crossing it."""
+
+import math
+import pathlib
+
+import numpy as np
+import pytest
+
+import cloth_warp as cw
+from cloth_warp.cache import _cloth_meshes
+from cloth_warp.dressing import dress, seam_gap, settle
+from cloth_warp.mannequin import Mannequin
+from cloth_warp.patterns import Wrap, mesh_pattern, read_garmentcode, wrap_points
+from cloth_warp.scene import SceneError, build_model, parse_scene
+from cloth_warp.topology import seam_roots
+from intersections import crossing_pairs, intersecting_pairs
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+SKIRT = ROOT / "scenes" / "patterns" / "skirt_specification.json"
+
+
+def test_a_circle_edge_radius_is_in_the_pattern_units():
+    """Check a circle edge of radius 50 in a centimetre pattern is an arc of radius 0.5 m through its endpoints."""
+    spec = {"pattern": {"panels": {"p": {"vertices": [[0, 0], [60, 0], [60, 40], [0, 40]],
+                                         "edges": [{"endpoints": [0, 1], "curvature": {"type": "circle", "params": [50, 0, 1]}},
+                                                   {"endpoints": [1, 2]}, {"endpoints": [2, 3]}, {"endpoints": [3, 0]}]}}},
+            "properties": {"units_in_meter": 100, "curvature_coords": "relative"}}
+    edge = read_garmentcode(spec).panels["p"].edges[0]
+    centre, _, _ = edge.arc()
+    pts = edge.sample(32)
+    np.testing.assert_allclose(np.linalg.norm(pts - centre, axis=1), 0.5, atol=1e-9)
+    assert np.ptp(pts[:, 1]) == pytest.approx(0.5 - math.sqrt(0.5**2 - 0.3**2), rel=1e-6)  # the sagitta of a 60 cm chord
+
+
+@pytest.mark.parametrize("tilt", [0.0, 8.0, 20.0])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_wrapping_keeps_every_length_and_lands_on_the_cylinder_or_cone(tilt, seed):
+    """Check panels wrapped about a random axis: lengths are kept (the map's Jacobian is orthonormal on the plane at
+    every point), the panels' points lie on the cylinder at the plane's distance (tilt 0) or on the cone of half-angle = tilt about the axis; ."""
+    rng = np.random.default_rng(seed)
+    a = rng.normal(size=3)
+    a /= np.linalg.norm(a)
+    n = np.cross(a, rng.normal(size=3))
+    n /= np.linalg.norm(n)
+    # tilt the plane's normal towards the axis: the plane then meets the axis at `tilt` degrees
+    n = math.cos(math.radians(tilt)) * n - math.sin(math.radians(tilt)) * a
+    c = rng.normal(size=3)
+    d = 0.15 + 0.1 * rng.random()
+    u = np.cross(n, a)
+    u /= np.linalg.norm(u)
+    w = np.cross(n, u)
+    origin = c + d * n / math.cos(math.radians(tilt)) if tilt else c + d * n
+    uv = rng.uniform(-0.25, 0.25, size=(400, 2))
+    x = origin + uv[:, :1] * u + uv[:, 1:] * w
+    y = wrap_points(x, n, c, a)
+    rel = y - c
+    along = rel @ a
+    radial = np.linalg.norm(rel - np.outer(along, a), axis=1)
+    if tilt == 0.0:
+        np.testing.assert_allclose(radial, d, rtol=1e-9)
+    else:
+        apex = c + a * float((x[0] - c) @ n) / float(n @ a)
+        r = y - apex
+        cosines = np.abs(r @ a) / np.linalg.norm(r, axis=1)
+        np.testing.assert_allclose(cosines, math.cos(math.radians(tilt)), atol=1e-9)
+    # lengths are kept: the map's Jacobian is orthonormal on the plane at every point
+    h = 1e-6
+    p = x
+    du = (wrap_points(p + h * u, n, c, a) - wrap_points(p - h * u, n, c, a)) / (2 * h)
+    dw = (wrap_points(p + h * w, n, c, a) - wrap_points(p - h * w, n, c, a)) / (2 * h)
+    np.testing.assert_allclose(np.linalg.norm(du, axis=1), 1.0, atol=1e-6)
+    np.testing.assert_allclose(np.linalg.norm(dw, axis=1), 1.0, atol=1e-6)
+    np.testing.assert_allclose(np.einsum("ij,ij->i", du, dw), 0.0, atol=1e-6)
+
+
+def test_the_shipped_skirt_wraps_round_the_hips_without_stretching():
+    """Check the shipped skirt pattern wrapped round the vertical axis: its mesh edges keep their panel lengths, its
+    waist ring is a circle at the placed radius and height, its side seams start open (the dressing closes them)."""
+    pattern = read_garmentcode(SKIRT)
+    m = mesh_pattern(pattern, 0.03, wraps=[Wrap(("front", "back"), (0.0, 0.0, 0.0))])
+    t = m.triangles
+    e = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
+    flat = np.linalg.norm(m.uvs[e[:, 0]] - m.uvs[e[:, 1]], axis=1)
+    placed = np.linalg.norm(m.vertices[e[:, 0]] - m.vertices[e[:, 1]], axis=1)
+    assert np.abs(placed / flat - 1.0).max() < 2e-3  # chords of a curved surface: second order in the edge length
+    waist = np.concatenate([m.vertices[m.edge_vertices[(p, 3)]] for p in ("front", "back")])
+    np.testing.assert_allclose(np.linalg.norm(waist[:, [0, 2]], axis=1), 0.19, atol=1e-6)
+    np.testing.assert_allclose(waist[:, 1], 1.0, atol=1e-6)
+    gaps = np.linalg.norm(m.vertices[m.seams[:, 0]] - m.vertices[m.seams[:, 1]], axis=1)
+    assert 0.1 < gaps.min() and gaps.max() < 0.3
+
+
+def test_wrapping_a_panel_that_is_not_in_the_pattern_names_it():
+    with pytest.raises(cw.InvalidValue, match=r"wraps\[0\]\.panels: 'sleeve' is not a panel"):
+        mesh_pattern(read_garmentcode(SKIRT), 0.05, wraps=[Wrap(("front", "sleeve"), (0.0, 0.0, 0.0))])
+
+
+def _penetration(body: Mannequin, x: np.ndarray, vertices: np.ndarray) -> np.ndarray:
+    """Per point, how deep [m] it lies inside the posed body (> 0: inside), each segment a convex hull."""
+    import trimesh
+
+    depth = np.full(len(x), -np.inf)
+    for k in range(len(body.segments)):
+        hull = trimesh.convex.convex_hull(vertices[body.segment_of_vertex == k])
+        n = hull.face_normals
+        offset = np.einsum("ij,ij->i", hull.vertices[hull.faces[:, 0]], n)
+        depth = np.maximum(depth, -(x @ n.T - offset).max(1))
+    return depth
+
+
+@pytest.fixture(scope="module")
+def dressed():
+    """The shipped skirt pattern (coarse) dressed onto the still mannequin, waist attached and settled."""
+    body = Mannequin(1.75)
+    b = cw.ModelBuilder()
+    col = b.add_collider_mesh(body.rest_vertices, body.triangles, name="body", friction=0.5)
+    skirt = b.add_cloth_pattern(SKIRT, edge_length=0.04, wraps=[Wrap(("front", "back"), (0.0, 0.0, 0.0))], material="cotton", name="skirt")
+    b.enable_self_collision(0.004, 0.3)
+    gap0 = seam_gap(b)
+    report = dress(b, 1.0, solver_options=dict(collider_contacts="solve"))
+    x = b.particle_positions
+    waist = skirt.indices()[x[skirt.indices(), 1] > 0.995]
+    b.attach(waist, col)
+    settled = settle(b, 0.5, solver_options=dict(collider_contacts="solve"))
+    return body, b, skirt, gap0, report, settled
+
+
+def test_dressing_closes_the_seams_with_nothing_inside_the_body(dressed):
+    """Check the dressing closes side seams that start 13-23 cm open to under a millimetre, within the strain limit, and
+    that the dressed and the settled skirt have no point inside the body, no edge crossing it and no triangle crossing
+    another (the garment as the cache writes it, one vertex per seam point)."""
+    body, b, skirt, gap0, report, settled = dressed
+    assert gap0 > 0.1
+    assert report.seam_gap < 1e-3 and report.max_strain < 0.11
+    assert settled.seam_gap < 1e-3 and settled.max_strain < 0.11
+    x = b.particle_positions
+    assert _penetration(body, x, body.rest_vertices).max() < 0.0
+    assert not crossing_pairs(x, b.triangles, body.rest_vertices, body.triangles)
+    model = b.finalize()
+    (cloth,) = _cloth_meshes(model)
+    assert not intersecting_pairs(x, cloth.triangles)
+    assert cloth.weld is not None and len(np.unique(cloth.weld)) < len(cloth.weld)
+
+
+def test_a_sewn_garment_is_one_vertex_per_seam_point(dressed):
+    """Check the seams' particles share one root (the smallest of them), the cache's triangles use only roots, and the
+    cache's strain rest lengths are the panels' own (the dressed skirt's strain within the limit, not the open gaps)."""
+    _, b, skirt, _, _, _ = dressed
+    model = b.finalize()
+    roots = seam_roots(model)
+    pairs = skirt.seams
+    assert np.all(roots[pairs[:, 0]] == roots[pairs[:, 1]])
+    assert np.all(roots <= np.arange(len(roots)))
+    (cloth,) = _cloth_meshes(model)
+    assert np.all(roots[cloth.triangles] == cloth.triangles)
+    edges, rest = cloth.edges()
+    x = b.particle_positions
+    strain = np.linalg.norm(x[edges[:, 0]] - x[edges[:, 1]], axis=1) / rest - 1.0
+    assert strain.max() < 0.11
+
+
+def test_sewn_panels_do_not_repel_across_their_seams(dressed, monkeypatch):
+    """Check the dressed, attached skirt hanging on the still body: self-collision finds no contact at its own seams (a
+    seam's particles are one vertex); with the seams' particles seen as distinct, the proximity pass pushes them
+    apart (measured: the step then diverges in its first frame)."""
+    import cloth_warp.selfcollision as sc
+
+    _, b, _, _, _, _ = dressed
+
+    def repulsions():
+        model = b.finalize()
+        sim = cw.Simulator(model, cw.SolverImplicitEuler(model, collider_contacts="solve"), fps=60, substeps=2)
+        try:
+            return [sim.step_frame() and sim.frame_report.passes["self_collision"].self_proximity for _ in range(5)]
+        except cw.SimulationDiverged:
+            return None
+
+    assert repulsions() == [0] * 5
+    monkeypatch.setattr(sc, "seam_roots", lambda model: None)
+    pushed = repulsions()
+    assert pushed is None or min(pushed) > 0
+
+
+def test_scene_wraps_need_a_pattern_and_name_panels(tmp_path):
+    base = '[cloth]\ngrid = { resolution = [4, 4] }\n[[cloth.wraps]]\npanels = ["front"]\n'
+    with pytest.raises(SceneError, match=r"cloth.wraps\[0\]: wraps place a pattern's panels"):
+        parse_scene(base)
+    (tmp_path / "skirt.json").write_text(SKIRT.read_text())
+    text = '[cloth]\npattern = "skirt.json"\nedge_length = 0.05\n[[cloth.wraps]]\npanels = ["front", "sleeve"]\n'
+    (tmp_path / "s.toml").write_text(text)
+    from cloth_warp.scene import load_scene
+
+    with pytest.raises(SceneError, match=r"cloth.pattern: wraps\[0\].panels: 'sleeve' is not a panel"):
+        build_model(load_scene(tmp_path / "s.toml"), "cpu")
