@@ -90,7 +90,7 @@ def _still_run(builder, seconds, closing, gravity, fps, substeps, damping, devic
     from .simulator import Simulator
     from .solvers import make_solver
 
-    seconds = check_number("dressing seconds", seconds, LIMITS["time"])
+    seconds = check_number("dressing seconds", seconds, LIMITS["dressing_time"])
     damping = check_number("dressing damping", damping, LIMITS["global_damping"])
     if len(builder.particle_positions) == 0:
         raise InvalidValue("dress: the builder has no cloth")

@@ -190,9 +190,9 @@ SCHEMA: dict = {
     "dressing": {
         "seconds": Key("float", 0.0, "sew the garment onto the colliders before the run: this long without gravity, the "
                        "seams closing and the colliders held in their first pose (cloth_warp.dressing); attachments are "
-                       "bound after it", L["time"]),
+                       "bound after it", L["dressing_time"]),
         "settle": Key("float", 0.0, "then let it hang this long with gravity, the attachments holding, before the run "
-                      "starts from rest", L["time"]),
+                      "starts from rest", L["dressing_time"]),
     },
     "forces": {
         "up_axis": Key("str", "Y", "the up axis of the scene and of the cache (points are never rotated)", allowed=UP_AXES),

@@ -124,6 +124,7 @@ LIMITS: dict[str, Range] = {
     "gust_turn": Range(0.0, 180.0, "deg"),
     "friction": Range(0.0, 10.0),
     "time": Range(0.0, 1e6, "s"),  # keyframe times
+    "dressing_time": Range(0.0, 10.0, "s"),  # a garment's dressing / settling before the run
     "seed": Range(0, None, integer=True),
     # solver and output
     "substeps": Range(1, 10_000, integer=True),
