@@ -71,8 +71,18 @@ def skirt() -> dict:
     return _spec({"front": front, "back": back}, stitches)
 
 
+def overskirt() -> dict:
+    """A shorter, fuller skirt worn over the A-line one (a layered outfit): waist 104 cm (over the inner skirt's
+    waistband), hem 190 cm, 34 cm long, placed on a wider cone than the inner skirt (its layer outside)."""
+    front = cone_panel(104.0, 190.0, 34.0, 100.5, 21.5, back=False)
+    back = cone_panel(104.0, 190.0, 34.0, 100.5, 21.5, back=True)
+    stitches = [[{"panel": "front", "edge": 0}, {"panel": "back", "edge": 2}],
+                [{"panel": "front", "edge": 2}, {"panel": "back", "edge": 0}]]
+    return _spec({"front": front, "back": back}, stitches)
+
+
 def main():
-    for name, make in (("skirt", skirt),):
+    for name, make in (("skirt", skirt), ("overskirt", overskirt)):
         (HERE / f"{name}_specification.json").write_text(json.dumps(make(), indent=1) + "\n")
 
 
