@@ -730,15 +730,14 @@ def build_model(scene: Scene, device=None, requires_grad: bool = False):
 
 
 def _dressing(b, scene: Scene, stage: str, device):
-    """Dress (stage "seconds") or settle the builder's garment as the scene's [dressing] table says, with its solver's
-    contact and tolerance settings."""
+    """Dress (stage "seconds") or settle the builder's garment as the scene's [dressing] table says, with implicit Euler
+    set as the scene's [solver] table sets it."""
     from . import dressing
 
     seconds = float(scene.get(f"dressing.{stage}"))
     if seconds <= 0.0:
         return
-    options = {"tolerance": float(scene.get("solver.tolerance")), "collider_contacts": scene.get("solver.collider_contacts"),
-               "self_contacts": scene.get("solver.self_contacts")}
+    options = solver_options(scene, implicit=True)
     run = dressing.dress if stage == "seconds" else dressing.settle
     with _scene_key(f"dressing.{stage}"):
         report = run(b, seconds, fps=float(scene.get("output.fps")), device=device, solver_options=options)
@@ -856,17 +855,23 @@ def _jitter(builder, cloth, amplitude: float, seed: int):
     builder.particle_positions[idx[free]] = x[free] + offset[free]
 
 
+def solver_options(scene: Scene, implicit: bool) -> dict:
+    """The keyword options a scene's [solver] table gives its solver (with `implicit`: implicit Euler's too)."""
+    sl = float(scene.get("solver.strain_limit"))
+    opts = {"strain_limit": sl if sl > 0.0 else None, "strain_limit_iterations": int(scene.get("solver.strain_limit_iterations"))}
+    if implicit:
+        opts.update(linear_solver=scene.get("solver.linear_solver"), tolerance=float(scene.get("solver.tolerance")),
+                    max_iterations=int(scene.get("solver.max_iterations")), collider_contacts=scene.get("solver.collider_contacts"),
+                    self_contacts=scene.get("solver.self_contacts"))
+    return opts
+
+
 def build_solver(scene: Scene, model):
     """The solver a scene's [solver] table describes."""
     from .solvers import make_solver
 
-    sl = float(scene.get("solver.strain_limit"))
-    opts = {"strain_limit": sl if sl > 0.0 else None, "strain_limit_iterations": int(scene.get("solver.strain_limit_iterations"))}
-    if scene.get("solver.integrator") == "implicit_euler":
-        opts.update(linear_solver=scene.get("solver.linear_solver"), tolerance=float(scene.get("solver.tolerance")),
-                    max_iterations=int(scene.get("solver.max_iterations")), collider_contacts=scene.get("solver.collider_contacts"),
-                    self_contacts=scene.get("solver.self_contacts"))
-    return make_solver(scene.get("solver.integrator"), model, **opts)
+    integrator = scene.get("solver.integrator")
+    return make_solver(integrator, model, **solver_options(scene, integrator == "implicit_euler"))
 
 
 def build_wind(scene: Scene):
