@@ -130,13 +130,14 @@ def _prim_name(name: str) -> str:
 
 @dataclasses.dataclass(frozen=True)
 class ClothMesh:
-    """A cloth as the cache writes it: its prim name, particle slice, triangles (local particle indices), corner UVs
+    """A cloth as the cache writes it: its prim name, particle slice, triangles (local particle indices; a garment's
+    as its panels have them, each panel its own particles), corner UVs
     (t, 3, 2) or None, fabric name, its own rest positions [m] (as built: lengths are the rest lengths), and for a
     sewn garment `weld`: per local particle the seam point it is one with."""
 
     name: str
     particles: slice
-    sewn_triangles: np.ndarray
+    panel_triangles: np.ndarray
     corner_uv: np.ndarray | None
     fabric: str
     rest_positions: np.ndarray
@@ -146,11 +147,11 @@ class ClothMesh:
     def triangles(self) -> np.ndarray:
         """The triangles written: a sewn garment is one surface, its seams' triangles share each seam point's first
         particle (the others stay as points)."""
-        return self.sewn_triangles if self.weld is None else self.weld[self.sewn_triangles].astype(np.int32)
+        return self.panel_triangles if self.weld is None else self.weld[self.panel_triangles].astype(np.int32)
 
     def edges(self) -> tuple[np.ndarray, np.ndarray]:
         """(the written mesh's unique edges (e, 2), their rest lengths [m])."""
-        edges = triangle_edges(self.sewn_triangles)
+        edges = triangle_edges(self.panel_triangles)
         rest = self.rest_positions
         length = np.linalg.norm(rest[edges[:, 0]] - rest[edges[:, 1]], axis=1)
         if self.weld is None:

@@ -122,10 +122,7 @@ def _still_run(builder, seconds, closing, gravity, fps, substeps, damping, devic
         stats = sim.step_frame()
     # a seam still open (cloth caught on the body while it closed): go on, up to as long again, until it is closed
     extra = 0
-    while closing > 0.0 and seam.any() and extra < frames:
-        x = sim.positions()
-        if float(np.linalg.norm(x[ends[:, 0]] - x[ends[:, 1]], axis=1).max()) < SEAM_CLOSED:
-            break
+    while closing > 0.0 and seam.any() and extra < frames and seam_gap(builder, sim.positions()) >= SEAM_CLOSED:
         stats = sim.step_frame()
         extra += 1
     frames += extra

@@ -316,11 +316,9 @@ def wrap_points(points: np.ndarray, normal, point, direction) -> np.ndarray:
     cos_alpha = float(generator @ a)
     out = generator - cos_alpha * a
     out /= np.linalg.norm(out)
-    side = np.cross(a, out)
-    across = side - (side @ n) * n  # = side: the plane's direction across its steepest line
-    across /= np.linalg.norm(across)
+    side = np.cross(a, out)  # also the plane's direction across its steepest line (n lies in the span of a and out)
     rho = np.linalg.norm(rel, axis=1)
-    theta = np.arctan2(rel @ across, rel @ generator) / sin_alpha
+    theta = np.arctan2(rel @ side, rel @ generator) / sin_alpha
     ring = np.outer(np.cos(theta), out) + np.outer(np.sin(theta), side)
     return apex + rho[:, None] * (cos_alpha * a + sin_alpha * ring)
 
