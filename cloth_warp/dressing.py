@@ -51,30 +51,49 @@ def frozen_collider(collider, time: float = 0.0):
     return dataclasses.replace(collider, **changes)
 
 
-def seam_gap(builder, positions=None) -> float:
-    """The largest distance [m] between the two ends of the builder's seam springs (at `positions`, default its own)."""
+def seam_gap(builder, positions=None, particles=None) -> float:
+    """The largest distance [m] between the two ends of the builder's seam springs (at `positions`, default its own;
+    with `particles`, a boolean mask over the particles, only the seams of those)."""
     x = builder.particle_positions if positions is None else np.asarray(positions)
     seams = builder.springs[builder.spring_kind == int(SpringKind.SEAM)]
+    if particles is not None:
+        seams = seams[np.asarray(particles)[seams[:, 0]]]
     if len(seams) == 0:
         return 0.0
     return float(np.linalg.norm(x[seams[:, 0]] - x[seams[:, 1]], axis=1).max())
 
 
 def dress(builder, seconds: float = 1.0, *, closing: float = 0.6, fps: float = 60.0, substeps: int = 2, damping: float = 6.0,
-          device=None, solver_options: dict | None = None) -> DressingReport:
+          device=None, solver_options: dict | None = None, garments=None) -> DressingReport:
     """Sew the builder's garments onto its colliders: simulate `seconds` [s] without gravity, with mass-proportional
     `damping` [1/s], the colliders still in their pose at t = 0 (handles held where they start), the seams closing
     steadily over the first `closing` fraction of the time (their rest lengths shrink to zero; a seam still open by
     more than :data:`SEAM_CLOSED` at the end gets up to as long again), then write the
     positions back into `builder` with zero velocities. Call it before :meth:`ModelBuilder.attach` (attachments are
     bound on the dressed garment), then :func:`settle`. `solver_options`: keyword arguments of the implicit Euler
-    solver (the scene's; its collider contacts are resolved after each step while dressing)."""
+    solver (the scene's; its collider contacts are resolved after each step while dressing). `garments`: the names of
+    the cloths to dress (default all); the others are held still where they are, as obstacles (a layered outfit is
+    dressed a layer at a time from the inside out, each over the layers already dressed)."""
     if builder.attachments:
         raise InvalidValue("dress: bind attachments after dressing (the builder already has some)")
     # Contacts after the step: held inside the solve, a seam's two particles touching the body on differently
     # inclined facets were measured to chatter 2-5 mm apart instead of closing.
     options = {**(solver_options or {}), "collider_contacts": "pass"}
-    return _still_run(builder, seconds, closing, False, fps, substeps, damping, device, options)
+    return _still_run(builder, seconds, closing, False, fps, substeps, damping, device, options, _cloth_particles(builder, garments))
+
+
+def _cloth_particles(builder, names) -> np.ndarray | None:
+    """A boolean mask of the particles of the builder's cloths named in `names` (None for all)."""
+    if names is None:
+        return None
+    known = {ref.name: ref for ref, _, _ in builder.cloths}
+    unknown = [n for n in names if n not in known]
+    if unknown:
+        raise InvalidValue(f"dress: no cloth named {unknown[0]!r}; cloths: {', '.join(known)}")
+    mask = np.zeros(len(builder.particle_positions), bool)
+    for n in names:
+        mask[known[n].indices()] = True
+    return mask
 
 
 def settle(builder, seconds: float = 1.0, *, fps: float = 60.0, substeps: int = 2, damping: float = 3.0, device=None,
@@ -85,8 +104,9 @@ def settle(builder, seconds: float = 1.0, *, fps: float = 60.0, substeps: int = 
     return _still_run(builder, seconds, 0.0, True, fps, substeps, damping, device, solver_options)
 
 
-def _still_run(builder, seconds, closing, gravity, fps, substeps, damping, device, solver_options) -> DressingReport:
-    """Simulate a copy of `builder` against its colliders held still at t = 0 and write the end positions back."""
+def _still_run(builder, seconds, closing, gravity, fps, substeps, damping, device, solver_options, moving=None) -> DressingReport:
+    """Simulate a copy of `builder` against its colliders held still at t = 0 and write the end positions back
+    (`moving`: a mask of the particles that may move, the others pinned where they are; default all)."""
     from .simulator import Simulator
     from .solvers import make_solver
 
@@ -100,6 +120,10 @@ def _still_run(builder, seconds, closing, gravity, fps, substeps, damping, devic
     trial.global_damping = damping
     trial.colliders = [frozen_collider(c) for c in trial.colliders]
     trial.handles = []  # their particles stay pinned where they start
+    if moving is not None:
+        trial.particle_pinned[~moving] = 1
+    else:
+        moving = np.ones(len(builder.particle_positions), bool)
     model = trial.finalize(device)
     options = dict(solver_options or {})
     options.setdefault("strain_limit", 0.1)
@@ -122,14 +146,14 @@ def _still_run(builder, seconds, closing, gravity, fps, substeps, damping, devic
         stats = sim.step_frame()
     # a seam still open (cloth caught on the body while it closed): go on, up to as long again, until it is closed
     extra = 0
-    while closing > 0.0 and seam.any() and extra < frames and seam_gap(builder, sim.positions()) >= SEAM_CLOSED:
+    while closing > 0.0 and seam.any() and extra < frames and seam_gap(builder, sim.positions(), moving) >= SEAM_CLOSED:
         stats = sim.step_frame()
         extra += 1
     frames += extra
     x = np.asarray(sim.positions(), np.float64)
     v = np.asarray(sim.state.particle_qd.numpy(), np.float64)
-    free = builder.particle_pinned == 0
+    free = (builder.particle_pinned == 0) & moving
     builder.particle_positions[free] = x[free]
     builder.particle_velocities[:] = 0.0
-    return DressingReport(frames / fps, frames * substeps, seam_gap(builder), float(np.linalg.norm(v, axis=1).max()),
-                          float(stats.max_strain))
+    return DressingReport(frames / fps, frames * substeps, seam_gap(builder, particles=moving),
+                          float(np.linalg.norm(v[moving], axis=1).max()), float(stats.max_strain))

@@ -102,6 +102,34 @@ SELECTION = {
 ROTATION = {"axis": Key("vec3", [0.0, 0.0, 1.0], "rotation axis (need not be unit length, must not be zero)", L["axis"]),
             "angle": Key("float", 0.0, "rotation angle (right-handed about the axis)", L["angle"])}
 KEYFRAME_TIME = Key("float", None, "time of the keyframe (strictly increasing)", L["time"])
+ON_CLOTH = Key("str", None, "name of the cloth the selection is on: cloth.name or a garments[].name (default: the [cloth])")
+WRAPS = Tables({"panels": Key("strs", None, "the pattern's panels wrapped about this axis (required)"),
+                "point": Key("vec3", [0.0, 0.0, 0.0], "a point of the axis", L["position"]),
+                "direction": Key("vec3", [0.0, 1.0, 0.0], "the axis direction", L["axis"])},
+               "pattern: panels wrapped round a body part when placed, without stretching (onto a cylinder "
+               "when placed parallel to the axis, a cone when tilted: cloth_warp.patterns.Wrap)")
+EDGE_LENGTH = Key("float", 0.02, "pattern: target edge length of the panels' meshes", L["edge_length"])
+
+SCHEMA_MATERIAL = {
+    "file": Key("path", None, "a material file: TOML holding one [material] table of the keys below (what `cloth-warp "
+                "calibrate` writes), relative to the scene file; merged into this table when the scene loads, the keys "
+                "given here overriding the file's"),
+    "preset": Key("str", "cotton", "fabric preset; the keys below override its values", allowed=PRESETS),
+    "areal_density": Key("float", None, "mass per area (default: the preset's)", L["areal_density"]),
+    "stretch_stiffness": Key("float", None, "stretch stiffness E h along the warp (default: the preset's)",
+                             L["stretch_stiffness"]),
+    "stretch_stiffness_weft": Key("float", None, "stretch stiffness along the weft (default: the preset's; "
+                                  "isotropic presets: the warp value)", L["stretch_stiffness"]),
+    "shear_stiffness": Key("float", None, "in-plane shear stiffness G h (default: the preset's)", L["shear_stiffness"]),
+    "bend_stiffness": Key("float", None, "bending rigidity per unit width of a strip cut along the warp "
+                          "(default: the preset's)", L["bend_stiffness"]),
+    "bend_stiffness_weft": Key("float", None, "bending rigidity of a strip cut along the weft (default: the "
+                               "preset's; isotropic presets: the warp value)", L["bend_stiffness"]),
+    "damping": Key("float", None, "Kelvin-Voigt spring damping time: c = damping x k (default: the preset's)",
+                   L["damping_time"]),
+    "drag_coefficient": Key("float", None, "air drag per area and normal relative speed (default: the preset's)",
+                            L["drag_coefficient"]),
+}
 
 SCHEMA: dict = {
     "scene": {
@@ -127,12 +155,10 @@ SCHEMA: dict = {
         "mesh_prim": Key("str", None, "prim path of the mesh inside a USD file (default: the first Mesh)"),
         "pattern": Key("path", None, "a sewing pattern instead of a grid: GarmentCode's JSON specification, its panels "
                        "meshed and placed as it places them, its stitches sewn by seam springs (cloth_warp/patterns.py)"),
-        "edge_length": Key("float", 0.02, "pattern: target edge length of the panels' meshes", L["edge_length"]),
-        "wraps": Tables({"panels": Key("strs", None, "the pattern's panels wrapped about this axis (required)"),
-                         "point": Key("vec3", [0.0, 0.0, 0.0], "a point of the axis", L["position"]),
-                         "direction": Key("vec3", [0.0, 1.0, 0.0], "the axis direction", L["axis"])},
-                        "pattern: panels wrapped round a body part when placed, without stretching (onto a cylinder "
-                        "when placed parallel to the axis, a cone when tilted: cloth_warp.patterns.Wrap)"),
+        "edge_length": EDGE_LENGTH,
+        "wraps": WRAPS,
+        "layer": Key("int", 0, "layer order of the cloth among the garments (0 innermost): dressing sews the layers one after "
+                     "another from the inside out, the others held still", L["layer"]),
         "scale": Key("float", 1.0, "mesh units to metres (e.g. 0.01 for a centimetre mesh)", L["scale"]),
         "position": Key("vec3", [0.0, 0.0, 0.0], "translation applied after the rotation", L["position"]),
         "rotation": ROTATION,
@@ -152,36 +178,29 @@ SCHEMA: dict = {
                           "(45: a bias cut); default: along x for grids, discs and meshes without UVs, along "
                           "increasing texture u for meshes with UVs (given, it overrides the UVs)", L["angle"]),
     },
-    "material": {
-        "file": Key("path", None, "a material file: TOML holding one [material] table of the keys below (what `cloth-warp "
-                    "calibrate` writes), relative to the scene file; merged into this table when the scene loads, the keys "
-                    "given here overriding the file's"),
-        "preset": Key("str", "cotton", "fabric preset; the keys below override its values", allowed=PRESETS),
-        "areal_density": Key("float", None, "mass per area (default: the preset's)", L["areal_density"]),
-        "stretch_stiffness": Key("float", None, "stretch stiffness E h along the warp (default: the preset's)",
-                                 L["stretch_stiffness"]),
-        "stretch_stiffness_weft": Key("float", None, "stretch stiffness along the weft (default: the preset's; "
-                                      "isotropic presets: the warp value)", L["stretch_stiffness"]),
-        "shear_stiffness": Key("float", None, "in-plane shear stiffness G h (default: the preset's)", L["shear_stiffness"]),
-        "bend_stiffness": Key("float", None, "bending rigidity per unit width of a strip cut along the warp "
-                              "(default: the preset's)", L["bend_stiffness"]),
-        "bend_stiffness_weft": Key("float", None, "bending rigidity of a strip cut along the weft (default: the "
-                                   "preset's; isotropic presets: the warp value)", L["bend_stiffness"]),
-        "damping": Key("float", None, "Kelvin-Voigt spring damping time: c = damping x k (default: the preset's)",
-                       L["damping_time"]),
-        "drag_coefficient": Key("float", None, "air drag per area and normal relative speed (default: the preset's)",
-                                L["drag_coefficient"]),
-    },
-    "pins": Tables({**SELECTION, "stiffness": Key("float", None, "soft pin spring to the initial position "
+    "material": SCHEMA_MATERIAL,
+    "garments": Tables({
+        "name": Key("str", None, "prim name of the garment in the cache (required; unique among the cloths)"),
+        "pattern": Key("path", None, "its sewing pattern (required): GarmentCode's JSON specification, as cloth.pattern"),
+        "edge_length": EDGE_LENGTH,
+        "wraps": WRAPS,
+        "position": Key("vec3", [0.0, 0.0, 0.0], "translation applied after the rotation", L["position"]),
+        "rotation": ROTATION,
+        "layer": Key("int", None, "layer order (0 innermost; default: 1 + its place in the list, outside the [cloth])", L["layer"]),
+        "material": {k: v for k, v in SCHEMA_MATERIAL.items() if k != "file"}},
+        "more garments sewn from patterns beside the [cloth] (a layered outfit): each with its own pattern, placement, "
+        "layer and [garments.material] table (default: the scene's [material]); cloth-cloth contact between them needs "
+        "collision.self_collision"),
+    "pins": Tables({**SELECTION, "cloth": ON_CLOTH, "stiffness": Key("float", None, "soft pin spring to the initial position "
                                                   "(omit for a hard pin)", L["pin_stiffness"])},
                    "pinned particles: exactly one of select, indices, box per entry"),
-    "handles": Tables({**SELECTION, "keyframes": Tables(
+    "handles": Tables({**SELECTION, "cloth": ON_CLOTH, "keyframes": Tables(
         {"time": KEYFRAME_TIME,
          "translation": Key("vec3", [0.0, 0.0, 0.0], "offset from the rest position", L["position"]),
          "rotation": ROTATION},
         "rigid transforms about the selection's centroid; linear / slerp between keyframes, held outside")},
         "animated pins: particles that follow keyframed rigid transforms"),
-    "attachments": Tables({**SELECTION,
+    "attachments": Tables({**SELECTION, "cloth": ON_CLOTH,
                            "collider": Key("str", None, "name of the mesh or mannequin collider to bind to (required)"),
                            "offset": Key("float", None, "put the particles this far along the surface normal (default: "
                                          "where they are)", L["position"])},
@@ -552,6 +571,28 @@ def _check_values(scene: Scene):
             raise SceneError(f"cloth.wraps[{i}]: wraps place a pattern's panels; give cloth.pattern")
         if not w.get("panels"):
             raise SceneError(f"cloth.wraps[{i}].panels: name the panels to wrap (required)")
+    names = {scene.get("cloth.name")}
+    for i, g in enumerate(scene.data.get("garments", [])):
+        where = f"garments[{i}]"
+        for key in ("name", "pattern"):
+            if g.get(key) is None:
+                raise SceneError(f"{where}.{key}: required ({SCHEMA['garments'].schema[key].doc})")
+        if g["name"] in names:
+            raise SceneError(f"{where}.name: {g['name']!r} is the name of another cloth")
+        names.add(g["name"])
+        if not scene.resolve(g["pattern"]).is_file():
+            raise SceneError(f"{where}.pattern: file not found: {scene.resolve(g['pattern'])} (paths are relative to the scene file)")
+        for k, w in enumerate(g.get("wraps", [])):
+            if not w.get("panels"):
+                raise SceneError(f"{where}.wraps[{k}].panels: name the panels to wrap (required)")
+        try:
+            material_from_table(g.get("material", scene.data.get("material", {})))
+        except ValueError as exc:
+            raise SceneError(f"{where}.material.shear_stiffness: {str(exc).split(': ', 1)[-1]}") from None
+    for table in ("pins", "handles", "attachments"):
+        for i, entry in enumerate(scene.data.get(table, [])):
+            if entry.get("cloth", scene.get("cloth.name")) not in names:
+                raise SceneError(f"{table}[{i}].cloth: {entry['cloth']!r} is not a cloth of the scene; those: {', '.join(sorted(names))}")
     cusick = scene.data.get("measure", {}).get("cusick")
     if cusick is not None:
         if cusick.get("pedestal_radius") is None:
@@ -685,10 +726,16 @@ def _selection(cloth, spec: dict, where: str):
 
 
 def build_material(scene: Scene):
+    """The scene's [material]."""
+    return material_from_table(scene.data.get("material", {}))
+
+
+def material_from_table(table: dict):
+    """The material a [material] table (checked, its file merged) describes: its preset, the keys given overriding it."""
     from . import materials
 
-    mat = materials.preset(scene.get("material.preset"))
-    changes = {k: float(v) for k, v in scene.data.get("material", {}).items() if k != "preset"}
+    mat = materials.preset(table.get("preset", SCHEMA_MATERIAL["preset"].default))
+    changes = {k: float(v) for k, v in table.items() if k != "preset"}
     return mat.replace(name=f"{mat.name}*", **changes) if changes else mat
 
 
@@ -702,14 +749,21 @@ def build_model(scene: Scene, device=None, requires_grad: bool = False):
     b = ModelBuilder(up_axis=up, gravity=None if gravity is None else tuple(gravity),
                      global_damping=float(scene.get("forces.global_damping")))
     cloth = _add_cloth(b, scene)
+    cloths = {cloth.name: cloth}
+    for i, g in enumerate(scene.data.get("garments", [])):
+        cloths[g["name"]] = _add_garment(b, scene, g, i)
+
+    def on(spec):  # the cloth a selection is on
+        return cloths[spec.get("cloth", cloth.name)]
+
     for i, pin in enumerate(scene.data.get("pins", [])):
         with _scene_key(f"pins[{i}]"):
-            b.pin(_selection(cloth, pin, f"pins[{i}]"), stiffness=pin.get("stiffness"))
+            b.pin(_selection(on(pin), pin, f"pins[{i}]"), stiffness=pin.get("stiffness"))
     for i, h in enumerate(scene.data.get("handles", [])):
         kfs = [Keyframe(float(k["time"]), tuple(map(float, k.get("translation", [0.0, 0.0, 0.0]))), _rotation_q(k.get("rotation")))
                for k in h["keyframes"]]
         with _scene_key(f"handles[{i}]"):
-            b.add_handle(_selection(cloth, h, f"handles[{i}]"), kfs, name=f"handle{i}")
+            b.add_handle(_selection(on(h), h, f"handles[{i}]"), kfs, name=f"handle{i}")
     for i, col in enumerate(scene.data.get("colliders", [])):
         _add_collider(b, scene, col, i)
     if scene.get("collision.self_collision"):
@@ -720,7 +774,7 @@ def build_model(scene: Scene, device=None, requires_grad: bool = False):
     for i, a in enumerate(scene.data.get("attachments", [])):
         with _scene_key(f"attachments[{i}]"):
             col = next(c for c in b.colliders if c.name == a["collider"])  # checked in _check_values
-            b.attach(_selection(cloth, a, f"attachments[{i}]"), col, offset=a.get("offset"), name=f"attachment{i}")
+            b.attach(_selection(on(a), a, f"attachments[{i}]"), col, offset=a.get("offset"), name=f"attachment{i}")
     _dressing(b, scene, "settle", device)
     jitter = float(scene.get("cloth.jitter"))
     if jitter > 0.0:
@@ -738,10 +792,25 @@ def _dressing(b, scene: Scene, stage: str, device):
     if seconds <= 0.0:
         return
     options = solver_options(scene, implicit=True)
-    run = dressing.dress if stage == "seconds" else dressing.settle
+    fps = float(scene.get("output.fps"))
     with _scene_key(f"dressing.{stage}"):
-        report = run(b, seconds, fps=float(scene.get("output.fps")), device=device, solver_options=options)
-    log.info("dressing.%s: %s", stage, report)
+        if stage == "settle":
+            log.info("dressing.settle: %s", dressing.settle(b, seconds, fps=fps, device=device, solver_options=options))
+            return
+        layers = layer_order(scene)
+        for names in layers:  # from the inside out, the other layers held still (one layer: all at once)
+            report = dressing.dress(b, seconds, fps=fps, device=device, solver_options=options,
+                                    garments=names if len(layers) > 1 else None)
+            log.info("dressing.seconds %s: %s", ", ".join(names), report)
+
+
+def layer_order(scene: Scene) -> list[list[str]]:
+    """The scene's cloths by layer, innermost first: lists of names (cloth.layer, garments[].layer)."""
+    layers: dict[int, list[str]] = {}
+    layers.setdefault(int(scene.get("cloth.layer")), []).append(scene.get("cloth.name"))
+    for i, g in enumerate(scene.data.get("garments", [])):
+        layers.setdefault(int(g.get("layer", 1 + i)), []).append(g["name"])
+    return [layers[k] for k in sorted(layers)]
 
 
 @contextlib.contextmanager
@@ -757,8 +826,6 @@ def _scene_key(path: str):
 
 def _add_cloth(b, scene: Scene):
     """Add the scene's cloth (grid, disc, mesh or pattern) to builder `b`; returns its handle."""
-    from .patterns import Wrap
-
     common = dict(position=tuple(scene.get("cloth.position")), rotation=_rotation_q(scene.data.get("cloth", {}).get("rotation")),
                   velocity=tuple(scene.get("cloth.velocity")), material=build_material(scene),
                   spring_model=scene.get("cloth.spring_model"), membrane=scene.get("cloth.membrane"),
@@ -769,9 +836,8 @@ def _add_cloth(b, scene: Scene):
     pattern = scene.data.get("cloth", {}).get("pattern")
     with _scene_key("cloth.mesh" if mesh is not None else "cloth.pattern" if pattern is not None else "cloth"):
         if pattern is not None:
-            wraps = [Wrap(tuple(w["panels"]), tuple(w.get("point", (0.0, 0.0, 0.0))), tuple(w.get("direction", (0.0, 1.0, 0.0))))
-                     for w in scene.data.get("cloth", {}).get("wraps", [])]
-            cloth = b.add_cloth_pattern(scene.resolve(pattern), edge_length=float(scene.get("cloth.edge_length")), wraps=wraps, **common)
+            cloth = b.add_cloth_pattern(scene.resolve(pattern), edge_length=float(scene.get("cloth.edge_length")),
+                                        wraps=_wraps(scene.data.get("cloth", {}).get("wraps", [])), **common)
         elif scene.data.get("cloth", {}).get("disc") is not None:
             cloth = b.add_cloth_disc(radius=float(scene.get("cloth.disc.radius")), rings=int(scene.get("cloth.disc.rings")),
                                      warp_direction=warp, **common)
@@ -782,6 +848,25 @@ def _add_cloth(b, scene: Scene):
             cloth = b.add_cloth_grid(resolution=tuple(scene.get("cloth.grid.resolution")), size=tuple(scene.get("cloth.grid.size")),
                                      warp_angle=warp_angle or 0.0, **common)
     return cloth
+
+
+def _add_garment(b, scene: Scene, g: dict, i: int):
+    """Add garments[i] (a sewing pattern) to builder `b`; returns its handle."""
+    keys = SCHEMA["garments"].schema
+    with _scene_key(f"garments[{i}]"):
+        return b.add_cloth_pattern(scene.resolve(g["pattern"]), edge_length=float(g.get("edge_length", keys["edge_length"].default)),
+                                   wraps=_wraps(g.get("wraps", [])), position=tuple(g.get("position", keys["position"].default)),
+                                   rotation=_rotation_q(g.get("rotation")),
+                                   material=material_from_table(g.get("material", scene.data.get("material", {}))),
+                                   spring_model=scene.get("cloth.spring_model"), name=g["name"])
+
+
+def _wraps(tables: list) -> list:
+    """:class:`~cloth_warp.patterns.Wrap` per [[wraps]] table."""
+    from .patterns import Wrap
+
+    return [Wrap(tuple(w["panels"]), tuple(w.get("point", WRAPS.schema["point"].default)),
+                 tuple(w.get("direction", WRAPS.schema["direction"].default))) for w in tables]
 
 
 def scene_selection(scene: Scene, spec: dict, where: str):

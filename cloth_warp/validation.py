@@ -125,6 +125,7 @@ LIMITS: dict[str, Range] = {
     "friction": Range(0.0, 10.0),
     "time": Range(0.0, 1e6, "s"),  # keyframe times
     "dressing_time": Range(0.0, 10.0, "s"),  # a garment's dressing / settling before the run
+    "layer": Range(0, 99, integer=True),  # a garment's layer order (0 innermost)
     "seed": Range(0, None, integer=True),
     # solver and output
     "substeps": Range(1, 10_000, integer=True),

@@ -19,6 +19,7 @@ from intersections import crossing_pairs, intersecting_pairs
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SKIRT = ROOT / "scenes" / "patterns" / "skirt_specification.json"
+OVERSKIRT = ROOT / "scenes" / "patterns" / "overskirt_specification.json"
 
 
 def test_a_circle_edge_radius_is_in_the_pattern_units():
@@ -195,3 +196,46 @@ def test_scene_wraps_need_a_pattern_and_name_panels(tmp_path):
 
     with pytest.raises(SceneError, match=r"cloth.pattern: wraps\[0\].panels: 'sleeve' is not a panel"):
         build_model(load_scene(tmp_path / "s.toml"), "cpu")
+
+
+def test_dressing_a_layer_holds_the_other_garments_still():
+    """Check dress(garments=...) sews the named garment only: the other one's particles keep their places bit for bit
+    (an obstacle for the one being dressed) and the report measures the dressed garment's seams, not the other's open
+    ones; an unknown name is refused with the cloths' names."""
+    b = cw.ModelBuilder()
+    wrap = [Wrap(("front", "back"), (0.0, 0.0, 0.0))]
+    b.add_cloth_pattern(SKIRT, edge_length=0.06, wraps=wrap, material="cotton", name="skirt")
+    over = b.add_cloth_pattern(OVERSKIRT, edge_length=0.06, wraps=wrap, material="silk", name="overskirt")
+    b.enable_self_collision(0.004, 0.3)
+    before = b.particle_positions.copy()
+    report = dress(b, 0.5, garments=["skirt"])
+    held = over.indices()
+    np.testing.assert_array_equal(b.particle_positions[held], before[held])
+    assert report.seam_gap < 1e-3 < seam_gap(b)  # the overskirt's seams are still open
+    moved = np.setdiff1d(np.arange(len(before)), held)
+    assert np.abs(b.particle_positions[moved] - before[moved]).max() > 0.05
+    with pytest.raises(cw.InvalidValue, match=r"no cloth named 'coat'; cloths: skirt, overskirt"):
+        dress(b, 0.5, garments=["coat"])
+
+
+def test_scene_garments_are_checked_at_the_gate(tmp_path):
+    """Check [[garments]] entries need a unique name and an existing pattern, selections name a cloth of the scene,
+    and the layers default to the list's order outside the [cloth]."""
+    from cloth_warp.scene import layer_order, load_scene
+
+    for name in ("skirt.json", "over.json"):
+        (tmp_path / name).write_text(SKIRT.read_text())
+    head = '[cloth]\npattern = "skirt.json"\nname = "skirt"\n'
+    cases = [('[[garments]]\npattern = "over.json"\n', r"garments\[0\].name: required"),
+             ('[[garments]]\nname = "skirt"\npattern = "over.json"\n', r"garments\[0\].name: 'skirt' is the name of another cloth"),
+             ('[[garments]]\nname = "over"\npattern = "none.json"\n', r"garments\[0\].pattern: file not found"),
+             ('[[garments]]\nname = "over"\npattern = "over.json"\nlayer = 100\n', r"garments\[0\].layer"),
+             ('[[garments]]\nname = "over"\npattern = "over.json"\n[[pins]]\ncloth = "coat"\nindices = [0]\n',
+              r"pins\[0\].cloth: 'coat' is not a cloth of the scene; those: over, skirt")]
+    for i, (extra, message) in enumerate(cases):
+        (tmp_path / f"s{i}.toml").write_text(head + extra)
+        with pytest.raises(SceneError, match=message):
+            load_scene(tmp_path / f"s{i}.toml")
+    (tmp_path / "ok.toml").write_text(head + '[[garments]]\nname = "a"\npattern = "over.json"\n'
+                                      '[[garments]]\nname = "b"\npattern = "over.json"\nlayer = 1\n')
+    assert layer_order(load_scene(tmp_path / "ok.toml")) == [["skirt"], ["a", "b"]]

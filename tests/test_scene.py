@@ -287,6 +287,55 @@ def test_skirt_walk_scene_dresses_the_mannequin_and_walks(tmp_path):
     assert np.ptp(x[:, waist, 1].mean(axis=1)) > 1e-3  # the walk's bob carries the waistband
 
 
+@pytest.mark.slow
+def test_layered_outfit_keeps_its_layers_apart_and_in_order(tmp_path):
+    """Check the shipped layered outfit (a silk overskirt over the cotton skirt, coarser here): in every frame no edge of
+    one garment crosses the other or the body, neither garment crosses itself, every overskirt point within 1.5 cm of
+    the skirt lies on its outer side, both waistbands ride with the body and both garments' seams stay closed."""
+    import cloth_warp as cw
+    from cloth_warp.patterns import Wrap
+    from intersections import closest_points, crossing_pairs, intersecting_pairs
+    from pxr import Usd, UsdGeom
+
+    out = tmp_path / "layered.usdc"
+    summary = run_scene(ROOT / "scenes" / "layered_walk.toml", {"cloth.edge_length": 0.04, "garments[0].edge_length": 0.04,
+                                                                "dressing.settle": 0.5},
+                        output=out, frames=24)
+    assert summary["status"] == "complete" and summary["max_strain"] <= 0.101
+    stage = Usd.Stage.Open(str(out))
+    meshes = {name: UsdGeom.Mesh(stage.GetPrimAtPath(path)) for name, path in
+              (("skirt", "/World/skirt"), ("overskirt", "/World/overskirt"), ("body", "/World/colliders/body"))}
+    tris = {k: np.asarray(m.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3) for k, m in meshes.items()}
+    seams = {k: cw.ModelBuilder().add_cloth_pattern(ROOT / "scenes" / "patterns" / f"{k}_specification.json", edge_length=0.04,
+                                                     wraps=[Wrap(("front", "back"), (0.0, 0.0, 0.0))]).seams for k in ("skirt", "overskirt")}
+    first = None
+    for f in range(int(stage.GetStartTimeCode()), int(stage.GetEndTimeCode()) + 1):
+        x = {k: np.asarray(m.GetPointsAttr().Get(f), float) for k, m in meshes.items()}
+        for a, b in (("skirt", "overskirt"), ("skirt", "body"), ("overskirt", "body")):
+            assert not crossing_pairs(x[a], tris[a], x[b], tris[b]), f"{a} / {b}, frame {f}"
+        for k in ("skirt", "overskirt"):
+            assert not intersecting_pairs(x[k], tris[k]), f"{k}, frame {f}"
+            assert np.linalg.norm(x[k][seams[k][:, 0]] - x[k][seams[k][:, 1]], axis=1).max() < 1e-3
+        # layer order: overskirt points near the skirt are on the skirt's outer side (its normals turned away from the
+        # skirt's vertical axis); points whose closest skirt point is on its border (not facing it) are left out
+        q, dist, t = closest_points(x["overskirt"], x["skirt"], tris["skirt"])
+        corners = x["skirt"][tris["skirt"][t]]
+        n = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        n /= np.linalg.norm(n, axis=1)[:, None]
+        radial = q - x["skirt"].mean(axis=0)
+        radial[:, 1] = 0.0
+        n *= np.sign(np.einsum("ij,ij->i", n, radial))[:, None]
+        side = np.einsum("ij,ij->i", x["overskirt"] - q, n)
+        facing = (dist < 0.015) & (np.abs(side) >= 0.5 * dist)
+        assert facing.sum() > 50 and (side[facing] > 0.0).all(), f"frame {f}"
+        waists = [x[k][:, 1] > 0.995 if first is None else first[k] for k in ("skirt", "overskirt")]
+        heights = [x[k][w, 1].mean() for k, w in zip(("skirt", "overskirt"), waists)]
+        first = first or {k: w for k, w in zip(("skirt", "overskirt"), waists)}
+        track = heights if f == int(stage.GetStartTimeCode()) else track + heights
+    bob = np.ptp(np.reshape(track, (-1, 2)), axis=0)
+    assert (bob > 1e-3).all()  # the walk's bob carries both waistbands
+
+
 def test_adaptive_run_reports_its_dt_range(tmp_path):
     """Check an adaptive explicit run through a scene backs off, records the smallest dt per frame in the cache
     and reports the dt range and rejected steps in the summary."""
