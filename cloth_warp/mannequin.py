@@ -3,7 +3,7 @@ posed by a small skeleton, animated by a walk cycle or an arm raise and written 
 garment is simulated on (a deforming mesh collider: ``ModelBuilder.add_collider_mesh_file`` or a scene's mesh
 collider with ``deforming = true``).
 
-The body is a ball-jointed figure in metres, y up, facing +z, feet on y = 0: each segment (pelvis, abdomen, chest,
+The body is a ball-jointed figure in metres, y up, facing +z, feet on y = 0: each segment (pelvis, abdomen, chest, shoulders,
 neck, head, upper arms, forearms, hands, thighs, shins, feet) is a closed capsule or ellipsoid mesh proportioned from
 the height (a standing adult's segment ratios), moved rigidly by its bone; segments overlap at the joints, whose
 round ends keep the surface closed in every pose. Run as a script to write a cache::
@@ -43,6 +43,9 @@ def _segments() -> list[Segment]:
     s.append(Segment("neck", "chest", (0.0, 0.80, 0.0), (0.0, 0.86, 0.0), (0.032, 0.032)))
     s.append(Segment("head", "neck", (0.0, 0.86, 0.0), (0.0, 1.0, 0.0), (0.056, 0.07, 0.064), "ellipsoid"))
     for side, x in (("left", 1.0), ("right", -1.0)):
+        # the shoulder's top, from the neck's base out to the arm (sloping down 11 degrees): a ridge a strap or a
+        # seam rests on, not the chest's dome (whose slope a strap slides off, under the arm)
+        s.append(Segment(f"{side}_shoulder", "chest", (x * 0.029, 0.823, 0.0), (x * 0.114, 0.806, 0.0), (0.022, 0.030)))
         # arms in an A-pose, 25 degrees out from the sides: room for a sleeve round the arm and a bodice under it
         s.append(Segment(f"{side}_upper_arm", "chest", (x * 0.125, 0.80, 0.0), (x * 0.198, 0.643, 0.0), (0.030, 0.030)))
         s.append(Segment(f"{side}_forearm", f"{side}_upper_arm", (x * 0.198, 0.643, 0.0), (x * 0.262, 0.506, 0.0), (0.024, 0.024)))
