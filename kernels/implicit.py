@@ -983,6 +983,35 @@ def coulomb_friction(dv: wp.vec3, v0: wp.vec3, surface_velocity: wp.vec3, n: wp.
 
 
 @wp.kernel(enable_backward=False)
+def gather_seam_friction(
+    particle_mass: wp.array(dtype=float),
+    particle_seam_root: wp.array(dtype=wp.int32),
+    contact_collider: wp.array(dtype=wp.int32),
+    contact_normal: wp.array(dtype=wp.vec3),
+    contact_velocity: wp.array(dtype=wp.vec3),
+    contact_impulse: wp.array(dtype=float),
+    v0: wp.array(dtype=wp.vec3),
+    dv: wp.array(dtype=wp.vec3),
+    # outputs: sums, zeroed before the launch
+    group_momentum_out: wp.array(dtype=wp.vec3),
+    group_mass_out: wp.array(dtype=float),
+    group_impulse_out: wp.array(dtype=float),
+):
+    """Per sewn point (the particles a seam joins, `particle_seam_root` >= 0), the sums over its pushing contacts of
+    tangential momentum relative to the surface m v_T [kg m/s], mass [kg] and normal impulse [kg m/s]."""
+    i = wp.tid()
+    r = particle_seam_root[i]
+    if r < 0 or contact_collider[i] < 0 or contact_impulse[i] <= 0.0:
+        return
+    n = contact_normal[i]
+    rel = v0[i] + dv[i] - contact_velocity[i]
+    m = particle_mass[i]
+    wp.atomic_add(group_momentum_out, r, m * (rel - wp.dot(rel, n) * n))
+    wp.atomic_add(group_mass_out, r, m)
+    wp.atomic_add(group_impulse_out, r, contact_impulse[i])
+
+
+@wp.kernel(enable_backward=False)
 def apply_contact_friction(
     particle_mass: wp.array(dtype=float),
     contact_collider: wp.array(dtype=wp.int32),
@@ -992,14 +1021,34 @@ def apply_contact_friction(
     collider_static_friction: wp.array(dtype=float),
     collider_kinetic_friction: wp.array(dtype=float),
     v0: wp.array(dtype=wp.vec3),
+    particle_seam_root: wp.array(dtype=wp.int32),
+    group_momentum: wp.array(dtype=wp.vec3),
+    group_mass: wp.array(dtype=float),
+    group_impulse: wp.array(dtype=float),
     # outputs
     dv_out: wp.array(dtype=wp.vec3),
 ):
-    """Coulomb friction (`coulomb_friction`) on each contact's solved dv, from the impulse the release check measured."""
+    """Coulomb friction (`coulomb_friction`) on each contact's solved dv, from the impulse the release check measured.
+    A sewn point's particles (`gather_seam_friction`) take it as one point: the law on their mass-weighted tangential
+    velocity and summed impulse, the same change for each (in its own tangent plane), so friction never holds a seam's
+    two sides apart (each side stuck where it landed) while the seam spring pulls them together."""
     i = wp.tid()
     c = contact_collider[i]
     if c < 0:
         return
+    r = particle_seam_root[i]
+    if r >= 0 and contact_impulse[i] > 0.0:
+        mass = group_mass[r]
+        if mass > 0.0:
+            tangential = group_momentum[r] / mass
+            normal_change = group_impulse[r] / mass
+            speed = wp.length(tangential)
+            change = tangential
+            if speed > collider_static_friction[c] * normal_change:
+                change = (collider_kinetic_friction[c] * normal_change / speed) * tangential
+            n = contact_normal[i]
+            dv_out[i] = dv_out[i] - (change - wp.dot(change, n) * n)
+            return
     dv_out[i] = coulomb_friction(dv_out[i], v0[i], contact_velocity[i], contact_normal[i], contact_impulse[i], particle_mass[i],
                                  collider_static_friction[c], collider_kinetic_friction[c])
 

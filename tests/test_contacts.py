@@ -211,6 +211,46 @@ def test_contact_in_the_solve_slides_and_sticks_by_coulomb(theta, mu_s, mu_k):
     assert float(np.dot(x, normal)) == pytest.approx(THICKNESS * (1 + kct.CLEARANCE), abs=2e-6)
 
 
+def test_a_sewn_point_takes_contact_friction_as_one_point():
+    """Check the friction after the solve (kernels/implicit.py apply_contact_friction) treats the particles a seam joins
+    as one point: two sewn particles closing on each other along the surface keep their closing velocities (each alone
+    would stick: friction would hold the seam open), the pair sliding together sticks or slows as one point of their
+    summed mass and impulse, each in its own tangent plane, and a particle not sewn gets the per-particle law."""
+    from cloth_warp.kernels import implicit as ki
+
+    def friction(v_end, normals, mass, impulse, root, mu=(0.5, 0.4)):
+        n = len(v_end)
+        arr = lambda a, t: wp.array(np.asarray(a, np.float32 if t is not wp.int32 else np.int32), dtype=t)
+        args = dict(mass=arr(mass, float), root=arr(root, wp.int32), collider=arr(np.zeros(n), wp.int32),
+                    normal=arr(normals, wp.vec3), surface=wp.zeros(n, dtype=wp.vec3), impulse=arr(impulse, float),
+                    v0=arr(v_end, wp.vec3), dv=wp.zeros(n, dtype=wp.vec3))
+        sums = [wp.zeros(n, dtype=wp.vec3), wp.zeros(n, dtype=float), wp.zeros(n, dtype=float)]
+        wp.launch(ki.gather_seam_friction, dim=n, inputs=[args["mass"], args["root"], args["collider"], args["normal"],
+                                                          args["surface"], args["impulse"], args["v0"], args["dv"]], outputs=sums)
+        wp.launch(ki.apply_contact_friction, dim=n,
+                  inputs=[args["mass"], args["collider"], args["normal"], args["surface"], args["impulse"],
+                          arr([mu[0]], float), arr([mu[1]], float), args["v0"], args["root"], *sums], outputs=[args["dv"]])
+        return args["v0"].numpy() + args["dv"].numpy()
+
+    up, m, push = [0.0, 1.0, 0.0], 1e-3, 1e-3 * 2.0  # each particle's normal velocity change: 2 m/s
+    closing = [[0.1, 0.0, 0.0], [-0.1, 0.0, 0.0]]
+    np.testing.assert_allclose(friction(closing, [up, up], [m, m], [push, push], [0, 0]), closing, atol=1e-7)
+    np.testing.assert_allclose(friction(closing, [up, up], [m, m], [push, push], [-1, -1]), 0.0, atol=1e-7)  # not sewn: stuck
+    together = [[0.5, 0.0, 0.0], [0.7, 0.0, 0.0]]  # mean 0.6 m/s < mu_s 2 m/s: the point sticks, its seam still closing
+    np.testing.assert_allclose(friction(together, [up, up], [m, m], [push, push], [0, 0]), [[-0.1, 0, 0], [0.1, 0, 0]], atol=1e-6)
+    fast = [[3.0, 0.0, 0.0], [5.0, 0.0, 0.0]]  # mean 4 m/s > mu_s 2: slowed by mu_k 2 = 0.8 m/s, both alike
+    np.testing.assert_allclose(friction(fast, [up, up], [m, m], [push, push], [0, 0]), [[2.2, 0, 0], [4.2, 0, 0]], atol=1e-5)
+    # mass weighting, a released side (no impulse) left out of the sums and free, normals tilted apart on a ridge
+    v = friction([[0.3, 0.0, 0.0], [0.0, 0.0, 0.0], [1.0, 0.0, 0.0]], [up, up, up], [3 * m, m, m], [push, push, 0.0], [0, 0, 0])
+    np.testing.assert_allclose(v[:2], [[0.3 - 0.225, 0, 0], [-0.225, 0, 0]], atol=1e-6)
+    np.testing.assert_allclose(v[2], [1.0, 0.0, 0.0])
+    ridge = [[-0.6, 0.8, 0.0], [0.6, 0.8, 0.0]]
+    v = friction([[0.0, 0.0, 0.2], [0.0, 0.0, 0.2]], ridge, [m, m], [push, push], [0, 0])  # along the ridge: stuck as one
+    np.testing.assert_allclose(v, 0.0, atol=1e-6)
+    lone = friction([[1.0, 0.0, 0.0]], [up], [m], [push], [-1])  # per particle: |v_T| 1 <= mu_s 2 -> stuck
+    np.testing.assert_allclose(lone, 0.0, atol=1e-7)
+
+
 @pytest.mark.parametrize("tilt", [0.0, 15.0])
 def test_a_moving_collider_carries_cloth_by_friction_without_creep(tilt):
     """Check a cloth patch set at rest on a box lid that moves up its own slope at 0.5 m/s (a conveyor belt, tilted or

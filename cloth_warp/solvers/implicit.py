@@ -14,6 +14,7 @@ from ..diagnostics import LinearSolveReport
 from ..graphs import device_while
 from ..profiling import stage
 from ..records import record_values
+from ..topology import seam_roots
 from ..kernels import forces as kf
 from ..kernels import contact as kct
 from ..kernels import implicit as ki
@@ -87,8 +88,10 @@ class SolverImplicitEuler(SolverBase):
             gets its end-of-step normal velocity prescribed, the one that ends the step at the collider's thickness
             (kernels/contact.py), the rest of its motion solved with the cloth; a contact whose solved impulse pulls
             is released and the step solved again (at most `contact_release_rounds` times), and Coulomb friction
-            acts on the solved tangential velocity with that impulse; the colliders pass still runs after the step
-            as the guarantee). Taped steps differentiated by the adjoint hold them too (below); CG only.
+            acts on the solved tangential velocity with that impulse (on a garment's sewn points as one point: the
+            particles a seam joins share the law, so friction never holds a seam's sides apart); the colliders pass
+            still runs after the step as the guarantee). Taped steps differentiated by the adjoint hold them too
+            (below; their friction is per particle); CG only.
         contact_margin: "solve" contacts: a particle within the thickness x (1 + margin) at the step's start is in
             contact (as is one inside, or predicted to reach the surface within the step).
         contact_release_fraction: "solve" contacts: a contact is released when it pulls with more than this fraction
@@ -230,6 +233,19 @@ class SolverImplicitEuler(SolverBase):
         self.contact_dv = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.contact_impulse = wp.zeros(n, dtype=float, device=dev)
         self.precond_free = wp.zeros(n, dtype=wp.mat33, device=dev)  # contacts' unfiltered preconditioner blocks
+        # sewn points take friction as one point (kernels/implicit.py gather_seam_friction): per particle its seam's
+        # root (-1: not sewn), per root the sums the friction law needs
+        roots = seam_roots(model) if collider_contacts == "solve" else None
+        sewn = np.full(n, -1, np.int32)
+        if roots is not None:
+            shared = np.bincount(roots, minlength=n)[roots] > 1
+            sewn[shared] = roots[shared]
+        self._sewn = bool((sewn >= 0).any())
+        self.particle_seam_root = wp.array(sewn, dtype=wp.int32, device=dev)
+        m_sewn = n if self._sewn else 1
+        self.seam_momentum = wp.zeros(m_sewn, dtype=wp.vec3, device=dev)
+        self.seam_mass = wp.zeros(m_sewn, dtype=float, device=dev)
+        self.seam_impulse = wp.zeros(m_sewn, dtype=float, device=dev)
         # self-contact elements in the solve (kernels/contact.py eval_self_contacts; capacity: the candidates')
         self.self_contact_count = wp.zeros(1, dtype=wp.int32, device=dev)
         self._self_contact_elements = None  # (indices, weights, normals, overlaps) at the candidates' total capacity
@@ -601,9 +617,18 @@ class SolverImplicitEuler(SolverBase):
         """Coulomb friction on the solved dv of the contacts (after the warm start kept the solve's own dv: the next
         solve, which has no friction term, starts from what it would find itself)."""
         m = self.model
+        if self._sewn:
+            self.seam_momentum.zero_()
+            self.seam_mass.zero_()
+            self.seam_impulse.zero_()
+            wp.launch(ki.gather_seam_friction, dim=m.particle_count,
+                      inputs=[m.particle_mass, self.particle_seam_root, self.contact_collider, self.contact_normal,
+                              self.contact_velocity, self.contact_impulse, state_in.particle_qd, self.dv],
+                      outputs=[self.seam_momentum, self.seam_mass, self.seam_impulse], device=m.device)
         wp.launch(ki.apply_contact_friction, dim=m.particle_count,
                   inputs=[m.particle_mass, self.contact_collider, self.contact_normal, self.contact_velocity, self.contact_impulse,
-                          m.collider_static_friction, m.collider_kinetic_friction, state_in.particle_qd],
+                          m.collider_static_friction, m.collider_kinetic_friction, state_in.particle_qd, self.particle_seam_root,
+                          self.seam_momentum, self.seam_mass, self.seam_impulse],
                   outputs=[self.dv], device=m.device)
 
     def _check_release(self, dt: float):
