@@ -1065,9 +1065,11 @@ class CacheReader:
         if not len(triangles):
             raise self._error(f"{where} has no faces with 3 or more corners")
         times = points.GetTimeSamples()
+        display = np.asarray(mesh.GetDisplayColorAttr().Get() or [], np.float64).reshape(-1)
+        color = tuple(display[:3]) if display.size >= 3 and np.isfinite(display[:3]).all() else None
         return {"path": str(prim.GetPath()), "points": rest, "triangles": triangles,
                 "has_uv": UsdGeom.PrimvarsAPI(prim).HasPrimvar("st"), "samples": samples, "prim": prim,
-                "times": (times[0], times[-1])}
+                "times": (times[0], times[-1]), "color": color}
 
     @property
     def frame_count(self) -> int:

@@ -59,9 +59,10 @@ class Renderer:
     """Renders frames of one triangle mesh whose points change (BVH refit per frame)."""
 
     def __init__(self, points: np.ndarray, triangles: np.ndarray, *, size=(512, 512), up_axis: str = "Y",
-                 bounds=None, device=None, collider_triangles=None, ground_height=None):
+                 bounds=None, device=None, collider_triangles=None, ground_height=None, colors=None):
         """`bounds` (lower, upper) [m] frames the camera, ground and checker size (default: `points`');
-        `collider_triangles` (bool per triangle) are drawn grey; `ground_height` overrides the ground's level."""
+        `collider_triangles` (bool per triangle) are drawn grey; `ground_height` overrides the ground's level;
+        `colors` (per triangle, linear RGB) the cloth's front (default :data:`FRONT_COLOR`)."""
         self.device = wp.get_device(device)
         self.width, self.height = int(size[0]), int(size[1])
         if self.width < 8 or self.height < 8:
@@ -72,6 +73,8 @@ class Renderer:
         self.normals = wp.zeros(len(points), dtype=wp.vec3, device=self.device)
         material = np.zeros(len(self.triangles), np.int32) if collider_triangles is None else np.asarray(collider_triangles, np.int32)
         self.tri_material = wp.array(material, dtype=wp.int32, device=self.device)
+        front = np.tile(np.asarray(FRONT_COLOR, np.float32), (len(self.triangles), 1)) if colors is None else colors
+        self.front_colors = wp.array(np.asarray(front, np.float32).reshape(-1, 3), dtype=wp.vec3, device=self.device)
         self.mesh = wp.Mesh(points=self.points, indices=self.indices)
         self.pixels = wp.zeros(self.width * self.height, dtype=wp.vec3, device=self.device)
         self.up, _, depth = _axes(up_axis)
@@ -95,7 +98,7 @@ class Renderer:
         wp.launch(kr.render_cloth, dim=self.width * self.height,
                   inputs=[self.mesh.id, self.indices, self.normals, wp.vec3(*c.eye), wp.vec3(*c.forward), wp.vec3(*c.right),
                           wp.vec3(*c.up), c.tan_half_fov, self.width, self.height, wp.vec3(*self.up),
-                          wp.vec3(*self.light_dir), self.ground_height, self.checker, wp.vec3(*FRONT_COLOR),
+                          wp.vec3(*self.light_dir), self.ground_height, self.checker, self.front_colors,
                           wp.vec3(*BACK_COLOR), self.tri_material, wp.vec3(*COLLIDER_COLOR)],
                   outputs=[self.pixels], device=self.device)
         rgb = np.clip(self.pixels.numpy().reshape(self.height, self.width, 3), 0.0, 1.0)
@@ -122,6 +125,8 @@ def render_cache(cache, output, *, frame: int | None = None, size=(512, 512), ev
         raise CacheError(f"{cache}: holds no mesh to render")
     offsets = np.cumsum([0] + [len(m["points"]) for m in reader.meshes])
     triangles = np.concatenate([m["triangles"] + o for m, o in zip(reader.meshes, offsets)])
+    # each cloth in its fabric's colour (the displayColor its cache binds), or the default where it has none
+    colors = np.concatenate([np.tile(m.get("color") or FRONT_COLOR, (len(m["triangles"]), 1)) for m in reader.meshes])
     first, last = reader.start_frame, reader.end_frame
     if suffix == ".png":
         frames = [last if frame is None else int(frame)]
@@ -145,13 +150,14 @@ def render_cache(cache, output, *, frame: int | None = None, size=(512, 512), ev
         tris = [triangles] + [t + n_cloth + off for t, off in zip(solid["triangles"], solid["offsets"])]
         material = np.concatenate([np.zeros(len(triangles), np.int32), np.ones(sum(len(t) for t in solid["triangles"]), np.int32)])
         triangles = np.concatenate(tris)
+        colors = np.concatenate([colors, np.tile(COLLIDER_COLOR, (len(triangles) - len(colors), 1))])
         clouds = [np.concatenate([c, v]) for c, v in zip(clouds, solid["points"])]
         allpts = np.concatenate([allpts, *solid["points"]])
         lo, hi = allpts.min(0), allpts.max(0)
     else:
         material = None
     renderer = Renderer(clouds[0], triangles, size=size, up_axis=reader.up_axis, bounds=(lo, hi), device=device,
-                        collider_triangles=material, ground_height=ground)
+                        collider_triangles=material, ground_height=ground, colors=colors)
     images = [Image.fromarray(renderer.render(c)) for c in clouds]
     with atomic_path(out) as tmp:
         if suffix == ".png":

@@ -37,7 +37,7 @@ def render_cloth(
     light_dir: wp.vec3,
     ground_height: float,
     checker_size: float,
-    front_color: wp.vec3,
+    front_colors: wp.array(dtype=wp.vec3),
     back_color: wp.vec3,
     tri_material: wp.array(dtype=wp.int32),
     collider_color: wp.vec3,
@@ -70,7 +70,7 @@ def render_cloth(
         if wp.length(n) < 1.0e-8:
             n = hit.normal
         n = wp.normalize(n)
-        albedo = front_color
+        albedo = front_colors[f]
         if wp.dot(n, d) > 0.0:  # two-sided: shade the side facing the camera
             n = -n
             albedo = back_color

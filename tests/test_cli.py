@@ -105,18 +105,38 @@ def test_preview_png_and_gif(tmp_path):
     from PIL import Image
 
     out = tmp_path / "p.usdc"
-    assert main(["run", HANG, "-o", str(out), "--frames", "4", "--quiet", *SMALL]) == 0
+    assert main(["run", HANG, "-o", str(out), "--frames", "4", "--quiet", *SMALL, "--set", 'material.preset="silk"']) == 0
     png, gif = tmp_path / "p.png", tmp_path / "p.gif"
     assert main(["preview", str(out), "-o", str(png), "--size", "96", "64"]) == 0
     img = np.asarray(Image.open(png).convert("RGB")).astype(int)
     assert img.shape == (64, 96, 3)
-    cloth = (img[:, :, 0] > img[:, :, 2] + 40)  # the orange front side
+    cloth = (img[:, :, 0] > img[:, :, 2] + 15)  # the front side, in silk's dusty rose (the ground is grey, the sky blue)
     assert 0.02 < cloth.mean() < 0.9
     assert len(np.unique(img[cloth].sum(axis=1))) > 5  # shaded, not one flat colour
     assert main(["preview", str(out), "-o", str(gif), "--size", "64", "64", "--every", "2"]) == 0
     with Image.open(gif) as anim:
         assert anim.n_frames == 3  # frames 1, 3, 5 of 5
     assert main(["preview", str(out), "-o", str(tmp_path / "p.jpg")]) == 2
+
+
+def test_preview_draws_each_cloth_in_its_fabric_colour(tmp_path):
+    """Check the preview shades a cloth in the colour its cache binds to its fabric (displayColor): in linear RGB a lit
+    pixel is albedo x light + a grey rim, so (R - G) / (R - B) is the albedo's own ratio; silk's and cotton's differ."""
+    from PIL import Image
+
+    from cloth_warp.looks import fabric_color
+
+    for preset in ("silk", "cotton"):
+        out, png = tmp_path / f"{preset}.usdc", tmp_path / f"{preset}.png"
+        assert main(["run", HANG, "-o", str(out), "--frames", "2", "--quiet", *SMALL, "--set", f'material.preset="{preset}"']) == 0
+        assert main(["preview", str(out), "-o", str(png), "--size", "192", "128"]) == 0
+        linear = (np.asarray(Image.open(png).convert("RGB")) / 255.0) ** 2.2
+        r, g, b = linear[..., 0], linear[..., 1], linear[..., 2]
+        albedo = fabric_color(preset)
+        want = (albedo[0] - albedo[1]) / (albedo[0] - albedo[2])
+        cloth = r - b > 0.03  # warm: not the grey ground or the blue sky
+        assert cloth.mean() > 0.02, preset
+        assert np.median((r - g)[cloth] / (r - b)[cloth]) == pytest.approx(want, abs=0.15), preset
 
 
 def test_python_m_and_console_script_agree():
