@@ -291,9 +291,9 @@ def test_skirt_walk_scene_dresses_the_mannequin_and_walks(tmp_path):
 def test_dress_hangs_from_its_shoulder_straps_while_walking(tmp_path):
     """Check the shipped strapped dress (coarser here), held by nothing but contact with the shoulders: the strap seams
     lie on top of the shoulders (between the neck and the arm) and stay within a centimetre of their first height while
-    the body walks, every seam stays closed (under 3 mm: a seam resting on the body holds its two sides ~1.5 mm apart,
-    friction acting on each side alone; README, Known limits), no edge of the dress crosses the body or the body the
-    dress, and the dress does not cross itself (every 4th frame)."""
+    the body walks, every seam stays closed (under 3 mm: a seam carrying the dress's weight on the body opens to ~1 mm;
+    README, Known limits), no edge of the dress crosses the body or the body the dress, and the dress does not cross
+    itself (every 4th frame)."""
     import cloth_warp as cw
     from cloth_warp.patterns import Wrap
     from intersections import crossing_pairs, intersecting_pairs
