@@ -239,13 +239,16 @@ def cmd_validate(args) -> int:
     from .scene import build_model, load_scene
 
     scene = load_scene(find_scene(args.scene), parse_set(args.set))
-    model = build_model(scene, "cpu")
+    model = build_model(scene, "cpu", dressing=False)  # a check, not a simulation: garments as their patterns place them
     fps, substeps = float(scene.get("output.fps")), int(scene.get("solver.substeps"))
     print(f"{scene.path}: valid")
     print(f"  cloth       {model.particle_count} particles, {model.spring_count} springs, {model.tri_count} triangles, "
           f"material {model.cloths[0].material.name}")
     if model.colliders:
         print("  colliders   " + ", ".join(f"{c.shape} {c.name!r}{' (animated)' if c.animated else ''}" for c in model.colliders))
+    dress, settle = float(scene.get("dressing.seconds")), float(scene.get("dressing.settle"))
+    if dress > 0.0 or settle > 0.0:
+        print(f"  dressing    {dress:g} s sewing, {settle:g} s settling (run by `cloth-warp run`, not by validate)")
     print(f"  solver      {scene.get('solver.integrator')}, dt = {1.0 / (fps * substeps):.4g} s ({substeps} per frame)")
     print(f"  output      {scene.get('output.frames')} frames at {fps:g} fps -> {default_output(scene)}")
     return EXIT_OK

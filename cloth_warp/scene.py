@@ -739,8 +739,10 @@ def material_from_table(table: dict):
     return mat.replace(name=f"{mat.name}*", **changes) if changes else mat
 
 
-def build_model(scene: Scene, device=None, requires_grad: bool = False):
-    """The :class:`~cloth_warp.Model` a scene describes (differentiable arrays with `requires_grad`)."""
+def build_model(scene: Scene, device=None, requires_grad: bool = False, dressing: bool = True):
+    """The :class:`~cloth_warp.Model` a scene describes (differentiable arrays with `requires_grad`); with
+    `dressing=False` its garments stay where their patterns place them (the [dressing] table is not run: a check of the
+    scene, not a simulation)."""
     from .builder import ModelBuilder
     from .model import Keyframe
 
@@ -770,12 +772,14 @@ def build_model(scene: Scene, device=None, requires_grad: bool = False):
         with _scene_key("collision"):
             b.enable_self_collision(float(scene.get("collision.thickness")), float(scene.get("collision.friction")),
                                     scene.get("collision.stiffness"))
-    _dressing(b, scene, "seconds", device)
+    if dressing:
+        _dressing(b, scene, "seconds", device)
     for i, a in enumerate(scene.data.get("attachments", [])):
         with _scene_key(f"attachments[{i}]"):
             col = next(c for c in b.colliders if c.name == a["collider"])  # checked in _check_values
             b.attach(_selection(on(a), a, f"attachments[{i}]"), col, offset=a.get("offset"), name=f"attachment{i}")
-    _dressing(b, scene, "settle", device)
+    if dressing:
+        _dressing(b, scene, "settle", device)
     jitter = float(scene.get("cloth.jitter"))
     if jitter > 0.0:
         _jitter(b, cloth, jitter, int(scene.get("scene.seed")))

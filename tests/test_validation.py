@@ -511,6 +511,21 @@ def test_shipped_scenes_pass_cloth_warp_validate(path, capsys):
     assert "valid" in capsys.readouterr().out
 
 
+def test_validate_checks_a_garment_scene_without_dressing_it(capsys, monkeypatch):
+    """Check `cloth-warp validate` builds a garment scene (patterns, body, attachments checked) without running its
+    dressing (a simulation of seconds), and says that the run will."""
+    from cloth_warp import dressing
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("validate ran the dressing")
+
+    monkeypatch.setattr(dressing, "dress", refuse)
+    monkeypatch.setattr(dressing, "settle", refuse)
+    assert main(["validate", "skirt_walk"]) == 0
+    out = capsys.readouterr().out
+    assert "valid" in out and "1 s sewing, 1.5 s settling (run by `cloth-warp run`, not by validate)" in out
+
+
 def test_scene_text_parses_inline(tmp_path):
     """Check parse_scene applies the same gate as load_scene (text given directly)."""
     with pytest.raises(SceneError, match=r"forces.gravity: its length must be <= 1000 m/s\^2"):
