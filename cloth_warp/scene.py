@@ -585,10 +585,7 @@ def _check_values(scene: Scene):
         for k, w in enumerate(g.get("wraps", [])):
             if not w.get("panels"):
                 raise SceneError(f"{where}.wraps[{k}].panels: name the panels to wrap (required)")
-        try:
-            material_from_table(g.get("material", scene.data.get("material", {})))
-        except ValueError as exc:
-            raise SceneError(f"{where}.material.shear_stiffness: {str(exc).split(': ', 1)[-1]}") from None
+        _check_material(_garment_material_table(scene, g), f"{where}.material")
     for table in ("pins", "handles", "attachments"):
         for i, entry in enumerate(scene.data.get(table, [])):
             if entry.get("cloth", scene.get("cloth.name")) not in names:
@@ -602,10 +599,7 @@ def _check_values(scene: Scene):
             raise SceneError("measure.cusick.disc_radius: give the specimen radius [m] (or use a cloth.disc)")
         if radius <= cusick["pedestal_radius"]:
             raise SceneError(f"measure.cusick: the specimen radius {radius} m must exceed the pedestal radius {cusick['pedestal_radius']} m")
-    try:
-        build_material(scene)  # the material's own cross-key rule (shear below sqrt(warp x weft stretch))
-    except ValueError as exc:
-        raise SceneError(f"material.shear_stiffness: {str(exc).split(': ', 1)[-1]}") from None
+    _check_material(scene.data.get("material", {}), "material")
     from .topology import check_disc_size, check_grid_size
 
     if disc is not None:
@@ -723,6 +717,19 @@ def _selection(cloth, spec: dict, where: str):
     if len(idx) == 0:
         raise SceneError(f"{where}: the selection is empty (box around initial positions in metres?)")
     return idx
+
+
+def _check_material(table: dict, where: str):
+    """The material's own cross-key rule (shear below sqrt(warp x weft stretch)) as a SceneError under `where`."""
+    try:
+        material_from_table(table)
+    except ValueError as exc:
+        raise SceneError(f"{where}.shear_stiffness: {str(exc).split(': ', 1)[-1]}") from None
+
+
+def _garment_material_table(scene: Scene, g: dict) -> dict:
+    """A [[garments]] entry's material table: its own, or the scene's [material]."""
+    return g.get("material", scene.data.get("material", {}))
 
 
 def build_material(scene: Scene):
@@ -861,7 +868,7 @@ def _add_garment(b, scene: Scene, g: dict, i: int):
         return b.add_cloth_pattern(scene.resolve(g["pattern"]), edge_length=float(g.get("edge_length", keys["edge_length"].default)),
                                    wraps=_wraps(g.get("wraps", [])), position=tuple(g.get("position", keys["position"].default)),
                                    rotation=_rotation_q(g.get("rotation")),
-                                   material=material_from_table(g.get("material", scene.data.get("material", {}))),
+                                   material=material_from_table(_garment_material_table(scene, g)),
                                    spring_model=scene.get("cloth.spring_model"), name=g["name"])
 
 
