@@ -70,8 +70,9 @@ def dress(builder, seconds: float = 1.0, *, closing: float = 0.6, fps: float = 6
     steadily over the first `closing` fraction of the time (their rest lengths shrink to zero; a seam still open by
     more than :data:`SEAM_CLOSED` at the end gets up to as long again; closed seams are then finished exactly, each
     pair of sewn points moved to its middle), then write the positions back into `builder` with zero velocities. Call
-    it before :meth:`ModelBuilder.attach` (attachments are bound on the dressed garment), then :func:`settle`. `solver_options`: keyword arguments of the implicit Euler
-    solver (the scene's; its collider contacts are resolved after each step while dressing). `garments`: the names of
+    it before :meth:`ModelBuilder.attach` (attachments are bound on the dressed garment), then :func:`settle`.
+    `solver_options`: keyword arguments of the implicit Euler solver (the scene's; its collider contacts are resolved
+    after each step while dressing). `garments`: the names of
     the cloths to dress (default all); the others are held still where they are, as obstacles (a layered outfit is
     dressed a layer at a time from the inside out, each over the layers already dressed)."""
     if builder.attachments:
@@ -151,15 +152,14 @@ def _still_run(builder, seconds, closing, gravity, fps, substeps, damping, devic
         extra += 1
     frames += extra
     x = np.asarray(sim.positions(), np.float64)
+    free = (builder.particle_pinned == 0) & moving
     if closing > 0.0 and seam.any() and seam_gap(builder, x, moving) < SEAM_CLOSED:
         # closed to within SEAM_CLOSED: finish the seams exactly (both ends to their middle) so the run starts sewn
-        free = moving & (builder.particle_pinned == 0)
         pairs = ends[free[ends[:, 0]] & free[ends[:, 1]]]
         middle = 0.5 * (x[pairs[:, 0]] + x[pairs[:, 1]])
         x[pairs[:, 0]] = middle
         x[pairs[:, 1]] = middle
     v = np.asarray(sim.state.particle_qd.numpy(), np.float64)
-    free = (builder.particle_pinned == 0) & moving
     builder.particle_positions[free] = x[free]
     builder.particle_velocities[:] = 0.0
     return DressingReport(frames / fps, frames * substeps, seam_gap(builder, particles=moving),

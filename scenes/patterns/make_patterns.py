@@ -123,9 +123,9 @@ def overskirt() -> dict:
 
 
 def dress() -> dict:
-    """A strapped A-line dress: two panels from above the bust (top 102 cm round: the chest's 97 cm with ease) to
-    above the knee (hem 180 cm, 75 cm long), each with two 4 cm straps 22 cm long, sewn at the sides and over the
-    shoulders (front straps to back straps)."""
+    """A strapped A-line dress: two panels from above the bust (top 102 cm round at 1.25 m: the chest's 97 cm with
+    ease, below the armpits) to above the knee (hem 180 cm, 75 cm long), each with two 4 cm straps 25 cm long, sewn at
+    the sides and over the shoulders (front straps to back straps)."""
     panel = dict(top=102.0, hem=180.0, length=75.0, top_height=125.0, wrap_radius=21.0, strap_offset=11.5,
                  strap_width=4.0, strap_length=25.0)
     front, back = strapped_cone_panel(**panel, back=False), strapped_cone_panel(**panel, back=True)
