@@ -17,7 +17,8 @@ A USD cache is what DCC tools (usdview, Houdini, Blender, Maya, Omniverse) play:
   ``clothWarp:dt`` [s], ``clothWarp:solverIterations``, ``clothWarp:solverResidual``,
   ``clothWarp:colliderContacts``, ``clothWarp:colliderCcd`` and, with self-collision, ``clothWarp:selfProximity``,
   ``selfCcd``, ``selfSweeps``, ``impactZones``, ``selfUnresolved`` and, with strain limiting,
-  ``strainExcessStructural``, ``strainExcessShear``, ``strainLimitSweeps``, ``strainLimitMissed``);
+  ``strainExcessStructural``, ``strainExcessShear``, ``strainLimitSweeps``, ``strainLimitMissed`` and, for a sewn
+  garment, ``seamGap`` [m]);
 * colliders under ``/World/colliders`` as UsdGeom Cube (scaled) / Plane / Mesh prims -- spheres, capsules and
   cylinders (axis Z) as meshes whose facets stay within 0.5 mm of the surface (:data:`ROUND_SAGITTA`; a DCC's own
   tessellation of an implicit sphere leaves cloth floating above it), their radius and height in customData -- with
@@ -78,6 +79,7 @@ DIAGNOSTICS = {  # per-frame custom attributes: name -> (USD type name, descript
     "strainExcessShear": ("float", "worst strain above the strain limit on shear springs after limiting, in the frame's steps"),
     "strainLimitSweeps": ("int", "strain-limit sweeps run in the frame's steps (summed)"),
     "strainLimitMissed": ("int", "steps whose strain limiting stopped at its cap above its tolerance (should be 0)"),
+    "seamGap": ("float", "largest distance between sewn particles at the end of the frame [m] (0 without seams)"),
 }
 # per-frame diagnostic attribute <- collision counter (cloth_warp.collision / cloth_warp.selfcollision)
 COUNTER_DIAGNOSTICS = {"colliderContacts": "collider_contacts", "colliderCcd": "collider_ccd", "selfProximity": "self_proximity",

@@ -260,5 +260,6 @@ class FrameReport:
         if self.solves is not None and (self.solves.contacts or self.solves.self_contacts):
             out.update(zip(SOLVE_CONTACT_COUNTERS, (self.solves.contacts, self.solves.contact_resolves, self.solves.self_contacts)))
         for report in self.passes.values():
-            out.update(report.counters())
+            if report is not None:  # (a pass without a report: the sewing)
+                out.update(report.counters())
         return out

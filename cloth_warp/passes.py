@@ -1,7 +1,7 @@
 """The stages of a step after the integrator, behind one interface, and the factory that builds them.
 
 A step is data: the integrator proposes an end state from the start state, then the solver runs its
-passes in order (strain limiting, colliders, self-collision; later contacts, attachments, sewing), each
+passes in order (strain limiting, sewing, colliders, self-collision), each
 turning a proposed (x_end, v_end) into a corrected (x_out, v_out) given the step's start positions. With
 a corrector (the strain limiter) and contact passes both on, the sequence repeats `rounds` times so that
 the last word is the contacts'. Every pass:
@@ -95,8 +95,10 @@ class StepPass:
 def build_passes(model: Model, *, strain_limit: float | None = 0.1, strain_limit_iterations: int | None = None,
                  strain_limit_tolerance: float | None = 1.0e-3, collisions: bool = True) -> list[StepPass]:
     """The passes a model needs, in the order a step runs them: Provot strain limiting (when `strain_limit`
-    and the model has limited springs), then the colliders (when it has any) and self-collision (when on)."""
+    and the model has limited springs), sewing (when it has seams), then the colliders (when it has any) and
+    self-collision (when on)."""
     from .collision import ColliderPass, SelfCollisionPass
+    from .sewing import SewingPass
     from .solvers.strain_limit import DEFAULT_SWEEPS, StrainLimiter
 
     out: list[StepPass] = []
@@ -105,6 +107,9 @@ def build_passes(model: Model, *, strain_limit: float | None = 0.1, strain_limit
                                 tolerance=strain_limit_tolerance)
         if limiter.active:
             out.append(limiter)
+    sewing = SewingPass(model)
+    if sewing.active:
+        out.append(sewing)
     if collisions and model.collider_count:
         out.append(ColliderPass(model))
     if collisions and model.self_collision and model.tri_count:

@@ -23,6 +23,7 @@ from .cache import COUNTER_DIAGNOSTICS, STRAIN_LIMIT_DIAGNOSTICS
 from .collision import ALL_COUNTERS as COLLISION_COUNTERS
 from .diagnostics import SOLVE_CONTACT_COUNTERS
 from .profiling import stage
+from .sewing import seam_ends, seam_gap
 from .scene import Scene, SceneError, build_model, build_solver, build_wind, load_scene
 
 log = logging.getLogger(__name__)
@@ -297,6 +298,7 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
     }
     max_strain, dt_min, dt_max, iterations, rejected, contacts = 0.0, math.inf, 0.0, [], 0, {}
     resumed_limit: list[dict] = []  # the per-frame diagnostics of frames copied from an earlier run
+    seams, worst_seam = seam_ends(model), 0.0  # the sewn particle pairs; the widest any opened [m]
     t_loop = time.perf_counter()
     interrupted = write_error = None
     if profile:
@@ -323,8 +325,12 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
                     "solverResidual": report.residual}
             diag.update({attr: info.get(key) for attr, key in COUNTER_DIAGNOSTICS.items()})
             diag.update({attr: info.get(key) for attr, key in STRAIN_LIMIT_DIAGNOSTICS.items()})
+            q = sim.state.particle_q.numpy()
+            if len(seams):
+                diag["seamGap"] = seam_gap(model, q, seams)
+                worst_seam = max(worst_seam, diag["seamGap"])
             with stage("cache"):
-                writer.write(sim.state.particle_q.numpy(), sim.state.particle_qd.numpy(), diag,
+                writer.write(q, sim.state.particle_qd.numpy(), diag,
                              checkpoint=sim.checkpoint() if writer.save_due else None)
             for key in COLLISION_COUNTERS + SOLVE_CONTACT_COUNTERS:
                 if key in info:
@@ -369,6 +375,8 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
                 colliders=model.collider_count, self_collision=bool(model.self_collision), contacts=contacts,
                 strain_limit=strain_limit_summary(sim, resumed_limit),
             )
+            if len(seams):
+                summary["seam_gap"] = worst_seam
             info = {k: summary[k] for k in ("frames", "wall_s", "max_strain", "compile_s", "drape_coefficient", "message", "diagnosis")
                     if k in summary}
             try:

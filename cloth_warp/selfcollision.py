@@ -46,6 +46,7 @@ from .kernels import broadphase as kbp
 from .kernels import contact as kct
 from .kernels import selfcollide as ksc
 from .model import ModelFlags
+from .sewing import Weld
 from .topology import seam_roots
 from .records import record_values
 
@@ -133,6 +134,10 @@ class SelfCollision:
         self._flip = False
         self._fixed = None  # the capturable path's buffers (see _fixed_buffers)
         self._fixed_step = None  # (x_start, dt) the capturable path's broad phase was built for
+        weld = Weld(model)
+        self.weld = weld if weld.points else None
+        """The model's welded sewn points (cloth_warp.sewing), each of whose particles takes the point's mean velocity
+        change after every impulse pass, so that the step keeps them one point (None without any)."""
         self.reset_counts()
 
     # -- the model's values ----------------------------------------------------------------------
@@ -162,9 +167,13 @@ class SelfCollision:
 
     def notify_model_changed(self, flags: int) -> None:
         """Refresh what is derived from the model after its fields changed (:class:`~cloth_warp.model.ModelFlags`):
-        the inverse masses on PARTICLE_PROPERTIES. (Thickness, friction and stiffness are read at every use.)"""
+        the inverse masses on PARTICLE_PROPERTIES, the welded sewn points on PARTICLE_INITIAL_STATE. (Thickness,
+        friction and stiffness are read at every use.)"""
         if flags & ModelFlags.PARTICLE_PROPERTIES:
             self._read_masses()
+        if flags & ModelFlags.PARTICLE_INITIAL_STATE:
+            weld = Weld(self.model)
+            self.weld = weld if weld.points else None
 
     def _read_masses(self):
         m = self.model
@@ -415,6 +424,7 @@ class SelfCollision:
                               h_c, self.stiffness, self.friction, dt],
                       outputs=[f.dv, f.weight, self.counts], device=dev, record_tape=False)
         wp.launch(ksc.apply_velocity_changes, dim=n, inputs=[f.vbar0, f.dv, f.weight], outputs=[f.vbar], device=dev)
+        self._weld_velocity(f.vbar, f.vbar)
         # 3. CCD sweeps on the device: the first on every close pair (a later round of the step: on the pairs
         # with a particle whose vbar changed since the last round's result), then while impacts remain
         resumed = self._resolved is not None and self._resolved[0] is x_start and self._resolved[1] == float(dt)
@@ -449,6 +459,7 @@ class SelfCollision:
                               tolerance, separation],
                       outputs=[f.dv, f.weight, self.counts, f.loop], device=dev, record_tape=False)
         wp.launch(ksc.apply_velocity_changes, dim=self.model.particle_count, inputs=[f.vbar, f.dv, f.weight], outputs=[f.vbar], device=dev)
+        self._weld_velocity(f.vbar, f.vbar)
         wp.launch(ksc.end_sweep, dim=1, inputs=[self.sweeps], outputs=[f.loop, self.counts], device=dev, record_tape=False)
 
     def _changed_pairs_fixed(self, weight) -> dict:
@@ -586,6 +597,11 @@ class SelfCollision:
             out[kind] = (selected, int(counter.numpy()[0]))
         return out
 
+    def _weld_velocity(self, vbar, out):
+        """out: `vbar` with each welded sewn point's particles at their mean velocity (the same array when no weld)."""
+        if self.weld is not None:
+            self.weld.apply_velocity(vbar, out)
+
     def _impulse_pass(self, vbar, key, rg, launch, lists=None):
         """Run `launch(kind, pairs, count, dv, weight)` for each pair kind, then average the accumulated
         velocity changes into a new vbar. `lists` maps kind -> (pairs, count) (default: the grid's)."""
@@ -605,7 +621,11 @@ class SelfCollision:
         self._last_weight = weight
         out = self._buffer(f"vbar_{key}", wp.vec3, rg)
         wp.launch(ksc.apply_velocity_changes, dim=m.particle_count, inputs=[vbar, dv, weight], outputs=[out], device=m.device)
-        return out
+        if self.weld is None:
+            return out
+        welded = self._buffer(f"vbar_{key}_welded", wp.vec3, rg)
+        self._weld_velocity(out, welded)
+        return welded
 
     def _active_lists(self, zone, incremental: bool) -> dict:
         """The pairs a CCD pass must test: all candidates on a new vbar; otherwise only the pairs with a
@@ -677,6 +697,10 @@ class SelfCollision:
         for _ in range(self.zone_iterations):
             quads = self._colliding_pairs()
             links = np.concatenate([links, np.column_stack([np.repeat(quads[:, 0], 3), quads[:, 1:].ravel()])])
+            if self.weld is not None:  # a sewn point in a zone joins it whole
+                sewn = self.weld.links()
+                touched = np.isin(sewn, links).any(axis=1)
+                links = np.concatenate([links, sewn[np.isin(sewn[:, 1], sewn[touched, 1])]])
             zone = connected_labels(links, n)
             zone_ids = np.unique(zone[zone >= 0])
             v = vbar.numpy().astype(np.float64)
@@ -689,6 +713,10 @@ class SelfCollision:
             wp.launch(ksc.set_zone_velocity, dim=n, inputs=[zone_arr, wp.array(zone_v.astype(np.float32), dtype=wp.vec3, device=dev), vbar],
                       outputs=[out], device=dev)
             vbar = out
+            if self.weld is not None:  # (a zone holds whole sewn points: its rigid motion gives them one velocity)
+                welded = self._buffer("vbar_zone_welded", wp.vec3, rg)
+                self._weld_velocity(vbar, welded)
+                vbar = welded
             self._refresh_grid(x_start, vbar, dt, pad)
             hits, _ = self._ccd(x_start, vbar, dt, tolerance, separation, False, rg, zone_arr)
             if hits == 0:

@@ -826,7 +826,12 @@ def seam_roots(model) -> np.ndarray | None:
     seams = model.spring_indices.numpy().reshape(-1, 2)[kind == int(SpringKind.SEAM)]
     if len(seams) == 0:
         return None
-    root = np.arange(model.particle_count)
+    return joined_roots(seams, model.particle_count)
+
+
+def joined_roots(pairs: np.ndarray, count: int) -> np.ndarray:
+    """Per item of `count`, the smallest item it is joined to through a chain of `pairs` (itself when none)."""
+    root = np.arange(count)
 
     def find(i):
         while root[i] != i:
@@ -834,8 +839,20 @@ def seam_roots(model) -> np.ndarray | None:
             i = root[i]
         return i
 
-    for a, b in seams:
+    for a, b in pairs:
         ra, rb = find(a), find(b)
         if ra != rb:
             root[max(ra, rb)] = min(ra, rb)
     return np.array([find(i) for i in range(len(root))])
+
+
+def sewn_point_roots(model) -> np.ndarray | None:
+    """Per particle, the root (:func:`seam_roots`) of the sewn point it belongs to, -1 for a particle no seam joins
+    (int32, (n,)), or None without seams."""
+    roots = seam_roots(model)
+    if roots is None:
+        return None
+    sewn = np.full(len(roots), -1, np.int32)
+    shared = np.bincount(roots, minlength=len(roots))[roots] > 1
+    sewn[shared] = roots[shared]
+    return sewn

@@ -272,3 +272,58 @@ def accumulate_vectors(src: wp.array(dtype=wp.vec3), dst_out: wp.array(dtype=wp.
     """dst_out += src (hands the limiter's input gradient back to the tape)."""
     i = wp.tid()
     dst_out[i] = dst_out[i] + src[i]
+
+
+@wp.kernel
+def gather_sewn_points(
+    particle_seam_root: wp.array(dtype=wp.int32),
+    particle_mass: wp.array(dtype=float),
+    particle_pinned: wp.array(dtype=wp.int32),
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    # outputs: per slot (the point's root; + particle count for its pinned particles)
+    slot_mass_out: wp.array(dtype=float),
+    slot_moment_out: wp.array(dtype=wp.vec3),
+    slot_momentum_out: wp.array(dtype=wp.vec3),
+):
+    """Sum the mass, m x and m v of each welded sewn point's particles (`particle_seam_root` >= 0), its pinned ones apart."""
+    i = wp.tid()
+    r = particle_seam_root[i]
+    if r < 0:
+        return
+    slot = r
+    if particle_pinned[i] != 0:
+        slot = r + particle_seam_root.shape[0]
+    m = particle_mass[i]
+    wp.atomic_add(slot_mass_out, slot, m)
+    wp.atomic_add(slot_moment_out, slot, m * x[i])
+    wp.atomic_add(slot_momentum_out, slot, m * v[i])
+
+
+@wp.kernel
+def weld_sewn_points(
+    particle_seam_root: wp.array(dtype=wp.int32),
+    particle_pinned: wp.array(dtype=wp.int32),
+    slot_mass: wp.array(dtype=float),
+    slot_moment: wp.array(dtype=wp.vec3),
+    slot_momentum: wp.array(dtype=wp.vec3),
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    # outputs
+    x_out: wp.array(dtype=wp.vec3),
+    v_out: wp.array(dtype=wp.vec3),
+):
+    """Move each free particle of a welded sewn point to the point's centre of mass with its mean velocity
+    (momentum kept); a point with pinned particles goes where they are, with their velocity."""
+    i = wp.tid()
+    r = particle_seam_root[i]
+    if r < 0 or particle_pinned[i] != 0:
+        x_out[i] = x[i]
+        v_out[i] = v[i]
+        return
+    slot = r
+    pinned = r + particle_seam_root.shape[0]
+    if slot_mass[pinned] > 0.0:
+        slot = pinned
+    x_out[i] = slot_moment[slot] / slot_mass[slot]
+    v_out[i] = slot_momentum[slot] / slot_mass[slot]

@@ -141,9 +141,10 @@ def spring_force(
 ):
     """Force on particle i of a linear spring: -(k (l - L) + c (v_ij . n)) n."""
     d = xi - xj
-    length = wp.length(d)
-    if length < LENGTH_EPS:
+    length2 = wp.dot(d, d)
+    if length2 < LENGTH_EPS * LENGTH_EPS:  # (before the square root: its adjoint at a closed seam is 0 / 0)
         return wp.vec3(0.0)
+    length = wp.sqrt(length2)
     n = d / length
     return -(stiffness * (length - rest_length) + damping * wp.dot(vi - vj, n)) * n
 
@@ -151,12 +152,16 @@ def spring_force(
 @wp.func
 def spring_stiffness_block(xi: wp.vec3, xj: wp.vec3, rest_length: float, stiffness: float):
     """K_s = -df_i/dx_i of a linear spring, kept positive semi-definite (physics.md 3(b)):
-    k [n n^T + max(0, 1 - L/l) (I - n n^T)] (transverse term dropped under compression). Bend triples
+    k [n n^T + max(0, 1 - L/l) (I - n n^T)] (transverse term dropped under compression; k I for a zero-length spring
+    whose ends coincide, a welded seam's). Bend triples
     use `bending_stiffness_weights` instead."""
     d = xi - xj
-    length = wp.length(d)
-    if length < LENGTH_EPS:
+    length2 = wp.dot(d, d)
+    if length2 < LENGTH_EPS * LENGTH_EPS:  # (before the square root: its adjoint at a closed seam is 0 / 0)
+        if rest_length <= LENGTH_EPS:  # a zero-length spring (a seam) closed: k I, its block's limit
+            return stiffness * wp.identity(n=3, dtype=float)
         return wp.mat33(0.0)
+    length = wp.sqrt(length2)
     n = d / length
     nn = wp.outer(n, n)
     t = wp.max(0.0, 1.0 - rest_length / length)
@@ -167,9 +172,10 @@ def spring_stiffness_block(xi: wp.vec3, xj: wp.vec3, rest_length: float, stiffne
 def spring_damping_block(xi: wp.vec3, xj: wp.vec3, damping: float):
     """D_s = -df_i/dv_i = c n n^T of a linear spring (bend triples are undamped)."""
     d = xi - xj
-    length = wp.length(d)
-    if length < LENGTH_EPS:
+    length2 = wp.dot(d, d)
+    if length2 < LENGTH_EPS * LENGTH_EPS:  # (before the square root: its adjoint at a closed seam is 0 / 0)
         return wp.mat33(0.0)
+    length = wp.sqrt(length2)
     n = d / length
     return damping * wp.outer(n, n)
 

@@ -128,9 +128,12 @@ def spring_compact(xi: wp.vec3, xj: wp.vec3, rest_length: float, stiffness: floa
     direction and t = max(0, 1 - L/l) (`spring_stiffness_block`, `spring_damping_block`), a = h^2 k t and
     u = sqrt(h c + h^2 k (1 - t)) n (c, k >= 0); 16 bytes where the 3x3 block takes 36, for the CG's product."""
     d = xi - xj
-    length = wp.length(d)
-    if length < LENGTH_EPS:
+    length2 = wp.dot(d, d)
+    if length2 < LENGTH_EPS * LENGTH_EPS:  # (before the square root: its adjoint at a closed seam is 0 / 0)
+        if rest_length <= LENGTH_EPS:  # a zero-length spring (a seam) closed: h^2 k I
+            return wp.vec4(0.0, 0.0, 0.0, dt * dt * stiffness)
         return wp.vec4(0.0)
+    length = wp.sqrt(length2)
     n = d / length
     t = wp.max(0.0, 1.0 - rest_length / length)
     a = dt * dt * stiffness * t

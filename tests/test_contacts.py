@@ -357,7 +357,8 @@ def test_gradients_through_contacts_in_the_solve_match_finite_differences(collid
     gradient in the initial positions and velocities and the kinetic friction match central differences within 0.2 %,
     the springs' stiffness within 1 % (measured 0.005-0.6 %; with the adjoint solved unfiltered, 0.5 % and 8 % off).
     The contact set, and whether a contact sticks, is held fixed: the perturbations are small enough not to change it,
-    which the test asserts."""
+    which the test asserts. (The velocity step is 3 mm/s: at 1 mm/s the difference was at float32's noise, 0.04-0.2 %
+    off as unrelated kernel edits moved the rounding; at 3 mm/s 0.02-0.03 %.)"""
     soft = cw.materials.COTTON.replace(stretch_stiffness=60.0, shear_stiffness=20.0, bend_stiffness=2.0e-5, damping=0.01)
     b = cw.ModelBuilder()
     b.add_cloth_grid(resolution=(4, 4), size=(0.2, 0.2), material=soft, position=(0, THICKNESS * (1 + kct.CLEARANCE), 0),
@@ -416,7 +417,7 @@ def test_gradients_through_contacts_in_the_solve_match_finite_differences(collid
 
     k = m.spring_stiffness.numpy().astype(np.float64)
     cases = {
-        "initial velocity": along(s0.particle_qd.grad.numpy(), 1e-3, lambda d: contextlib.nullcontext(state0(v=v0 + d))),
+        "initial velocity": along(s0.particle_qd.grad.numpy(), 3e-3, lambda d: contextlib.nullcontext(state0(v=v0 + d))),
         "initial position": along(s0.particle_q.grad.numpy(), 1e-4, lambda d: contextlib.nullcontext(state0(x=x0 + d))),
         "kinetic friction": along(m.collider_kinetic_friction.grad.numpy(), 1e-2, lambda d: field(m.collider_kinetic_friction, d)),
         "stiffness": along(m.spring_stiffness.grad.numpy(), 0.1, lambda d: field(m.spring_stiffness, d), base=k),

@@ -60,7 +60,7 @@ class SolverBase:
         self._scratch: dict = {}
 
     def pass_named(self, name: str) -> StepPass | None:
-        """The pass of that name (``"strain_limit"``, ``"colliders"``, ``"self_collision"``), None when off."""
+        """The pass of that name (``"strain_limit"``, ``"sewing"``, ``"colliders"``, ``"self_collision"``), None when off."""
         return next((p for p in self.passes if p.name == name), None)
 
     @property

@@ -14,7 +14,7 @@ from ..diagnostics import LinearSolveReport
 from ..graphs import device_while
 from ..profiling import stage
 from ..records import record_values
-from ..topology import seam_roots
+from ..topology import sewn_point_roots
 from ..kernels import forces as kf
 from ..kernels import contact as kct
 from ..kernels import implicit as ki
@@ -235,11 +235,9 @@ class SolverImplicitEuler(SolverBase):
         self.precond_free = wp.zeros(n, dtype=wp.mat33, device=dev)  # contacts' unfiltered preconditioner blocks
         # sewn points take friction as one point (kernels/implicit.py gather_seam_friction): per particle its seam's
         # root (-1: not sewn), per root the sums the friction law needs
-        roots = seam_roots(model) if collider_contacts == "solve" else None
-        sewn = np.full(n, -1, np.int32)
-        if roots is not None:
-            shared = np.bincount(roots, minlength=n)[roots] > 1
-            sewn[shared] = roots[shared]
+        sewn = sewn_point_roots(model) if collider_contacts == "solve" else None
+        if sewn is None:
+            sewn = np.full(n, -1, np.int32)
         self._sewn = bool((sewn >= 0).any())
         self.particle_seam_root = wp.array(sewn, dtype=wp.int32, device=dev)
         m_sewn = n if self._sewn else 1

@@ -1,0 +1,141 @@
+"""Sewing: the particles of a closed seam move as one point.
+
+A garment's panels are sewn by zero-length seam springs (:meth:`~cloth_warp.builder.ModelBuilder.add_cloth_pattern`):
+they pull the panels together while it is dressed (:mod:`~cloth_warp.dressing`), but a spring holds a seam only as
+well as its stiffness lets it, a few millimetres open under a garment's weight. The sewing pass welds: each sewn point
+whose seams are closed in the model's initial state (every seam spring in it within :data:`WELD_DISTANCE`: a dressed
+garment's, or panels built touching) has, after every step, its particles moved to their centre of mass with their
+mean velocity (momentum kept; a point with pinned particles goes where they are), so a sewn seam stays closed to float
+precision however the cloth around it is loaded. Points still open at the start are left to their springs for the
+whole run: welding a seam point by point as it closes would lock the closed part rigid and leave the rest stuck open.
+
+The pass runs after the strain limiter and before the contact passes (:mod:`~cloth_warp.passes`), which get the last
+word (they move a sewn point's particles alike on a smooth body). Under ``wp.Tape`` the weld is an average and
+differentiates.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from .kernels import constraints as kc
+from .model import Control, Model, ModelFlags
+from .passes import StepPass
+from .topology import SpringKind, sewn_point_roots
+
+WELD_DISTANCE = 1.0e-3
+"""[m] a sewn point whose seam springs are all this short at the start is welded (a dressing sews until they are)."""
+
+
+def seam_ends(model: Model) -> np.ndarray:
+    """The particle pairs of the model's seam springs, int32 (seams, 2)."""
+    return model.spring_indices.numpy().reshape(-1, 2)[model.spring_kind.numpy() == int(SpringKind.SEAM)].astype(np.int32)
+
+
+def seam_gap(model: Model, positions, ends=None) -> float:
+    """The largest distance [m] between sewn particles at `positions` ((n, 3); 0 without seams)."""
+    ends = seam_ends(model) if ends is None else ends
+    if len(ends) == 0:
+        return 0.0
+    x = np.asarray(positions, np.float64)
+    return float(np.linalg.norm(x[ends[:, 0]] - x[ends[:, 1]], axis=1).max())
+
+
+def welded_point_roots(model: Model, weld_distance: float = WELD_DISTANCE) -> np.ndarray:
+    """Per particle, the root of its sewn point when that point is closed at the model's initial positions (every
+    seam spring in it within `weld_distance` [m]), else -1 (int32, (n,))."""
+    roots = sewn_point_roots(model)
+    if roots is None:
+        return np.full(model.particle_count, -1, np.int32)
+    ends = seam_ends(model)
+    x = model.particle_q.numpy().astype(np.float64)
+    open_seam = np.linalg.norm(x[ends[:, 0]] - x[ends[:, 1]], axis=1) > weld_distance
+    open_point = np.zeros(len(roots), bool)
+    open_point[roots[ends[open_seam, 0]]] = True
+    roots = roots.copy()
+    roots[(roots >= 0) & open_point[np.maximum(roots, 0)]] = -1
+    return roots
+
+
+class Weld:
+    """The model's welded sewn points (:func:`welded_point_roots`) and the average that moves each as one point:
+    :meth:`apply` gives every particle of a point the point's centre of mass and mean velocity (momentum kept; where
+    it has pinned particles, theirs). The sewing pass welds positions with it; self-collision (cloth_warp.selfcollision)
+    welds each of its velocity updates, so that a sewn point's particles take one velocity change."""
+
+    def __init__(self, model: Model, weld_distance: float = WELD_DISTANCE):
+        self.model = model
+        self.weld_distance = float(weld_distance)
+        n = model.particle_count
+        self.particle_seam_root = wp.zeros(n, dtype=wp.int32, device=model.device)
+        self._sums = self._new_sums(False)
+        self._unused = wp.zeros(n, dtype=wp.vec3, device=model.device)  # the positions a velocity-only weld leaves
+        self.refresh()
+
+    def refresh(self) -> None:
+        """Find the welded points again (the model's initial positions changed)."""
+        roots = welded_point_roots(self.model, self.weld_distance)
+        self.roots = roots
+        self.points = len(np.unique(roots[roots >= 0]))
+        self.particle_seam_root.assign(roots)
+
+    def _new_sums(self, requires_grad: bool) -> tuple:
+        """Per slot (a sewn point's root; + n for its pinned particles): mass, m x and m v."""
+        n2, dev = 2 * self.model.particle_count, self.model.device
+        return tuple(wp.zeros(n2, dtype=t, device=dev, requires_grad=requires_grad) for t in (float, wp.vec3, wp.vec3))
+
+    def apply(self, x, v, x_out, v_out) -> None:
+        """(x_out, v_out): (x, v) with each welded point's particles at its centre of mass and mean velocity. Outputs may
+        alias the inputs (and each other, for a velocity alone) when nothing is taped."""
+        m, dev = self.model, self.model.device
+        if x.requires_grad:  # taped: fresh sums (the backward pass reads what each weld read)
+            sums = self._new_sums(True)
+        else:
+            sums = self._sums
+            for a in sums:
+                a.zero_()
+        wp.launch(kc.gather_sewn_points, dim=m.particle_count,
+                  inputs=[self.particle_seam_root, m.particle_mass, m.particle_pinned, x, v], outputs=list(sums), device=dev)
+        wp.launch(kc.weld_sewn_points, dim=m.particle_count,
+                  inputs=[self.particle_seam_root, m.particle_pinned, *sums, x, v], outputs=[x_out, v_out], device=dev)
+
+    def apply_velocity(self, v, v_out) -> None:
+        """v_out: `v` with each welded point's particles at its mean velocity (may alias `v` when nothing is taped)."""
+        self.apply(v, v, wp.zeros_like(v) if v.requires_grad else self._unused, v_out)
+
+    def links(self) -> np.ndarray:
+        """(particle, its point's root) pairs of the welded points' particles: what must move together."""
+        sewn = np.flatnonzero(self.roots >= 0)
+        return np.column_stack([sewn, self.roots[sewn]])
+
+
+class SewingPass(StepPass):
+    """Weld the sewn points closed at the start after each step (see the module and :class:`Weld`). Capturable: no host
+    reads. :attr:`welded_points`: how many there are (the pass is :attr:`active` when any)."""
+
+    name = "sewing"
+    corrector = True  # it may move a point into a collider: the contact passes after it resolve that
+
+    def __init__(self, model: Model, weld_distance: float = WELD_DISTANCE):
+        self.model = model
+        self.weld = Weld(model, weld_distance)
+
+    def notify_model_changed(self, flags: int) -> None:
+        if flags & ModelFlags.PARTICLE_INITIAL_STATE:
+            self.weld.refresh()
+
+    @property
+    def welded_points(self) -> int:
+        return self.weld.points
+
+    @property
+    def active(self) -> bool:
+        return self.weld.points > 0
+
+    @property
+    def kernel_modules(self) -> tuple:
+        return (kc,)
+
+    def apply(self, x_start, x_end, v_end, control: Control, dt: float, x_out, v_out):
+        self.weld.apply(x_end, v_end, x_out, v_out)
