@@ -1,8 +1,8 @@
 """Dressing: garments placed around a body are sewn onto it before the animation starts.
 
 A garment's panels start where the pattern places them (wrapped round the body parts they cover, see
-:class:`~cloth_warp.patterns.Wrap`), open at their seams. :func:`dress` simulates them without gravity and with strong
-damping against the body held still in its first pose: the seam springs pull the panels together, the colliders
+:class:`~cloth_warp.patterns.Wrap`), open at their seams. :func:`dress` simulates them without gravity, with strong
+damping and without friction against the body held still in its first pose: the seam springs pull the panels together, the colliders
 (and self-collision, between garments too) push whatever starts inside the body or another garment out, and the
 settled positions become the builder's initial positions. Attachments (waistbands, straps) are bound afterwards, on
 the dressed garment, and the animation then starts from rest.
@@ -70,7 +70,8 @@ def seam_gap(builder, positions=None, particles=None) -> float:
 def dress(builder, seconds: float = 1.0, *, closing: float = 0.6, fps: float = 60.0, substeps: int = 2, damping: float = 6.0,
           device=None, solver_options: dict | None = None, garments=None) -> DressingReport:
     """Sew the builder's garments onto its colliders: simulate `seconds` [s] without gravity, with mass-proportional
-    `damping` [1/s], the colliders still in their pose at t = 0 (handles held where they start), the seams closing
+    `damping` [1/s], the colliders still in their pose at t = 0 and frictionless (a T-shirt's sleeve caps must slide over
+    the shoulders: with friction its dressing diverged; handles held where they start), the seams closing
     steadily over the first `closing` fraction of the time (their rest lengths shrink to zero; a seam still open by
     more than :data:`SEAM_CLOSED` at the end gets up to as long again; seams then all within :data:`SEAM_FINISH` are
     finished exactly, each sewn point's particles moved to their middle, and the run welds them: :mod:`~cloth_warp.sewing`),
@@ -125,6 +126,8 @@ def _still_run(builder, seconds, closing, gravity, fps, substeps, damping, devic
         trial.gravity = (0.0, 0.0, 0.0)
     trial.global_damping = damping
     trial.colliders = [frozen_collider(c) for c in trial.colliders]
+    if closing > 0.0:  # sewing: panels slide into place (a sleeve cap over the shoulder) without friction
+        trial.colliders = [dataclasses.replace(c, static_friction=0.0, kinetic_friction=0.0) for c in trial.colliders]
     trial.handles = []  # their particles stay pinned where they start
     if moving is not None:
         trial.particle_pinned[~moving] = 1
