@@ -136,8 +136,76 @@ def dress() -> dict:
     return _spec({"front": front, "back": back}, stitches)
 
 
+def tshirt() -> dict:
+    """A T-shirt: front and back panels (55 cm wide: 110 cm round against the chest's 97; hip to shoulder, a 22 cm
+    wide crew neckline, 9 cm deep in front and 3 cm at the back, armholes from the shoulder point down to the side
+    seams' tops) and two short sleeves (40 cm round at the cuff, a bell-shaped cap whose halves match the armholes, an
+    underarm seam). The body panels are placed round the torso leaning in by 15 degrees about the armpit line (wrapped
+    on cylinders about axes leaning alike: in the scene, `[[cloth.wraps]]`), each sleeve round its upper arm's axis in
+    the mannequin's A-pose (arms 25 degrees out, shoulder joints at 0.8 of the height, 0.125 of it out); the shoulders,
+    sides, underarms and armholes are sewn in the dressing. (Upright panels left the shoulder seams 43 cm to close: the
+    pull slid the shirt up the chest until the neckline gripped the neck and the seams at the neck stayed 1 cm open; a
+    34 cm cuff, 1 cm looser than the arm, caught the underarm seam between arm and torso.)"""
+    hem_y, half, armpit, shoulder_x, shoulder, neck_x, neck, scoop = 90.0, 27.5, 34.0, 20.0, 58.0, 11.0, 63.0, 0.3
+    reach, tilt = 21.5, 15.0  # [cm] the panels' distance from the body's axis at the armpits; [deg] their lean
+
+    def body(dip: float, back: bool) -> dict:
+        radius = (neck_x ** 2 + dip ** 2) / (2.0 * dip)  # the neckline: an arc from neck point to neck point
+        verts = [[-half, 0.0], [half, 0.0], [half, armpit], [shoulder_x, shoulder], [neck_x, neck], [-neck_x, neck],
+                 [-shoulder_x, shoulder], [-half, armpit]]
+        armhole = {"type": "quadratic", "params": [[0.5, scoop]]}  # curving in towards the neck, as armholes do
+        edges = [_line(0, 1, "hem"), _line(1, 2, "right_side"), {**_line(2, 3, "right_armhole"), "curvature": armhole},
+                 _line(3, 4, "right_shoulder"), _arc(4, 5, radius, 0, 0, "neckline"), _line(5, 6, "left_shoulder"),
+                 {**_line(6, 7, "left_armhole"), "curvature": armhole}, _line(7, 0, "left_side")]
+        # leaning in above the armpits by `tilt` (the tops nearer the shoulders: a shorter way to sew them, and less
+        # cloth pushed up the chest while it closes); the hem centre is where the panel leaves the armpit line
+        side = -1.0 if back else 1.0
+        lean = math.radians(tilt)
+        hem = [0.0, hem_y + armpit - armpit * math.cos(lean), side * (reach / math.cos(lean) + armpit * math.sin(lean))]
+        return {"vertices": verts, "edges": edges, "translation": [round(v, 6) for v in hem],
+                "rotation": [-tilt, 180.0 if back else 0.0, 0.0], "label": "back" if back else "front"}
+
+    chord = math.hypot(half - shoulder_x, shoulder - armpit)
+    # each armhole edge's length: a quadratic Bezier whose control point is `scoop` chords off the chord's middle
+    t = [k / 200.0 for k in range(201)]
+    bulge = [2.0 * u * (1.0 - u) * scoop * chord for u in t]  # the curve's offset from the chord
+    armhole = sum(math.hypot(chord / 200.0, bulge[k + 1] - bulge[k]) for k in range(200))
+    cuff, width, underarm = 40.0, 42.0, 12.0
+    cap = math.sqrt(armhole ** 2 - (0.5 * width) ** 2)  # the cap's height: each half as long as its armhole
+
+    def sleeve(side: float) -> dict:
+        tilt = math.radians(25.0)
+        down = [side * math.sin(tilt), -math.cos(tilt), 0.0]  # along the arm, away from the shoulder
+        out = [side * math.cos(tilt), math.sin(tilt), 0.0]  # from the arm's axis up and out: the sleeve's top
+        joint = [side * 0.125 * 175.0, 0.80 * 175.0, 0.0]
+        reach = 7.5  # [cm] the sleeve's radius where it is placed (the arm's is 5.25)
+        peak = underarm + cap  # the cap's top, placed over the shoulder joint
+        origin = [joint[k] + reach * out[k] + peak * down[k] for k in range(3)]
+        verts = [[-0.5 * cuff, 0.0], [0.5 * cuff, 0.0], [0.5 * width, underarm], [0.0, peak], [-0.5 * width, underarm]]
+        edges = [_line(0, 1, "cuff"), _line(1, 2, "right_underarm"), _line(2, 3, "right_cap"), _line(3, 4, "left_cap"),
+                 _line(4, 0, "left_underarm")]
+        name = "left_sleeve" if side > 0 else "right_sleeve"
+        return {"vertices": [[round(x, 6), round(y, 6)] for x, y in verts], "edges": edges,
+                "translation": [round(v, 6) for v in origin], "rotation": [0.0, side * 90.0, side * 25.0], "label": name}
+
+    panels = {"front": body(9.0, False), "back": body(3.0, True), "left_sleeve": sleeve(1.0), "right_sleeve": sleeve(-1.0)}
+    # the back is turned about y: its left edges are on the body's left (+x), where the front's right edges are; a
+    # sleeve's panel x runs round the arm towards the back on the left arm, towards the front on the right one
+    stitches = [[{"panel": "front", "edge": 1}, {"panel": "back", "edge": 7}],
+                [{"panel": "front", "edge": 7}, {"panel": "back", "edge": 1}],
+                [{"panel": "front", "edge": 3}, {"panel": "back", "edge": 5}],
+                [{"panel": "front", "edge": 5}, {"panel": "back", "edge": 3}],
+                [{"panel": "front", "edge": 2}, {"panel": "left_sleeve", "edge": 3}],
+                [{"panel": "back", "edge": 6}, {"panel": "left_sleeve", "edge": 2}],
+                [{"panel": "front", "edge": 6}, {"panel": "right_sleeve", "edge": 2}],
+                [{"panel": "back", "edge": 2}, {"panel": "right_sleeve", "edge": 3}],
+                [{"panel": "left_sleeve", "edge": 1}, {"panel": "left_sleeve", "edge": 4}],
+                [{"panel": "right_sleeve", "edge": 1}, {"panel": "right_sleeve", "edge": 4}]]
+    return _spec(panels, stitches)
+
+
 def main():
-    for name, make in (("skirt", skirt), ("overskirt", overskirt), ("dress", dress)):
+    for name, make in (("skirt", skirt), ("overskirt", overskirt), ("dress", dress), ("tshirt", tshirt)):
         (HERE / f"{name}_specification.json").write_text(json.dumps(make(), indent=1) + "\n")
 
 
