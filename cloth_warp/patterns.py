@@ -387,7 +387,9 @@ def mesh_pattern(pattern: Pattern, edge_length: float, min_angle: float = 25.0, 
         n = len(loop)
         signed = 0.5 * float(np.sum(loop[:, 0] * np.roll(loop[:, 1], -1) - np.roll(loop[:, 0], -1) * loop[:, 1]))
         ring = np.c_[np.arange(n), (np.arange(n) + 1) % n]
-        out = triangle.triangulate({"vertices": loop, "segments": ring}, f"pq{min_angle:g}a{area:.12g}YQ")
+        # the area in fixed point: Triangle's switch parser stops at an exponent ("a9.7e-05" read as 9.7 m^2), which
+        # left panels meshed at edges under 1.55 cm with their outline's points alone
+        out = triangle.triangulate({"vertices": loop, "segments": ring}, f"pq{min_angle:g}a{area:.15f}YQ")
         pts2d = np.asarray(out["vertices"], np.float64)
         if len(pts2d) < n or not np.allclose(pts2d[:n], loop):
             raise PatternError(f"pattern.panels.{name}: the mesher moved the outline (self-intersecting outline?)")

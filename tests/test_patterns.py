@@ -76,12 +76,13 @@ def test_units_and_placement():
     np.testing.assert_allclose(turned.panels["p"].placement() @ [0.0, 1.0, 0.0], [0.0, 0.0, 1.0], atol=1e-12)
 
 
-@pytest.mark.parametrize("edge_length", [0.03, 0.017])
+@pytest.mark.parametrize("edge_length", [0.03, 0.017, 0.012, 0.006])
 def test_panels_mesh_with_matching_vertices_along_stitches(edge_length):
     """Check the meshed skirt: each stitched pair of edges has as many vertices on both sides, paired from the ends
     that meet (every pair of the side seams the same 30 cm apart, front to back); the outline keeps its sampled points
     (none added by the mesher) and each panel's triangles cover exactly the area inside it; edges near the target
-    length; texture coordinates are the panel's 2D points."""
+    length, also under 1.55 cm (where the area bound written with an exponent was read as square metres and the
+    panels kept their outline's points alone); texture coordinates are the panel's 2D points."""
     pattern = read_garmentcode(skirt_spec())
     m = mesh_pattern(pattern, edge_length)
     for a, b in pattern.stitches:
