@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .sewing import WELD_DISTANCE
+from .sewing import WELD_DISTANCE, widest_pair
 from .topology import SpringKind, joined_roots
 from .validation import LIMITS, InvalidValue, check_number
 
@@ -62,9 +62,7 @@ def seam_gap(builder, positions=None, particles=None) -> float:
     seams = builder.springs[builder.spring_kind == int(SpringKind.SEAM)]
     if particles is not None:
         seams = seams[np.asarray(particles)[seams[:, 0]]]
-    if len(seams) == 0:
-        return 0.0
-    return float(np.linalg.norm(x[seams[:, 0]] - x[seams[:, 1]], axis=1).max())
+    return widest_pair(x, seams)
 
 
 def dress(builder, seconds: float = 1.0, *, closing: float = 0.6, fps: float = 60.0, substeps: int = 2, damping: float = 6.0,

@@ -34,12 +34,17 @@ def seam_ends(model: Model) -> np.ndarray:
 
 
 def seam_gap(model: Model, positions, ends=None) -> float:
-    """The largest distance [m] between sewn particles at `positions` ((n, 3); 0 without seams)."""
-    ends = seam_ends(model) if ends is None else ends
-    if len(ends) == 0:
+    """The largest distance [m] between sewn particles at `positions` ((n, 3); 0 without seams; `ends`: the model's
+    :func:`seam_ends`, when known)."""
+    return widest_pair(positions, seam_ends(model) if ends is None else ends)
+
+
+def widest_pair(positions, pairs) -> float:
+    """The largest distance [m] between the two particles of any of `pairs` ((p, 2)) at `positions` (0 without any)."""
+    if len(pairs) == 0:
         return 0.0
     x = np.asarray(positions, np.float64)
-    return float(np.linalg.norm(x[ends[:, 0]] - x[ends[:, 1]], axis=1).max())
+    return float(np.linalg.norm(x[pairs[:, 0]] - x[pairs[:, 1]], axis=1).max())
 
 
 def welded_point_roots(model: Model, weld_distance: float = WELD_DISTANCE) -> np.ndarray:
