@@ -10,8 +10,9 @@ precision however the cloth around it is loaded. Points still open at the start 
 whole run: welding a seam point by point as it closes would lock the closed part rigid and leave the rest stuck open.
 
 The pass runs after the strain limiter and before the contact passes (:mod:`~cloth_warp.passes`), which get the last
-word (they move a sewn point's particles alike on a smooth body). Under ``wp.Tape`` the weld is an average and
-differentiates.
+word and keep the point whole: the collider pass moves particles that coincide alike, and self-collision gives a
+welded point's particles one velocity change (:class:`Weld` on its velocities). Under ``wp.Tape`` the weld is an
+average and differentiates.
 """
 
 from __future__ import annotations
