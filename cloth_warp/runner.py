@@ -309,13 +309,15 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
             from .cache import read_frames
 
             for k, (q, qd, diag) in enumerate(read_frames(source[0], model, source[1])):
-                writer.write(q, qd, diag, checkpoint=source[2] if k == source[1] - 1 else None)
+                with DeferredSignals(raise_after=True):
+                    writer.write(q, qd, diag, checkpoint=source[2] if k == source[1] - 1 else None)
                 max_strain = max(max_strain, float(diag.get("maxStrain") or 0.0))
                 if k > 0:
                     resumed_limit.append(diag)
             first = summary["frames"] = summary["resumed_frames"] = source[1] - 1
         else:
-            writer.write(sim.state.particle_q.numpy(), sim.state.particle_qd.numpy(), checkpoint=sim.checkpoint())
+            with DeferredSignals(raise_after=True):
+                writer.write(sim.state.particle_q.numpy(), sim.state.particle_qd.numpy(), checkpoint=sim.checkpoint())
         for f in range(first, n_frames):
             with stage("frame"):
                 stats = sim.step_frame()
@@ -329,7 +331,9 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
             if len(seams):
                 diag["seamGap"] = seam_gap(model, q, seams)
                 worst_seam = max(worst_seam, diag["seamGap"])
-            with stage("cache"):
+            # a frame is written whole: Ctrl-C waits for it (one inside numpy's zip writer of the checkpoint turned
+            # into a ValueError, exit 1 with a traceback instead of 130)
+            with stage("cache"), DeferredSignals() as held:
                 writer.write(q, sim.state.particle_qd.numpy(), diag,
                              checkpoint=sim.checkpoint() if writer.save_due else None)
             for key in COLLISION_COUNTERS + SOLVE_CONTACT_COUNTERS:
@@ -343,6 +347,8 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
             if progress is not None:
                 summary["wall_s"] = time.perf_counter() - t_loop
                 progress(f + 1, n_frames, summary)
+            if held.pending:  # (the frame counted, then the interrupt)
+                raise KeyboardInterrupt
         summary["status"] = "complete"
         cusick = scene.data.get("measure", {}).get("cusick")
         if cusick is not None:

@@ -240,6 +240,32 @@ def test_ctrl_c_at_any_moment(tmp_path, delay):
     assert not list(tmp_path.glob("*.partial-*"))
 
 
+def test_ctrl_c_while_a_frame_is_written_keeps_that_frame(tmp_path, monkeypatch):
+    """Check a SIGINT that arrives while a frame's checkpoint is packed (inside numpy's zip writer, where a
+    KeyboardInterrupt turned into "ValueError: Can't close the ZIP file" and exit 1): the frame is written whole, then
+    the run stops as interrupted with a valid cache holding it."""
+    import cloth_warp.cache as cache_module
+    from cloth_warp.runner import run_scene
+
+    pack = cache_module.pack_checkpoint
+    calls = []
+
+    def pack_interrupted(checkpoint):
+        calls.append(1)
+        if len(calls) == 3:  # the third save's checkpoint: the signal lands mid-write
+            os.kill(os.getpid(), signal.SIGINT)
+        return pack(checkpoint)
+
+    monkeypatch.setattr(cache_module, "pack_checkpoint", pack_interrupted)
+    out = tmp_path / "cut.usdc"
+    with pytest.raises(KeyboardInterrupt) as info:
+        run_scene(HANG, {"cloth.grid.resolution": [8, 8], "output.save_every": 2}, output=out, frames=40)
+    assert info.value.summary["status"] == "interrupted"
+    reader = CacheReader(out)
+    assert reader.metadata["status"] == "interrupted" and reader.frame_count == info.value.summary["frames"] + 1
+    assert reader.frame_count >= 4 and np.isfinite(reader.points(reader.end_frame)).all()
+
+
 # -- resume and determinism ------------------------------------------------------------------------------------
 
 def _cache_arrays(path):
