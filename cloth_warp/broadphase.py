@@ -19,6 +19,23 @@ def _next_pow2(n: int) -> int:
     return 1 << max(int(n) - 1, 1).bit_length()
 
 
+def exclusive_scan(counts: wp.array, offsets_out: wp.array, tile_totals: wp.array, tiled: bool | None = None) -> None:
+    """offsets_out[i] = sum of counts[:i] (int32), allocating nothing: on CUDA three launches over fixed buffers
+    (`tile_totals`: ceil(n / SCAN_TILE) entries), so a graph can record it inside a conditional node, where
+    ``wp.utils.array_scan`` (CUB's temporary storage, allocated per call) is refused; on the CPU (`tiled` None)
+    ``wp.utils.array_scan``, which allocates nothing there and keeps CPU frames bit-identical to earlier ones."""
+    dev = counts.device
+    n = counts.shape[0]
+    if not (dev.is_cuda if tiled is None else tiled):
+        wp.utils.array_scan(counts, offsets_out, inclusive=False)
+        return
+    tiles = (n + kb.SCAN_TILE - 1) // kb.SCAN_TILE
+    wp.launch_tiled(kb.scan_tiles, dim=[tiles], inputs=[counts], outputs=[offsets_out, tile_totals], block_dim=256, device=dev,
+                    record_tape=False)
+    wp.launch(kb.scan_tile_totals, dim=1, inputs=[tiles], outputs=[tile_totals], device=dev, record_tape=False)
+    wp.launch(kb.add_tile_offsets, dim=n, inputs=[tile_totals], outputs=[offsets_out], device=dev, record_tape=False)
+
+
 class ElementSet:
     """Elements (rows of up to three vertex indices, -1 padded) and their per-step boxes and voxels;
     with `grid=True` also the hash-grid entries other elements search."""
@@ -47,6 +64,7 @@ class ElementSet:
         self.cell_hi = wp.zeros(n, dtype=wp.vec3i, device=device)
         self.cell_count = wp.zeros(n, dtype=wp.int32, device=device)
         self.offsets = wp.zeros(n, dtype=wp.int32, device=device)
+        self.tile_totals = wp.zeros((n + kb.SCAN_TILE - 1) // kb.SCAN_TILE, dtype=wp.int32, device=device)  # exclusive_scan's
         self.grid = grid
         self.entries = 0
         if grid:
@@ -116,7 +134,7 @@ class ElementSet:
         if not self.grid:
             return
         cap = self.entry_capacity
-        wp.utils.array_scan(self.cell_count, self.offsets, inclusive=False)
+        exclusive_scan(self.cell_count, self.offsets, self.tile_totals)
         wp.launch(kb.entry_total, dim=1, inputs=[self.cell_count, self.offsets, self.count, cap, slot], outputs=[self.entry_count, overflow],
                   device=dev, record_tape=False)
         wp.launch(kb.fill_cells, dim=self.count, inputs=[self.cell_lo, self.cell_hi, self.offsets, self.table_size - 1, cap],

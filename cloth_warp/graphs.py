@@ -14,7 +14,8 @@ def device_while(condition: wp.array, body, **kwargs) -> None:
     the same kernels in the same order, so eager and replayed results are bit for bit the same."""
     device = condition.device
     if device.is_capturing or not device.is_cpu:
-        wp.capture_while(condition, body, **kwargs)
+        # a one-element view: eagerly, Warp copies the whole condition array into a one-element pinned buffer
+        wp.capture_while(condition[:1], body, **kwargs)
         return
     flag = condition.numpy()  # a view: it sees every kernel's write
     while flag[0]:

@@ -437,3 +437,36 @@ def copy_pairs_listed(count: wp.array(dtype=wp.int32), pairs: wp.array(dtype=wp.
         count_out[0] = n
     if tid < n:
         pairs_out[tid] = pairs[tid]
+
+
+# -- an exclusive prefix sum that allocates nothing (capturable inside a conditional graph node) ----------------------
+# wp.utils.array_scan takes CUB's temporary storage from the allocator on every call; inside a CUDA graph's
+# conditional body (a `wp.capture_if`/`capture_while` branch) an allocation node is not allowed. Three launches
+# with fixed buffers instead: each tile of SCAN_TILE counts scanned in shared memory and its total kept, the
+# totals scanned by one thread (a 128^2 cloth's 32 k triangles are 32 tiles), the tile's offset added.
+SCAN_TILE = wp.constant(1024)
+
+
+@wp.kernel(enable_backward=False)
+def scan_tiles(counts: wp.array(dtype=wp.int32), scanned_out: wp.array(dtype=wp.int32), tile_totals_out: wp.array(dtype=wp.int32)):
+    """Launched tiled over ceil(n / SCAN_TILE) blocks: exclusive scan within each tile, and its total."""
+    b = wp.tid()
+    t = wp.tile_load(counts, shape=SCAN_TILE, offset=b * SCAN_TILE)  # past the end: zeros
+    wp.tile_store(scanned_out, wp.tile_scan_exclusive(t), offset=b * SCAN_TILE)  # past the end: not stored
+    wp.tile_store(tile_totals_out, wp.tile_sum(t), offset=b)
+
+
+@wp.kernel(enable_backward=False)
+def scan_tile_totals(tile_count: int, tile_totals_out: wp.array(dtype=wp.int32)):
+    """One thread: the tile totals in place to their exclusive prefix sums."""
+    total = int(0)
+    for b in range(tile_count):
+        c = tile_totals_out[b]
+        tile_totals_out[b] = total
+        total += c
+
+
+@wp.kernel(enable_backward=False)
+def add_tile_offsets(tile_offsets: wp.array(dtype=wp.int32), scanned_out: wp.array(dtype=wp.int32)):
+    i = wp.tid()
+    scanned_out[i] = scanned_out[i] + tile_offsets[i // SCAN_TILE]

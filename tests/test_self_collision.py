@@ -10,7 +10,7 @@ import warp as wp
 from intersections import intersecting_pairs
 
 import cloth_warp as cw
-from cloth_warp.broadphase import SelfCollisionGrid, unique_edges
+from cloth_warp.broadphase import SelfCollisionGrid, exclusive_scan, unique_edges
 from cloth_warp.collision import penetration_depths
 from cloth_warp.drape import drape_coefficient
 from cloth_warp.runner import find_scene
@@ -136,6 +136,18 @@ def one_step(model, dt, **solver_options):
     s0, s1 = model.state(), model.state()
     solver.step(s0, s1, model.control(), dt)
     return solver, s0, s1
+
+
+@pytest.mark.parametrize("n", [1, 1023, 1024, 1025, 40_000])
+def test_allocation_free_scan_is_the_exclusive_prefix_sum(n, device):
+    """The tiled scan the capturable broad phase records inside conditional graph nodes (where CUB's per-call
+    temporary allocation is refused on CUDA) is np.cumsum shifted by one, at tile boundaries too; forced on the
+    CPU as well so that it is checked without a GPU."""
+    counts = np.random.default_rng(n).integers(0, 9, n).astype(np.int32)
+    a = wp.array(counts, dtype=wp.int32, device=device)
+    out = wp.full(n, -7, dtype=wp.int32, device=device)
+    exclusive_scan(a, out, wp.zeros((n + 1023) // 1024, dtype=wp.int32, device=device), tiled=True)
+    np.testing.assert_array_equal(out.numpy(), np.concatenate([[0], np.cumsum(counts)[:-1]]))
 
 
 def test_point_triangle_ccd_finds_the_degenerate_cubic_root(device):
