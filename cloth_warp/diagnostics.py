@@ -44,7 +44,7 @@ class Diagnostics:
 
     def __init__(self, model: Model):
         self.model = model
-        self.stats = wp.zeros(5, dtype=float, device=model.device)
+        self.stats = wp.zeros(kd.STAT_MAXIMA + kd.STAT_SUMS, dtype=float, device=model.device)
         mass = model.particle_mass.numpy().astype(np.float64)
         free = model.particle_pinned.numpy() == 0
         self.total_mass_free = float(mass[free].sum())
@@ -73,7 +73,7 @@ class Diagnostics:
             inputs=[m.particle_spring_offsets, m.particle_spring_ids, m.particle_spring_role, m.spring_indices, m.spring_rest_length,
                     m.spring_limited, m.particle_mass, m.particle_pinned, state.particle_q, state.particle_qd, self._gravity,
                     self._origin],
-            outputs=[self.stats],
+            outputs=[self.stats[: kd.STAT_MAXIMA], self.stats[kd.STAT_MAXIMA :]],
             device=m.device,
         )
 
@@ -84,7 +84,9 @@ class Diagnostics:
     def read(self) -> StepStats:
         """The statistics the last :meth:`launch` measured (one 20-byte read, or the frame record's copy)."""
         s = record_values(self.stats)
-        return StepStats(float(s[0]), float(s[1]), float(s[2]), int(s[3]), float(s[4]) - self._potential0)
+        maxima, sums = s[: kd.STAT_MAXIMA], s[kd.STAT_MAXIMA :]
+        return StepStats(float(maxima[kd.STAT_MAX_STRAIN]), float(sums[kd.STAT_KINETIC_ENERGY]), float(maxima[kd.STAT_MAX_SPEED]),
+                         int(sums[kd.STAT_NONFINITE]), float(sums[kd.STAT_GRAVITY_POTENTIAL]) - self._potential0)
 
 
 @dataclass(frozen=True)

@@ -4,11 +4,15 @@ import warp as wp
 
 wp.set_module_options({"enable_backward": False})
 
-STAT_MAX_STRAIN = wp.constant(0)
-STAT_KINETIC_ENERGY = wp.constant(1)
-STAT_MAX_SPEED = wp.constant(2)
-STAT_NONFINITE = wp.constant(3)
-STAT_GRAVITY_POTENTIAL = wp.constant(4)
+# The statistics block: the maxima first (atomic max), then the sums (atomic add); the kernel takes the two parts as
+# two disjoint views, since Warp's deterministic mode takes one kind of atomic per array.
+STAT_MAX_STRAIN = wp.constant(0)  # of the maxima
+STAT_MAX_SPEED = wp.constant(1)
+STAT_MAXIMA = 2
+STAT_KINETIC_ENERGY = wp.constant(0)  # of the sums
+STAT_NONFINITE = wp.constant(1)
+STAT_GRAVITY_POTENTIAL = wp.constant(2)
+STAT_SUMS = 3
 
 
 @wp.kernel
@@ -28,16 +32,17 @@ def eval_step_statistics(
     gravity: wp.vec3,
     origin: wp.vec3,
     # outputs (zeroed by the caller)
-    stats_out: wp.array(dtype=float),
+    maxima_out: wp.array(dtype=float),
+    sums_out: wp.array(dtype=float),
 ):
-    """Max structural/shear strain, kinetic energy and max speed of free particles, non-finite count, and
-    sum over free particles of m g . (x - origin) (the work gravity did on them is its change) [J]."""
+    """Maxima: structural/shear strain and speed of free particles; sums: kinetic energy of free particles,
+    non-finite count, and over free particles m g . (x - origin) (the work gravity did on them is its change) [J]."""
     i = wp.tid()
     xi = x[i]
     vi = v[i]
     finite = wp.isfinite(xi) and wp.isfinite(vi)
     if not finite:
-        wp.atomic_add(stats_out, STAT_NONFINITE, 1.0)
+        wp.atomic_add(sums_out, STAT_NONFINITE, 1.0)
         return
     strain = float(0.0)
     for k in range(spring_offsets[i], spring_offsets[i + 1]):
@@ -45,9 +50,9 @@ def eval_step_statistics(
         role = spring_role[k]
         if spring_limited[s] != 0 and role == 0:  # each spring once, from its first endpoint
             strain = wp.max(strain, wp.length(xi - x[spring_indices[s, 1]]) / spring_rest_length[s] - 1.0)
-    wp.atomic_max(stats_out, STAT_MAX_STRAIN, strain)
+    wp.atomic_max(maxima_out, STAT_MAX_STRAIN, strain)
     if particle_pinned[i] == 0:
         speed2 = wp.dot(vi, vi)
-        wp.atomic_add(stats_out, STAT_KINETIC_ENERGY, 0.5 * particle_mass[i] * speed2)
-        wp.atomic_max(stats_out, STAT_MAX_SPEED, wp.sqrt(speed2))
-        wp.atomic_add(stats_out, STAT_GRAVITY_POTENTIAL, particle_mass[i] * wp.dot(gravity, xi - origin))
+        wp.atomic_add(sums_out, STAT_KINETIC_ENERGY, 0.5 * particle_mass[i] * speed2)
+        wp.atomic_max(maxima_out, STAT_MAX_SPEED, wp.sqrt(speed2))
+        wp.atomic_add(sums_out, STAT_GRAVITY_POTENTIAL, particle_mass[i] * wp.dot(gravity, xi - origin))

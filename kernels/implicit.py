@@ -602,30 +602,44 @@ def cg_update(
     precond: wp.array(dtype=wp.mat33),
     search: wp.array(dtype=wp.vec3),
     loop: wp.array(dtype=wp.int32),
+    cg_scalars: wp.array2d(dtype=wp.float64),
     # outputs (updated in place: forward-only solve, its gradient comes from an adjoint solve)
     product_out: wp.array(dtype=wp.vec3),
     dv_out: wp.array(dtype=wp.vec3),
     residual_out: wp.array(dtype=wp.vec3),
     preconditioned_out: wp.array(dtype=wp.vec3),
-    cg_scalars_out: wp.array2d(dtype=wp.float64),
 ):
-    """alpha = r.s / c.Ac; dv += alpha c; r -= alpha q; s = P r; accumulate r.s and r.r (iteration loop[LOOP_ITERATION]).
-    q (`cg_product`) is read and cleared: the next iteration's scatter starts from zero."""
+    """alpha = r.s / c.Ac; dv += alpha c; r -= alpha q; s = P r (iteration loop[LOOP_ITERATION]); `cg_residual_dots`
+    then accumulates r.s and r.r (a kernel of its own: Warp's deterministic mode refuses an array both read and
+    atomically updated in one kernel). q (`cg_product`) is read and cleared: the next iteration's scatter starts
+    from zero."""
     i = wp.tid()
     q = product_out[i]
     product_out[i] = wp.vec3(0.0)
     iteration = loop[LOOP_ITERATION]
-    cac = cg_scalars_out[iteration, CG_CAC]
+    cac = cg_scalars[iteration, CG_CAC]
     alpha = float(0.0)
     if cac > wp.float64(0.0):
-        alpha = float(cg_scalars_out[iteration, CG_RS] / cac)
+        alpha = float(cg_scalars[iteration, CG_RS] / cac)
     dv_out[i] = dv_out[i] + alpha * search[i]
     r = residual_out[i] - alpha * q
     residual_out[i] = r
-    s = precond[i] * r  # (filtered on a contact: `filter_contact_preconditioner`)
-    preconditioned_out[i] = s
-    wp.atomic_add(cg_scalars_out, iteration + 1, CG_RS, wp.float64(wp.dot(r, s)))
-    wp.atomic_add(cg_scalars_out, iteration + 1, CG_RR, wp.float64(wp.dot(r, r)))
+    preconditioned_out[i] = precond[i] * r  # (filtered on a contact: `filter_contact_preconditioner`)
+
+
+@wp.kernel(enable_backward=False)
+def cg_residual_dots(
+    residual: wp.array(dtype=wp.vec3),
+    preconditioned: wp.array(dtype=wp.vec3),
+    loop: wp.array(dtype=wp.int32),
+    cg_scalars_out: wp.array2d(dtype=wp.float64),
+):
+    """r.s and r.r of the updated residual into row loop[LOOP_ITERATION] + 1 (the next iteration's)."""
+    i = wp.tid()
+    r = residual[i]
+    row = loop[LOOP_ITERATION] + 1
+    wp.atomic_add(cg_scalars_out, row, CG_RS, wp.float64(wp.dot(r, preconditioned[i])))
+    wp.atomic_add(cg_scalars_out, row, CG_RR, wp.float64(wp.dot(r, r)))
 
 
 @wp.kernel(enable_backward=False)

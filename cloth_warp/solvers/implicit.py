@@ -417,8 +417,10 @@ class SolverImplicitEuler(SolverBase):
                   inputs=[m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, c, self.contact_normal, int(self._contacts_on),
                           m.global_damping, dt, self.loop],
                   outputs=[q, self.cg_scalars], device=dev)
-        wp.launch(ki.cg_update, dim=m.particle_count, inputs=[self.precond, c, self.loop],
-                  outputs=[q, self.dv, self.residual, self.preconditioned, self.cg_scalars], device=dev)
+        wp.launch(ki.cg_update, dim=m.particle_count, inputs=[self.precond, c, self.loop, self.cg_scalars],
+                  outputs=[q, self.dv, self.residual, self.preconditioned], device=dev)
+        wp.launch(ki.cg_residual_dots, dim=m.particle_count, inputs=[self.residual, self.preconditioned, self.loop],
+                  outputs=[self.cg_scalars], device=dev)
         wp.launch(ki.end_cg_iteration, dim=1, inputs=[self.cg_scalars, self.check_every, self.max_iterations],
                   outputs=[self.solve_status, self.loop], device=dev)
         wp.launch(ki.cg_direction, dim=m.particle_count, inputs=[self.preconditioned, self.cg_scalars, self.loop], outputs=[c],
