@@ -20,6 +20,8 @@ absolute times, are the result (these machines are noisy).
 Run:  python benchmarks/bench_step.py --ref e899fc8 --frames 10        (all scenes; a few minutes on 2 cores)
       python benchmarks/bench_step.py --scenes hanging_cloth drape_sphere --frames 5 --no-cold-start
       python benchmarks/bench_step.py --scenes hanging_cloth --profile   (per-stage table, frames not captured)
+      python benchmarks/bench_step.py --device cuda:0 --scenes pile --set cloth.grid.resolution=[128,128] --out X.md
+                                                                          (scene values overridden as `cloth-warp run --set`)
 """
 
 from __future__ import annotations
@@ -60,6 +62,8 @@ def parse_args(argv=None):
     p.add_argument("--ref", metavar="REV", default=None, help="also measure git revision REV (a temporary worktree) and print new/ref")
     p.add_argument("--profile", action="store_true", help="also time the step's stages (cloth_warp.profiling.stage) over --frames "
                    "more frames run without graph capture, and print the per-stage table")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a scene value in every scene measured, as `cloth-warp run --set` (repeatable)")
     p.add_argument("--no-cold-start", action="store_true", help="skip the cold-start measurement (empty kernel cache)")
     p.add_argument("--out", default=None, help="default benchmarks/results/bench_step[_cuda].md (and .json beside it)")
     # internal: the worker processes
@@ -108,7 +112,7 @@ def _stage_module(counter_module):
 class Bench:
     """One scene in a worker: the model, solver and Simulator built as `cloth-warp run` builds them."""
 
-    def __init__(self, scene_name: str, device: str):
+    def __init__(self, scene_name: str, device: str, overrides: dict | None = None):
         import warp as wp
 
         from cloth_warp.runner import find_scene, load_kernels
@@ -116,7 +120,7 @@ class Bench:
 
         self.wp = wp
         t = time.perf_counter()
-        self.scene = load_scene(find_scene(scene_name))
+        self.scene = load_scene(find_scene(scene_name), overrides or None)
         self.model = build_model(self.scene, device)
         self.solver = build_solver(self.scene, self.model)
         self.compile_s = load_kernels(self.solver, self.model.device)
@@ -170,7 +174,7 @@ def worker_main(args) -> None:
                 return
             if op == "setup":
                 bench = None
-                bench = Bench(cmd["scene"], cmd["device"])
+                bench = Bench(cmd["scene"], cmd["device"], cmd.get("overrides"))
                 for _ in range(cmd["warmup"]):
                     bench.frame()
                 sim = bench.sim
@@ -182,7 +186,9 @@ def worker_main(args) -> None:
                         seconds = bench.frame()
                     reply({"s": seconds, "counts": counts.to_dict()})
                 else:
-                    reply({"s": bench.frame()})
+                    seconds = bench.frame()
+                    report = getattr(bench.sim, "frame_report", None)  # linear-solver iterations of the frame, re-runs
+                    reply({"s": seconds, "its": getattr(report, "iterations", None), "reruns": getattr(report, "reruns", None)})
             elif op == "profile":
                 from cloth_warp.scene import build_solver
 
@@ -311,10 +317,11 @@ def per_frame(counts: list[dict]) -> dict:
 def measure_scene(workers: dict[str, Worker], scene: str, args) -> dict:
     row = {"scene": scene}
     for label, w in workers.items():
-        r = w.ask(op="setup", scene=scene, device=args.device, warmup=args.warmup)
+        r = w.ask(op="setup", scene=scene, device=args.device, warmup=args.warmup, **({"overrides": args.overrides} if args.overrides else {}))
         row[label] = r
     live = [label for label in workers if "error" not in row[label]]
     times = {label: [] for label in live}
+    its = {label: [] for label in live}
     for i in range(args.frames):  # take turns frame by frame, the first of each pair alternating
         for label in (live if i % 2 == 0 else live[::-1]):
             r = workers[label].ask(op="frame")
@@ -323,6 +330,7 @@ def measure_scene(workers: dict[str, Worker], scene: str, args) -> dict:
                 live.remove(label)
                 continue
             times[label].append(r["s"])
+            its[label].append(r.get("its"))
     for label in list(live):
         counts = []
         for _ in range(args.count_frames):
@@ -336,7 +344,8 @@ def measure_scene(workers: dict[str, Worker], scene: str, args) -> dict:
             row[label]["per_frame"] = per_frame(counts)
     for label in live:
         t = times[label]
-        row[label].update(ms_frame=1e3 * statistics.median(t), ms_frame_min=1e3 * min(t), ms_frames=[1e3 * x for x in t])
+        row[label].update(ms_frame=1e3 * statistics.median(t), ms_frame_min=1e3 * min(t), ms_frames=[1e3 * x for x in t],
+                          its_frame=statistics.median(its[label]) if None not in its[label] else None)
         if args.profile:
             r = workers[label].ask(op="profile", frames=args.frames, warmup=args.warmup)
             row[label]["profile"] = r.get("profile") or {"error": r.get("error")}
@@ -350,6 +359,9 @@ def main():
     if args.cold_worker:
         return cold_worker_main(args)
     scenes = args.scenes or shipped_scenes()
+    from cloth_warp.cli import parse_set
+
+    args.overrides = parse_set(args.set)
     unknown = [s for s in scenes if not (ROOT / "scenes" / f"{s}.toml").is_file()]
     if unknown:
         sys.exit(f"bench_step: unknown scene(s) {', '.join(unknown)}; shipped: {', '.join(shipped_scenes())}")
@@ -444,16 +456,16 @@ def write_report(args, rows, cold, hellos):
         + (f" Reference: git revision `{args.ref}` in a temporary worktree, its worker taking turns with this tree's frame by "
            "frame (both see the same machine noise)." if has_ref else ""),
         "",
-        "| scene | particles | steps/frame | captured | ms/frame | " + ("ref ms/frame | new / ref |" if has_ref else ""),
-        "|---|---:|---:|---|---:|" + ("---:|---:|" if has_ref else ""),
+        "| scene | particles | steps/frame | captured | solver its/frame | ms/frame | " + ("ref ms/frame | new / ref |" if has_ref else ""),
+        "|---|---:|---:|---|---:|---:|" + ("---:|---:|" if has_ref else ""),
     ]
     for r in rows:
         new, ref = r.get("new", {}), r.get("ref", {})
         if "error" in new:
-            lines.append(f"| {r['scene']} | failed: {new['error']} | | | |" + (" | |" if has_ref else ""))
+            lines.append(f"| {r['scene']} | failed: {new['error']} | | | | |" + (" | |" if has_ref else ""))
             continue
         cap = ("yes" if new["capture"] else "no") + (f" (ref {'yes' if ref.get('capture') else 'no'})" if has_ref and "capture" in ref else "")
-        line = f"| {r['scene']} | {new['particles']} | {new['substeps']} | {cap} | {new['ms_frame']:.1f} |"
+        line = f"| {r['scene']} | {new['particles']} | {new['substeps']} | {cap} | {_num(new.get('its_frame'), '{:.0f}')} | {new['ms_frame']:.1f} |"
         if has_ref:
             line += (f" failed: {ref['error']} | |" if "error" in ref else f" {ref['ms_frame']:.1f} | {new['ms_frame'] / ref['ms_frame']:.2f} |")
         lines.append(line)
