@@ -157,9 +157,19 @@ def reset_strain_excess(excess_out: wp.array(dtype=float)):
     excess_out[1] = EXCESS_FLOOR
 
 
+@wp.func
+def strain_excess(s: int, spring_indices: wp.array2d(dtype=wp.int32), spring_rest_length: wp.array(dtype=float),
+                  spring_limited: wp.array(dtype=wp.int32), x: wp.array(dtype=wp.vec3), max_strain: float):
+    """l / L - 1 - max_strain of spring s; EXCESS_FLOOR when it is not limited."""
+    if spring_limited[s] == 0:
+        return EXCESS_FLOOR
+    return wp.length(x[spring_indices[s, 0]] - x[spring_indices[s, 1]]) / spring_rest_length[s] - 1.0 - max_strain
+
+
 @wp.kernel(enable_backward=False)
 def eval_strain_excess_kinds(
     # Model
+    spring_count: int,
     spring_indices: wp.array2d(dtype=wp.int32),
     spring_rest_length: wp.array(dtype=float),
     spring_limited: wp.array(dtype=wp.int32),
@@ -170,13 +180,43 @@ def eval_strain_excess_kinds(
     # outputs (reset by the caller)
     excess_out: wp.array(dtype=float),
 ):
-    """excess_out[k] = max over limited springs of kind k (0 structural, 1 shear) of l / L - 1 - max_strain."""
+    """excess_out[k] = max over limited springs of kind k (0 structural, 1 shear) of l / L - 1 - max_strain; one
+    thread per spring (the CPU's form; see cloth_warp.reductions)."""
     s = wp.tid()
     if spring_limited[s] == 0:
         return
-    slot = wp.min(spring_kind[s], 1)
-    length = wp.length(x[spring_indices[s, 0]] - x[spring_indices[s, 1]])
-    wp.atomic_max(excess_out, slot, length / spring_rest_length[s] - 1.0 - max_strain)
+    wp.atomic_max(excess_out, wp.min(spring_kind[s], 1), strain_excess(s, spring_indices, spring_rest_length, spring_limited, x, max_strain))
+
+
+@wp.kernel(enable_backward=False)
+def eval_strain_excess_kinds_blocks(
+    # Model
+    spring_count: int,
+    spring_indices: wp.array2d(dtype=wp.int32),
+    spring_rest_length: wp.array(dtype=float),
+    spring_limited: wp.array(dtype=wp.int32),
+    spring_kind: wp.array(dtype=wp.int32),
+    # State
+    x: wp.array(dtype=wp.vec3),
+    max_strain: float,
+    # outputs (reset by the caller)
+    excess_out: wp.array(dtype=float),
+):
+    """:func:`eval_strain_excess_kinds` with the maxima taken per block, then once per block (the GPU's form)."""
+    block, lane = wp.tid()
+    s = block * wp.block_dim() + lane
+    structural = EXCESS_FLOOR
+    shear = EXCESS_FLOOR
+    if s < spring_count:
+        if spring_kind[s] == 0:
+            structural = strain_excess(s, spring_indices, spring_rest_length, spring_limited, x, max_strain)
+        else:
+            shear = strain_excess(s, spring_indices, spring_rest_length, spring_limited, x, max_strain)
+    structural = wp.tile_extract(wp.tile_max(wp.tile(structural)), 0)
+    shear = wp.tile_extract(wp.tile_max(wp.tile(shear)), 0)
+    if lane == 0:
+        wp.atomic_max(excess_out, 0, structural)
+        wp.atomic_max(excess_out, 1, shear)
 
 
 @wp.func

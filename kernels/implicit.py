@@ -566,9 +566,36 @@ def scatter_drag_product(
     wp.atomic_add(product_out, c[2], w[2] * y)
 
 
+@wp.func
+def cg_product_row(
+    i: int,
+    particle_mass: wp.array(dtype=float),
+    particle_pin_stiffness: wp.array(dtype=float),
+    particle_pinned: wp.array(dtype=wp.int32),
+    search: wp.array(dtype=wp.vec3),
+    contact_normal: wp.array(dtype=wp.vec3),
+    filtered: int,
+    global_damping: float,
+    dt: float,
+    product_out: wp.array(dtype=wp.vec3),
+):
+    """Row i of q = S A c (the mass term added to the scattered element part, pinned rows filtered) into
+    product_out; returns c_i . q_i."""
+    if particle_pinned[i] != 0:
+        product_out[i] = wp.vec3(0.0)
+        return wp.float64(0.0)
+    c = search[i]
+    q = effective_mass(i, particle_mass, particle_pin_stiffness, global_damping, dt) * c + product_out[i]
+    if filtered != 0:  # collider contacts in the solve (`contact_normal`; the per-particle read only then)
+        q = contact_filter(contact_normal[i], q)
+    product_out[i] = q
+    return wp.float64(wp.dot(c, q))
+
+
 @wp.kernel(enable_backward=False)
 def cg_product(
     # Model
+    particle_count: int,
     particle_mass: wp.array(dtype=float),
     particle_pin_stiffness: wp.array(dtype=float),
     particle_pinned: wp.array(dtype=wp.int32),
@@ -582,19 +609,41 @@ def cg_product(
     product_out: wp.array(dtype=wp.vec3),
     cg_scalars_out: wp.array2d(dtype=wp.float64),
 ):
-    """q = S A c (the mass term added to the scattered element part, pinned rows filtered) and c . q (row
-    loop[LOOP_ITERATION])."""
+    """q = S A c and c . q (row loop[LOOP_ITERATION]), one thread per particle (the CPU's form; see
+    cloth_warp.reductions)."""
     i = wp.tid()
-    iteration = loop[LOOP_ITERATION]
-    if particle_pinned[i] != 0:
-        product_out[i] = wp.vec3(0.0)
-        return
-    c = search[i]
-    q = effective_mass(i, particle_mass, particle_pin_stiffness, global_damping, dt) * c + product_out[i]
-    if filtered != 0:  # collider contacts in the solve (`contact_normal`; the per-particle read only then)
-        q = contact_filter(contact_normal[i], q)
-    product_out[i] = q
-    wp.atomic_add(cg_scalars_out, iteration, CG_CAC, wp.float64(wp.dot(c, q)))
+    cq = cg_product_row(i, particle_mass, particle_pin_stiffness, particle_pinned, search, contact_normal, filtered, global_damping,
+                        dt, product_out)
+    wp.atomic_add(cg_scalars_out, loop[LOOP_ITERATION], CG_CAC, cq)
+
+
+@wp.kernel(enable_backward=False)
+def cg_product_blocks(
+    # Model
+    particle_count: int,
+    particle_mass: wp.array(dtype=float),
+    particle_pin_stiffness: wp.array(dtype=float),
+    particle_pinned: wp.array(dtype=wp.int32),
+    search: wp.array(dtype=wp.vec3),
+    contact_normal: wp.array(dtype=wp.vec3),
+    filtered: int,
+    global_damping: float,
+    dt: float,
+    loop: wp.array(dtype=wp.int32),
+    # outputs: holds the element part (the scatter_*_product kernels) on entry, q on exit
+    product_out: wp.array(dtype=wp.vec3),
+    cg_scalars_out: wp.array2d(dtype=wp.float64),
+):
+    """:func:`cg_product` with c . q summed per block and added once per block (the GPU's form)."""
+    block, lane = wp.tid()
+    i = block * wp.block_dim() + lane
+    cq = wp.float64(0.0)
+    if i < particle_count:
+        cq = cg_product_row(i, particle_mass, particle_pin_stiffness, particle_pinned, search, contact_normal, filtered, global_damping,
+                            dt, product_out)
+    total = wp.tile_extract(wp.tile_sum(wp.tile(cq)), 0)
+    if lane == 0:
+        wp.atomic_add(cg_scalars_out, loop[LOOP_ITERATION], CG_CAC, total)
 
 
 @wp.kernel(enable_backward=False)
@@ -629,17 +678,44 @@ def cg_update(
 
 @wp.kernel(enable_backward=False)
 def cg_residual_dots(
+    particle_count: int,
     residual: wp.array(dtype=wp.vec3),
     preconditioned: wp.array(dtype=wp.vec3),
     loop: wp.array(dtype=wp.int32),
     cg_scalars_out: wp.array2d(dtype=wp.float64),
 ):
-    """r.s and r.r of the updated residual into row loop[LOOP_ITERATION] + 1 (the next iteration's)."""
+    """r.s and r.r of the updated residual into row loop[LOOP_ITERATION] + 1 (the next iteration's), one thread
+    per particle (the CPU's form; see cloth_warp.reductions)."""
     i = wp.tid()
     r = residual[i]
     row = loop[LOOP_ITERATION] + 1
     wp.atomic_add(cg_scalars_out, row, CG_RS, wp.float64(wp.dot(r, preconditioned[i])))
     wp.atomic_add(cg_scalars_out, row, CG_RR, wp.float64(wp.dot(r, r)))
+
+
+@wp.kernel(enable_backward=False)
+def cg_residual_dots_blocks(
+    particle_count: int,
+    residual: wp.array(dtype=wp.vec3),
+    preconditioned: wp.array(dtype=wp.vec3),
+    loop: wp.array(dtype=wp.int32),
+    cg_scalars_out: wp.array2d(dtype=wp.float64),
+):
+    """:func:`cg_residual_dots` summed per block and added once per block (the GPU's form)."""
+    block, lane = wp.tid()
+    i = block * wp.block_dim() + lane
+    rs = wp.float64(0.0)
+    rr = wp.float64(0.0)
+    if i < particle_count:
+        r = residual[i]
+        rs = wp.float64(wp.dot(r, preconditioned[i]))
+        rr = wp.float64(wp.dot(r, r))
+    rs_total = wp.tile_extract(wp.tile_sum(wp.tile(rs)), 0)
+    rr_total = wp.tile_extract(wp.tile_sum(wp.tile(rr)), 0)
+    if lane == 0:
+        row = loop[LOOP_ITERATION] + 1
+        wp.atomic_add(cg_scalars_out, row, CG_RS, rs_total)
+        wp.atomic_add(cg_scalars_out, row, CG_RR, rr_total)
 
 
 @wp.kernel(enable_backward=False)

@@ -6,6 +6,7 @@ and a replayed frame issues no eager work."""
 import numpy as np
 import pytest
 
+from cloth_warp import reductions
 from cloth_warp.collision import SelfCollisionPass
 from cloth_warp.profiling import LaunchCounter
 from intersections import intersecting_pairs
@@ -64,6 +65,18 @@ def test_replayed_frames_equal_uncaptured_frames(config):
         sim.step_frame()
     assert counts.replays == 1 and counts.eager == 0, counts.to_dict()
     assert counts.reads == 1, counts.to_dict()  # the frame's record block: statistics, solve record, every pass's counters
+
+
+@pytest.mark.parametrize("config", ["implicit_cg", "contacts_in_solve"])
+def test_block_reductions_give_the_per_thread_frames(config, monkeypatch):
+    """Check the CUDA form of the reducing kernels (CG dot products and the strain limiter's excess summed or
+    maximised per block, then one atomic per block: cloth_warp.reductions), forced on the CPU, where a block is
+    one thread, gives the per-thread form's frames bit for bit: the same values combined in the same order."""
+    name, overrides, frames = CONFIGS[config]
+    _, plain = run(name, overrides, frames, True)
+    monkeypatch.setattr(reductions, "USE_BLOCKS", True)
+    _, blocks = run(name, overrides, frames, True)
+    assert_same_frames(plain, blocks)
 
 
 def test_overflowing_buffers_grow_and_the_frame_equals_an_uncaptured_run():

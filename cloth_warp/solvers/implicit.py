@@ -14,6 +14,7 @@ from ..diagnostics import LinearSolveReport
 from ..graphs import device_while
 from ..profiling import stage
 from ..records import record_values
+from ..reductions import launch_reduction
 from ..topology import sewn_point_roots
 from ..kernels import forces as kf
 from ..kernels import contact as kct
@@ -413,14 +414,15 @@ class SolverImplicitEuler(SolverBase):
             wp.launch(ki.scatter_drag_product, dim=m.tri_count,
                       inputs=[m.tri_vertices, m.tri_corner_weights, self.drag_vector, c, dt], outputs=[q], device=dev)
         self._plate_product(c, dt, q)
-        wp.launch(ki.cg_product, dim=m.particle_count,
-                  inputs=[m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, c, self.contact_normal, int(self._contacts_on),
-                          m.global_damping, dt, self.loop],
-                  outputs=[q, self.cg_scalars], device=dev)
+        launch_reduction(ki.cg_product, ki.cg_product_blocks, m.particle_count,
+                         inputs=[m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, c, self.contact_normal, int(self._contacts_on),
+                                 m.global_damping, dt, self.loop],
+                         outputs=[q, self.cg_scalars], device=dev)
         wp.launch(ki.cg_update, dim=m.particle_count, inputs=[self.precond, c, self.loop, self.cg_scalars],
                   outputs=[q, self.dv, self.residual, self.preconditioned], device=dev)
-        wp.launch(ki.cg_residual_dots, dim=m.particle_count, inputs=[self.residual, self.preconditioned, self.loop],
-                  outputs=[self.cg_scalars], device=dev)
+        launch_reduction(ki.cg_residual_dots, ki.cg_residual_dots_blocks, m.particle_count,
+                         inputs=[self.residual, self.preconditioned, self.loop],
+                         outputs=[self.cg_scalars], device=dev)
         wp.launch(ki.end_cg_iteration, dim=1, inputs=[self.cg_scalars, self.check_every, self.max_iterations],
                   outputs=[self.solve_status, self.loop], device=dev)
         wp.launch(ki.cg_direction, dim=m.particle_count, inputs=[self.preconditioned, self.cg_scalars, self.loop], outputs=[c],

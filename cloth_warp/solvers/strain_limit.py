@@ -22,6 +22,7 @@ from ..kernels import constraints as kc
 from ..model import Control, Model, ModelFlags, State
 from ..passes import StepPass
 from ..records import record_values
+from ..reductions import launch_reduction
 
 DEFAULT_SWEEPS = 128
 """Cap of Gauss-Seidel sweeps per step (API and scene default)."""
@@ -217,9 +218,9 @@ class StrainLimiter(StepPass):
 
     def _measure(self, x):
         m = self.model
-        wp.launch(kc.eval_strain_excess_kinds, dim=m.spring_count,
-                  inputs=[m.spring_indices, m.spring_rest_length, m.spring_limited, m.spring_kind, x, self.max_strain],
-                  outputs=[self._excess], device=m.device, record_tape=False)
+        launch_reduction(kc.eval_strain_excess_kinds, kc.eval_strain_excess_kinds_blocks, m.spring_count,
+                         inputs=[m.spring_indices, m.spring_rest_length, m.spring_limited, m.spring_kind, x, self.max_strain],
+                         outputs=[self._excess], device=m.device)
 
     def _apply_forward(self, x_in, v_in, state_out: State, dt: float):
         """Forward-only path: sweeps in place on state_out, one thread per spring of a colour."""
