@@ -1,11 +1,21 @@
 """Shared fixtures: the device list (cpu always, cuda:0 when present) and model helpers."""
 
+import os
+
 import numpy as np
 import pytest
 import warp as wp
 
 wp.config.log_level = wp.LOG_WARNING
+# CLOTH_WARP_VERIFY_CUDA=1: a CUDA kernel that faults raises at its own launch, in its own test (a synchronisation
+# per launch), instead of poisoning the process's context for every later test of that worker
+wp.config.verify_cuda = bool(os.environ.get("CLOTH_WARP_VERIFY_CUDA"))
 wp.init()
+# Tests without a `device` parameter run on the CPU on every machine, as in CI: on a GPU machine Warp's default
+# device is cuda:0, and a helper array made without a device beside a CPU model was read by a kernel on the
+# wrong device (illegal memory accesses that poisoned the worker's CUDA context for every later test). The tests
+# that take `device` run on each device in DEVICES explicitly.
+wp.set_device("cpu")
 
 DEVICES = ["cpu"] + (["cuda:0"] if wp.is_cuda_available() else [])
 

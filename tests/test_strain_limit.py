@@ -146,7 +146,10 @@ def test_captured_frames_check_convergence_on_the_device(device):
             assert max(strain_excess(model, positions[-1], limit)) <= TOLERANCE + ROUND_OFF
         runs[path] = positions, reports, sim
     (x_eager, r_eager, _), (x_captured, r_captured, sim) = runs["eager"], runs["captured"]
-    tol = 0.0 if wp.get_device(device).is_cpu else 1e-5
+    # CUDA adds floating-point atomics in no fixed order, so two runs differ in the last bits from the first frame
+    # and the difference grows (benchmarks/results/bench_determinism_cuda.md: 7 mm after 63 frames of the 64^2
+    # hanging cloth); over these 15 frames of 20 substeps it reached 0.12 mm on an H100: 1 mm
+    tol = 0.0 if wp.get_device(device).is_cpu else 1e-3
     for a, b in zip(x_eager, x_captured):
         np.testing.assert_allclose(b, a, atol=tol, rtol=0.0)
     assert [r.sweeps for r in r_captured] == [r.sweeps for r in r_eager] or tol > 0.0
