@@ -10,6 +10,7 @@ import warp as wp
 from intersections import intersecting_pairs
 
 import cloth_warp as cw
+from cloth_warp.kernels import broadphase as kb
 from cloth_warp.broadphase import SelfCollisionGrid, exclusive_scan, unique_edges
 from cloth_warp.collision import penetration_depths
 from cloth_warp.drape import drape_coefficient
@@ -146,7 +147,7 @@ def test_allocation_free_scan_is_the_exclusive_prefix_sum(n, device):
     counts = np.random.default_rng(n).integers(0, 9, n).astype(np.int32)
     a = wp.array(counts, dtype=wp.int32, device=device)
     out = wp.full(n, -7, dtype=wp.int32, device=device)
-    exclusive_scan(a, out, wp.zeros((n + 1023) // 1024, dtype=wp.int32, device=device), tiled=True)
+    exclusive_scan(a, out, wp.zeros(-(-n // kb.SCAN_TILE), dtype=wp.int32, device=device), tiled=True)
     np.testing.assert_array_equal(out.numpy(), np.concatenate([[0], np.cumsum(counts)[:-1]]))
 
 
