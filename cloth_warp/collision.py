@@ -86,9 +86,9 @@ class SelfCollisionPass(StepPass):
 
     Report: :class:`~cloth_warp.diagnostics.SelfCollisionReport` (its counters summed since :meth:`reset_report`).
     After ``set_recordable(True)`` (the Simulator's fixed-step frames) forward steps take its capturable path
-    (fixed-capacity buffers, sweeps looping on the device); a frame in which a buffer overflowed or a step left
-    impacts for rigid impact zones is then re-run on the host path (see :mod:`~cloth_warp.passes`), the buffers
-    grown to what it needed. Otherwise (a step called directly, taped steps) it takes the host path.
+    (fixed-capacity buffers; sweeps and rigid impact zones looping on the device); a frame in which a buffer
+    overflowed is then re-run on the host path (see :mod:`~cloth_warp.passes`), the buffers grown to what it
+    needed. Otherwise (a step called directly, taped steps) it takes the host path.
 
     Args:
         pair_capacity: the capturable path's starting capacity of candidate pairs per kind (default: 4 per
@@ -121,7 +121,7 @@ class SelfCollisionPass(StepPass):
         self._recordable = self.self_collision.capturable = bool(on)
 
     def needs_rerun(self, report: SelfCollisionReport) -> bool:
-        return report.fallback_steps > 0 or bool(report.overflowed)
+        return bool(report.overflowed)
 
     def prepare_rerun(self, report: SelfCollisionReport) -> bool:
         grown = self.self_collision.grow(self._status)
@@ -152,7 +152,7 @@ class SelfCollisionPass(StepPass):
         self._status = status  # what prepare_rerun grows
         sc.host_counts = dict.fromkeys(sc.host_counts, 0)
         sc._grown0 = sc.grid.vertex_face.grown + sc.grid.edge_edge.grown
-        return SelfCollisionReport.from_counts(counts, status.fallback_steps, tuple(sorted(status.overflow)))
+        return SelfCollisionReport.from_counts(counts, tuple(sorted(status.overflow)))
 
     def checkpoint_state(self) -> dict:
         """The broad phase's buffer capacities and counters (see :meth:`SelfCollision.checkpoint_state

@@ -116,15 +116,13 @@ class SelfCollisionReport:
     broad_phase_builds: int
     broad_phase_patches: int
 
-    fallback_steps: int = 0
-    """Steps of the capturable path that left impacts for the host path's impact zones (the frame is re-run)."""
     overflowed: tuple = ()
     """The capturable path's buffers that were too small (the frame is re-run after they grow)."""
 
     @classmethod
-    def from_counts(cls, counts: dict, fallback_steps: int = 0, overflowed: tuple = ()) -> SelfCollisionReport:
-        named = {f.name: int(counts.get(f.name, 0)) for f in fields(cls) if f.name not in ("fallback_steps", "overflowed")}
-        return cls(**named, fallback_steps=int(fallback_steps), overflowed=tuple(overflowed))
+    def from_counts(cls, counts: dict, overflowed: tuple = ()) -> SelfCollisionReport:
+        named = {f.name: int(counts.get(f.name, 0)) for f in fields(cls) if f.name != "overflowed"}
+        return cls(**named, overflowed=tuple(overflowed))
 
     def counters(self) -> dict:
         return {f.name: getattr(self, f.name) for f in fields(self) if f.name != "overflowed"}

@@ -12,13 +12,14 @@ Per step, from the collision-free start x^n and the candidate end x~ (physics.md
 3. CCD sweeps on the trajectories x^n + t vbar: the first coplanar time at which the elements touch
    gets an inelastic impulse that leaves them separating at 10 % of the thickness per step; while
    impacts remain (up to `sweeps`) the sweep repeats on the pairs with a particle the last one moved;
-4. rigid impact zones: the particles of pairs still colliding are merged (union-find) into zones that
-   move rigidly with their linear and angular momentum (x = x_cm + h v_cm + R(h omega) r); detection
-   is repeated with the zones and zones merge until no impact remains;
+4. rigid impact zones: the particles of pairs still colliding are merged (connected components) into zones
+   that move rigidly with their linear and angular momentum (x = x_cm + h v_cm + R(h omega) r; a zone with
+   pinned particles moves with them); detection is repeated with the zones and zones merge until no impact
+   remains;
 5. x^{n+1} = x^n + h vbar, v^{n+1} = v~ + (vbar - vbar_candidate).
 
 Under ``wp.Tape`` steps 2-3 differentiate with the contact set held fixed; an impact zone's rigid
-motion is computed on the host, so the step passes no gradient to its particles' positions.
+motion is not differentiated, so the step passes no gradient to its particles' positions.
 Pinned particles have infinite mass (impulses never move them) and keep their motion in a zone.
 
 The capturable path (``SelfCollision(model, capturable=True)``, forward only) runs the same physics without
@@ -27,9 +28,11 @@ replayed: buffers have fixed capacities (what does not fit is dropped and the ne
 on the device, the CCD sweeps are a ``wp.capture_while`` loop, the broad phase is built in full on the
 device when the step's start positions are new; when end points left the margin it is patched on the device
 (``wp.capture_if``: the elements touching at most ``patch_limit`` escaped particles tested against every element)
-or, past that, built again; impacts left after the sweeps are not resolved but flagged. After the frame,
-:meth:`SelfCollision.status` (one read) says whether a buffer overflowed or a step needed impact zones;
-the caller then calls :meth:`SelfCollision.grow` and runs the frame again on the host path.
+or, past that, built again; impacts left after the sweeps form rigid impact zones on the device (a
+``capture_while`` loop of detection and merge rounds; zones merge by minimum-label propagation, their motion
+from float64 sums per zone: the same kernels as the host path's, whose zones come from
+:func:`connected_labels`). After the frame, :meth:`SelfCollision.status` (one read) says whether a buffer
+overflowed; the caller then calls :meth:`SelfCollision.grow` and runs the frame again on the host path.
 """
 
 from __future__ import annotations
@@ -67,14 +70,12 @@ class SelfCollisionStatus:
     overflow: dict = field(default_factory=dict)
     """Buffers that were too small: name ("points" / "edges": hash-grid entries, "vertex_face" / "edge_edge":
     candidate pairs) -> (entries or pairs needed, capacity). Their steps dropped candidates: run again."""
-    fallback_steps: int = 0
-    """Steps whose CCD sweeps left impacts (they need rigid impact zones, which only the host path has)."""
 
     @property
     def needs_rerun(self) -> bool:
         """The frame's result is not valid: grow the buffers (:meth:`SelfCollision.grow`) and run it again on the
         host path."""
-        return bool(self.overflow) or self.fallback_steps > 0
+        return bool(self.overflow)
 
 
 class SelfCollision:
@@ -133,6 +134,7 @@ class SelfCollision:
         implicit solve's self-contacts read their candidates (:meth:`contact_candidates`; set by that solver)."""
         self._flip = False
         self._fixed = None  # the capturable path's buffers (see _fixed_buffers)
+        self._sums = None  # impact zones' sums (see _zone_sums)
         self._fixed_step = None  # (x_start, dt) the capturable path's broad phase was built for
         weld = Weld(model)
         self.weld = weld if weld.points else None
@@ -199,6 +201,9 @@ class SelfCollision:
         out = {"self_proximity": int(c[ksc.COUNT_PROXIMITY]), "self_ccd": int(c[ksc.COUNT_CCD])}
         out.update(self.host_counts)
         out["self_sweeps"] += int(c[ksc.COUNT_SWEEPS])
+        out["impact_zones"] += int(c[ksc.COUNT_ZONES])
+        out["impact_zone_particles"] += int(c[ksc.COUNT_ZONE_PARTICLES])
+        out["unresolved"] += int(c[ksc.COUNT_UNRESOLVED])
         out["broad_phase_builds"] += int(c[ksc.COUNT_BUILDS])
         out["broad_phase_patches"] += int(c[ksc.COUNT_PATCHES])
         out["oversized"] = int(c[ksc.COUNT_OVERSIZED])
@@ -223,7 +228,7 @@ class SelfCollision:
     def _status_of(self, c: np.ndarray) -> SelfCollisionStatus:
         caps = self.capacities()
         overflow = {name: (int(c[slot]), caps[name]) for name, slot in BUFFERS.items() if int(c[slot]) > caps[name]}
-        return SelfCollisionStatus(overflow=overflow, fallback_steps=int(c[ksc.COUNT_FALLBACKS]))
+        return SelfCollisionStatus(overflow=overflow)
 
     def grow(self, status: SelfCollisionStatus | None = None) -> bool:
         """Grow the buffers that overflowed (`status`: default, read it now) to the next power of two of their need;
@@ -435,7 +440,9 @@ class SelfCollision:
         wp.launch(ksc.begin_sweeps, dim=1, inputs=[self.sweeps], outputs=[f.loop], device=dev, record_tape=False)
         self._sweep_fixed(first=True, weight=f.changed if resumed else None, **sweep)
         device_while(f.loop, self._sweep_fixed, first=False, weight=f.weight, **sweep)
-        # 4. impacts left: counted in the block (COUNT_FALLBACKS) for the caller to run the frame on the host path
+        # 4. impacts left: rigid impact zones, detection and merge rounds on the device
+        wp.launch(ksc.begin_zones, dim=1, inputs=[f.loop], outputs=[f.zones], device=dev, record_tape=False)
+        device_while(f.zones, self._zone_round_fixed, **sweep)
         wp.copy(f.resolved, f.vbar)
         self._resolved = (x_start, float(dt), f.resolved)
         wp.launch(ksc.finish_step, dim=n, inputs=[x_start, f.vbar, f.vbar0, v_end, dt], outputs=[x_out, v_out], device=dev)
@@ -461,6 +468,82 @@ class SelfCollision:
         wp.launch(ksc.apply_velocity_changes, dim=self.model.particle_count, inputs=[f.vbar, f.dv, f.weight], outputs=[f.vbar], device=dev)
         self._weld_velocity(f.vbar, f.vbar)
         wp.launch(ksc.end_sweep, dim=1, inputs=[self.sweeps], outputs=[f.loop, self.counts], device=dev, record_tape=False)
+
+    def _zone_round_fixed(self, x_start, dt, pad, tolerance, separation):
+        """One round of the capturable path's impact zones (the body of its ``capture_while`` loop): CCD on every close
+        pair with the zones so far (their own pairs skipped); where impacts remain, merge their particles into the
+        zones, move each zone rigidly and refresh the broad phase (``capture_if``); when none remain (or after
+        ``zone_iterations`` merges: counted unresolved), count the zones and clear them."""
+        f = self._fixed
+        dev = self.model.device
+        for kind in KINDS:
+            wp.launch(ksc.detect_impacts_listed, dim=f.close[kind].shape[0],
+                      inputs=[f.close_count[kind], f.close[kind], kind, self.tri_indices, self.edge_indices, self.inv_mass, f.zone, x_start,
+                              f.vbar, dt, tolerance, separation, f.dv, f.weight, f.scratch_counts],
+                      outputs=[f.hits[kind], self.counts, f.zones], device=dev, record_tape=False)
+        wp.launch(ksc.end_zone_detection, dim=1, inputs=[self.zone_iterations], outputs=[f.zones, self.counts], device=dev, record_tape=False)
+        wp.capture_if(f.zones[ksc.ZONE_MERGE:ksc.ZONE_MERGE + 1], on_true=self._merge_zones_fixed, x_start=x_start, dt=dt, pad=pad)
+        wp.capture_if(f.zones[ksc.ZONE_FINISH:ksc.ZONE_FINISH + 1], on_true=self._finish_zones_fixed)
+
+    def _merge_zones_fixed(self, x_start, dt, pad):
+        """The particles of the pairs the last detection flagged join zones (labels propagated to a fixed point on the
+        device), every zone takes its rigid motion, and the broad phase follows the new velocities."""
+        f = self._fixed
+        dev = self.model.device
+        wp.launch(ksc.set_flag, dim=1, inputs=[1], outputs=[f.link_changed], device=dev, record_tape=False)
+        device_while(f.link_changed, self._link_zones_fixed)
+        self._zone_motion(f.zone, x_start, f.vbar, dt, f.vbar)
+        self._weld_velocity(f.vbar, f.vbar)
+        self._refresh_fixed(x_start, f.vbar, dt, pad)
+
+    def _link_zones_fixed(self):
+        """One pass of label propagation (flagged pairs, welded sewn points) and pointer jumping; the flag says
+        whether a label changed."""
+        f = self._fixed
+        dev = self.model.device
+        n = self.model.particle_count
+        f.link_changed.zero_()
+        for kind in KINDS:
+            wp.launch(ksc.merge_colliding_pairs, dim=f.close[kind].shape[0],
+                      inputs=[f.close_count[kind], f.close[kind], f.hits[kind], kind, self.tri_indices, self.edge_indices],
+                      outputs=[f.zone, f.link_changed], device=dev, record_tape=False)
+        if self.weld is not None:
+            wp.launch(ksc.merge_sewn_points, dim=n, inputs=[self.weld.particle_seam_root], outputs=[f.zone, f.link_changed], device=dev,
+                      record_tape=False)
+        wp.launch(ksc.follow_zone_names, dim=n, inputs=[], outputs=[f.zone, f.link_changed], device=dev, record_tape=False)
+
+    def _finish_zones_fixed(self):
+        f = self._fixed
+        wp.launch(ksc.finish_zones, dim=self.model.particle_count, inputs=[], outputs=[f.zone, self.counts], device=self.model.device,
+                  record_tape=False)
+
+    def _zone_motion(self, zone, x_start, vbar, dt, v_out):
+        """v_out: the free members of each zone of `zone` (labels, see :func:`~cloth_warp.kernels.selfcollide.in_zone`)
+        at their zone's rigid motion over the step from x_start with velocities vbar (linear and angular momentum
+        kept; with pinned members, the rigid motion that fits theirs); other particles' entries are left as they are
+        (v_out may be vbar). Not taped."""
+        m = self.model
+        dev, n = m.device, m.particle_count
+        z = self._zone_sums()
+        for a in z.accumulated:
+            a.zero_()
+        per_particle = [zone, m.particle_mass, self.inv_mass, x_start, vbar]
+        wp.launch(ksc.gather_zone_mass, dim=n, inputs=per_particle, outputs=[z.mass, z.moment, z.momentum, z.pinned, z.heaviest], device=dev,
+                  record_tape=False)
+        wp.launch(ksc.gather_zone_moments, dim=n, inputs=[*per_particle, dt, z.mass, z.moment, z.momentum, z.pinned, z.heaviest],
+                  outputs=[z.angular, z.inertia, z.weight, z.start, z.end], device=dev, record_tape=False)
+        wp.launch(ksc.gather_zone_covariance, dim=n, inputs=[*per_particle, dt, z.mass, z.pinned, z.heaviest, z.weight, z.start, z.end],
+                  outputs=[z.covariance], device=dev, record_tape=False)
+        wp.launch(ksc.solve_zone_motion, dim=n,
+                  inputs=[zone, dt, z.mass, z.moment, z.momentum, z.pinned, z.angular, z.inertia, z.weight, z.start, z.end, z.covariance],
+                  outputs=[z.rotation, z.origin, z.target], device=dev, record_tape=False)
+        wp.launch(ksc.set_zone_motion, dim=n, inputs=[zone, self.inv_mass, x_start, dt, z.mass, z.rotation, z.origin, z.target],
+                  outputs=[v_out], device=dev, record_tape=False)
+
+    def _zone_sums(self) -> "_ZoneSums":
+        if self._sums is None:
+            self._sums = _ZoneSums(self.model.particle_count, self.model.device)
+        return self._sums
 
     def _changed_pairs_fixed(self, weight) -> dict:
         """The close pairs with an element whose particle has weight > 0 (see :meth:`_active_lists`)."""
@@ -691,7 +774,6 @@ class SelfCollision:
         m = self.model
         dev = m.device
         n = m.particle_count
-        x0 = x_start.numpy().astype(np.float64)
         resolved = True
         links = np.zeros((0, 2), np.int64)  # particle pairs that must move together (all rounds of this step)
         for _ in range(self.zone_iterations):
@@ -702,16 +784,12 @@ class SelfCollision:
                 touched = np.isin(sewn, links).any(axis=1)
                 links = np.concatenate([links, sewn[np.isin(sewn[:, 1], sewn[touched, 1])]])
             zone = connected_labels(links, n)
-            zone_ids = np.unique(zone[zone >= 0])
-            v = vbar.numpy().astype(np.float64)
-            zone_v = v.copy()
-            for z in zone_ids:
-                idx = np.flatnonzero(zone == z)
-                zone_v[idx] = self._rigid_motion(idx, x0, v, dt)
             zone_arr = wp.array(zone.astype(np.int32), dtype=wp.int32, device=dev)
+            zone_v = self._buffer("zone_vbar", wp.vec3, False)
+            wp.copy(zone_v, vbar)
+            self._zone_motion(zone_arr, x_start, vbar, dt, zone_v)
             out = self._buffer("vbar_zone", wp.vec3, rg)
-            wp.launch(ksc.set_zone_velocity, dim=n, inputs=[zone_arr, wp.array(zone_v.astype(np.float32), dtype=wp.vec3, device=dev), vbar],
-                      outputs=[out], device=dev)
+            wp.launch(ksc.set_zone_velocity, dim=n, inputs=[zone_arr, zone_v, vbar], outputs=[out], device=dev)
             vbar = out
             if self.weld is not None:  # (a zone holds whole sewn points: its rigid motion gives them one velocity)
                 welded = self._buffer("vbar_zone_welded", wp.vec3, rg)
@@ -725,59 +803,16 @@ class SelfCollision:
             self.host_counts["unresolved"] += 1
             log.warning("self-collision: impacts remain after %d impact-zone rounds", self.zone_iterations)
             resolved = False
-        self.host_counts["impact_zones"] += len(zone_ids)
+        self.host_counts["impact_zones"] += int((zone == np.arange(n)).sum())
         self.host_counts["impact_zone_particles"] += int((zone >= 0).sum())
         return vbar, resolved
-
-    def _rigid_motion(self, idx: np.ndarray, x0: np.ndarray, v: np.ndarray, dt: float) -> np.ndarray:
-        """Average velocities that move the zone's free particles rigidly with their linear and angular
-        momentum (pinned members keep theirs)."""
-        out = v[idx].copy()
-        free = self.inv_mass_np[idx] > 0.0
-        if free.sum() == 0:
-            return out
-        if not free.all():
-            return self._follow_pinned(idx, free, x0, v, dt)
-        ids = idx[free]
-        mass = self.mass[ids][:, None]
-        total = mass.sum()
-        xc = (mass * x0[ids]).sum(0) / total
-        vc = (mass * v[ids]).sum(0) / total
-        r = x0[ids] - xc
-        momentum = (mass * np.cross(r, v[ids] - vc)).sum(0)
-        inertia = (mass[:, :, None] * ((r * r).sum(1)[:, None, None] * np.eye(3) - r[:, :, None] * r[:, None, :])).sum(0)
-        omega = np.linalg.lstsq(inertia, momentum, rcond=1e-12)[0]
-        angle = np.linalg.norm(omega) * dt
-        rot = np.eye(3)
-        if angle > 0.0:
-            k = omega / np.linalg.norm(omega)
-            kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-            rot = np.eye(3) + np.sin(angle) * kx + (1.0 - np.cos(angle)) * kx @ kx
-        out[free] = (xc + dt * vc + r @ rot.T - x0[ids]) / dt
-        return out
-
-    def _follow_pinned(self, idx, free, x0, v, dt):
-        """A zone holding pinned particles moves with them: the rigid motion that best fits the pinned
-        members' step (weighted Kabsch; handles move rigidly, so it fits them exactly), with the free
-        members' own motion deciding what the pinned ones leave open (a pinned edge's roll)."""
-        out = v[idx].copy()
-        p = x0[idx]
-        q = p + dt * v[idx]
-        w = np.where(free, self.mass[idx], 1.0e6 * max(float(self.mass[idx].max()), 1e-12))[:, None]
-        pc = (w * p).sum(0) / w.sum()
-        qc = (w * q).sum(0) / w.sum()
-        cov = ((p - pc) * w).T @ (q - qc)
-        u, _, vt = np.linalg.svd(cov)
-        d = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
-        rot = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
-        out[free] = (qc + (p[free] - pc) @ rot.T - p[free]) / dt
-        return out
 
 
 class _FixedBuffers:
     """The capturable path's arrays: per particle vbar (candidate and current), impulse sums, change flags,
     the last resolved vbar and escape flags; per pair kind the close and active lists (the grid's pair
-    capacity) with device counts; per element set change flags; the CCD loop state."""
+    capacity) with device counts and the close pairs' impact flags; per element set change flags; the CCD and
+    impact-zone loop states, the zone labels (ZONE_NONE between steps) and the label propagation's change flag."""
 
     def __init__(self, model, grid: SelfCollisionGrid):
         dev = model.device
@@ -791,12 +826,17 @@ class _FixedBuffers:
         self.escaped_particles = wp.zeros(n, dtype=wp.int32, device=dev)
         self.escaped = wp.zeros(1, dtype=wp.int32, device=dev)
         self.loop = wp.zeros(4, dtype=wp.int32, device=dev)
+        self.zones = wp.zeros(ksc.ZONE_STATE_SIZE, dtype=wp.int32, device=dev)
+        self.zone = wp.full(n, int(ksc.ZONE_NONE), dtype=wp.int32, device=dev)
+        self.link_changed = wp.zeros(1, dtype=wp.int32, device=dev)
+        self.scratch_counts = wp.zeros(ksc.COUNT_SIZE, dtype=wp.int32, device=dev)
         caps = (grid.vertex_face.capacity, grid.edge_edge.capacity)
         self.capacities = caps
         self.close = [wp.zeros(c, dtype=wp.vec2i, device=dev) for c in caps]
         self.close_count = [wp.zeros(1, dtype=wp.int32, device=dev) for _ in caps]
         self.active = [wp.zeros(c, dtype=wp.vec2i, device=dev) for c in caps]
         self.active_count = [wp.zeros(1, dtype=wp.int32, device=dev) for _ in caps]
+        self.hits = [wp.zeros(c, dtype=wp.int32, device=dev) for c in caps]
         self.flags = {name: wp.zeros(max(s.count, 1), dtype=wp.int32, device=dev) for name, s in grid.element_sets()}
         self.fresh = {name: wp.zeros(max(s.count, 1), dtype=wp.int32, device=dev) for name, s in grid.element_sets()}
         self.fresh_count = {name: wp.zeros(1, dtype=wp.int32, device=dev) for name, _ in grid.element_sets()}
@@ -804,6 +844,33 @@ class _FixedBuffers:
         self.patch = wp.zeros(1, dtype=wp.int32, device=dev)
         if grid.fixed_reference is None:
             grid.fixed_reference = wp.zeros(n, dtype=wp.vec3, device=dev)
+
+
+class _ZoneSums:
+    """Rigid impact zones' per-zone arrays, indexed by the zone's name (its smallest particle index), shape (n,): the
+    float64 sums over its members (:attr:`accumulated`, zeroed before each use) and its rigid step
+    x -> target + rotation (x - origin)."""
+
+    def __init__(self, n: int, dev):
+        def zeros(dtype):
+            return wp.zeros(n, dtype=dtype, device=dev)
+
+        self.mass = zeros(wp.float64)  # [kg] of the free members
+        self.moment = zeros(wp.vec3d)  # sum m x of the free members [kg m]
+        self.momentum = zeros(wp.vec3d)  # sum m v of the free members [kg m/s]
+        self.pinned = zeros(wp.int32)  # pinned members
+        self.heaviest = zeros(wp.float64)  # the heaviest member's mass [kg]
+        self.angular = zeros(wp.vec3d)  # angular momentum about the centre of mass [kg m^2/s] (free zones)
+        self.inertia = zeros(wp.mat33d)  # inertia tensor about the centre of mass [kg m^2] (free zones)
+        self.weight = zeros(wp.float64)  # fit weights (zones with pinned members)
+        self.start = zeros(wp.vec3d)  # weighted sum of start points
+        self.end = zeros(wp.vec3d)  # weighted sum of end points
+        self.covariance = zeros(wp.mat33d)  # weighted covariance of start and end points about their centres
+        self.accumulated = (self.mass, self.moment, self.momentum, self.pinned, self.heaviest, self.angular, self.inertia, self.weight,
+                            self.start, self.end, self.covariance)
+        self.rotation = zeros(wp.mat33d)
+        self.origin = zeros(wp.vec3d)  # [m]
+        self.target = zeros(wp.vec3d)  # [m]
 
 
 def connected_labels(links: np.ndarray, count: int) -> np.ndarray:

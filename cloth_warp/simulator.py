@@ -36,7 +36,7 @@ class Simulator:
     bad steps are retried with half the step (see :class:`AdaptiveStepper`), each step replayed from a graph
     recorded once per step size where the step can be recorded. Handles, keyframed colliders
     and the gusty wind are set on the device from a device clock (:class:`~cloth_warp.animation.ControlAnimator`);
-    a pass that asks (self-collision: a buffer overflowed, or a step needs rigid impact zones) gets its frame run
+    a pass that asks (self-collision: a buffer overflowed) gets its frame run
     again eagerly from the frame's start. A frame is not captured with adaptive stepping (its steps are), for deforming mesh colliders on
     the CPU (Warp 1.19 does not record their BVH refit) and, on CUDA, where the driver lacks conditional graph nodes
     (CUDA < 12.4: the linear solve, the limiter's sweeps and the CCD sweeps loop on the device).

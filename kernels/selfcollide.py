@@ -27,19 +27,33 @@ COUNT_CCD = wp.constant(1)  # CCD impacts found
 COUNT_OVERSIZED = wp.constant(2)  # elements whose box the broad phase clamped
 COUNT_SWEEPS = wp.constant(3)  # CCD passes with impulses (capturable path)
 COUNT_BUILDS = wp.constant(4)  # full broad-phase builds (capturable path)
-COUNT_FALLBACKS = wp.constant(5)  # steps left with impacts after the sweeps: need impact zones (capturable path)
+COUNT_ZONES = wp.constant(5)  # rigid impact zones formed (each step's last round's, capturable path)
 COUNT_PATCHES = wp.constant(6)  # broad-phase patches (capturable path)
-NEED_POINT_ENTRIES = wp.constant(7)  # grid entries of the particles
-NEED_EDGE_ENTRIES = wp.constant(8)  # grid entries of the edges
-NEED_VERTEX_FACE = wp.constant(9)  # vertex-face candidate pairs (close pairs after a patch)
-NEED_EDGE_EDGE = wp.constant(10)  # edge-edge candidate pairs (close pairs after a patch)
-COUNT_SIZE = 11
+COUNT_ZONE_PARTICLES = wp.constant(7)  # the particles of those zones
+COUNT_UNRESOLVED = wp.constant(8)  # steps that ended with impacts left after every impact-zone round (capturable path)
+NEED_POINT_ENTRIES = wp.constant(9)  # grid entries of the particles
+NEED_EDGE_ENTRIES = wp.constant(10)  # grid entries of the edges
+NEED_VERTEX_FACE = wp.constant(11)  # vertex-face candidate pairs (close pairs after a patch)
+NEED_EDGE_EDGE = wp.constant(12)  # edge-edge candidate pairs (close pairs after a patch)
+COUNT_SIZE = 13
 
 # The capturable path's CCD loop state (int32 [4]): loop again, sweep index, impacts of this sweep, respond.
 LOOP_CONTINUE = wp.constant(0)
 LOOP_SWEEP = wp.constant(1)
 LOOP_HITS = wp.constant(2)
 LOOP_RESPOND = wp.constant(3)
+
+# The capturable path's impact-zone loop state (int32 [5]): loop again, merge rounds done, impacts found by this
+# round's detection, merge now (capture_if), the step's zones are final (capture_if: count them, clear the labels).
+ZONE_CONTINUE = wp.constant(0)
+ZONE_ROUND = wp.constant(1)
+ZONE_HITS = wp.constant(2)
+ZONE_MERGE = wp.constant(3)
+ZONE_FINISH = wp.constant(4)
+ZONE_STATE_SIZE = 5
+ZONE_NONE = wp.constant(2147483647)
+"""The capturable path's label of a particle in no zone while zones merge (above every particle index, so that
+a minimum over labels picks a member's)."""
 
 
 @wp.func
@@ -154,6 +168,13 @@ def closing_speed_bound(kind: int, v: wp.array(dtype=wp.vec3), idx: wp.vec4i):
         for j in range(2, 4):
             bound = wp.max(bound, wp.length(v[idx[k]] - v[idx[j]]))
     return bound
+
+
+@wp.func
+def in_zone(label: int, count: int):
+    """Whether a zone label names a zone: a zone is named by its smallest particle index, in [0, count); -1 (the host
+    path) and ZONE_NONE (the capturable path) mean no zone."""
+    return label >= 0 and label < count
 
 
 @wp.func
@@ -482,10 +503,10 @@ def ccd_response(
     """Continuous collision detection on x_start + t vbar, t in [0, dt]; 1 on an impact, else 0. At the first
     contact, if the pair is not already separating at `separation_speed` / 2, an inelastic impulse sets its
     relative normal velocity to `separation_speed` [m/s] (when `respond`). Pairs whose four particles belong
-    to one rigid impact zone (zone id >= 0) are skipped: they move rigidly together."""
+    to one rigid impact zone (:func:`in_zone`) are skipped: they move rigidly together."""
     idx = pair_indices(pair, kind, tri_indices, edge_indices)
     z = zone[idx[0]]
-    if z >= 0 and zone[idx[1]] == z and zone[idx[2]] == z and zone[idx[3]] == z:
+    if in_zone(z, zone.shape[0]) and zone[idx[1]] == z and zone[idx[2]] == z and zone[idx[3]] == z:
         return 0
     if not may_touch(kind, idx, x_start, vbar, dt, tolerance):
         return 0
@@ -576,7 +597,7 @@ def begin_sweeps(sweeps: int, loop_out: wp.array(dtype=wp.int32)):
 @wp.kernel(enable_backward=False)
 def end_sweep(sweeps: int, loop_out: wp.array(dtype=wp.int32), counts_out: wp.array(dtype=wp.int32)):
     """One thread after a CCD sweep: count it (if it responded); stop when it found no impact, or when it was
-    the check after the last responding sweep (impacts remain: count a fallback to impact zones); otherwise
+    the check after the last responding sweep (impacts remain: rigid impact zones follow); otherwise
     go on to the next sweep."""
     k = loop_out[LOOP_SWEEP]
     if k < sweeps:
@@ -585,7 +606,6 @@ def end_sweep(sweeps: int, loop_out: wp.array(dtype=wp.int32), counts_out: wp.ar
         loop_out[LOOP_CONTINUE] = 0
     elif k >= sweeps:
         loop_out[LOOP_CONTINUE] = 0
-        counts_out[COUNT_FALLBACKS] = counts_out[COUNT_FALLBACKS] + 1
     else:
         loop_out[LOOP_CONTINUE] = 1
         loop_out[LOOP_SWEEP] = k + 1
@@ -861,3 +881,359 @@ def eval_first_contact(
     tid = wp.tid()
     idx = pair_indices(pairs[tid], kind, tri_indices, edge_indices)
     time_out[tid] = first_contact_time(kind, idx, x_start, vbar, dt, tolerance)
+
+
+# -- rigid impact zones (Provot 1997; Bridson et al. 2002, section 7.4) ------------------------------------
+# A zone is a set of particles that move rigidly together, named by its smallest particle index. The particles of
+# pairs still colliding after the CCD sweeps join zones (with the zones they are already in, and with the whole of a
+# welded sewn point one of them is in) on the device as a forest: every member's label points to a smaller or equal
+# index, a tree's root to itself; each link hooks the larger of its two roots under the smaller (atomic minimum), and
+# pointer jumping flattens the trees. Passes repeat until no link joins two trees and no label moves: then every
+# member's label is the smallest particle index of its connected component, whatever the order of the updates (a
+# hook lost to a concurrent one is retried by the next pass). Sums over a zone are float64 and indexed by its name.
+
+
+@wp.func
+def zone_root(label: wp.array(dtype=wp.int32), p: int):
+    """The root of the tree particle p is in (p itself when it is in no zone)."""
+    n = label.shape[0]
+    r = p
+    up = label[r]
+    while in_zone(up, n) and up != r:
+        r = up
+        up = label[r]
+    return r
+
+
+@wp.func
+def join_zones(label: wp.array(dtype=wp.int32), a: int, b: int):
+    """Particles a and b join one zone (each joins as its own when in none; then the larger root hooks under the
+    smaller); 1 when they were in different trees or a label changed (another pass is needed)."""
+    changed = int(0)
+    if wp.atomic_min(label, a, a) > a:
+        changed = 1
+    if wp.atomic_min(label, b, b) > b:
+        changed = 1
+    ra = zone_root(label, a)
+    rb = zone_root(label, b)
+    if ra != rb:
+        wp.atomic_min(label, wp.max(ra, rb), wp.min(ra, rb))
+        changed = 1
+    return changed
+
+
+@wp.kernel(enable_backward=False)
+def merge_colliding_pairs(
+    count: wp.array(dtype=wp.int32),
+    pairs: wp.array(dtype=wp.vec2i),
+    hit: wp.array(dtype=wp.int32),
+    kind: int,
+    tri_indices: wp.array2d(dtype=wp.int32),
+    edge_indices: wp.array2d(dtype=wp.int32),
+    label: wp.array(dtype=wp.int32),
+    changed_out: wp.array(dtype=wp.int32),
+):
+    """The four particles of each listed pair flagged in `hit` join one zone."""
+    tid = wp.tid()
+    if tid >= count[0] or hit[tid] == 0:
+        return
+    idx = pair_indices(pairs[tid], kind, tri_indices, edge_indices)
+    c = join_zones(label, idx[0], idx[1]) + join_zones(label, idx[0], idx[2]) + join_zones(label, idx[0], idx[3])
+    if c > 0:
+        changed_out[0] = 1
+
+
+@wp.kernel(enable_backward=False)
+def merge_sewn_points(seam_root: wp.array(dtype=wp.int32), label: wp.array(dtype=wp.int32), changed_out: wp.array(dtype=wp.int32)):
+    """A welded sewn point with a particle in a zone joins it whole (each particle with its point's root)."""
+    i = wp.tid()
+    r = seam_root[i]
+    if r < 0 or r == i:
+        return
+    n = label.shape[0]
+    if in_zone(label[i], n) or in_zone(label[r], n):
+        if join_zones(label, i, r) > 0:
+            changed_out[0] = 1
+
+
+@wp.kernel(enable_backward=False)
+def follow_zone_names(label: wp.array(dtype=wp.int32), changed_out: wp.array(dtype=wp.int32)):
+    """Pointer jumping: a member's label takes its label's label."""
+    i = wp.tid()
+    z = label[i]
+    if not in_zone(z, label.shape[0]):
+        return
+    zz = label[z]
+    if zz < z:
+        label[i] = zz
+        changed_out[0] = 1
+
+
+@wp.kernel(enable_backward=False)
+def gather_zone_mass(
+    label: wp.array(dtype=wp.int32),
+    particle_mass: wp.array(dtype=float),
+    inv_mass: wp.array(dtype=float),
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    mass_out: wp.array(dtype=wp.float64),
+    moment_out: wp.array(dtype=wp.vec3d),
+    momentum_out: wp.array(dtype=wp.vec3d),
+    pinned_out: wp.array(dtype=wp.int32),
+    heaviest_out: wp.array(dtype=wp.float64),
+):
+    """Per zone: the free members' mass [kg], first moment sum m x and momentum sum m v; the pinned members' count
+    and the heaviest member's mass."""
+    i = wp.tid()
+    z = label[i]
+    if not in_zone(z, label.shape[0]):
+        return
+    m = wp.float64(particle_mass[i])
+    wp.atomic_max(heaviest_out, z, m)
+    if inv_mass[i] > 0.0:
+        wp.atomic_add(mass_out, z, m)
+        wp.atomic_add(moment_out, z, m * wp.vec3d(x[i]))
+        wp.atomic_add(momentum_out, z, m * wp.vec3d(v[i]))
+    else:
+        wp.atomic_add(pinned_out, z, 1)
+
+
+@wp.func
+def pinned_zone_weight(free: bool, m: wp.float64, heaviest: wp.float64):
+    """A member's weight in the fit of a zone with pinned members: its mass, or (pinned) a million times the heaviest."""
+    if free:
+        return m
+    return wp.float64(1.0e6) * wp.max(heaviest, wp.float64(1.0e-12))
+
+
+@wp.kernel(enable_backward=False)
+def gather_zone_moments(
+    label: wp.array(dtype=wp.int32),
+    particle_mass: wp.array(dtype=float),
+    inv_mass: wp.array(dtype=float),
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    dt: float,
+    mass: wp.array(dtype=wp.float64),
+    moment: wp.array(dtype=wp.vec3d),
+    momentum: wp.array(dtype=wp.vec3d),
+    pinned: wp.array(dtype=wp.int32),
+    heaviest: wp.array(dtype=wp.float64),
+    angular_out: wp.array(dtype=wp.vec3d),
+    inertia_out: wp.array(dtype=wp.mat33d),
+    weight_out: wp.array(dtype=wp.float64),
+    start_out: wp.array(dtype=wp.vec3d),
+    end_out: wp.array(dtype=wp.vec3d),
+):
+    """A zone of free particles: its angular momentum and inertia tensor about the centre of mass. A zone with pinned
+    members: the weights and weighted sums of its members' start and end points (x, x + dt v) for the rigid fit."""
+    i = wp.tid()
+    z = label[i]
+    if not in_zone(z, label.shape[0]) or mass[z] == wp.float64(0.0):
+        return
+    m = wp.float64(particle_mass[i])
+    xi = wp.vec3d(x[i])
+    vi = wp.vec3d(v[i])
+    if pinned[z] == 0:
+        r = xi - moment[z] / mass[z]
+        wp.atomic_add(angular_out, z, m * wp.cross(r, vi - momentum[z] / mass[z]))
+        wp.atomic_add(inertia_out, z, m * (wp.dot(r, r) * wp.identity(n=3, dtype=wp.float64) - wp.outer(r, r)))
+    else:
+        w = pinned_zone_weight(inv_mass[i] > 0.0, m, heaviest[z])
+        wp.atomic_add(weight_out, z, w)
+        wp.atomic_add(start_out, z, w * xi)
+        wp.atomic_add(end_out, z, w * (xi + wp.float64(dt) * vi))
+
+
+@wp.kernel(enable_backward=False)
+def gather_zone_covariance(
+    label: wp.array(dtype=wp.int32),
+    particle_mass: wp.array(dtype=float),
+    inv_mass: wp.array(dtype=float),
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    dt: float,
+    mass: wp.array(dtype=wp.float64),
+    pinned: wp.array(dtype=wp.int32),
+    heaviest: wp.array(dtype=wp.float64),
+    weight: wp.array(dtype=wp.float64),
+    start: wp.array(dtype=wp.vec3d),
+    end: wp.array(dtype=wp.vec3d),
+    covariance_out: wp.array(dtype=wp.mat33d),
+):
+    """A zone with pinned members: the weighted covariance of its start and end points about their centres."""
+    i = wp.tid()
+    z = label[i]
+    if not in_zone(z, label.shape[0]) or mass[z] == wp.float64(0.0) or pinned[z] == 0:
+        return
+    m = wp.float64(particle_mass[i])
+    w = pinned_zone_weight(inv_mass[i] > 0.0, m, heaviest[z])
+    xi = wp.vec3d(x[i])
+    p = xi - start[z] / weight[z]
+    q = xi + wp.float64(dt) * wp.vec3d(v[i]) - end[z] / weight[z]
+    wp.atomic_add(covariance_out, z, w * wp.outer(p, q))
+
+
+@wp.func
+def rotation_of(omega: wp.vec3d, dt: float):
+    """The rotation by the angle |omega| dt about omega (Rodrigues)."""
+    angle = wp.length(omega) * wp.float64(dt)
+    rot = wp.identity(n=3, dtype=wp.float64)
+    if angle > wp.float64(0.0):
+        k = wp.normalize(omega)
+        kx = wp.skew(k)
+        rot = rot + wp.sin(angle) * kx + (wp.float64(1.0) - wp.cos(angle)) * (kx * kx)
+    return rot
+
+
+@wp.kernel(enable_backward=False)
+def solve_zone_motion(
+    label: wp.array(dtype=wp.int32),
+    dt: float,
+    mass: wp.array(dtype=wp.float64),
+    moment: wp.array(dtype=wp.vec3d),
+    momentum: wp.array(dtype=wp.vec3d),
+    pinned: wp.array(dtype=wp.int32),
+    angular: wp.array(dtype=wp.vec3d),
+    inertia: wp.array(dtype=wp.mat33d),
+    weight: wp.array(dtype=wp.float64),
+    start: wp.array(dtype=wp.vec3d),
+    end: wp.array(dtype=wp.vec3d),
+    covariance: wp.array(dtype=wp.mat33d),
+    rotation_out: wp.array(dtype=wp.mat33d),
+    origin_out: wp.array(dtype=wp.vec3d),
+    target_out: wp.array(dtype=wp.vec3d),
+):
+    """Per zone (its named particle's thread), the rigid step x -> target + R (x - origin) of its free members.
+    Free zone: about the centre of mass x_c, target x_c + dt v_c, R the rotation by dt omega with omega the
+    least-squares solution of I omega = L (singular values below 1e-12 of the largest dropped). Zone with pinned
+    members: the weighted best rigid fit (Kabsch) of their start points to their end points; the pinned members,
+    weighted a million times the heaviest, decide it where they can, the free members' motion what they leave open."""
+    i = wp.tid()
+    if label[i] != i or mass[i] == wp.float64(0.0):
+        return
+    U = wp.mat33d()
+    s = wp.vec3d()
+    V = wp.mat33d()
+    if pinned[i] == 0:
+        xc = moment[i] / mass[i]
+        wp.svd3(inertia[i], U, s, V)
+        b = wp.transpose(U) * angular[i]
+        cutoff = wp.float64(1.0e-12) * wp.abs(s[0])
+        c = wp.vec3d()
+        for k in range(3):
+            if wp.abs(s[k]) > cutoff and s[k] != wp.float64(0.0):
+                c[k] = b[k] / s[k]
+        rotation_out[i] = rotation_of(V * c, dt)
+        origin_out[i] = xc
+        target_out[i] = xc + wp.float64(dt) * momentum[i] / mass[i]
+    else:
+        wp.svd3(covariance[i], U, s, V)  # U, V rotations (the smallest singular value carries the sign)
+        rotation_out[i] = V * wp.transpose(U)
+        origin_out[i] = start[i] / weight[i]
+        target_out[i] = end[i] / weight[i]
+
+
+@wp.kernel(enable_backward=False)
+def set_zone_motion(
+    label: wp.array(dtype=wp.int32),
+    inv_mass: wp.array(dtype=float),
+    x: wp.array(dtype=wp.vec3),
+    dt: float,
+    mass: wp.array(dtype=wp.float64),
+    rotation: wp.array(dtype=wp.mat33d),
+    origin: wp.array(dtype=wp.vec3d),
+    target: wp.array(dtype=wp.vec3d),
+    v_out: wp.array(dtype=wp.vec3),
+):
+    """The free members of a zone with free members take its rigid step's velocity (target + R (x - origin) - x) / dt;
+    every other particle keeps v_out."""
+    i = wp.tid()
+    z = label[i]
+    if not in_zone(z, label.shape[0]) or inv_mass[i] <= 0.0 or mass[z] == wp.float64(0.0):
+        return
+    xi = wp.vec3d(x[i])
+    v_out[i] = wp.vec3((target[z] + rotation[z] * (xi - origin[z]) - xi) / wp.float64(dt))
+
+
+@wp.kernel(enable_backward=False)
+def detect_impacts_listed(
+    count: wp.array(dtype=wp.int32),
+    pairs: wp.array(dtype=wp.vec2i),
+    kind: int,
+    tri_indices: wp.array2d(dtype=wp.int32),
+    edge_indices: wp.array2d(dtype=wp.int32),
+    inv_mass: wp.array(dtype=float),
+    zone: wp.array(dtype=wp.int32),
+    x_start: wp.array(dtype=wp.vec3),
+    vbar: wp.array(dtype=wp.vec3),
+    dt: float,
+    tolerance: float,
+    separation_speed: float,
+    dv_unused: wp.array(dtype=wp.vec3),
+    weight_unused: wp.array(dtype=float),
+    counts_unused: wp.array(dtype=wp.int32),
+    hit_out: wp.array(dtype=wp.int32),
+    counts_out: wp.array(dtype=wp.int32),
+    zones_out: wp.array(dtype=wp.int32),
+):
+    """CCD without response on the first count[0] listed pairs (zones' own pairs skipped): each pair's hit flag, the
+    impacts counted in zones_out[ZONE_HITS] and, after a merge (the first detection finds the last sweep's impacts
+    again), in counts_out[COUNT_CCD] (capturable path; the impulse arrays and counts_unused are not read)."""
+    tid = wp.tid()
+    if tid >= count[0]:
+        return
+    hit = ccd_response(pairs[tid], kind, tri_indices, edge_indices, inv_mass, zone, x_start, vbar, dt, tolerance, separation_speed, 0,
+                       dv_unused, weight_unused, counts_unused)
+    hit_out[tid] = hit
+    if hit != 0:
+        wp.atomic_add(zones_out, ZONE_HITS, 1)
+        if zones_out[ZONE_ROUND] > 0:
+            wp.atomic_add(counts_out, COUNT_CCD, 1)
+
+
+@wp.kernel(enable_backward=False)
+def begin_zones(loop: wp.array(dtype=wp.int32), zones_out: wp.array(dtype=wp.int32)):
+    """One thread after the CCD sweeps: impact zones start when the last sweep left impacts."""
+    zones_out[ZONE_CONTINUE] = wp.where(loop[LOOP_HITS] > 0, 1, 0)
+    zones_out[ZONE_ROUND] = 0
+    zones_out[ZONE_HITS] = 0
+    zones_out[ZONE_MERGE] = 0
+    zones_out[ZONE_FINISH] = 0
+
+
+@wp.kernel(enable_backward=False)
+def end_zone_detection(zone_iterations: int, zones_out: wp.array(dtype=wp.int32), counts_out: wp.array(dtype=wp.int32)):
+    """One thread after a detection on the zones: stop when no impact remains, or (counted unresolved) when
+    `zone_iterations` merge rounds were done; otherwise merge again."""
+    hits = zones_out[ZONE_HITS]
+    done = zones_out[ZONE_ROUND]
+    zones_out[ZONE_HITS] = 0
+    if hits == 0 or done >= zone_iterations:
+        zones_out[ZONE_CONTINUE] = 0
+        zones_out[ZONE_MERGE] = 0
+        zones_out[ZONE_FINISH] = 1
+        if hits > 0:
+            counts_out[COUNT_UNRESOLVED] = counts_out[COUNT_UNRESOLVED] + 1
+    else:
+        zones_out[ZONE_MERGE] = 1
+        zones_out[ZONE_ROUND] = done + 1
+
+
+@wp.kernel(enable_backward=False)
+def finish_zones(label: wp.array(dtype=wp.int32), counts_out: wp.array(dtype=wp.int32)):
+    """Count the step's zones and their particles, and clear the labels (ZONE_NONE) for the next step."""
+    i = wp.tid()
+    z = label[i]
+    if not in_zone(z, label.shape[0]):
+        return
+    wp.atomic_add(counts_out, COUNT_ZONE_PARTICLES, 1)
+    if z == i:
+        wp.atomic_add(counts_out, COUNT_ZONES, 1)
+    label[i] = ZONE_NONE
+
+
+@wp.kernel(enable_backward=False)
+def set_flag(value: int, flag_out: wp.array(dtype=wp.int32)):
+    """One thread: flag_out[0] = value."""
+    flag_out[0] = value

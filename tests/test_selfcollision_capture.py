@@ -1,8 +1,7 @@
 """Self-collision's capturable path: a step recorded once as a CPU graph (wp.ScopedCapture) and replayed gives,
 bit for bit, what the same path gives run eagerly, close to the host path and without intersecting
 triangles; fixed-capacity buffers that are too small report the need, grow and give the run of large
-enough ones; impacts left after the CCD sweeps raise the fallback flag and the host path's impact zones
-resolve them.
+enough ones; impacts left after the CCD sweeps form rigid impact zones on the device, as the host path's.
 
 The driver: the implicit integrator proposes each step's end (eagerly, outside the graph); the graph
 holds the self-collision pass only: begin_step, a first round, and a second round from the same start
@@ -193,34 +192,26 @@ def test_too_small_buffers_overflow_then_grow_to_the_result_of_large_ones():
         np.testing.assert_array_equal(d_ref.positions(), out[k], err_msg=f"step {k}")
 
 
-def test_impacts_left_after_the_sweeps_flag_a_fallback_that_the_host_path_resolves():
-    """Check a sheet hitting the pinned one at 6 m/s with a single CCD sweep: the capturable pass's check sweep
-    still finds impacts, so the status asks for a re-run (fallback steps > 0) and the pass's result is not
-    trusted; re-running those steps eagerly on the host path forms rigid impact zones, leaves no impact
-    unresolved and no intersecting triangles."""
+def test_impacts_left_after_the_sweeps_form_rigid_impact_zones_on_the_device():
+    """Check a sheet hitting the pinned one at 6 m/s with a single CCD sweep: impacts remain after the sweep, and the
+    capturable path resolves them itself with rigid impact zones on the device (no re-run asked): the same zones,
+    impacts and positions as the host path's numpy zones on each step's same inputs (both move the zones with the
+    same float64 kernels; 1e-6 m allows for the order in which impulses of differently ordered candidate lists
+    add up), no step unresolved, no intersecting triangles, and a recorded step replays the eager one bit for bit."""
     model = two_sheets(drop_speed=6.0, tilt=3.0)
-    sc = SelfCollision(model, sweeps=1, capturable=True, pair_capacity=1 << 15)
-    d = Driver(model, sc)
-    tris = model.tri_indices.numpy().reshape(-1, 3)
-    fallbacks = 0
+    host = SelfCollision(model, sweeps=1, pair_capacity=1 << 15)
+    options = dict(sweeps=1, capturable=True, pair_capacity=1 << 15)
+    eager, sc, beside = run(model, 12, graph=False, check=True, host=host, **options)
+    counts, host_counts = sc.read_counts(), host.read_counts()
+    assert not sc.status().needs_rerun
+    assert counts["impact_zones"] > 10 and counts["impact_zone_particles"] > 100 and counts["unresolved"] == 0, counts
+    for key in ("impact_zones", "impact_zone_particles", "self_ccd", "unresolved"):
+        assert counts[key] == host_counts[key], key
     for k in range(12):
-        d.propose()
-        sc.reset_counts()
-        d.collide()
-        status = sc.status()
-        if status.needs_rerun:
-            assert not status.overflow and status.fallback_steps > 0
-            fallbacks += 1
-            sc.grow(status)
-            sc.reset_counts()
-            sc.capturable = False
-            d.collide()  # the inputs are intact (the pass writes x_out, v_out)
-            sc.capturable = True
-            counts = sc.read_counts()
-            assert counts["impact_zones"] > 0 and counts["unresolved"] == 0, counts
-        d.finish()
-        assert not intersecting_pairs(d.positions(), tris), k
-    assert fallbacks > 0
+        np.testing.assert_allclose(eager[k], beside[k], atol=1e-6, rtol=0, err_msg=f"step {k}")
+    recorded, _, _ = run(model, 12, graph=True, **options)
+    for k in range(12):
+        np.testing.assert_array_equal(recorded[k], eager[k], err_msg=f"step {k}")
 
 
 def test_broad_phase_patch_finds_the_close_pairs_of_a_full_build():
@@ -266,3 +257,113 @@ def test_broad_phase_patch_finds_the_close_pairs_of_a_full_build():
         sc._build_fixed(x, registered, DT, pad)
         assert close_sets() == patched
         assert not sc.status().needs_rerun
+
+
+def reference_rigid_motion(x0, v, mass, free, dt):
+    """Provot's rigid step of one zone in numpy (float64): about the centre of mass of its free members, omega from
+    I omega = L by least squares, Rodrigues' rotation; the free members' average velocities over the step."""
+    m = mass[free][:, None]
+    xc = (m * x0[free]).sum(0) / m.sum()
+    vc = (m * v[free]).sum(0) / m.sum()
+    r = x0[free] - xc
+    angular = (m * np.cross(r, v[free] - vc)).sum(0)
+    inertia = (m[:, :, None] * ((r * r).sum(1)[:, None, None] * np.eye(3) - r[:, :, None] * r[:, None, :])).sum(0)
+    omega = np.linalg.lstsq(inertia, angular, rcond=1e-12)[0]
+    angle = np.linalg.norm(omega) * dt
+    k = omega / max(np.linalg.norm(omega), 1e-300)
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    rot = np.eye(3) + np.sin(angle) * kx + (1.0 - np.cos(angle)) * kx @ kx
+    return (xc + dt * vc + r @ rot.T - x0[free]) / dt
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_zone_motion_matches_a_numpy_reference_and_follows_pinned_members(seed):
+    """The device's rigid impact-zone motion (float64 sums per zone, shared by both paths) against a numpy reference on
+    random velocities: a zone of free particles gets Provot's rigid step (linear and angular momentum), a zone with
+    pinned particles that move rigidly gets exactly their rigid motion, a zone of pinned particles only and the
+    particles in no zone keep their velocities. Also a collinear zone (an edge and a point on its line: a singular
+    inertia tensor) stays finite and keeps its linear momentum."""
+    rng = np.random.default_rng(seed)
+    model = two_sheets(res=8)
+    sc = SelfCollision(model)
+    n = model.particle_count
+    x0 = model.particle_q.numpy().astype(np.float64)
+    v = rng.normal(scale=0.5, size=(n, 3))
+    mass = model.particle_mass.numpy().astype(np.float64)
+    pinned = model.particle_pinned.numpy() != 0
+    label = np.full(n, -1)
+    free_zone = rng.choice(np.flatnonzero(~pinned), 12, replace=False)
+    label[free_zone] = free_zone.min()
+    ring = np.array([0, 1, 2, 9, 18, 27])  # pinned border particles of the lower sheet (9 x 9), on two sides: not collinear
+    assert pinned[ring].all()
+    mixed = np.concatenate([ring, np.setdiff1d(np.flatnonzero(~pinned)[:9], free_zone)[:5]])
+    label[mixed] = mixed.min()
+    only_pinned = np.flatnonzero(pinned)[10:13]
+    label[only_pinned] = only_pinned.min()
+    # the pinned members move rigidly: rotation about a random axis and a translation
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    kx = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    rot = np.eye(3) + np.sin(0.3) * kx + (1.0 - np.cos(0.3)) * kx @ kx
+    shift = rng.normal(scale=0.01, size=3)
+    centre = x0[mixed].mean(0)
+    rigid = (centre + shift + (x0[mixed] - centre) @ rot.T - x0[mixed]) / DT
+    v[ring] = rigid[: len(ring)]
+    out = wp.array(v.astype(np.float32), dtype=wp.vec3)
+    vbar = wp.array(v.astype(np.float32), dtype=wp.vec3)
+    sc._zone_motion(wp.array(label.astype(np.int32), dtype=wp.int32), model.particle_q, vbar, DT, out)
+    got = out.numpy().astype(np.float64)
+    v32 = v.astype(np.float32).astype(np.float64)
+    ref = reference_rigid_motion(x0[free_zone], v32[free_zone], mass[free_zone], np.ones(len(free_zone), bool), DT)
+    np.testing.assert_allclose(got[free_zone], ref, atol=1e-5, rtol=1e-5)
+    momentum = (mass[free_zone, None] * got[free_zone]).sum(0)
+    np.testing.assert_allclose(momentum, (mass[free_zone, None] * v32[free_zone]).sum(0), atol=1e-6 * np.abs(momentum).max())
+    np.testing.assert_allclose(got[mixed], rigid, atol=2e-3 * np.abs(rigid).max())  # pinned: float32 inputs of a 0.3 rad turn
+    others = label < 0
+    np.testing.assert_array_equal(got[others], v.astype(np.float32)[others])
+    np.testing.assert_array_equal(got[only_pinned], v.astype(np.float32)[only_pinned])
+    # a collinear zone: two particles of a row and the one between them
+    line = np.array([0, 1, 2]) + 8 * 9  # a row of the free sheet (9 x 9 particles after the 9 x 9 lower one)
+    label = np.full(n, -1)
+    label[line] = line.min()
+    out = wp.array(v.astype(np.float32), dtype=wp.vec3)
+    sc._zone_motion(wp.array(label.astype(np.int32), dtype=wp.int32), model.particle_q, vbar, DT, out)
+    got = out.numpy().astype(np.float64)
+    assert np.isfinite(got).all()
+    np.testing.assert_allclose((mass[line, None] * got[line]).sum(0), (mass[line, None] * v32[line]).sum(0), atol=1e-7)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_zone_labels_on_the_device_are_the_connected_components(seed):
+    """The capturable path's label propagation (flagged pairs, two rounds: zones persist and merge) ends at the
+    connected components that the host path's numpy ``connected_labels`` gives, each named by its smallest particle."""
+    from cloth_warp.selfcollision import connected_labels
+    from cloth_warp.graphs import device_while
+    from cloth_warp.kernels import selfcollide as ksc
+
+    rng = np.random.default_rng(seed)
+    model = two_sheets(res=8)
+    sc = SelfCollision(model, capturable=True, pair_capacity=256)
+    f = sc._fixed_buffers()
+    n = model.particle_count
+    tris = model.tri_indices.numpy().reshape(-1, 3)
+    edges = sc.edges
+    links = np.zeros((0, 2), np.int64)
+    for _ in range(2):
+        pairs, quads = [], []
+        for kind, (count, elements) in enumerate(((40, len(tris)), (30, len(edges)))):
+            first = rng.integers(0, elements, count)
+            second = rng.integers(0, n if kind == 0 else len(edges), count)
+            hit = (rng.random(count) < 0.3).astype(np.int32)
+            p = np.column_stack([first, second]).astype(np.int32)
+            f.close[kind].assign(np.concatenate([p, np.zeros((f.close[kind].shape[0] - count, 2), np.int32)]))
+            f.close_count[kind].fill_(count)
+            f.hits[kind].assign(np.concatenate([hit, np.zeros(f.hits[kind].shape[0] - count, np.int32)]))
+            sel = p[hit != 0]
+            quads.append(np.column_stack([tris[sel[:, 0]], sel[:, 1]]) if kind == 0 else np.column_stack([edges[sel[:, 0]], edges[sel[:, 1]]]))
+        q = np.concatenate(quads)
+        links = np.concatenate([links, np.column_stack([np.repeat(q[:, 0], 3), q[:, 1:].ravel()])])
+        wp.launch(ksc.set_flag, dim=1, inputs=[1], outputs=[f.link_changed])
+        device_while(f.link_changed, sc._link_zones_fixed)
+        label = f.zone.numpy()
+        np.testing.assert_array_equal(np.where(label == int(ksc.ZONE_NONE), -1, label), connected_labels(links, n))
