@@ -29,9 +29,9 @@ on the device, the CCD sweeps are a ``wp.capture_while`` loop, the broad phase i
 device when the step's start positions are new; when end points left the margin it is patched on the device
 (``wp.capture_if``: the elements touching at most ``patch_limit`` escaped particles tested against every element)
 or, past that, built again; impacts left after the sweeps form rigid impact zones on the device (a
-``capture_while`` loop of detection and merge rounds; zones merge by minimum-label propagation, their motion
-from float64 sums per zone: the same kernels as the host path's, whose zones come from
-:func:`connected_labels`). After the frame, :meth:`SelfCollision.status` (one read) says whether a buffer
+``capture_while`` loop of detection and merge rounds; zones join as trees whose roots hook under the smaller
+(atomic minima) with pointer jumping, to each zone's smallest particle; their motion from float64 sums per zone:
+the same kernels as the host path's, whose zones come from :func:`connected_labels`). After the frame, :meth:`SelfCollision.status` (one read) says whether a buffer
 overflowed; the caller then calls :meth:`SelfCollision.grow` and runs the frame again on the host path.
 """
 
@@ -486,8 +486,8 @@ class SelfCollision:
         wp.capture_if(f.zones[ksc.ZONE_FINISH:ksc.ZONE_FINISH + 1], on_true=self._finish_zones_fixed)
 
     def _merge_zones_fixed(self, x_start, dt, pad):
-        """The particles of the pairs the last detection flagged join zones (labels propagated to a fixed point on the
-        device), every zone takes its rigid motion, and the broad phase follows the new velocities."""
+        """The particles of the pairs the last detection flagged join zones (passes on the device to a fixed point),
+        every zone takes its rigid motion, and the broad phase follows the new velocities."""
         f = self._fixed
         dev = self.model.device
         wp.launch(ksc.set_flag, dim=1, inputs=[1], outputs=[f.link_changed], device=dev, record_tape=False)
@@ -497,8 +497,8 @@ class SelfCollision:
         self._refresh_fixed(x_start, f.vbar, dt, pad)
 
     def _link_zones_fixed(self):
-        """One pass of label propagation (flagged pairs, welded sewn points) and pointer jumping; the flag says
-        whether a label changed."""
+        """One pass of joining (flagged pairs, welded sewn points) and pointer jumping; the flag says whether another
+        pass is needed."""
         f = self._fixed
         dev = self.model.device
         n = self.model.particle_count

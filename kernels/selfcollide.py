@@ -894,30 +894,30 @@ def eval_first_contact(
 
 
 @wp.func
-def zone_root(label: wp.array(dtype=wp.int32), p: int):
+def zone_root(label_out: wp.array(dtype=wp.int32), p: int):
     """The root of the tree particle p is in (p itself when it is in no zone)."""
-    n = label.shape[0]
+    n = label_out.shape[0]
     r = p
-    up = label[r]
+    up = label_out[r]
     while in_zone(up, n) and up != r:
         r = up
-        up = label[r]
+        up = label_out[r]
     return r
 
 
 @wp.func
-def join_zones(label: wp.array(dtype=wp.int32), a: int, b: int):
+def join_zones(label_out: wp.array(dtype=wp.int32), a: int, b: int):
     """Particles a and b join one zone (each joins as its own when in none; then the larger root hooks under the
     smaller); 1 when they were in different trees or a label changed (another pass is needed)."""
     changed = int(0)
-    if wp.atomic_min(label, a, a) > a:
+    if wp.atomic_min(label_out, a, a) > a:
         changed = 1
-    if wp.atomic_min(label, b, b) > b:
+    if wp.atomic_min(label_out, b, b) > b:
         changed = 1
-    ra = zone_root(label, a)
-    rb = zone_root(label, b)
+    ra = zone_root(label_out, a)
+    rb = zone_root(label_out, b)
     if ra != rb:
-        wp.atomic_min(label, wp.max(ra, rb), wp.min(ra, rb))
+        wp.atomic_min(label_out, wp.max(ra, rb), wp.min(ra, rb))
         changed = 1
     return changed
 
@@ -930,7 +930,7 @@ def merge_colliding_pairs(
     kind: int,
     tri_indices: wp.array2d(dtype=wp.int32),
     edge_indices: wp.array2d(dtype=wp.int32),
-    label: wp.array(dtype=wp.int32),
+    label_out: wp.array(dtype=wp.int32),
     changed_out: wp.array(dtype=wp.int32),
 ):
     """The four particles of each listed pair flagged in `hit` join one zone."""
@@ -938,34 +938,34 @@ def merge_colliding_pairs(
     if tid >= count[0] or hit[tid] == 0:
         return
     idx = pair_indices(pairs[tid], kind, tri_indices, edge_indices)
-    c = join_zones(label, idx[0], idx[1]) + join_zones(label, idx[0], idx[2]) + join_zones(label, idx[0], idx[3])
+    c = join_zones(label_out, idx[0], idx[1]) + join_zones(label_out, idx[0], idx[2]) + join_zones(label_out, idx[0], idx[3])
     if c > 0:
         changed_out[0] = 1
 
 
 @wp.kernel(enable_backward=False)
-def merge_sewn_points(seam_root: wp.array(dtype=wp.int32), label: wp.array(dtype=wp.int32), changed_out: wp.array(dtype=wp.int32)):
+def merge_sewn_points(seam_root: wp.array(dtype=wp.int32), label_out: wp.array(dtype=wp.int32), changed_out: wp.array(dtype=wp.int32)):
     """A welded sewn point with a particle in a zone joins it whole (each particle with its point's root)."""
     i = wp.tid()
     r = seam_root[i]
     if r < 0 or r == i:
         return
-    n = label.shape[0]
-    if in_zone(label[i], n) or in_zone(label[r], n):
-        if join_zones(label, i, r) > 0:
+    n = label_out.shape[0]
+    if in_zone(label_out[i], n) or in_zone(label_out[r], n):
+        if join_zones(label_out, i, r) > 0:
             changed_out[0] = 1
 
 
 @wp.kernel(enable_backward=False)
-def follow_zone_names(label: wp.array(dtype=wp.int32), changed_out: wp.array(dtype=wp.int32)):
+def follow_zone_names(label_out: wp.array(dtype=wp.int32), changed_out: wp.array(dtype=wp.int32)):
     """Pointer jumping: a member's label takes its label's label."""
     i = wp.tid()
-    z = label[i]
-    if not in_zone(z, label.shape[0]):
+    z = label_out[i]
+    if not in_zone(z, label_out.shape[0]):
         return
-    zz = label[z]
+    zz = label_out[z]
     if zz < z:
-        label[i] = zz
+        label_out[i] = zz
         changed_out[0] = 1
 
 
@@ -1221,16 +1221,16 @@ def end_zone_detection(zone_iterations: int, zones_out: wp.array(dtype=wp.int32)
 
 
 @wp.kernel(enable_backward=False)
-def finish_zones(label: wp.array(dtype=wp.int32), counts_out: wp.array(dtype=wp.int32)):
+def finish_zones(label_out: wp.array(dtype=wp.int32), counts_out: wp.array(dtype=wp.int32)):
     """Count the step's zones and their particles, and clear the labels (ZONE_NONE) for the next step."""
     i = wp.tid()
-    z = label[i]
-    if not in_zone(z, label.shape[0]):
+    z = label_out[i]
+    if not in_zone(z, label_out.shape[0]):
         return
     wp.atomic_add(counts_out, COUNT_ZONE_PARTICLES, 1)
     if z == i:
         wp.atomic_add(counts_out, COUNT_ZONES, 1)
-    label[i] = ZONE_NONE
+    label_out[i] = ZONE_NONE
 
 
 @wp.kernel(enable_backward=False)
