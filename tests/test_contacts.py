@@ -420,7 +420,11 @@ def test_gradients_through_contacts_in_the_solve_match_finite_differences(collid
         "initial velocity": along(s0.particle_qd.grad.numpy(), 3e-3, lambda d: contextlib.nullcontext(state0(v=v0 + d))),
         "initial position": along(s0.particle_q.grad.numpy(), 1e-4, lambda d: contextlib.nullcontext(state0(x=x0 + d))),
         "kinetic friction": along(m.collider_kinetic_friction.grad.numpy(), 1e-2, lambda d: field(m.collider_kinetic_friction, d)),
-        "stiffness": along(m.spring_stiffness.grad.numpy(), 0.1, lambda d: field(m.spring_stiffness, d), base=k),
+        # the relative step: the largest that holds the contact set. On the ground 20 % (at 10 % the difference moved by
+        # 1 % when CG's dot products changed their rounding, at 5 % by 2 %; at 20 % and 30 % it stayed within 0.3 % of
+        # the adjoint before and after); on the ball 10 % (at 12 % a contact is added)
+        "stiffness": along(m.spring_stiffness.grad.numpy(), 0.2 if collider == "ground" else 0.1, lambda d: field(m.spring_stiffness, d),
+                           base=k),
     }
     for kind, (ad, fd) in cases.items():
         tolerance = 1e-2 if kind == "stiffness" else 2e-3  # the stiffness's loss change is ~1e-4 of the loss: float32 noise
