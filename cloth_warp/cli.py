@@ -12,8 +12,13 @@
     cloth-warp calibrate MEASUREMENTS.toml -o FABRIC.toml [--iters N] [--no-drape] [--device D] [--quiet]
                                                 fit a material to fabric measurements (report: FABRIC.json;
                                                 a simulated test that is not finite exits 3)
+    cloth-warp sweep SCENE --param key=v1,v2,... [--param ...] [--seeds K] [--workers N] [--address HOST:PORT]
+                         [-o DIR] [--frames N] [--set ...] [--device D] [--quiet]
+                                                scene variants on Dask (local cluster, or the one at --address);
+                                                resumable (DIR/manifest.json), a table of results (DIR/results.csv);
+                                                exits 1 when a run failed
 
-Exit codes: 0 done, 2 bad input (scene key, mesh, unreadable file, unwritable output, another live run on the
+Exit codes: 0 done, 1 a run of a sweep failed, 2 bad input (scene key, mesh, unreadable file, unwritable output, another live run on the
 same output, a failed save: the cache keeps the last good save), 3 diverged (the cache keeps every good
 frame), 130 interrupted by Ctrl-C or SIGTERM (the cache of the frames saved is valid; --resume continues it).
 """
@@ -31,7 +36,7 @@ import warnings
 
 from . import __version__
 
-EXIT_OK, EXIT_BAD_INPUT, EXIT_DIVERGED, EXIT_INTERRUPTED = 0, 2, 3, 130
+EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_DIVERGED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130  # (EXIT_FAILED: a sweep's run)
 
 
 class BadInput(Exception):
@@ -441,7 +446,7 @@ def cmd_calibrate(args) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="cloth-warp", description="Differentiable cloth simulation in NVIDIA Warp.",
-                                     epilog="Exit codes: 0 done, 2 bad input, 3 diverged, 130 interrupted.")
+                                     epilog="Exit codes: 0 done, 1 a sweep's run failed, 2 bad input, 3 diverged, 130 interrupted.")
     parser.add_argument("--version", action="version", version=f"cloth-warp {__version__}")
     parser.add_argument("-v", "--verbose", action="count", default=0, help="log more (-v info, -vv debug)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -522,7 +527,63 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("--device", help="Warp device: cpu, cuda, cuda:0 (default: Warp's)")
     cal.add_argument("-q", "--quiet", action="store_true", help="no progress and no summary")
     cal.set_defaults(func=cmd_calibrate)
+
+    sw = sub.add_parser("sweep", help="run variants of a scene on Dask (local cluster or --address), resumable",
+                        description="Run every combination of the swept scene keys (and seeds) as a `cloth-warp run` on a Dask "
+                                    "cluster: a local one of --workers processes, or the one at --address. DIR/manifest.json "
+                                    "records each run (started again, a sweep skips the runs that are done), DIR/results.csv "
+                                    "tabulates them, DIR/runs/<run>/ holds each cache. Needs the sweep extra: "
+                                    "pip install \"cloth-warp[sweep]\".",
+                        epilog="Exit codes: 0 every run done, 1 a run failed (see the table), 2 bad input, 130 interrupted "
+                               "(start it again to continue).")
+    sw.add_argument("scene", help="scene file (.toml) or the name of a shipped scene")
+    sw.add_argument("--param", action="append", metavar="KEY.PATH=V1,V2,...", required=True,
+                    help="a scene key and its values (TOML or bare strings; commas inside [] belong to a value); repeatable")
+    sw.add_argument("--seeds", type=int, help="also sweep scene.seed over 0..K-1")
+    sw.add_argument("--workers", type=int, help="local worker processes (default: the machine's cores); ignored with --address")
+    sw.add_argument("--address", help="the scheduler of a running Dask cluster (tcp://host:8786); scene and DIR must be on a "
+                    "file system its workers share")
+    sw.add_argument("-o", "--output", help="output folder (default out/sweep_<scene>)")
+    sw.add_argument("--frames", type=int, help="frames per run")
+    sw.add_argument("--set", action="append", metavar="KEY.PATH=VALUE", help="a scene key every run sets; repeatable")
+    sw.add_argument("--device", help="Warp device of the runs")
+    sw.add_argument("-q", "--quiet", action="store_true", help="no line per run")
+    sw.set_defaults(func=cmd_sweep)
     return parser
+
+
+def cmd_sweep(args) -> int:
+    import pathlib
+
+    from .runner import find_scene
+    from .sweep import Sweep, SweepError, format_values, parse_params, run_sweep
+
+    try:
+        sweep = Sweep(scene=args.scene, params=parse_params(args.param), seeds=args.seeds, overrides=parse_set(args.set),
+                      frames=args.frames, device=args.device)
+    except SweepError as exc:
+        raise BadInput(str(exc)) from None
+    out = pathlib.Path(args.output) if args.output else pathlib.Path("out") / f"sweep_{find_scene(args.scene).stem}"
+
+    def progress(run_id, entry, done, total):
+        if not args.quiet:
+            retry = " (retried)" if entry["status"] == "pending" else ""
+            print(f"[{done}/{total}] {run_id} {entry['status']}{retry}: {entry['exit_class']}, {entry['wall_s']:.1f} s "
+                  f"({format_values(entry['values'])})", file=sys.stderr)
+
+    try:
+        report = run_sweep(sweep, out, workers=args.workers, address=args.address, progress=progress)
+    except SweepError as exc:
+        raise BadInput(str(exc)) from None
+    except KeyboardInterrupt as exc:
+        report = getattr(exc, "report", None)
+        if report is not None:
+            print(f"cloth-warp: sweep interrupted: {report.done} runs done, {report.pending} to go; start it again to continue "
+                  f"({report.manifest})", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    print(f"sweep {out}: {report.done} runs done, {report.skipped} done before, {report.failed} failed, in {report.wall_s:.1f} s; "
+          f"table {report.results}", file=sys.stdout if report.complete else sys.stderr)
+    return EXIT_OK if report.complete else EXIT_FAILED
 
 
 def _check_device(device):

@@ -107,6 +107,12 @@ def _resume_source(out: pathlib.Path):
     return None
 
 
+def can_resume(out) -> bool:
+    """Whether the cache path `out` has something ``--resume`` continues: its final file or a dead run's partial file
+    holding a resume checkpoint (read-only; the resumed run takes the output's lock and reads it again)."""
+    return _resume_source(pathlib.Path(out)) is not None
+
+
 def _changed_keys(a, b, prefix="") -> list[str]:
     """Dotted key paths whose values differ between two nested dicts."""
     if not (isinstance(a, dict) and isinstance(b, dict)):

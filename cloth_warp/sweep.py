@@ -1,0 +1,413 @@
+"""Parameter sweeps: the variants of a scene run on a distributed engine, resumable (``cloth-warp sweep``).
+
+A sweep is the cartesian product of swept scene keys (``--param material.preset=cotton,silk``) and, with ``--seeds
+K``, of ``scene.seed`` = 0 .. K-1. Each variant is one run, ``run-0000``, ``run-0001``, ... in the product's order
+(the last key varying fastest), run as a ``cloth-warp run`` subprocess on a Dask worker:
+
+    DIR/manifest.json      the sweep's definition and every run's record (status, exit class, attempts, seconds)
+    DIR/results.csv        one row per run: its swept values, status, and the numbers of its summary
+    DIR/runs/run-0003/     cache.usdc, summary.json (``--stats``), log.txt (the run's stderr)
+
+Why Dask (``distributed``): the runs are independent processes, which is what a task scheduler does; Dask is pure
+Python (a few MB), a ``LocalCluster`` starts in a second or two, and the same ``Client`` reaches a cluster started by
+``dask scheduler`` / ``dask worker``, SSH, a job queue (dask-jobqueue) or Kubernetes. Ray would bring a runtime of
+its own (an object store, a raylet, 100+ MB) for nothing a sweep uses. It is an optional extra
+(``pip install "cloth-warp[sweep]"``).
+
+Why a subprocess per run: Warp's CPU backend runs one thread per process, so a worker is one process with one
+thread running one run at a time; the run's own process isolates what can go wrong in it (a crash, the kernel's
+out-of-memory killer) from the worker and the sweep, and gives the command line's exit codes and its resumable
+caches for free. On a cluster, the scene, the output folder and cloth_warp must be reachable from every worker at
+the same paths (a shared file system).
+
+Faults: a run that ends with exit code 3 (diverged) or 2 (bad input) failed for a reason a second try reproduces: it
+is recorded with that class and not retried. A run that was killed (a signal: its worker or the machine's memory
+killer), interrupted (130) or ended otherwise is retried once, continuing its cache from the last saved frame
+(``cloth-warp run --resume``). The manifest is written (atomically) after every run; a sweep interrupted (Ctrl-C,
+SIGTERM: the runs in flight stop with valid caches) and started again with the same definition skips the runs that
+are done and continues the others.
+"""
+
+from __future__ import annotations
+
+import csv
+import ctypes
+import itertools
+import json
+import os
+import pathlib
+import signal
+import subprocess
+import sys
+import time
+import tomllib
+from dataclasses import dataclass, field
+
+from .outputs import atomic_write_text
+
+MANIFEST = "manifest.json"
+RESULTS = "results.csv"
+RETRIED_CLASSES = ("killed", "interrupted", "error")
+"""Exit classes of a run that a second try may not reproduce: retried once (see the module)."""
+SUMMARY_COLUMNS = ("frames", "ms_per_frame", "max_strain", "particles", "wall_s")
+"""Numbers of a run's summary (``cloth-warp run --stats``) copied into the results table (wall_s as `run_wall_s`)."""
+
+
+class SweepError(Exception):
+    """A sweep that cannot start: a bad --param, a scene key that does not validate, a manifest of another sweep."""
+
+
+def exit_class(code: int) -> str:
+    """The class of a ``cloth-warp run`` exit code: ok, bad_input, diverged, interrupted, killed (a signal), error."""
+    from .cli import EXIT_BAD_INPUT, EXIT_DIVERGED, EXIT_INTERRUPTED, EXIT_OK
+
+    if code < 0:
+        return "killed"
+    return {EXIT_OK: "ok", EXIT_BAD_INPUT: "bad_input", EXIT_DIVERGED: "diverged", EXIT_INTERRUPTED: "interrupted"}.get(code, "error")
+
+
+def split_values(text: str) -> list[str]:
+    """The comma-separated values of ``--param key=v1,v2``: commas inside brackets or quotes belong to a value
+    (``cloth.grid.resolution=[32,32],[64,64]``)."""
+    out, depth, quote, start = [], 0, None, 0
+    for i, ch in enumerate(text):
+        if quote:
+            quote = None if ch == quote else quote
+        elif ch in "\"'":
+            quote = ch
+        elif ch in "[{":
+            depth += 1
+        elif ch in "]}":
+            depth -= 1
+        elif ch == "," and depth == 0:
+            out.append(text[start:i])
+            start = i + 1
+    out.append(text[start:])
+    return [v.strip() for v in out]
+
+
+def parse_value(text: str):
+    """A value as ``--set`` reads it: TOML (``8``, ``[1, 0, 0]``, ``true``) or a bare string."""
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text.strip()
+
+
+def parse_params(items) -> dict[str, list]:
+    """``key=v1,v2,...`` strings to {key: [values]} (in the order given; a key given twice is an error)."""
+    out: dict[str, list] = {}
+    for item in items or []:
+        key, sep, values = item.partition("=")
+        key = key.strip()
+        if not sep or not key or not values.strip():
+            raise SweepError(f"--param expects key.path=v1,v2,..., got {item!r}")
+        if key in out:
+            raise SweepError(f"--param {key} given twice")
+        out[key] = [parse_value(v) for v in split_values(values)]
+    return out
+
+
+@dataclass(frozen=True)
+class SweepRun:
+    """One variant: its id and the scene values it sets (the swept keys, and scene.seed with --seeds)."""
+
+    id: str
+    values: dict
+
+
+@dataclass(frozen=True)
+class Sweep:
+    """A sweep's definition: the scene, the swept keys' values, the seeds, the values every run sets, the frames."""
+
+    scene: str
+    params: dict
+    seeds: int | None = None
+    overrides: dict = field(default_factory=dict)
+    frames: int | None = None
+    device: str | None = None
+
+    def runs(self) -> list[SweepRun]:
+        """Every variant, in the product's order (the last key varying fastest, then the seed)."""
+        keys = list(self.params)
+        axes = [self.params[k] for k in keys]
+        if self.seeds is not None:
+            keys.append("scene.seed")
+            axes.append(list(range(self.seeds)))
+        combos = list(itertools.product(*axes)) if keys else [()]
+        return [SweepRun(f"run-{i:04d}", dict(zip(keys, combo))) for i, combo in enumerate(combos)]
+
+    def definition(self) -> dict:
+        """What the manifest records to recognise the sweep on a resume."""
+        return {"scene": self.scene, "params": self.params, "seeds": self.seeds, "overrides": self.overrides,
+                "frames": self.frames, "device": self.device}
+
+    def validate(self) -> None:
+        """Every variant's scene values checked now, at one gate (a bad key fails the sweep before any run)."""
+        from .runner import find_scene
+        from .scene import SceneError, load_scene
+
+        if self.seeds is not None and self.seeds < 1:
+            raise SweepError(f"--seeds must be at least 1, got {self.seeds}")
+        if "scene.seed" in self.params and self.seeds is not None:
+            raise SweepError("--seeds and --param scene.seed both set the seed: give one")
+        path = find_scene(self.scene)
+        for run in self.runs():
+            try:
+                load_scene(path, {**self.overrides, **run.values})
+            except SceneError as exc:
+                raise SweepError(f"{run.id} ({format_values(run.values)}): {exc}") from None
+
+
+def format_values(values: dict) -> str:
+    return ", ".join(f"{k}={json.dumps(v)}" for k, v in values.items())
+
+
+@dataclass(frozen=True)
+class RunResult:
+    """What one attempt of a run gave (returned by :func:`execute_run` on a worker)."""
+
+    id: str
+    exit_code: int
+    wall_s: float
+    summary: dict | None
+
+
+def _die_with_parent():  # pragma: no cover - runs in the child between fork and exec
+    """Linux: the run gets SIGTERM when its worker dies (it then closes its cache), instead of running on orphaned."""
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
+def run_command(scene: str, values: dict, overrides: dict, run_dir: pathlib.Path, frames: int | None, device: str | None,
+                resume: bool) -> list[str]:
+    """The ``cloth-warp run`` command line of one run."""
+    cmd = [sys.executable, "-m", "cloth_warp", "run", scene, "-o", str(run_dir / "cache.usdc"), "--stats", str(run_dir / "summary.json"),
+           "--quiet"]
+    for key, value in {**overrides, **values}.items():
+        cmd += ["--set", f"{key}={_toml_value(value)}"]
+    if frames is not None:
+        cmd += ["--frames", str(int(frames))]
+    if device:
+        cmd += ["--device", device]
+    if resume:
+        cmd.append("--resume")
+    return cmd
+
+
+def _toml_value(value) -> str:
+    """A value as TOML text (strings quoted), so that ``--set`` reads back exactly this value."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return json.dumps(value)
+    if isinstance(value, list):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    return repr(value)
+
+
+def execute_run(spec: dict) -> RunResult:
+    """One attempt of a run on a worker: ``cloth-warp run`` as a subprocess (its stderr appended to log.txt), continuing
+    the cache an earlier attempt left (``--resume``: killed, interrupted, or a sweep stopped before it was recorded)."""
+    from .runner import can_resume
+
+    run_dir = pathlib.Path(spec["dir"])
+    run_dir.mkdir(parents=True, exist_ok=True)
+    cache = run_dir / "cache.usdc"
+    resume = can_resume(cache)  # an earlier attempt's saved frames (a run not done has no other cache)
+    cmd = run_command(spec["scene"], spec["values"], spec["overrides"], run_dir, spec["frames"], spec["device"], resume)
+    stats = run_dir / "summary.json"
+    if stats.exists():
+        stats.unlink()
+    t = time.perf_counter()
+    with open(run_dir / "log.txt", "a") as log:
+        log.write(f"# attempt {spec['attempt']}: {' '.join(cmd)}\n")
+        log.flush()
+        preexec = _die_with_parent if sys.platform.startswith("linux") else None
+        code = subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=log, preexec_fn=preexec).returncode
+    wall = time.perf_counter() - t
+    summary = json.loads(stats.read_text()) if stats.exists() else None
+    return RunResult(spec["id"], code, wall, summary)
+
+
+@dataclass
+class SweepReport:
+    """How a sweep ended: runs done, failed (after their retries), skipped as done by an earlier start, and pending
+    (interrupted); the wall time [s] and where the manifest and the table are."""
+
+    done: int
+    failed: int
+    skipped: int
+    pending: int
+    wall_s: float
+    manifest: pathlib.Path
+    results: pathlib.Path
+
+    @property
+    def complete(self) -> bool:
+        return self.pending == 0 and self.failed == 0
+
+
+class Manifest:
+    """The sweep's record in DIR/manifest.json: its definition and, per run, status (pending, done, failed), the exit
+    code and class of its last attempt, attempts, the seconds of its last attempt, its swept values."""
+
+    def __init__(self, out_dir: pathlib.Path, sweep: Sweep):
+        self.path = out_dir / MANIFEST
+        self.sweep = sweep
+        definition = sweep.definition()
+        if self.path.exists():
+            data = json.loads(self.path.read_text())
+            if data.get("sweep") != json.loads(json.dumps(definition)):
+                raise SweepError(f"{self.path} records another sweep ({data.get('sweep')}); give a new output folder")
+            self.runs = data["runs"]
+        else:
+            self.runs = {r.id: {"values": r.values, "status": "pending", "exit_code": None, "exit_class": None, "attempts": 0,
+                                "wall_s": None} for r in sweep.runs()}
+        self.definition = definition
+
+    def save(self) -> None:
+        atomic_write_text(self.path, json.dumps({"sweep": self.definition, "runs": self.runs}, indent=1) + "\n")
+
+    def record(self, result: RunResult) -> dict:
+        entry = self.runs[result.id]
+        entry["attempts"] += 1
+        entry["exit_code"] = result.exit_code
+        entry["exit_class"] = exit_class(result.exit_code)
+        entry["wall_s"] = result.wall_s
+        if entry["exit_class"] == "ok":
+            entry["status"] = "done"
+        elif entry["exit_class"] in RETRIED_CLASSES and entry["attempts"] < 2:
+            entry["status"] = "pending"
+        else:
+            entry["status"] = "failed"
+        return entry
+
+
+def write_results(out_dir: pathlib.Path, manifest: Manifest) -> pathlib.Path:
+    """DIR/results.csv: per run its id, swept values, status, exit class, attempts, seconds, and summary numbers."""
+    keys = list(manifest.sweep.params) + (["scene.seed"] if manifest.sweep.seeds is not None else [])
+    columns = ["run", *keys, "status", "exit_class", "attempts", "wall_s",
+               *[("run_" + c if c == "wall_s" else c) for c in SUMMARY_COLUMNS], "cache"]
+    rows = []
+    for run_id, entry in manifest.runs.items():
+        run_dir = out_dir / "runs" / run_id
+        stats = run_dir / "summary.json"
+        summary = json.loads(stats.read_text()) if stats.exists() else {}
+        row = {"run": run_id, **{k: json.dumps(entry["values"][k]) if isinstance(entry["values"][k], list) else entry["values"][k]
+                                for k in keys},
+               "status": entry["status"], "exit_class": entry["exit_class"] or "", "attempts": entry["attempts"],
+               "wall_s": "" if entry["wall_s"] is None else f"{entry['wall_s']:.3f}",
+               "cache": str(pathlib.Path("runs") / run_id / "cache.usdc") if (run_dir / "cache.usdc").exists() else ""}
+        for c in SUMMARY_COLUMNS:
+            row["run_" + c if c == "wall_s" else c] = summary.get(c, "")
+        rows.append(row)
+    path = out_dir / RESULTS
+    import io
+
+    text = io.StringIO()
+    writer = csv.DictWriter(text, fieldnames=columns)
+    writer.writeheader()
+    writer.writerows(rows)
+    atomic_write_text(path, text.getvalue())
+    return path
+
+
+def _client(workers: int | None, address: str | None):
+    """A Dask client: of the cluster at `address`, else of a local cluster of `workers` one-thread processes."""
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:  # pragma: no cover - the optional extra
+        raise SweepError('cloth-warp sweep needs Dask: pip install "cloth-warp[sweep]"') from None
+    import logging
+
+    if logging.getLogger().getEffectiveLevel() > logging.INFO:  # Dask logs at INFO on its own handlers (cloth-warp -v: shown)
+        logging.getLogger("distributed").setLevel(logging.WARNING)
+    if address:
+        return Client(address), None
+    n = int(workers or os.cpu_count() or 1)
+    if n < 1:
+        raise SweepError(f"--workers must be at least 1, got {n}")
+    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None)
+    return Client(cluster), cluster
+
+
+def run_sweep(sweep: Sweep, out_dir, workers: int | None = None, address: str | None = None, progress=None) -> SweepReport:
+    """Run every variant of `sweep` not done yet into `out_dir` (see the module): on the Dask cluster at `address`, else
+    on a local cluster of `workers` processes (default: the machine's cores). `progress(entry_id, entry, done, total)`
+    is called after each attempt. Ctrl-C / SIGTERM stop the sweep with its manifest and table written (KeyboardInterrupt
+    is raised again after)."""
+    sweep.validate()
+    out_dir = pathlib.Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    manifest = Manifest(out_dir, sweep)
+    scene = str(pathlib.Path(_scene_path(sweep.scene)).resolve())
+    skipped = sum(1 for e in manifest.runs.values() if e["status"] == "done")
+    for entry in manifest.runs.values():  # a failed run of an earlier start gets its one retry only if it had none
+        if entry["status"] == "failed" and entry["exit_class"] in RETRIED_CLASSES and entry["attempts"] < 2:
+            entry["status"] = "pending"
+    manifest.save()
+    t0 = time.perf_counter()
+    todo = [rid for rid, e in manifest.runs.items() if e["status"] == "pending"]
+    interrupted = None
+    if todo:
+        client, cluster = _client(workers, address)
+        try:
+            _run_pending(client, manifest, scene, sweep, out_dir, todo, progress)
+        except KeyboardInterrupt as exc:
+            interrupted = exc
+        finally:
+            manifest.save()
+            client.close()
+            if cluster is not None:
+                cluster.close()
+    results = write_results(out_dir, manifest)
+    statuses = [e["status"] for e in manifest.runs.values()]
+    report = SweepReport(done=statuses.count("done") - skipped, failed=statuses.count("failed"), skipped=skipped,
+                         pending=statuses.count("pending"), wall_s=time.perf_counter() - t0, manifest=manifest.path, results=results)
+    if interrupted is not None:
+        interrupted.report = report
+        raise interrupted
+    return report
+
+
+def _scene_path(scene: str) -> pathlib.Path:
+    from .runner import find_scene
+
+    return find_scene(scene)
+
+
+def _run_pending(client, manifest: Manifest, scene: str, sweep: Sweep, out_dir: pathlib.Path, todo: list[str], progress) -> None:
+    """Submit the pending runs, record each attempt as it ends (the manifest saved each time), resubmit the retried."""
+    from distributed import as_completed
+
+    def submit(rid):
+        entry = manifest.runs[rid]
+        spec = {"id": rid, "dir": str(out_dir / "runs" / rid), "scene": scene, "values": entry["values"], "overrides": sweep.overrides,
+                "frames": sweep.frames, "device": sweep.device, "attempt": entry["attempts"] + 1}
+        return client.submit(execute_run, spec, key=f"{rid}-attempt{spec['attempt']}-{os.getpid()}-{time.time_ns()}", pure=False)
+
+    futures = as_completed([submit(rid) for rid in todo])
+    total = len(manifest.runs)
+    try:
+        for future in futures:
+            try:
+                result = future.result()
+            except Exception as exc:  # the worker died under the run (Dask gave up on it), or the task failed
+                rid = future.key.split("-attempt")[0]
+                result = RunResult(rid, -int(signal.SIGKILL), 0.0, None)
+                (out_dir / "runs" / rid).mkdir(parents=True, exist_ok=True)
+                with open(out_dir / "runs" / rid / "log.txt", "a") as log:
+                    log.write(f"# the worker failed: {type(exc).__name__}: {exc}\n")
+            entry = manifest.record(result)
+            manifest.save()
+            if progress is not None:
+                done = sum(1 for e in manifest.runs.values() if e["status"] != "pending")
+                progress(result.id, entry, done, total)
+            if entry["status"] == "pending":
+                futures.add(submit(result.id))
+    except KeyboardInterrupt:
+        client.cancel(list(futures.futures))
+        raise
