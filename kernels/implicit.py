@@ -50,6 +50,8 @@ CG_RS = wp.constant(0)
 CG_CAC = wp.constant(1)
 CG_RR = wp.constant(2)
 CG_COLUMNS = 3
+CG_ALPHA = wp.constant(0)  # the iteration's step sizes (float32, computed once per iteration by one thread)
+CG_BETA = wp.constant(1)
 JACOBI_CHECK_ROW = wp.constant(1)  # block Jacobi's residual checks accumulate |r|^2 here (row 0 keeps |r_0|^2)
 # The solve's loop control (int32, read by wp.capture_while and the guarded kernels) and status (float64).
 LOOP_RUNNING = wp.constant(0)
@@ -421,12 +423,15 @@ def eval_implicit_system(
     preconditioned_out: wp.array(dtype=wp.vec3),
     search_out: wp.array(dtype=wp.vec3),
     cg_scalars_out: wp.array2d(dtype=wp.float64),
+    effective_mass_out: wp.array(dtype=float),
 ):
-    """b = h (f0 - h K v0), P = A_ii^-1 (filtered), dv = z, r0 = S (b - A z), s0 = c0 = P r0."""
+    """b = h (f0 - h K v0), P = A_ii^-1 (filtered), dv = z, r0 = S (b - A z), s0 = c0 = P r0; M' per particle (what each
+    CG iteration's `cg_product` multiplies by)."""
     i = wp.tid()
     f0 = total_force(i, particle_mass, particle_pin_stiffness, element_force, x0, v0, pin_target, gravity, global_damping)
     vi = v0[i]
     m_eff = effective_mass(i, particle_mass, particle_pin_stiffness, global_damping, dt)
+    effective_mass_out[i] = m_eff
     k_v = particle_pin_stiffness[i] * vi
     diag = m_eff * wp.identity(n=3, dtype=float)
     a_z = wp.vec3(0.0)
@@ -569,14 +574,11 @@ def scatter_drag_product(
 @wp.func
 def cg_product_row(
     i: int,
-    particle_mass: wp.array(dtype=float),
-    particle_pin_stiffness: wp.array(dtype=float),
+    effective_mass: wp.array(dtype=float),
     particle_pinned: wp.array(dtype=wp.int32),
     search: wp.array(dtype=wp.vec3),
     contact_normal: wp.array(dtype=wp.vec3),
     filtered: int,
-    global_damping: float,
-    dt: float,
     product_out: wp.array(dtype=wp.vec3),
 ):
     """Row i of q = S A c (the mass term added to the scattered element part, pinned rows filtered) into
@@ -585,7 +587,7 @@ def cg_product_row(
         product_out[i] = wp.vec3(0.0)
         return wp.float64(0.0)
     c = search[i]
-    q = effective_mass(i, particle_mass, particle_pin_stiffness, global_damping, dt) * c + product_out[i]
+    q = effective_mass[i] * c + product_out[i]
     if filtered != 0:  # collider contacts in the solve (`contact_normal`; the per-particle read only then)
         q = contact_filter(contact_normal[i], q)
     product_out[i] = q
@@ -596,80 +598,80 @@ def cg_product_row(
 def cg_product(
     # Model
     particle_count: int,
-    particle_mass: wp.array(dtype=float),
-    particle_pin_stiffness: wp.array(dtype=float),
+    effective_mass: wp.array(dtype=float),
     particle_pinned: wp.array(dtype=wp.int32),
     search: wp.array(dtype=wp.vec3),
     contact_normal: wp.array(dtype=wp.vec3),
     filtered: int,
-    global_damping: float,
-    dt: float,
-    loop: wp.array(dtype=wp.int32),
     # outputs: holds the element part (the scatter_*_product kernels) on entry, q on exit
     product_out: wp.array(dtype=wp.vec3),
-    cg_scalars_out: wp.array2d(dtype=wp.float64),
+    cg_sums_out: wp.array(dtype=wp.float64),
 ):
-    """q = S A c and c . q (row loop[LOOP_ITERATION]), one thread per particle (the CPU's form; see
-    cloth_warp.reductions)."""
+    """q = S A c, and c . q summed into cg_sums_out[CG_CAC] (`cg_step_size` moves it into the iteration's row), one
+    thread per particle (the CPU's form; see cloth_warp.reductions)."""
     i = wp.tid()
-    cq = cg_product_row(i, particle_mass, particle_pin_stiffness, particle_pinned, search, contact_normal, filtered, global_damping,
-                        dt, product_out)
-    wp.atomic_add(cg_scalars_out, loop[LOOP_ITERATION], CG_CAC, cq)
+    cq = cg_product_row(i, effective_mass, particle_pinned, search, contact_normal, filtered, product_out)
+    wp.atomic_add(cg_sums_out, CG_CAC, cq)
 
 
 @wp.kernel(enable_backward=False)
 def cg_product_blocks(
     # Model
     particle_count: int,
-    particle_mass: wp.array(dtype=float),
-    particle_pin_stiffness: wp.array(dtype=float),
+    effective_mass: wp.array(dtype=float),
     particle_pinned: wp.array(dtype=wp.int32),
     search: wp.array(dtype=wp.vec3),
     contact_normal: wp.array(dtype=wp.vec3),
     filtered: int,
-    global_damping: float,
-    dt: float,
-    loop: wp.array(dtype=wp.int32),
     # outputs: holds the element part (the scatter_*_product kernels) on entry, q on exit
     product_out: wp.array(dtype=wp.vec3),
-    cg_scalars_out: wp.array2d(dtype=wp.float64),
+    cg_sums_out: wp.array(dtype=wp.float64),
 ):
     """:func:`cg_product` with c . q summed per block and added once per block (the GPU's form)."""
     block, lane = wp.tid()
     i = block * wp.block_dim() + lane
     cq = wp.float64(0.0)
     if i < particle_count:
-        cq = cg_product_row(i, particle_mass, particle_pin_stiffness, particle_pinned, search, contact_normal, filtered, global_damping,
-                            dt, product_out)
+        cq = cg_product_row(i, effective_mass, particle_pinned, search, contact_normal, filtered, product_out)
     total = wp.tile_extract(wp.tile_sum(wp.tile(cq)), 0)
     if lane == 0:
-        wp.atomic_add(cg_scalars_out, loop[LOOP_ITERATION], CG_CAC, total)
+        wp.atomic_add(cg_sums_out, CG_CAC, total)
+
+
+@wp.kernel(enable_backward=False)
+def cg_step_size(loop: wp.array(dtype=wp.int32), cg_sums_out: wp.array(dtype=wp.float64), cg_scalars_out: wp.array2d(dtype=wp.float64),
+                 step_out: wp.array(dtype=float)):
+    """One thread: c.Ac (summed by `cg_product` into cg_sums_out, cleared here) into row loop[LOOP_ITERATION], and that
+    iteration's alpha = r.s / c.Ac (0 when c.Ac <= 0) once for `cg_update`'s threads. (Each thread dividing in float64,
+    and the reductions indexing the row through the loop state per thread, cost the CPU a fifth of an iteration.)"""
+    iteration = loop[LOOP_ITERATION]
+    cac = cg_sums_out[CG_CAC]
+    cg_sums_out[CG_CAC] = wp.float64(0.0)
+    cg_scalars_out[iteration, CG_CAC] = cac
+    alpha = float(0.0)
+    if cac > wp.float64(0.0):
+        alpha = float(cg_scalars_out[iteration, CG_RS] / cac)
+    step_out[CG_ALPHA] = alpha
 
 
 @wp.kernel(enable_backward=False)
 def cg_update(
     precond: wp.array(dtype=wp.mat33),
     search: wp.array(dtype=wp.vec3),
-    loop: wp.array(dtype=wp.int32),
-    cg_scalars: wp.array2d(dtype=wp.float64),
+    step: wp.array(dtype=float),
     # outputs (updated in place: forward-only solve, its gradient comes from an adjoint solve)
     product_out: wp.array(dtype=wp.vec3),
     dv_out: wp.array(dtype=wp.vec3),
     residual_out: wp.array(dtype=wp.vec3),
     preconditioned_out: wp.array(dtype=wp.vec3),
 ):
-    """alpha = r.s / c.Ac; dv += alpha c; r -= alpha q; s = P r (iteration loop[LOOP_ITERATION]); `cg_residual_dots`
-    then accumulates r.s and r.r (a kernel of its own: Warp's deterministic mode refuses an array both read and
-    atomically updated in one kernel). q (`cg_product`) is read and cleared: the next iteration's scatter starts
-    from zero."""
+    """dv += alpha c; r -= alpha q; s = P r with alpha = step[CG_ALPHA] (`cg_step_size`); `cg_residual_dots` then accumulates
+    r.s and r.r (a kernel of its own: Warp's deterministic mode refuses an array both read and atomically updated in one
+    kernel). q (`cg_product`) is read and cleared: the next iteration's scatter starts from zero."""
     i = wp.tid()
     q = product_out[i]
     product_out[i] = wp.vec3(0.0)
-    iteration = loop[LOOP_ITERATION]
-    cac = cg_scalars[iteration, CG_CAC]
-    alpha = float(0.0)
-    if cac > wp.float64(0.0):
-        alpha = float(cg_scalars[iteration, CG_RS] / cac)
+    alpha = step[CG_ALPHA]
     dv_out[i] = dv_out[i] + alpha * search[i]
     r = residual_out[i] - alpha * q
     residual_out[i] = r
@@ -681,16 +683,14 @@ def cg_residual_dots(
     particle_count: int,
     residual: wp.array(dtype=wp.vec3),
     preconditioned: wp.array(dtype=wp.vec3),
-    loop: wp.array(dtype=wp.int32),
-    cg_scalars_out: wp.array2d(dtype=wp.float64),
+    cg_sums_out: wp.array(dtype=wp.float64),
 ):
-    """r.s and r.r of the updated residual into row loop[LOOP_ITERATION] + 1 (the next iteration's), one thread
-    per particle (the CPU's form; see cloth_warp.reductions)."""
+    """r.s and r.r of the updated residual summed into cg_sums_out (`end_cg_iteration` moves them into the next
+    iteration's row), one thread per particle (the CPU's form; see cloth_warp.reductions)."""
     i = wp.tid()
     r = residual[i]
-    row = loop[LOOP_ITERATION] + 1
-    wp.atomic_add(cg_scalars_out, row, CG_RS, wp.float64(wp.dot(r, preconditioned[i])))
-    wp.atomic_add(cg_scalars_out, row, CG_RR, wp.float64(wp.dot(r, r)))
+    wp.atomic_add(cg_sums_out, CG_RS, wp.float64(wp.dot(r, preconditioned[i])))
+    wp.atomic_add(cg_sums_out, CG_RR, wp.float64(wp.dot(r, r)))
 
 
 @wp.kernel(enable_backward=False)
@@ -698,8 +698,7 @@ def cg_residual_dots_blocks(
     particle_count: int,
     residual: wp.array(dtype=wp.vec3),
     preconditioned: wp.array(dtype=wp.vec3),
-    loop: wp.array(dtype=wp.int32),
-    cg_scalars_out: wp.array2d(dtype=wp.float64),
+    cg_sums_out: wp.array(dtype=wp.float64),
 ):
     """:func:`cg_residual_dots` summed per block and added once per block (the GPU's form)."""
     block, lane = wp.tid()
@@ -713,29 +712,24 @@ def cg_residual_dots_blocks(
     rs_total = wp.tile_extract(wp.tile_sum(wp.tile(rs)), 0)
     rr_total = wp.tile_extract(wp.tile_sum(wp.tile(rr)), 0)
     if lane == 0:
-        row = loop[LOOP_ITERATION] + 1
-        wp.atomic_add(cg_scalars_out, row, CG_RS, rs_total)
-        wp.atomic_add(cg_scalars_out, row, CG_RR, rr_total)
+        wp.atomic_add(cg_sums_out, CG_RS, rs_total)
+        wp.atomic_add(cg_sums_out, CG_RR, rr_total)
 
 
 @wp.kernel(enable_backward=False)
 def cg_direction(
     preconditioned: wp.array(dtype=wp.vec3),
-    cg_scalars: wp.array2d(dtype=wp.float64),
+    step: wp.array(dtype=float),
     loop: wp.array(dtype=wp.int32),
     # outputs
     search_out: wp.array(dtype=wp.vec3),
 ):
-    """c = s + beta c, beta = r_new.s_new / r.s, after the iteration end_cg_iteration counted (none once the loop stopped)."""
+    """c = s + beta c with beta = step[CG_BETA] (`end_cg_iteration`), after the iteration it counted (none once the loop
+    stopped)."""
     i = wp.tid()
     if loop[LOOP_RUNNING] == 0:
         return
-    iteration = loop[LOOP_ITERATION] - 1
-    rs = cg_scalars[iteration, CG_RS]
-    beta = float(0.0)
-    if rs > wp.float64(0.0):
-        beta = float(cg_scalars[iteration + 1, CG_RS] / rs)
-    search_out[i] = preconditioned[i] + beta * search_out[i]
+    search_out[i] = preconditioned[i] + step[CG_BETA] * search_out[i]
 
 
 @wp.kernel(enable_backward=False)
@@ -1267,19 +1261,31 @@ def begin_linear_solve(
 
 @wp.kernel(enable_backward=False)
 def end_cg_iteration(
-    cg_scalars: wp.array2d(dtype=wp.float64),
     check_every: int,
     max_iterations: int,
     # outputs
+    cg_sums_out: wp.array(dtype=wp.float64),
+    cg_scalars_out: wp.array2d(dtype=wp.float64),
+    step_out: wp.array(dtype=float),
     status_out: wp.array(dtype=wp.float64),
     loop_out: wp.array(dtype=wp.int32),
 ):
-    """Count a CG iteration (1 thread); every `check_every` iterations and at the cap, measure the relative
-    residual and stop at the tolerance (or a non-finite residual); stop at the cap."""
+    """Count a CG iteration (1 thread): the new residual's r.s and r.r (summed by `cg_residual_dots` into cg_sums_out,
+    cleared here) into the next row, and the next direction's beta into step_out[CG_BETA]; every `check_every` iterations and at the cap, measure the relative residual and
+    stop at the tolerance (or a non-finite residual); stop at the cap."""
     k = loop_out[LOOP_ITERATION] + 1
     loop_out[LOOP_ITERATION] = k
+    cg_scalars_out[k, CG_RS] = cg_sums_out[CG_RS]
+    cg_scalars_out[k, CG_RR] = cg_sums_out[CG_RR]
+    cg_sums_out[CG_RS] = wp.float64(0.0)
+    cg_sums_out[CG_RR] = wp.float64(0.0)
+    rs = cg_scalars_out[k - 1, CG_RS]
+    beta = float(0.0)
+    if rs > wp.float64(0.0):
+        beta = float(cg_scalars_out[k, CG_RS] / rs)
+    step_out[CG_BETA] = beta  # r_new.s_new / r.s: `cg_direction`'s
     if k % check_every == 0 or k >= max_iterations:
-        relative = relative_residual(cg_scalars[k, CG_RR], status_out[STATUS_REFERENCE])
+        relative = relative_residual(cg_scalars_out[k, CG_RR], status_out[STATUS_REFERENCE])
         status_out[STATUS_RELATIVE] = relative
         if stops(relative, status_out[STATUS_STOP]):
             loop_out[LOOP_RUNNING] = 0

@@ -220,6 +220,9 @@ class SolverImplicitEuler(SolverBase):
         self.product = wp.zeros(n, dtype=wp.vec3, device=dev)  # A c (c: the CG search direction)
         self.cg_scalars = wp.zeros((self.max_iterations + 2, ki.CG_COLUMNS), dtype=wp.float64, device=dev)
         self.warm_scalars = wp.zeros((1, ki.CG_COLUMNS), dtype=wp.float64, device=dev)  # a warm start's row 0
+        self.cg_step = wp.zeros(2, dtype=float, device=dev)  # the iteration's alpha and beta (kernels/implicit.py CG_ALPHA, CG_BETA)
+        self.cg_sums = wp.zeros(ki.CG_COLUMNS, dtype=wp.float64, device=dev)  # an iteration's reductions, moved into cg_scalars
+        self.effective_mass = wp.zeros(n, dtype=float, device=dev)  # M'_i = m_i (1 + h gamma) + h^2 k_pin [kg] of the assembled step
         # the solve's state on the device (kernels/implicit.py LOOP_*, STATUS_*, RECORD_*): no host read inside a step
         self.loop = wp.zeros(ki.LOOP_SIZE, dtype=wp.int32, device=dev)
         self.solve_status = wp.zeros(ki.STATUS_SIZE, dtype=wp.float64, device=dev)
@@ -317,7 +320,7 @@ class SolverImplicitEuler(SolverBase):
                     self.system_block, self.bend_vector, self.drag_vector, self.membrane_kv, self.membrane_diag, self.membrane_az,
                     state_in.particle_q, state_in.particle_qd,
                     control.pin_target, wp.vec3(*m.gravity), m.global_damping, dt],
-            outputs=[self.rhs, self.precond, self.dv, self.residual, self.preconditioned, self.search, self.cg_scalars],
+            outputs=[self.rhs, self.precond, self.dv, self.residual, self.preconditioned, self.search, self.cg_scalars, self.effective_mass],
             device=dev,
         )
 
@@ -415,18 +418,17 @@ class SolverImplicitEuler(SolverBase):
                       inputs=[m.tri_vertices, m.tri_corner_weights, self.drag_vector, c, dt], outputs=[q], device=dev)
         self._plate_product(c, dt, q)
         launch_reduction(ki.cg_product, ki.cg_product_blocks, m.particle_count,
-                         inputs=[m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, c, self.contact_normal, int(self._contacts_on),
-                                 m.global_damping, dt, self.loop],
-                         outputs=[q, self.cg_scalars], device=dev)
-        wp.launch(ki.cg_update, dim=m.particle_count, inputs=[self.precond, c, self.loop, self.cg_scalars],
+                         inputs=[self.effective_mass, m.particle_pinned, c, self.contact_normal, int(self._contacts_on)],
+                         outputs=[q, self.cg_sums], device=dev)
+        wp.launch(ki.cg_step_size, dim=1, inputs=[self.loop], outputs=[self.cg_sums, self.cg_scalars, self.cg_step], device=dev)
+        wp.launch(ki.cg_update, dim=m.particle_count, inputs=[self.precond, c, self.cg_step],
                   outputs=[q, self.dv, self.residual, self.preconditioned], device=dev)
         launch_reduction(ki.cg_residual_dots, ki.cg_residual_dots_blocks, m.particle_count,
-                         inputs=[self.residual, self.preconditioned, self.loop],
-                         outputs=[self.cg_scalars], device=dev)
-        wp.launch(ki.end_cg_iteration, dim=1, inputs=[self.cg_scalars, self.check_every, self.max_iterations],
-                  outputs=[self.solve_status, self.loop], device=dev)
-        wp.launch(ki.cg_direction, dim=m.particle_count, inputs=[self.preconditioned, self.cg_scalars, self.loop], outputs=[c],
-                  device=dev)
+                         inputs=[self.residual, self.preconditioned],
+                         outputs=[self.cg_sums], device=dev)
+        wp.launch(ki.end_cg_iteration, dim=1, inputs=[self.check_every, self.max_iterations],
+                  outputs=[self.cg_sums, self.cg_scalars, self.cg_step, self.solve_status, self.loop], device=dev)
+        wp.launch(ki.cg_direction, dim=m.particle_count, inputs=[self.preconditioned, self.cg_step, self.loop], outputs=[c], device=dev)
 
     def solve_jacobi(self, dt: float, warm: bool = False) -> wp.array:
         """Block Jacobi on the assembled system (`warm` as in :meth:`solve_cg`), iterating on the device; returns
