@@ -20,9 +20,10 @@ applied as h^2 U(p) S c_i with U(p) = sum_j p_j c_j^T (forces.py `scatter_plate_
 Hard pins are constraints through the filter S_i = 0 (Baraff & Witkin's modified PCG, solved in its
 projected form): dv_i = z_i = (target_i - x0_i) / h - v0_i there.
 
-Reductions (dot products) accumulate in float64 through atomics into `cg_scalars`, one row per
-iteration, so no host round trip is needed inside an iteration: column 0 holds r.s (s = P r), column 1
-c.Ac, column 2 r.r. (Chronopoulos & Gear's single-reduction CG, one pass over the particles fewer per
+Reductions (dot products) accumulate in float64 through atomics into a 3-slot array (`cg_sums`) that
+one-thread kernels move into `cg_scalars`, one row per iteration, so no host round trip is needed inside an
+iteration: column 0 holds r.s (s = P r), column 1 c.Ac, column 2 r.r. The same one-thread kernels compute
+the iteration's alpha and beta once (`cg_step_size`, `end_cg_iteration`), which every thread read from there. (Chronopoulos & Gear's single-reduction CG, one pass over the particles fewer per
 iteration, was tried: its recurrence for A c loses accuracy over the thousands of iterations a 1e-5 solve of
 stiff membranes takes, 2500-3000+ iterations where this form needs 1300-2200, so it is not used.)
 """
