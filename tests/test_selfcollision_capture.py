@@ -367,3 +367,42 @@ def test_zone_labels_on_the_device_are_the_connected_components(seed):
         device_while(f.link_changed, sc._link_zones_fixed)
         label = f.zone.numpy()
         np.testing.assert_array_equal(np.where(label == int(ksc.ZONE_NONE), -1, label), connected_labels(links, n))
+
+
+def test_a_welded_sewn_point_joins_an_impact_zone_whole():
+    """Check the capturable path's zone joining with welded sewn points (two panels sewn by a closed seam): a colliding
+    pair that holds one particle of a sewn point brings every particle of that point into its zone, as the host path's
+    rule does (the weld's links of every point a zone touches, then connected components)."""
+    from test_sewing import hanging_sewn
+
+    from cloth_warp.graphs import device_while
+    from cloth_warp.kernels import selfcollide as ksc
+    from cloth_warp.selfcollision import connected_labels
+
+    model, _ = hanging_sewn()
+    sc = SelfCollision(model, capturable=True, pair_capacity=64)
+    assert sc.weld is not None
+    roots = sc.weld.roots
+    n = model.particle_count
+    tris = model.tri_indices.numpy().reshape(-1, 3)
+    sewn = np.flatnonzero(roots >= 0)
+    tri = next(t for t in range(len(tris)) if np.isin(tris[t], sewn).sum() == 1)  # a triangle with one sewn corner
+    point = next(p for p in range(n) if roots[p] < 0 and not np.isin(p, tris[tri]))
+    f = sc._fixed_buffers()
+    f.close[0].assign(np.concatenate([[[tri, point]], np.zeros((f.close[0].shape[0] - 1, 2), np.int64)]).astype(np.int32))
+    f.close_count[0].fill_(1)
+    f.hits[0].assign(np.concatenate([[1], np.zeros(f.hits[0].shape[0] - 1, np.int32)]).astype(np.int32))
+    f.close_count[1].fill_(0)
+    wp.launch(ksc.set_flag, dim=1, inputs=[1], outputs=[f.link_changed])
+    device_while(f.link_changed, sc._link_zones_fixed)
+    label = f.zone.numpy()
+    label = np.where(label == int(ksc.ZONE_NONE), -1, label)
+    quad = np.array([*tris[tri], point])
+    links = np.column_stack([np.repeat(quad[0], 3), quad[1:]])
+    rows = sc.weld.links()
+    touched = np.isin(rows, links).any(axis=1)
+    links = np.concatenate([links, rows[np.isin(rows[:, 1], rows[touched, 1])]])
+    np.testing.assert_array_equal(label, connected_labels(links, n))
+    corner = quad[np.isin(quad, sewn)][0]
+    point_members = np.flatnonzero(roots == roots[corner])
+    assert len(point_members) >= 2 and (label[point_members] == label[corner]).all()
