@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import csv
 import ctypes
+import io
 import itertools
 import json
 import os
@@ -305,8 +306,6 @@ def write_results(out_dir: pathlib.Path, manifest: Manifest) -> pathlib.Path:
             row["run_" + c if c == "wall_s" else c] = summary.get(c, "")
         rows.append(row)
     path = out_dir / RESULTS
-    import io
-
     text = io.StringIO()
     writer = csv.DictWriter(text, fieldnames=columns)
     writer.writeheader()
@@ -328,8 +327,6 @@ def _client(workers: int | None, address: str | None):
     if address:
         return Client(address), None
     n = int(workers or os.cpu_count() or 1)
-    if n < 1:
-        raise SweepError(f"--workers must be at least 1, got {n}")
     cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None)
     return Client(cluster), cluster
 
@@ -339,6 +336,8 @@ def run_sweep(sweep: Sweep, out_dir, workers: int | None = None, address: str | 
     on a local cluster of `workers` processes (default: the machine's cores). `progress(entry_id, entry, done, total)`
     is called after each attempt. Ctrl-C / SIGTERM stop the sweep with its manifest and table written (KeyboardInterrupt
     is raised again after)."""
+    if workers is not None and int(workers) < 1:
+        raise SweepError(f"--workers must be at least 1, got {workers}")
     sweep.validate()
     out_dir = pathlib.Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
