@@ -152,13 +152,14 @@ def tensile_stiffness(material, direction: str, device=None, steps: int = 120, d
             "max_speed": float(np.abs(state.particle_qd.numpy()).max())}
 
 
-def cusick_drape(name: str, frames: int, device=None, workdir=None) -> dict:
-    """The Cusick drape coefficient of preset `name` on scenes/cusick.toml, last frame and 60 frames before."""
+def cusick_drape(name: str, frames: int, device=None, workdir=None, settings: dict | None = None) -> dict:
+    """The Cusick drape coefficient of preset `name` on scenes/cusick.toml (with `settings`: scene values set as
+    `cloth-warp run --set` does), last frame and 60 frames before, and the largest particle speed over the last frame."""
     from cloth_warp.drape import drape_coefficient
     from cloth_warp.scene import build_model, load_scene
 
     out = pathlib.Path(workdir) / f"cusick_{name}.npz"
-    overrides = {"material.preset": name, "output.frames": frames}
+    overrides = {**(settings or {}), "material.preset": name, "output.frames": frames}
     t0 = time.perf_counter()
     summary = cw.run_scene(ROOT / "scenes" / "cusick.toml", overrides, output=out, device=device)
     wall = time.perf_counter() - t0
@@ -169,7 +170,9 @@ def cusick_drape(name: str, frames: int, device=None, workdir=None) -> dict:
     dc_earlier = drape_coefficient(reader.points(earlier), tri, pedestal_radius=float(scene.get("measure.cusick.pedestal_radius")),
                                    disc_radius=float(scene.get("cloth.disc.radius")))
     published = PUBLISHED_DRAPE.get(name)
-    return {"simulated": summary.get("drape_coefficient"), "simulated_60_frames_earlier": dc_earlier,
+    last = reader.frame_count - 1
+    speed = float(np.linalg.norm(reader.points(last) - reader.points(last - 1), axis=1).max() * float(scene.get("output.fps")))
+    return {"simulated": summary.get("drape_coefficient"), "simulated_60_frames_earlier": dc_earlier, "max_speed_last_frame": speed,
             "status": summary.get("status"), "frames": frames, "wall_s": wall,
             "published": published[0] if published else None, "source": published[1] if published else None}
 
@@ -205,7 +208,8 @@ def table_rows(results: dict) -> list[str]:
         if cu:
             pub = "—" if cu["published"] is None else f"{cu['published']:.2f}"
             src_dc = cu["source"] or "no published value found for this fabric"
-            sim = "—" if cu["simulated"] is None else f"{cu['simulated']:.3f} ({cu['simulated_60_frames_earlier']:.3f} at -1 s)"
+            sim = "—" if cu["simulated"] is None else f"{cu['simulated']:.3f} ({cu['simulated_60_frames_earlier']:.3f} at -1 s" + (
+                f"; {1e3 * cu['max_speed_last_frame']:.1f} mm/s)" if "max_speed_last_frame" in cu else ")")
             err = "—" if cu["published"] is None or cu["simulated"] is None else f"{100 * rel(cu['simulated'], cu['published']):+.1f} %"
             lines.append(f"| {name} | Cusick drape coefficient | {pub} | {src_dc} | {sim} | {err} |")
     return lines
@@ -216,11 +220,16 @@ def main(argv=None) -> int:
     ap.add_argument("--presets", default=",".join(PRESETS), help="comma-separated preset names (default: all)")
     ap.add_argument("--no-cusick", action="store_true", help="skip the Cusick drape runs (the slow part)")
     ap.add_argument("--cusick-frames", type=int, default=240)
+    ap.add_argument("--cusick-set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a value of scenes/cusick.toml for the drape runs, as `cloth-warp run --set` (repeatable)")
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", default=str(HERE / "results" / "calibrated_presets"))
     ap.add_argument("--no-doc", action="store_true", help="do not rewrite the table in docs/calibrated-presets.md")
     args = ap.parse_args(argv)
 
+    from cloth_warp.cli import parse_set
+
+    settings = parse_set(args.cusick_set)
     names = [n.strip() for n in args.presets.split(",") if n.strip()]
     results, timings = {}, {}
     t_all = time.perf_counter()
@@ -232,7 +241,7 @@ def main(argv=None) -> int:
                  "tensile": {d: tensile_stiffness(mat, d, args.device) for d in ("warp", "weft")}}
             timings[name] = {"strips_s": time.perf_counter() - t0}
             if not args.no_cusick:
-                r["cusick"] = cusick_drape(name, args.cusick_frames, args.device, work)
+                r["cusick"] = cusick_drape(name, args.cusick_frames, args.device, work, settings)
                 timings[name]["cusick_s"] = r["cusick"]["wall_s"]
             results[name] = r
             print(f"{name}: " + ", ".join(f"{k} {v:.1f} s" for k, v in timings[name].items()), flush=True)
@@ -240,7 +249,8 @@ def main(argv=None) -> int:
 
     rows = table_rows(results)
     command = "python benchmarks/calibrated_presets.py" + (" --no-cusick" if args.no_cusick else "") + \
-        (f" --cusick-frames {args.cusick_frames}" if args.cusick_frames != 240 else "")
+        (f" --cusick-frames {args.cusick_frames}" if args.cusick_frames != 240 else "") + \
+        "".join(f" --cusick-set {item}" for item in args.cusick_set)
     if set(names) != set(PRESETS):
         command += f" --presets {','.join(names)}"
     head = [f"Generated by `{command}` ({total:.0f} s on {platform.processor() or platform.machine()}, "
@@ -253,7 +263,8 @@ def main(argv=None) -> int:
     meta = {"command": command, "total_s": total, "timings_s": timings, "device": args.device,
             "setup": {"strip_width_m": STRIP_WIDTH, "cantilever_segments": CANTILEVER_SEGMENTS,
                       "tensile_length_m": TENSILE_LENGTH, "tensile_cells": TENSILE_CELLS,
-                      "tensile_strain": TENSILE_STRAIN, "cusick_frames": args.cusick_frames, "g": GRAVITY},
+                      "tensile_strain": TENSILE_STRAIN, "cusick_frames": args.cusick_frames, "cusick_settings": settings,
+                      "g": GRAVITY},
             "sources": {n: source_of(n) for n in names}, "wang_2011": {WANG_2011_PRESETS[n]: WANG_2011[WANG_2011_PRESETS[n]]
                                                                         for n in names if n in WANG_2011_PRESETS},
             "results": results}
