@@ -403,11 +403,12 @@ class SelfCollision:
         caps = (self.grid.vertex_face.capacity, self.grid.edge_edge.capacity)
         if self._fixed is None or self._fixed.capacities != caps:  # grown (here or by the host path)
             self._fixed = _FixedBuffers(self.model, self.grid)
+            self._zone_sums()  # now, not first inside the zones' capture_if body: CUDA refuses allocations there
         return self._fixed
 
     def _apply_fixed(self, x_start, x_end, v_end, dt, x_out, v_out):
-        """:meth:`apply` on the capturable path (no device reads; impacts left after the sweeps are counted as
-        fallbacks, not resolved)."""
+        """:meth:`apply` on the capturable path (no device reads; impacts left after the sweeps form rigid impact
+        zones on the device)."""
         m = self.model
         dev = m.device
         n = m.particle_count
