@@ -336,17 +336,16 @@ def run_sweep(sweep: Sweep, out_dir, workers: int | None = None, address: str | 
     on a local cluster of `workers` processes (default: the machine's cores). `progress(entry_id, entry, done, total)`
     is called after each attempt. Ctrl-C / SIGTERM stop the sweep with its manifest and table written (KeyboardInterrupt
     is raised again after)."""
+    from .runner import find_scene
+
     if workers is not None and int(workers) < 1:
         raise SweepError(f"--workers must be at least 1, got {workers}")
     sweep.validate()
     out_dir = pathlib.Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     manifest = Manifest(out_dir, sweep)
-    scene = str(pathlib.Path(_scene_path(sweep.scene)).resolve())
+    scene = str(find_scene(sweep.scene).resolve())
     skipped = sum(1 for e in manifest.runs.values() if e["status"] == "done")
-    for entry in manifest.runs.values():  # a failed run of an earlier start gets its one retry only if it had none
-        if entry["status"] == "failed" and entry["exit_class"] in RETRIED_CLASSES and entry["attempts"] < 2:
-            entry["status"] = "pending"
     manifest.save()
     t0 = time.perf_counter()
     todo = [rid for rid, e in manifest.runs.items() if e["status"] == "pending"]
@@ -370,12 +369,6 @@ def run_sweep(sweep: Sweep, out_dir, workers: int | None = None, address: str | 
         interrupted.report = report
         raise interrupted
     return report
-
-
-def _scene_path(scene: str) -> pathlib.Path:
-    from .runner import find_scene
-
-    return find_scene(scene)
 
 
 def _run_pending(client, manifest: Manifest, scene: str, sweep: Sweep, out_dir: pathlib.Path, todo: list[str], progress) -> None:
