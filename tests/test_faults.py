@@ -306,7 +306,9 @@ def test_sigkill_then_resume_gives_the_uninterrupted_frames(tmp_path, case):
     whose every frame equals (bit for bit) that of an uninterrupted run, and that --resume removes the
     killed run's partial file."""
     scene, sets, frames = RESUME_CASES[case]
-    sets = [a for s in sets + ["output.save_every=4"] for a in ("--set", s)]
+    # on the CPU: bit for bit is its promise (CUDA's float atomics add in any order, benchmarks/bench_determinism.py);
+    # without --device a GPU machine's runs would go to Warp's default device, cuda:0
+    sets = [a for s in sets + ["output.save_every=4"] for a in ("--set", s)] + ["--device", "cpu"]
     whole, killed = tmp_path / "whole.usdc", tmp_path / "killed.usdc"
     ref = subprocess.run(CLI + ["run", str(scene), *sets, "--frames", str(frames), "-o", str(whole), "-q"],
                          capture_output=True, text=True, timeout=600)
@@ -365,7 +367,7 @@ def test_resume_refuses_what_it_cannot_continue(tmp_path, capsys):
 def test_two_runs_give_bit_identical_caches(tmp_path, name, sets):
     """Check that a shipped scene (self-collision and colliders included) run twice on the CPU gives the same
     points and velocities in every frame, bit for bit."""
-    sets = [a for s in sets for a in ("--set", s)]
+    sets = [a for s in sets for a in ("--set", s)] + ["--device", "cpu"]  # not Warp's default (cuda:0 on a GPU machine)
     paths = [tmp_path / f"{i}.usdc" for i in range(2)]
     for p in paths:
         r = subprocess.run(CLI + ["run", name, *sets, "--frames", "20", "-o", str(p), "-q"], capture_output=True, text=True,
