@@ -13,7 +13,11 @@ scene needs), compile and first frame apart.
 With --ref REV the same is measured at git revision REV, checked out into a temporary `git worktree` (with the
 `cloth_warp/kernels -> ../kernels` link an installed tree has) and run with PYTHONPATH pointing there. Both trees
 run in worker processes of their own that stay up across scenes (kernels load once) and take turns frame by
-frame, so that the noise of a shared machine falls on both alike; the result is the ratio new / ref per scene.
+frame, so that the noise of a shared machine falls on both alike; the result is the ratio new / ref per scene: the
+median over the timed frames of frame k's new / ref (the same simulated frame, run back to back: a frame's own work
+and the noise of its moment cancel), and beside it the ratio of the total times. (A ratio of the two medians of
+ms/frame mixes frames of different work - early frames of a falling cloth take more CG iterations - and moved
+0.54-0.77 between runs of hanging_cloth here where the paired ratio moved 0.54-0.69.)
 The counter is this tree's cloth_warp/profiling.py in both (loaded by path where REV lacks it). Ratios, not
 absolute times, are the result (these machines are noisy).
 
@@ -412,6 +416,12 @@ def where_loaded(hello: dict, root) -> dict:
     return out
 
 
+def paired_ratios(new: dict, ref: dict) -> tuple[float, float]:
+    """(median over frames of new / ref of the same frame, total new / total ref) of two workers' timed frames."""
+    pairs = list(zip(new["ms_frames"], ref["ms_frames"]))
+    return statistics.median(a / b for a, b in pairs), sum(a for a, _ in pairs) / sum(b for _, b in pairs)
+
+
 def summary_line(row: dict) -> str:
     new, ref = row.get("new", {}), row.get("ref")
     if "error" in new:
@@ -419,7 +429,8 @@ def summary_line(row: dict) -> str:
     text = f"{row['scene']}: {new['ms_frame']:.1f} ms/frame, {new['per_frame']['eager']:.0f} eager ops/frame, capture {new['capture']}"
     if ref is not None:
         text += (f"; ref failed: {ref['error']}" if "error" in ref else
-                 f"; ref {ref['ms_frame']:.1f} ms/frame, {ref['per_frame']['eager']:.0f} eager ops/frame; new/ref {new['ms_frame'] / ref['ms_frame']:.2f}")
+                 f"; ref {ref['ms_frame']:.1f} ms/frame, {ref['per_frame']['eager']:.0f} eager ops/frame; new/ref "
+                 "{:.2f} per frame, {:.2f} in total".format(*paired_ratios(new, ref)))
     return text
 
 
@@ -456,18 +467,20 @@ def write_report(args, rows, cold, hellos):
         + (f" Reference: git revision `{args.ref}` in a temporary worktree, its worker taking turns with this tree's frame by "
            "frame (both see the same machine noise)." if has_ref else ""),
         "",
-        "| scene | particles | steps/frame | captured | solver its/frame | ms/frame | " + ("ref ms/frame | new / ref |" if has_ref else ""),
-        "|---|---:|---:|---|---:|---:|" + ("---:|---:|" if has_ref else ""),
+        "| scene | particles | steps/frame | captured | solver its/frame | ms/frame | "
+        + ("ref ms/frame | new / ref (median per frame) | new / ref (total) |" if has_ref else ""),
+        "|---|---:|---:|---|---:|---:|" + ("---:|---:|---:|" if has_ref else ""),
     ]
     for r in rows:
         new, ref = r.get("new", {}), r.get("ref", {})
         if "error" in new:
-            lines.append(f"| {r['scene']} | failed: {new['error']} | | | | |" + (" | |" if has_ref else ""))
+            lines.append(f"| {r['scene']} | failed: {new['error']} | | | | |" + (" | | |" if has_ref else ""))
             continue
         cap = ("yes" if new["capture"] else "no") + (f" (ref {'yes' if ref.get('capture') else 'no'})" if has_ref and "capture" in ref else "")
         line = f"| {r['scene']} | {new['particles']} | {new['substeps']} | {cap} | {_num(new.get('its_frame'), '{:.0f}')} | {new['ms_frame']:.1f} |"
         if has_ref:
-            line += (f" failed: {ref['error']} | |" if "error" in ref else f" {ref['ms_frame']:.1f} | {new['ms_frame'] / ref['ms_frame']:.2f} |")
+            line += (f" failed: {ref['error']} | | |" if "error" in ref else
+                     f" {ref['ms_frame']:.1f} | " + "{:.2f} | {:.2f} |".format(*paired_ratios(new, ref)))
         lines.append(line)
     lines += ["", "Warp work issued from Python per frame after warm-up (mean of the counted frames): eager kernel launches, "
               "eager copies + fills, device loops run from the host (`capture_while`), graph replays, host reads, array "
