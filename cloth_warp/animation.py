@@ -9,11 +9,12 @@ operation, rounded once to float32; see ``kernels/animation.py``). Point caches 
 the memory of the host's float64): bit for bit for a float32 cache (as USD stores points); otherwise vertices
 differ by up to one float32 ulp of the cache's extent and velocities by about that over the sample interval.
 
-What cannot be captured: the BVH refit of a deforming (point-cache) mesh collider on the CPU. Warp 1.19
-records ``wp.Bvh.refit`` into a CPU graph but not ``wp.Mesh.refit`` (``wp_mesh_refit_host`` runs once at
-capture time and is not replayed), so a CPU graph would query a stale tree. :attr:`capture_blocker` says
-so and :meth:`apply` refuses to be captured then; eager use is unaffected. On CUDA the refit is a sequence of
-kernels and a stream-ordered temporary allocation, capturable where the device supports memory pools.
+On the CPU the BVH refit of a deforming (point-cache) mesh collider is a host call between graphs. Warp 1.19
+records ``wp.Bvh.refit`` into a CPU graph but not ``wp.Mesh.refit`` (``wp_mesh_refit_host`` would run once at
+capture time and never be replayed, so the graph would query a stale tree). :meth:`apply` therefore refits through
+:func:`cloth_warp.graphs.host_call`, and a frame recorded with :func:`cloth_warp.graphs.record` replays as its graphs
+with the refits between them. A plain ``wp.ScopedCapture`` of it raises. On CUDA the refit is a sequence of kernels
+and a stream-ordered temporary allocation, recorded into the graph where the device supports memory pools.
 """
 
 from __future__ import annotations
@@ -23,8 +24,14 @@ import math
 import numpy as np
 import warp as wp
 
+from .graphs import host_call
 from .kernels import animation as ka
 from .model import Control, Model
+
+
+def refit_mesh_bvh(mesh: wp.Mesh) -> None:
+    """Refit a deforming collider mesh's BVH to its points (on the CPU a host call between a frame's graphs)."""
+    mesh.refit()
 
 
 def _keyframe_table(keyframe_lists, device) -> tuple[wp.array, wp.array, wp.array, wp.array]:
@@ -153,19 +160,22 @@ class ControlAnimator:
     @property
     def capture_blocker(self) -> str | None:
         """Why :meth:`apply` cannot be recorded into a graph on this device, or None when it can."""
-        if not self.point_caches:
+        if not self.point_caches or self.device.is_cpu:  # (the CPU's refits: host calls between graphs)
             return None
-        if self.device.is_cpu:
-            return ("deforming mesh colliders need a BVH refit per step, and wp.Mesh.refit() is not recorded by a CPU "
-                    "graph capture in Warp " + wp.config.version + " (it would replay against a stale tree)")
         if not wp.is_mempool_supported(self.device):
             return f"deforming mesh colliders: wp.Mesh.refit() allocates scan memory; {self.device} has no memory pool"
         return None
 
     @property
     def capturable(self) -> bool:
-        """Whether a frame of :meth:`advance_clock` + :meth:`apply` can be captured on this device."""
+        """Whether a frame of :meth:`advance_clock` + :meth:`apply` can be recorded (:func:`cloth_warp.graphs.record`)
+        on this device."""
         return self.capture_blocker is None
+
+    @property
+    def host_calls(self) -> bool:
+        """Whether :meth:`apply` makes host calls (CPU BVH refits) that a recorded frame replays between its graphs."""
+        return bool(self.point_caches) and self.device.is_cpu
 
     # -- the clock ------------------------------------------------------------------------------------
     def set_clock(self, time: float, dt: float = 0.0):
@@ -187,7 +197,8 @@ class ControlAnimator:
     def apply(self, control: Control):
         """Write the control for the step the clock describes: handles' and attachments' pin targets at its end,
         colliders' poses at its start and end, deforming colliders' vertices and vertex velocities (and their BVH
-        refits). Launches only (no host reads, no allocation), so it can be captured where :attr:`capturable`."""
+        refits). Launches only (no host reads, no allocation), and on the CPU the refits as host calls, so it can be
+        recorded with :func:`cloth_warp.graphs.record` where :attr:`capturable`."""
         if self.point_caches and self.device.is_capturing and self.capture_blocker is not None:
             raise RuntimeError(f"ControlAnimator.apply cannot be captured: {self.capture_blocker}")
         if self.handle_member_count:
@@ -204,7 +215,10 @@ class ControlAnimator:
         for mesh, times, cache in self.point_caches:
             wp.launch(ka.point_cache_vertices, dim=cache.shape[1], inputs=[self.clock, times, cache],
                       outputs=[mesh.points, mesh.velocities], device=self.device)
-            mesh.refit()
+            if self.device.is_cpu:
+                host_call(self.device, refit_mesh_bvh, mesh)
+            else:
+                mesh.refit()
         for collider, particles, triangles, weights, offset in self.attachments:
             wp.launch(ka.attachment_pin_targets, dim=len(particles),
                       inputs=[particles, triangles, weights, offset, self.model.collider_meshes[collider].points, collider,

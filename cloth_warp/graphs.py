@@ -1,6 +1,9 @@
-"""Device-side control flow that runs the same whether a frame is recorded as a graph or run eagerly."""
+"""Device-side control flow that runs the same whether a frame is recorded as a graph or run eagerly, and the
+recording of a frame: graphs, with the host calls a graph cannot hold between them."""
 
 from __future__ import annotations
+
+import contextlib
 
 import warp as wp
 
@@ -20,3 +23,63 @@ def device_while(condition: wp.array, body, **kwargs) -> None:
     flag = condition.numpy()  # a view: it sees every kernel's write
     while flag[0]:
         body(**kwargs)
+
+
+class FrameGraph:
+    """A frame recorded by :func:`record`: graphs, and between them the host calls :func:`host_call` met (none: one
+    graph). :meth:`replay` runs them in their order."""
+
+    def __init__(self, device):
+        self.device = device
+        self.parts: list = []  # wp.Graph or a callable, in order
+
+    @property
+    def host_calls(self) -> int:
+        """Host calls between the graphs per replay."""
+        return sum(1 for p in self.parts if not isinstance(p, wp.Graph))
+
+    def replay(self) -> None:
+        for part in self.parts:
+            if isinstance(part, wp.Graph):
+                wp.capture_launch(part)
+            else:
+                part()
+
+
+_recording: dict[str, FrameGraph] = {}  # device alias -> the FrameGraph being recorded there
+
+
+@contextlib.contextmanager
+def record(device):
+    """Record what the block launches on `device` as a :class:`FrameGraph` (``with record(d) as frame: ...``, then
+    ``frame.replay()``): as ``wp.ScopedCapture``, except that a :func:`host_call` inside ends the graph being
+    recorded, keeps the call, and starts the next graph. (Warp 1.19's CPU graphs replay kernels and
+    ``wp.Bvh.refit`` but not ``wp.Mesh.refit``: a deforming mesh collider refits its BVH by a host call between
+    graphs.) Host calls belong at the top level of the recorded work, never inside a device loop's body."""
+    device = wp.get_device(device)
+    if device.alias in _recording:
+        raise RuntimeError(f"a frame is already being recorded on {device}")
+    frame = FrameGraph(device)
+    wp.capture_begin(device=device)
+    _recording[device.alias] = frame
+    try:
+        yield frame
+    finally:
+        del _recording[device.alias]
+        frame.parts.append(wp.capture_end(device=device))
+
+
+def host_call(device, call, *args) -> None:
+    """``call(*args)`` now, or, while :func:`record` records on `device`, between the graph recorded so far and the
+    next (at every replay). Raises inside a plain graph capture, which would not replay it."""
+    device = wp.get_device(device)
+    if not device.is_capturing:
+        call(*args)
+        return
+    frame = _recording.get(device.alias)
+    if frame is None:
+        raise RuntimeError(f"{getattr(call, '__qualname__', call)} is a host call: a graph captured with wp.ScopedCapture "
+                           "would not replay it; record the frame with cloth_warp.graphs.record")
+    frame.parts.append(wp.capture_end(device=device))
+    frame.parts.append(lambda: call(*args))  # (not called now: a recording runs nothing, its replays do)
+    wp.capture_begin(device=device)

@@ -10,6 +10,7 @@ import numpy as np
 import warp as wp
 
 from .diagnostics import Diagnostics, FrameReport, StepStats, StrainLimitReport
+from .graphs import record
 from .animation import ControlAnimator
 from .model import Model
 from .profiling import stage
@@ -37,9 +38,10 @@ class Simulator:
     recorded once per step size where the step can be recorded. Handles, keyframed colliders
     and the gusty wind are set on the device from a device clock (:class:`~cloth_warp.animation.ControlAnimator`);
     a pass that asks (self-collision: a buffer overflowed) gets its frame run
-    again eagerly from the frame's start. A frame is not captured with adaptive stepping (its steps are), for deforming mesh colliders on
-    the CPU (Warp 1.19 does not record their BVH refit) and, on CUDA, where the driver lacks conditional graph nodes
-    (CUDA < 12.4: the linear solve, the limiter's sweeps and the CCD sweeps loop on the device).
+    again eagerly from the frame's start. A frame is not captured with adaptive stepping (its steps are) and, on CUDA,
+    where the driver lacks conditional graph nodes (CUDA < 12.4: the linear solve, the limiter's sweeps and the CCD
+    sweeps loop on the device). On the CPU a deforming mesh collider's BVH refit is a host call between the frame's
+    graphs (:func:`cloth_warp.graphs.record`: Warp 1.19 does not record it): a step's graph, the refit, the next.
 
     Divergence: after every frame, on every path (captured or not, adaptive or not, any integrator), the new
     state is checked against the scene's :class:`~cloth_warp.solvers.adaptive.DivergenceBounds` (non-finite
@@ -199,10 +201,10 @@ class Simulator:
             return
         self._frame_record()  # the record arrays in their block before a frame is recorded writing into them
         if self._graph is None:
-            with wp.ScopedCapture(device=self.model.device) as cap:
+            with record(self.model.device) as frame:
                 self._frame()
-            self._graph = cap.graph
-        wp.capture_launch(self._graph)
+            self._graph = frame
+        self._graph.replay()
 
     def _rerun(self, asking: list) -> None:
         """Run the frame again from its start, eagerly, with the passes that asked on their host paths (and their

@@ -22,6 +22,7 @@ import warp as wp
 import cloth_warp as cw
 from cloth_warp.animation import ControlAnimator
 from cloth_warp.collision import collider_distance
+from cloth_warp.graphs import record
 from cloth_warp.kernels import animation as ka
 from cloth_warp.scene import build_model, build_wind, load_scene
 from cloth_warp.wind import GustyWind
@@ -237,24 +238,22 @@ def snapshot(control, mesh=None) -> list[np.ndarray]:
 
 def test_captured_frames_replay_the_eager_sequence(device, tmp_path):
     """Check a frame (gusty wind at its midpoint, then advance_clock + apply per substep) recorded with
-    wp.ScopedCapture and replayed frame after frame writes the same control arrays, bit for bit, as the eager
-    sequence, and that the last step equals Model.update_control at the clock's time. On CUDA the frame includes
-    the deforming collider and its BVH refit (distances through the BVH equal an eager refit's); on the CPU that
-    collider is left out (its refit is not capturable) and apply refuses to be captured with it."""
+    cloth_warp.graphs.record and replayed frame after frame writes the same control arrays, bit for bit, as the
+    eager sequence, and that the last step equals Model.update_control at the clock's time. The frame includes the
+    deforming collider and its BVH refit (distances through the BVH equal an eager refit's): on CUDA recorded in
+    the graph, on the CPU a host call between graphs, one per substep; a plain wp.ScopedCapture of it raises on the
+    CPU (Warp would not replay the refit)."""
     fps, substeps, frames, t0 = 60.0, 3, 8, 0.05
     frame_dt, dt = 1.0 / fps, 1.0 / (fps * substeps)
     wind = GustyWind((2.0, 0.0, 1.0), strength=0.5, period=0.3, turn=40.0, seed=5)
     model = deforming_model(device, tmp_path)
     animator = ControlAnimator(model, wind=wind)
-    if animator.capture_blocker is not None:
-        assert wp.get_device(device).is_cpu and "refit" in animator.capture_blocker
-        control = model.control()
+    assert animator.capturable and animator.point_caches
+    assert animator.host_calls == wp.get_device(device).is_cpu
+    if animator.host_calls:
         with pytest.raises(RuntimeError, match="refit"):
             with wp.ScopedCapture(device=device):
-                animator.apply(control)
-        model = deforming_model(device, tmp_path, deforming=False)
-        animator = ControlAnimator(model, wind=wind)
-        assert animator.capturable and not animator.point_caches
+                animator.apply(model.control())
     mesh = model.collider_meshes[1] if animator.point_caches else None
 
     def frame(control):
@@ -275,13 +274,14 @@ def test_captured_frames_replay_the_eager_sequence(device, tmp_path):
         want_distance = collider_distance(model, 1, probes, pose)[0]
 
     captured = model.control()
-    with wp.ScopedCapture(device=device) as capture:
+    with record(device) as capture:
         frame(captured)
+    assert capture.host_calls == (substeps if animator.host_calls else 0)
     animator.set_clock(0.0, 0.0)  # an eager update elsewhere: the replays must move the mesh and refit its BVH
     animator.apply(captured)
     animator.set_clock(t0, 0.0)
     for k in range(frames):
-        wp.capture_launch(capture.graph)
+        capture.replay()
         got = snapshot(captured, mesh)
         for a, b in zip(got, want[k], strict=True):
             assert np.array_equal(a, b), f"frame {k}"
@@ -295,9 +295,10 @@ def test_captured_frames_replay_the_eager_sequence(device, tmp_path):
 
 
 def test_cpu_capture_does_not_replay_mesh_refit(tmp_path):
-    """Record why deforming colliders are not captured on the CPU: in Warp 1.19 a CPU graph replays the kernel
-    that moves a mesh's points but not wp.Mesh.refit(), so queries after replay use the capture-time tree.
-    When this fails, Warp records the refit: lift ControlAnimator.capture_blocker on the CPU."""
+    """Record why a deforming collider's refit is a host call between graphs on the CPU: in Warp 1.19 a CPU graph
+    replays the kernel that moves a mesh's points but not wp.Mesh.refit(), so queries after replay use the
+    capture-time tree. When this fails, Warp records the refit: ControlAnimator.apply can refit inside the graph
+    on the CPU too."""
     model = deforming_model("cpu", tmp_path)
     animator = ControlAnimator(model)
     mesh, times, cache = animator.point_caches[0]

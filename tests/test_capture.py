@@ -113,3 +113,35 @@ def test_adaptive_steps_replay_a_graph_per_step_size():
     with LaunchCounter() as counts:
         sim.step_frame()
     assert counts.replays >= 1 and counts.launches == 0, counts.to_dict()
+
+
+def test_a_deforming_collider_records_its_frames_with_host_refits_between_graphs(tmp_path):
+    """Check a cloth with handles over a keyframed sphere and a deforming ball read from a USD point cache (the
+    walking body's kind of collider) is recorded on the CPU: its frames are graphs with the ball's BVH refit as a
+    host call between them, one per substep (Warp 1.19 does not record wp.Mesh.refit into a CPU graph), and give
+    the uncaptured run's frames and counters bit for bit. Once recorded, a frame is substeps + 1 replays, the
+    refits and nothing else eager."""
+    import cloth_warp as cw
+    from test_animation import deforming_model
+
+    def sim(capture):
+        model = deforming_model("cpu", tmp_path)
+        return cw.Simulator(model, cw.SolverImplicitEuler(model), fps=60.0, substeps=3, capture=capture)
+
+    frames = []
+    for capture in (True, False):
+        s = sim(capture)
+        assert s.capture == capture and s.animator.host_calls
+        out = []
+        for _ in range(24):
+            s.step_frame()
+            out.append((s.state.particle_q.numpy().copy(), s.state.particle_qd.numpy().copy(), dict(s.frame_info)))
+        frames.append(out)
+        if capture:
+            with LaunchCounter() as counts:
+                s.step_frame()
+            assert s._graph.host_calls == 3
+            assert counts.replays == 4 and counts.eager == 3 and counts.launches == 3, counts.to_dict()
+            assert counts.reads == 1, counts.to_dict()
+    assert max(np.abs(q[0]).max() for q in frames[0]) > 0.0
+    assert_same_frames(*frames)
