@@ -116,21 +116,37 @@ def test_adaptive_steps_replay_a_graph_per_step_size():
 
 
 def test_a_deforming_collider_records_its_frames_with_host_refits_between_graphs(tmp_path):
-    """Check a cloth with handles over a keyframed sphere and a deforming ball read from a USD point cache (the
-    walking body's kind of collider) is recorded on the CPU: its frames are graphs with the ball's BVH refit as a
-    host call between them, one per substep (Warp 1.19 does not record wp.Mesh.refit into a CPU graph), and give
-    the uncaptured run's frames and counters bit for bit. Once recorded, a frame is substeps + 1 replays, the
-    refits and nothing else eager."""
+    """Check a cloth lying on a deforming ball read from a USD point cache (growing from 15 to 30 cm radius in 1 s:
+    the walking body's kind of collider) is recorded on the CPU: its frames are graphs with the ball's BVH refit as
+    a host call between them, one per step (Warp 1.19 does not record wp.Mesh.refit into a CPU graph), and give
+    the uncaptured run's frames and counters bit for bit while the ball lifts the cloth (a graph querying the
+    tree of its recording would leave the cloth inside the grown ball). Once recorded, a frame is steps + 1
+    replays, the refits and nothing else eager."""
     import cloth_warp as cw
-    from test_animation import deforming_model
+    from cloth_warp.scene import build_model, build_solver, load_scene
+    from test_colliders import _growing_ball_cache
 
-    def sim(capture):
-        model = deforming_model("cpu", tmp_path)
-        return cw.Simulator(model, cw.SolverImplicitEuler(model), fps=60.0, substeps=3, capture=capture)
-
+    r0, r1 = _growing_ball_cache(tmp_path / "body.usda")
+    scene = tmp_path / "grow.toml"
+    scene.write_text(f"""
+[cloth]
+grid = {{ resolution = [8, 8], size = [0.5, 0.5] }}
+position = [-0.25, {r0 + 0.01}, 0.25]
+rotation = {{ axis = [1.0, 0.0, 0.0], angle = -90.0 }}
+[[colliders]]
+type = "mesh"
+mesh = "body.usda"
+deforming = true
+friction = 0.5
+[solver]
+integrator = "implicit_euler"
+substeps = 3
+""")
     frames = []
     for capture in (True, False):
-        s = sim(capture)
+        sc = load_scene(scene)
+        m = build_model(sc, "cpu")
+        s = cw.Simulator(m, build_solver(sc, m), fps=30.0, substeps=3, capture=capture)
         assert s.capture == capture and s.animator.host_calls
         out = []
         for _ in range(24):
@@ -143,5 +159,6 @@ def test_a_deforming_collider_records_its_frames_with_host_refits_between_graphs
             assert s._graph.host_calls == 3
             assert counts.replays == 4 and counts.eager == 3 and counts.launches == 3, counts.to_dict()
             assert counts.reads == 1, counts.to_dict()
-    assert max(np.abs(q[0]).max() for q in frames[0]) > 0.0
+    assert all(info["collider_contacts"] > 0 for _, _, info in frames[0][5:])
+    assert frames[0][-1][0][:, 1].max() > r0 + 0.1  # lifted by the growing ball (r = 0.27 m at 0.8 s)
     assert_same_frames(*frames)
