@@ -23,7 +23,7 @@ from .validation import LIMITS, InvalidValue, check_number
 
 
 SEAM_CLOSED = WELD_DISTANCE  # [m]: a dressing goes on (up to twice its time) until every seam is closed this far
-SEAM_FINISH = 3e-3  # [m]: seams all within a stitch's length at the end are finished (each sewn point's particles joined)
+SEAM_FINISH = 3e-3  # [m]: sewn points within a stitch's length at the end are finished (their particles joined)
 
 
 @dataclass(frozen=True)
@@ -32,8 +32,8 @@ class DressingReport:
 
     Attributes:
         seconds: simulated dressing time [s]; steps: implicit steps taken.
-        seam_gap: the largest distance between sewn points at the end [m] (0 without seams, and once finished).
-        finished_from: the largest gap the finish closed [m] (0: not finished, or no seams).
+        seam_gap: the largest distance between sewn points at the end [m] (0 without seams, and once all are finished).
+        finished_from: the largest gap the finish closed [m] (0: none finished, or no seams).
         max_speed: the largest particle speed at the end [m/s] (the velocities are then zeroed).
         max_strain: the largest spring strain at the end (seams excluded).
     """
@@ -71,8 +71,8 @@ def dress(builder, seconds: float = 1.0, *, closing: float = 0.6, fps: float = 6
     `damping` [1/s], the colliders still in their pose at t = 0 and frictionless (a T-shirt's sleeve caps must slide over
     the shoulders: with friction its dressing diverged; handles held where they start), the seams closing
     steadily over the first `closing` fraction of the time (their rest lengths shrink to zero; a seam still open by
-    more than :data:`SEAM_CLOSED` at the end gets up to as long again; seams then all within :data:`SEAM_FINISH` are
-    finished exactly, each sewn point's particles moved to their middle, and the run welds them: :mod:`~cloth_warp.sewing`),
+    more than :data:`SEAM_CLOSED` at the end gets up to as long again; every sewn point then within :data:`SEAM_FINISH`
+    is finished exactly, its particles moved to their middle, and the run welds it: :mod:`~cloth_warp.sewing`),
     then write the positions back into `builder` with zero velocities. Call
     it before :meth:`ModelBuilder.attach` (attachments are bound on the dressed garment), then :func:`settle`.
     `solver_options`: keyword arguments of the implicit Euler solver (the scene's; its collider contacts are resolved
@@ -85,6 +85,27 @@ def dress(builder, seconds: float = 1.0, *, closing: float = 0.6, fps: float = 6
     # inclined facets were measured to chatter 2-5 mm apart instead of closing.
     options = {**(solver_options or {}), "collider_contacts": "pass"}
     return _still_run(builder, seconds, closing, False, fps, substeps, damping, device, options, _cloth_particles(builder, garments))
+
+
+def finish_seams(x: np.ndarray, pairs: np.ndarray) -> tuple[np.ndarray, float]:
+    """Finish every sewn point the dressing closed to within a stitch (:data:`SEAM_FINISH`): the particles of each group
+    joined by seam `pairs` ((k, 2) particle indices) closer than that move to their middle, so that the run starts with
+    them welded (:mod:`~cloth_warp.sewing`: a seam closed at the start stays closed). Pairs left wider stay apart (their
+    seam springs pull on in the run): snapping wider gaps shut, 8 mm at a T-shirt's armpit, dragged cloth through cloth.
+    Returns the positions (a copy) and the largest gap finished [m] (0: none)."""
+    x = np.array(x, np.float64)
+    pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
+    gaps = np.linalg.norm(x[pairs[:, 0]] - x[pairs[:, 1]], axis=1)
+    closed = pairs[gaps < SEAM_FINISH]
+    if not len(closed):
+        return x, 0.0
+    roots = joined_roots(closed, len(x))
+    sewn_point = np.unique(closed)
+    middle = np.zeros_like(x)
+    np.add.at(middle, roots[sewn_point], x[sewn_point])
+    middle /= np.maximum(np.bincount(roots[sewn_point], minlength=len(x)), 1)[:, None]
+    x[sewn_point] = middle[roots[sewn_point]]
+    return x, float(gaps[gaps < SEAM_FINISH].max())
 
 
 def _cloth_particles(builder, names) -> np.ndarray | None:
@@ -159,21 +180,11 @@ def _still_run(builder, seconds, closing, gravity, fps, substeps, damping, devic
     frames += extra
     x = np.asarray(sim.positions(), np.float64)
     free = (builder.particle_pinned == 0) & moving
-    sewn = seam_gap(builder, x, moving) if closing > 0.0 and seam.any() else 0.0
-    if 0.0 < sewn < SEAM_FINISH:
-        # closed to within a stitch: finish the seams exactly (each sewn point's particles to their middle) so that the
-        # run starts sewn, every seam welded (cloth_warp.sewing: a seam closed at the start stays closed). (Snapping
-        # wider gaps shut, 8 mm at a T-shirt's armpit, dragged cloth through cloth there.)
-        pairs = ends[free[ends[:, 0]] & free[ends[:, 1]]]
-        roots = joined_roots(pairs, len(x))
-        sewn_point = np.unique(pairs)
-        middle = np.zeros_like(x)
-        np.add.at(middle, roots[sewn_point], x[sewn_point])
-        middle /= np.maximum(np.bincount(roots[sewn_point], minlength=len(x)), 1)[:, None]
-        x[sewn_point] = middle[roots[sewn_point]]
+    finished = 0.0
+    if closing > 0.0 and seam.any():
+        x, finished = finish_seams(x, ends[free[ends[:, 0]] & free[ends[:, 1]]])
     v = np.asarray(sim.state.particle_qd.numpy(), np.float64)
     builder.particle_positions[free] = x[free]
     builder.particle_velocities[:] = 0.0
     return DressingReport(frames / fps, frames * substeps, seam_gap(builder, particles=moving),
-                          float(np.linalg.norm(v[moving], axis=1).max()), float(stats.max_strain),
-                          sewn if 0.0 < sewn < SEAM_FINISH else 0.0)
+                          float(np.linalg.norm(v[moving], axis=1).max()), float(stats.max_strain), finished)

@@ -10,7 +10,7 @@ import pytest
 
 import cloth_warp as cw
 from cloth_warp.cache import _cloth_meshes
-from cloth_warp.dressing import dress, seam_gap, settle
+from cloth_warp.dressing import SEAM_FINISH, dress, finish_seams, seam_gap, settle
 from cloth_warp.mannequin import Mannequin
 from cloth_warp.patterns import Wrap, mesh_pattern, read_garmentcode, wrap_points
 from cloth_warp.scene import SceneError, build_model, parse_scene
@@ -239,3 +239,36 @@ def test_scene_garments_are_checked_at_the_gate(tmp_path):
     (tmp_path / "ok.toml").write_text(head + '[[garments]]\nname = "a"\npattern = "over.json"\n'
                                       '[[garments]]\nname = "b"\npattern = "over.json"\nlayer = 1\n')
     assert layer_order(load_scene(tmp_path / "ok.toml")) == [["skirt"], ["a", "b"]]
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_finishing_joins_every_sewn_point_within_a_stitch_and_leaves_wider_ones(seed):
+    """Check the dressing's finish on random sewn points: every group of particles joined by seam pairs closer than a
+    stitch (SEAM_FINISH) ends at one point, the group's middle (a three-panel corner included), while a pair the
+    dressing left wider keeps its particles where they were, also when another seam of the garment is finished (a
+    T-shirt's one armpit seam left open must not keep its other seams from being welded); the largest gap finished
+    is reported."""
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(-0.5, 0.5, size=(40, 3))
+    # narrow pairs (0.2-2.9 mm), a corner of three particles within a stitch, and two wide pairs (5 and 9 mm)
+    narrow = [(0, 1), (2, 3), (4, 5)]
+    corner = [(6, 7), (7, 8)]
+    wide = [(10, 11), (12, 13)]
+    for (a, b), gap in zip(narrow + corner, [0.2e-3, 1.5e-3, 2.9e-3, 1.0e-3, 1.2e-3]):
+        d = rng.normal(size=3)
+        x[b] = x[a] + gap * d / np.linalg.norm(d)
+    for (a, b), gap in zip(wide, [5e-3, 9e-3]):
+        d = rng.normal(size=3)
+        x[b] = x[a] + gap * d / np.linalg.norm(d)
+    pairs = np.array(narrow + corner + wide)
+    y, finished = finish_seams(x, pairs[rng.permutation(len(pairs))])
+    for a, b in narrow:
+        np.testing.assert_array_equal(y[a], y[b])
+        np.testing.assert_allclose(y[a], 0.5 * (x[a] + x[b]), atol=1e-15)
+    np.testing.assert_allclose(y[[6, 7, 8]], np.repeat(x[[6, 7, 8]].mean(0, keepdims=True), 3, axis=0), atol=1e-15)
+    for a, b in wide:
+        np.testing.assert_array_equal(y[[a, b]], x[[a, b]])
+    untouched = np.setdiff1d(np.arange(40), pairs)
+    np.testing.assert_array_equal(y[untouched], x[untouched])
+    assert finished == pytest.approx(2.9e-3, rel=1e-9) and finished < SEAM_FINISH
+    assert finish_seams(x, np.array(wide))[1] == 0.0
