@@ -124,29 +124,15 @@ def test_a_deforming_collider_records_its_frames_with_host_refits_between_graphs
     replays, the refits and nothing else eager."""
     import cloth_warp as cw
     from cloth_warp.scene import build_model, build_solver, load_scene
-    from test_colliders import _growing_ball_cache
+    from test_colliders import _growing_ball_cache, growing_ball_scene
 
-    r0, r1 = _growing_ball_cache(tmp_path / "body.usda")
-    scene = tmp_path / "grow.toml"
-    scene.write_text(f"""
-[cloth]
-grid = {{ resolution = [8, 8], size = [0.5, 0.5] }}
-position = [-0.25, {r0 + 0.01}, 0.25]
-rotation = {{ axis = [1.0, 0.0, 0.0], angle = -90.0 }}
-[[colliders]]
-type = "mesh"
-mesh = "body.usda"
-deforming = true
-friction = 0.5
-[solver]
-integrator = "implicit_euler"
-substeps = 3
-""")
+    r0, _ = _growing_ball_cache(tmp_path / "body.usda")
+    scene = growing_ball_scene(tmp_path, r0, substeps=3)
     frames = []
     for capture in (True, False):
         sc = load_scene(scene)
         m = build_model(sc, "cpu")
-        s = cw.Simulator(m, build_solver(sc, m), fps=30.0, substeps=3, capture=capture)
+        s = cw.Simulator(m, build_solver(sc, m), fps=float(sc.get("output.fps")), substeps=3, capture=capture)
         assert s.capture == capture and s.animator.host_calls
         out = []
         for _ in range(24):

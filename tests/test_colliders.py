@@ -329,19 +329,10 @@ def _growing_ball_cache(path, r0=0.15, r1=0.3):
     return r0, r1
 
 
-def test_point_cache_collider_pushes_cloth_and_is_cached(tmp_path):
-    """A deforming mesh collider read from a USD point cache (a ball growing from 15 to 30 cm radius in 1 s)
-    lifts a cloth lying on it: in every frame no vertex is deeper than the thickness in the ball of that time,
-    the cloth's top follows the radius, and the cache holds the ball's points per frame for DCC playback."""
-    from cloth_warp.builder import read_usd_point_cache
-    from cloth_warp.cache import CacheReader
-
-    body = tmp_path / "body.usda"
-    r0, r1 = _growing_ball_cache(body)
-    times, points, tris = read_usd_point_cache(body)
-    assert len(times) == 25 and times[0] == 0.0 and times[-1] == pytest.approx(1.0)
-    assert np.linalg.norm(points[-1], axis=1).max() == pytest.approx(r1, rel=1e-6) and tris.shape[1] == 3
-    scene = tmp_path / "grow.toml"
+def growing_ball_scene(folder, r0: float, substeps: int) -> pathlib.Path:
+    """A scene in `folder` (beside the ball's cache, body.usda): an 8 x 8 cotton sheet, 0.5 m, lying 1 cm above the ball
+    of radius r0 [m] (implicit Euler, `substeps` per frame; 30 frames at 30 fps)."""
+    scene = folder / "grow.toml"
     scene.write_text(f"""
 [cloth]
 grid = {{ resolution = [8, 8], size = [0.5, 0.5] }}
@@ -356,11 +347,27 @@ deforming = true
 friction = 0.5
 [solver]
 integrator = "implicit_euler"
-substeps = 2
+substeps = {substeps}
 [output]
 frames = 30
 fps = 30
 """)
+    return scene
+
+
+def test_point_cache_collider_pushes_cloth_and_is_cached(tmp_path):
+    """A deforming mesh collider read from a USD point cache (a ball growing from 15 to 30 cm radius in 1 s)
+    lifts a cloth lying on it: in every frame no vertex is deeper than the thickness in the ball of that time,
+    the cloth's top follows the radius, and the cache holds the ball's points per frame for DCC playback."""
+    from cloth_warp.builder import read_usd_point_cache
+    from cloth_warp.cache import CacheReader
+
+    body = tmp_path / "body.usda"
+    r0, r1 = _growing_ball_cache(body)
+    times, points, tris = read_usd_point_cache(body)
+    assert len(times) == 25 and times[0] == 0.0 and times[-1] == pytest.approx(1.0)
+    assert np.linalg.norm(points[-1], axis=1).max() == pytest.approx(r1, rel=1e-6) and tris.shape[1] == 3
+    scene = growing_ball_scene(tmp_path, r0, substeps=2)
     out = tmp_path / "grow.usdc"
     summary = cw.run_scene(scene, output=out)
     assert summary["status"] == "complete"
