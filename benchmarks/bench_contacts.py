@@ -82,16 +82,13 @@ def run(scene_name: str, mode: str, frames: int, overrides: dict) -> dict:
 
 
 def main(argv=None) -> int:
-    import tomllib
-
     import warp as wp
 
     args = parse_args(argv)
     wp.config.quiet = True
-    overrides = {}
-    for item in args.set:
-        key, value = item.split("=", 1)
-        overrides[key] = tomllib.loads(f"v = {value}")["v"]
+    from cloth_warp.cli import parse_set
+
+    overrides = parse_set(args.set)
     rows = []
     from cloth_warp.runner import find_scene
     from cloth_warp.scene import load_scene

@@ -43,18 +43,23 @@ class BadInput(Exception):
     """A command-line value that cannot be used (exit code 2)."""
 
 
+def parse_value(text: str):
+    """A ``--set`` value: TOML (``8``, ``[1, 0, 0]``, ``true``) or a bare string (``--set material.preset=silk``)."""
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text.strip()
+
+
 def parse_set(items) -> dict:
-    """``key.path=value`` strings to a dict; values are TOML (``8``, ``[1, 0, 0]``, ``true``) or bare strings."""
+    """``key.path=value`` strings to a dict of their values (:func:`parse_value`)."""
     out = {}
     for item in items or []:
         key, sep, value = item.partition("=")
         key = key.strip()
         if not sep or not key:
             raise BadInput(f"--set expects key.path=value, got {item!r}")
-        try:
-            out[key] = tomllib.loads(f"v = {value}")["v"]
-        except tomllib.TOMLDecodeError:
-            out[key] = value.strip()  # a bare string such as --set material.preset=silk
+        out[key] = parse_value(value)
     return out
 
 

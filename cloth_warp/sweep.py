@@ -41,7 +41,6 @@ import signal
 import subprocess
 import sys
 import time
-import tomllib
 from dataclasses import dataclass, field
 
 from .outputs import atomic_write_text
@@ -87,16 +86,11 @@ def split_values(text: str) -> list[str]:
     return [v.strip() for v in out]
 
 
-def parse_value(text: str):
-    """A value as ``--set`` reads it: TOML (``8``, ``[1, 0, 0]``, ``true``) or a bare string."""
-    try:
-        return tomllib.loads(f"v = {text}")["v"]
-    except tomllib.TOMLDecodeError:
-        return text.strip()
-
-
 def parse_params(items) -> dict[str, list]:
-    """``key=v1,v2,...`` strings to {key: [values]} (in the order given; a key given twice is an error)."""
+    """``key=v1,v2,...`` strings to {key: [values]} (each read as ``--set`` reads a value; in the order given; a key given
+    twice is an error)."""
+    from .cli import parse_value
+
     out: dict[str, list] = {}
     for item in items or []:
         key, sep, values = item.partition("=")

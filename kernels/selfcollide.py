@@ -848,7 +848,7 @@ def apply_velocity_changes(vbar: wp.array(dtype=wp.vec3), dv: wp.array(dtype=wp.
 @wp.kernel
 def set_zone_velocity(zone: wp.array(dtype=wp.int32), zone_vbar: wp.array(dtype=wp.vec3), vbar: wp.array(dtype=wp.vec3),
                       vbar_out: wp.array(dtype=wp.vec3)):
-    """Particles of a rigid impact zone take the zone's rigid motion (computed on the host)."""
+    """Particles of a rigid impact zone take zone_vbar (the host path: its zones' rigid motion), the others vbar."""
     i = wp.tid()
     if zone[i] >= 0:
         vbar_out[i] = zone_vbar[i]
