@@ -179,6 +179,7 @@ class ModelBuilder:
         self.cloth_thickness = 0.0
         self.cloth_friction = 0.0
         self.self_collision_stiffness = None
+        self.world_starts: list[int] = []  # batched worlds (add_world): each world's first particle; empty: one world
 
     @property
     def up_vector(self) -> tuple[float, float, float]:
@@ -632,6 +633,52 @@ class ModelBuilder:
         self.self_collision_stiffness = None if stiffness is None else check_number("stiffness", stiffness, LIMITS["pin_stiffness"])
         self.self_collision = True
 
+    # -- batched worlds --------------------------------------------------------------------
+    def add_world(self, other: ModelBuilder) -> int:
+        """Append everything `other` holds as one more independent world (its particles after this builder's, its
+        indices moved along; cloths renamed ``world<k>/<name>``) and return the world's index. The worlds of a batch
+        share the colliders (each world's must be the same), the up axis, gravity, damping and self-collision settings:
+        they are one scene's variants in their cloths (materials, sizes, meshes, pins, handles, initial state)."""
+        if self.particle_count and not self.world_starts:
+            raise ValueError("add_world: this builder already holds a cloth that is no world; build batches from empty builders")
+        for what in ("up_axis", "gravity", "global_damping", "self_collision", "cloth_thickness", "cloth_friction", "self_collision_stiffness"):
+            mine, theirs = getattr(self, what), getattr(other, what)
+            if self.world_starts and not np.array_equal(np.asarray(mine, dtype=object), np.asarray(theirs, dtype=object)):
+                raise ValueError(f"add_world: world {len(self.world_starts)} has {what} {theirs!r} where the batch has {mine!r}; "
+                                 "batched worlds share it")
+            setattr(self, what, theirs)
+        if self.world_starts and not _same_colliders(self.colliders, other.colliders):
+            raise ValueError(f"add_world: world {len(self.world_starts)} has other colliders than the batch's first world; "
+                             "batched worlds share their colliders")
+        if not self.world_starts:
+            self.colliders = list(other.colliders)
+        if other.attachments:
+            raise ValueError("add_world: attachments to a body are not batched yet")
+        k = len(self.world_starts)
+        start, tri_start, points = self.particle_count, len(self.triangles), len(self.plate_points)
+        self.world_starts.append(start)
+
+        def cat(name, shift=None):
+            a, b = getattr(self, name), getattr(other, name)
+            if shift is not None:
+                b = np.where(b >= 0, b + shift, b)
+            setattr(self, name, np.concatenate([a, b]))
+
+        for name in ("particle_positions", "particle_velocities", "particle_mass", "particle_pinned", "particle_pin_stiffness",
+                     "spring_rest_length", "spring_stiffness", "spring_damping", "spring_law", "spring_kind", "spring_of_element_cloth",
+                     "tri_drag", "tri_corner_weights", "membrane_rest_inverse", "membrane_rest_area", "membrane_stiffness",
+                     "membrane_damping", "plate_weights", "plate_stiffness"):
+            cat(name)
+        for name in ("springs", "spring_middle", "triangles", "membrane_vertices", "plate_points", "plate_vertex"):
+            cat(name, start)
+        self.plate_offsets = np.concatenate([self.plate_offsets, other.plate_offsets[1:] + points])
+        self._element_structural_stiffness.extend(other._element_structural_stiffness)
+        for ref, material, t0 in other.cloths:
+            self.cloths.append((ClothRef(self, f"world{k}/{ref.name}", ref.particle_start + start, ref.topology), material, t0 + tri_start))
+        for h in other.handles:
+            self.handles.append(Handle(f"world{k}/{h.name}", np.asarray(h.particles) + start, list(h.keyframes), np.asarray(h.pivot).copy()))
+        return k
+
     def _check_indices(self, indices) -> np.ndarray:
         idx = np.unique(np.asarray(indices, np.int64).ravel())
         if idx.size == 0:
@@ -667,6 +714,10 @@ class ModelBuilder:
         m.particle_mass = arr(self.particle_mass.astype(np.float32), float, True)
         m.particle_pinned = arr(self.particle_pinned.astype(np.int32), wp.int32)
         m.particle_pin_stiffness = arr(self.particle_pin_stiffness.astype(np.float32), float)
+        starts = self.world_starts or [0]
+        m.world_count = len(starts)
+        m.world_particle_start = np.array([*starts, n])
+        m.particle_world = arr(np.repeat(np.arange(len(starts), dtype=np.int32), np.diff(m.world_particle_start)), wp.int32)
         # Linear springs first, bend triples after: each family is one kernel launch over a range. Within a
         # family, order by the first particle touched so consecutive springs touch nearby memory.
         low = np.minimum(self.springs[:, 0], self.springs[:, 1]) if len(self.springs) else np.zeros(0, np.int64)
@@ -809,6 +860,20 @@ class ModelBuilder:
         lo, hi = self.particle_positions.min(0), self.particle_positions.max(0)
         # Mesh distance queries look this far: beyond it a vertex is "far" (its exact distance is not needed).
         m.collider_mesh_max_distance = float(10.0 * (max(extent, default=1.0) + np.linalg.norm(hi - lo) + 1.0))
+
+
+def _same_colliders(a: list[Collider], b: list[Collider]) -> bool:
+    """Whether two collider lists describe the same colliders (every field equal, arrays element by element)."""
+    from dataclasses import fields
+
+    def same(x, y):
+        if isinstance(x, np.ndarray) or isinstance(y, np.ndarray):
+            return np.array_equal(np.asarray(x), np.asarray(y))
+        if isinstance(x, (list, tuple)) and isinstance(y, (list, tuple)):
+            return len(x) == len(y) and all(same(p, q) for p, q in zip(x, y))
+        return x == y
+
+    return len(a) == len(b) and all(same(getattr(x, f.name), getattr(y, f.name)) for x, y in zip(a, b) for f in fields(x))
 
 
 def _keyframes(keyframes, name: str = "keyframes") -> list[Keyframe]:

@@ -304,6 +304,12 @@ class Model:
         """Soft-pin stiffness toward Control.pin_target [N/m], shape (n,) (0 = none)."""
         self.rest_positions = np.zeros((0, 3))
         """Positions at rest [m], numpy (n, 3) float64 (handles' targets and the broad phase's voxel size)."""
+        self.world_count = 1
+        """W, the independent worlds batched in this model (:mod:`~cloth_warp.worlds`); 1: one world."""
+        self.particle_world: wp.array | None = None
+        """The world of each particle, shape (n,), int32 (zeros with one world)."""
+        self.world_particle_start = np.zeros(2, int)
+        """Each world's first particle and the particle count after them, numpy (W + 1,) (worlds are contiguous)."""
 
         # -- springs and bend triples -------------------------------------------------------------
         self.spring_count = 0

@@ -16,13 +16,14 @@ REDUCTION_BLOCK = 256  # threads per block of the CUDA form
 USE_BLOCKS: bool | None = None  # None: the block form on CUDA only; True: on the CPU too (blocks of one thread; tests)
 
 
-def launch_reduction(kernel, blocks_kernel, count: int, inputs: list, outputs: list, device) -> None:
+def launch_reduction(kernel, blocks_kernel, count: int, inputs: list, outputs: list, device, per_item: bool = False) -> None:
     """Launch a reducing `kernel` over `count` items (its first argument): on the CPU one thread per item; on CUDA
     `blocks_kernel`, its block form (``block, lane = wp.tid()``, item ``block * wp.block_dim() + lane``, threads
-    past `count` contributing nothing)."""
+    past `count` contributing nothing). `per_item`: one thread per item on every device (batched worlds, whose sums
+    are per world and a block may span two)."""
     device = wp.get_device(device)
     args = [int(count), *inputs]
-    if not (device.is_cuda if USE_BLOCKS is None else USE_BLOCKS):
+    if per_item or not (device.is_cuda if USE_BLOCKS is None else USE_BLOCKS):
         wp.launch(kernel, dim=count, inputs=args, outputs=outputs, device=device, record_tape=False)
         return
     block = REDUCTION_BLOCK if device.is_cuda else 1  # a CPU block is one thread

@@ -750,6 +750,14 @@ def build_model(scene: Scene, device=None, requires_grad: bool = False, dressing
     """The :class:`~cloth_warp.Model` a scene describes (differentiable arrays with `requires_grad`); with
     `dressing=False` its garments stay where their patterns place them (the [dressing] table is not run: a check of the
     scene, not a simulation)."""
+    b = scene_builder(scene, device, dressing)
+    with _scene_key("cloth"):
+        return b.finalize(device, requires_grad=requires_grad)
+
+
+def scene_builder(scene: Scene, device=None, dressing: bool = True):
+    """The :class:`~cloth_warp.builder.ModelBuilder` holding what a scene describes, before it is finalized
+    (:func:`build_model`; batched worlds add several: :mod:`~cloth_warp.worlds`)."""
     from .builder import ModelBuilder
     from .model import Keyframe
 
@@ -790,8 +798,7 @@ def build_model(scene: Scene, device=None, requires_grad: bool = False, dressing
     jitter = float(scene.get("cloth.jitter"))
     if jitter > 0.0:
         _jitter(b, cloth, jitter, int(scene.get("scene.seed")))
-    with _scene_key("cloth"):
-        return b.finalize(device, requires_grad=requires_grad)
+    return b
 
 
 def _dressing(b, scene: Scene, stage: str, device):

@@ -51,6 +51,7 @@ CG_RS = wp.constant(0)
 CG_CAC = wp.constant(1)
 CG_RR = wp.constant(2)
 CG_COLUMNS = 3
+CG_COLUMNS_C = wp.constant(CG_COLUMNS)
 CG_ALPHA = wp.constant(0)  # the iteration's step sizes (float32, computed once per iteration by one thread)
 CG_BETA = wp.constant(1)
 JACOBI_CHECK_ROW = wp.constant(1)  # block Jacobi's residual checks accumulate |r|^2 here (row 0 keeps |r_0|^2)
@@ -60,14 +61,20 @@ LOOP_ITERATION = wp.constant(1)
 LOOP_CHECK = wp.constant(2)  # block Jacobi: a residual check is due before the next iteration
 LOOP_CARRIED = wp.constant(3)  # iterations of the step's earlier solves (a re-solve after contacts were released)
 LOOP_SIZE = 4
+LOOP_SIZE_C = wp.constant(LOOP_SIZE)
 # Collider contacts in the solve: the release loop's state (int32) and its cap of re-solves per step.
 RELEASE_FLAG = wp.constant(0)  # a contact was released: solve again
 RELEASE_ROUNDS = wp.constant(1)
 RELEASE_SIZE = 2
+# Batched worlds (Model.world_count W > 1): every per-solve scalar is kept per world, world w's at w * <size> of its
+# array (cg_sums, cg_step, solve status and record, the columns of cg_scalars); the loop state of world w sits at
+# LOOP_SIZE * (1 + w) of `loop`, whose first LOOP_SIZE entries are then the batch's: LOOP_RUNNING while any world
+# iterates, LOOP_ITERATION the most iterations of a world. With one world its loop state is the first entries.
 STATUS_REFERENCE = wp.constant(0)  # |S (b - A z)|^2 of the zero guess: the tolerance is relative to it
 STATUS_STOP = wp.constant(1)  # the relative residual at which this solve stops
 STATUS_RELATIVE = wp.constant(2)  # the last relative residual measured (NaN: the system is not finite)
 STATUS_SIZE = 3
+STATUS_SIZE_C = wp.constant(STATUS_SIZE)
 # The record of solves since its reset (float64), read once per frame.
 RECORD_SOLVES = wp.constant(0)
 RECORD_ITERATIONS = wp.constant(1)
@@ -81,11 +88,28 @@ RECORD_CONTACTS = wp.constant(8)  # collider contacts constrained in the solves 
 RECORD_RESOLVES = wp.constant(9)  # re-solves after contacts were released
 RECORD_SELF_CONTACTS = wp.constant(10)  # self-contact elements in the systems (summed over the solves)
 RECORD_SIZE = 11
+RECORD_SIZE_C = wp.constant(RECORD_SIZE)
 # A membrane element's diagonal blocks enter the block-diagonal preconditioner P^-1 this many times over.
 # Block Jacobi (dv <- dv + P (b - A dv)) converges when 2 P^-1 - A is positive definite: a spring's 6x6 block
 # satisfies it with weight 1, a 3-corner element only with 3/2 (a PSD matrix of 3x3 blocks is <= 3x its block
 # diagonal). With weight 1 Jacobi diverges on element cloth at any h^2 k / m above ~1; CG only needs P SPD.
 MEMBRANE_DIAGONAL_WEIGHT = wp.constant(1.5)
+
+
+@wp.func
+def world_loop(w: int, worlds: int):
+    """Where world w's loop state starts in `loop` (see above)."""
+    if worlds == 1:
+        return 0
+    return LOOP_SIZE_C * (1 + w)
+
+
+@wp.func
+def particle_world_of(i: int, particle_world: wp.array(dtype=wp.int32), worlds: int):
+    """The world of particle i (0 without batched worlds: no read)."""
+    if worlds == 1:
+        return 0
+    return particle_world[i]
 
 
 @wp.kernel(enable_backward=False)
@@ -416,6 +440,8 @@ def eval_implicit_system(
     gravity: wp.vec3,
     global_damping: float,
     dt: float,
+    particle_world: wp.array(dtype=wp.int32),
+    worlds: int,
     # outputs
     rhs_out: wp.array(dtype=wp.vec3),
     precond_out: wp.array(dtype=wp.mat33),
@@ -487,8 +513,9 @@ def eval_implicit_system(
     residual_out[i] = r
     preconditioned_out[i] = s0
     search_out[i] = s0
-    wp.atomic_add(cg_scalars_out, 0, CG_RS, wp.float64(wp.dot(r, s0)))
-    wp.atomic_add(cg_scalars_out, 0, CG_RR, wp.float64(wp.dot(r, r)))
+    col = particle_world_of(i, particle_world, worlds) * CG_COLUMNS_C
+    wp.atomic_add(cg_scalars_out, 0, col + CG_RS, wp.float64(wp.dot(r, s0)))
+    wp.atomic_add(cg_scalars_out, 0, col + CG_RR, wp.float64(wp.dot(r, r)))
 
 
 # The element part of A p, one element per thread and scattered (each element's work done once, where the per-particle
@@ -604,15 +631,17 @@ def cg_product(
     search: wp.array(dtype=wp.vec3),
     contact_normal: wp.array(dtype=wp.vec3),
     filtered: int,
+    particle_world: wp.array(dtype=wp.int32),
+    worlds: int,
     # outputs: holds the element part (the scatter_*_product kernels) on entry, q on exit
     product_out: wp.array(dtype=wp.vec3),
     cg_sums_out: wp.array(dtype=wp.float64),
 ):
-    """q = S A c, and c . q summed into cg_sums_out[CG_CAC] (`cg_step_size` moves it into the iteration's row), one
-    thread per particle (the CPU's form; see cloth_warp.reductions)."""
+    """q = S A c, and c . q summed into cg_sums_out[CG_CAC] of the particle's world (`cg_step_size` moves it into the
+    iteration's row), one thread per particle (the CPU's form, and batched worlds'; see cloth_warp.reductions)."""
     i = wp.tid()
     cq = cg_product_row(i, effective_mass, particle_pinned, search, contact_normal, filtered, product_out)
-    wp.atomic_add(cg_sums_out, CG_CAC, cq)
+    wp.atomic_add(cg_sums_out, particle_world_of(i, particle_world, worlds) * CG_COLUMNS_C + CG_CAC, cq)
 
 
 @wp.kernel(enable_backward=False)
@@ -624,11 +653,13 @@ def cg_product_blocks(
     search: wp.array(dtype=wp.vec3),
     contact_normal: wp.array(dtype=wp.vec3),
     filtered: int,
+    particle_world: wp.array(dtype=wp.int32),
+    worlds: int,
     # outputs: holds the element part (the scatter_*_product kernels) on entry, q on exit
     product_out: wp.array(dtype=wp.vec3),
     cg_sums_out: wp.array(dtype=wp.float64),
 ):
-    """:func:`cg_product` with c . q summed per block and added once per block (the GPU's form)."""
+    """:func:`cg_product` with c . q summed per block and added once per block (the GPU's form, one world only)."""
     block, lane = wp.tid()
     i = block * wp.block_dim() + lane
     cq = wp.float64(0.0)
@@ -640,19 +671,26 @@ def cg_product_blocks(
 
 
 @wp.kernel(enable_backward=False)
-def cg_step_size(loop: wp.array(dtype=wp.int32), cg_sums_out: wp.array(dtype=wp.float64), cg_scalars_out: wp.array2d(dtype=wp.float64),
-                 step_out: wp.array(dtype=float)):
-    """One thread: c.Ac (summed by `cg_product` into cg_sums_out, cleared here) into row loop[LOOP_ITERATION], and that
-    iteration's alpha = r.s / c.Ac (0 when c.Ac <= 0) once for `cg_update`'s threads. (Each thread dividing in float64,
-    and the reductions indexing the row through the loop state per thread, cost the CPU a fifth of an iteration.)"""
-    iteration = loop[LOOP_ITERATION]
-    cac = cg_sums_out[CG_CAC]
-    cg_sums_out[CG_CAC] = wp.float64(0.0)
-    cg_scalars_out[iteration, CG_CAC] = cac
+def cg_step_size(worlds: int, loop: wp.array(dtype=wp.int32), cg_sums_out: wp.array(dtype=wp.float64),
+                 cg_scalars_out: wp.array2d(dtype=wp.float64), step_out: wp.array(dtype=float)):
+    """One thread per world: c.Ac (summed by `cg_product` into cg_sums_out, cleared here) into row loop[LOOP_ITERATION],
+    and that iteration's alpha = r.s / c.Ac (0 when c.Ac <= 0) once for `cg_update`'s threads (0 for a world that
+    stopped: its dv and residual stay as they are). (Each thread dividing in float64, and the reductions indexing the
+    row through the loop state per thread, cost the CPU a fifth of an iteration.)"""
+    w = wp.tid()
+    base = world_loop(w, worlds)
+    col = w * CG_COLUMNS_C
+    cac = cg_sums_out[col + CG_CAC]
+    cg_sums_out[col + CG_CAC] = wp.float64(0.0)
     alpha = float(0.0)
-    if cac > wp.float64(0.0):
-        alpha = float(cg_scalars_out[iteration, CG_RS] / cac)
-    step_out[CG_ALPHA] = alpha
+    if worlds > 1 and w == 0:
+        loop[LOOP_RUNNING] = 0  # the batch's flag: set again by `end_cg_iteration`'s worlds that go on
+    if loop[base + LOOP_RUNNING] != 0:
+        iteration = loop[base + LOOP_ITERATION]
+        cg_scalars_out[iteration, col + CG_CAC] = cac
+        if cac > wp.float64(0.0):
+            alpha = float(cg_scalars_out[iteration, col + CG_RS] / cac)
+    step_out[w * 2 + CG_ALPHA] = alpha
 
 
 @wp.kernel(enable_backward=False)
@@ -660,6 +698,8 @@ def cg_update(
     precond: wp.array(dtype=wp.mat33),
     search: wp.array(dtype=wp.vec3),
     step: wp.array(dtype=float),
+    particle_world: wp.array(dtype=wp.int32),
+    worlds: int,
     # outputs (updated in place: forward-only solve, its gradient comes from an adjoint solve)
     product_out: wp.array(dtype=wp.vec3),
     dv_out: wp.array(dtype=wp.vec3),
@@ -672,7 +712,7 @@ def cg_update(
     i = wp.tid()
     q = product_out[i]
     product_out[i] = wp.vec3(0.0)
-    alpha = step[CG_ALPHA]
+    alpha = step[particle_world_of(i, particle_world, worlds) * 2 + CG_ALPHA]
     dv_out[i] = dv_out[i] + alpha * search[i]
     r = residual_out[i] - alpha * q
     residual_out[i] = r
@@ -684,14 +724,18 @@ def cg_residual_dots(
     particle_count: int,
     residual: wp.array(dtype=wp.vec3),
     preconditioned: wp.array(dtype=wp.vec3),
+    particle_world: wp.array(dtype=wp.int32),
+    worlds: int,
     cg_sums_out: wp.array(dtype=wp.float64),
 ):
-    """r.s and r.r of the updated residual summed into cg_sums_out (`end_cg_iteration` moves them into the next
-    iteration's row), one thread per particle (the CPU's form; see cloth_warp.reductions)."""
+    """r.s and r.r of the updated residual summed into cg_sums_out of the particle's world (`end_cg_iteration` moves
+    them into the next iteration's row), one thread per particle (the CPU's form, and batched worlds'; see
+    cloth_warp.reductions)."""
     i = wp.tid()
     r = residual[i]
-    wp.atomic_add(cg_sums_out, CG_RS, wp.float64(wp.dot(r, preconditioned[i])))
-    wp.atomic_add(cg_sums_out, CG_RR, wp.float64(wp.dot(r, r)))
+    col = particle_world_of(i, particle_world, worlds) * CG_COLUMNS_C
+    wp.atomic_add(cg_sums_out, col + CG_RS, wp.float64(wp.dot(r, preconditioned[i])))
+    wp.atomic_add(cg_sums_out, col + CG_RR, wp.float64(wp.dot(r, r)))
 
 
 @wp.kernel(enable_backward=False)
@@ -699,9 +743,11 @@ def cg_residual_dots_blocks(
     particle_count: int,
     residual: wp.array(dtype=wp.vec3),
     preconditioned: wp.array(dtype=wp.vec3),
+    particle_world: wp.array(dtype=wp.int32),
+    worlds: int,
     cg_sums_out: wp.array(dtype=wp.float64),
 ):
-    """:func:`cg_residual_dots` summed per block and added once per block (the GPU's form)."""
+    """:func:`cg_residual_dots` summed per block and added once per block (the GPU's form, one world only)."""
     block, lane = wp.tid()
     i = block * wp.block_dim() + lane
     rs = wp.float64(0.0)
@@ -722,15 +768,18 @@ def cg_direction(
     preconditioned: wp.array(dtype=wp.vec3),
     step: wp.array(dtype=float),
     loop: wp.array(dtype=wp.int32),
+    particle_world: wp.array(dtype=wp.int32),
+    worlds: int,
     # outputs
     search_out: wp.array(dtype=wp.vec3),
 ):
-    """c = s + beta c with beta = step[CG_BETA] (`end_cg_iteration`), after the iteration it counted (none once the loop
-    stopped)."""
+    """c = s + beta c with beta = step[CG_BETA] (`end_cg_iteration`), after the iteration it counted (none once the
+    particle's world stopped)."""
     i = wp.tid()
-    if loop[LOOP_RUNNING] == 0:
+    w = particle_world_of(i, particle_world, worlds)
+    if loop[world_loop(w, worlds) + LOOP_RUNNING] == 0:
         return
-    search_out[i] = preconditioned[i] + step[CG_BETA] * search_out[i]
+    search_out[i] = preconditioned[i] + step[w * 2 + CG_BETA] * search_out[i]
 
 
 @wp.kernel(enable_backward=False)
@@ -905,6 +954,8 @@ def cg_warm_start(
     global_damping: float,
     dt: float,
     enabled: wp.array(dtype=wp.int32),
+    particle_world: wp.array(dtype=wp.int32),
+    worlds: int,
     # outputs
     dv_out: wp.array(dtype=wp.vec3),
     residual_out: wp.array(dtype=wp.vec3),
@@ -913,9 +964,10 @@ def cg_warm_start(
     cg_scalars_out: wp.array2d(dtype=wp.float64),
 ):
     """Restart CG from `guess` (last step's dv on free particles, z on pinned): r0 = S (b - A guess), r.s and r.r
-    into row 0 of `cg_scalars_out`; nothing when enabled[0] is 0 (no previous step: the assembled cold start stays)."""
+    into row 0 of `cg_scalars_out`; nothing where enabled[world] is 0 (no previous step: the assembled cold start stays)."""
     i = wp.tid()
-    if enabled[0] == 0:
+    w = particle_world_of(i, particle_world, worlds)
+    if enabled[w] == 0:
         return
     g = guess[i]
     dv_out[i] = g
@@ -931,8 +983,8 @@ def cg_warm_start(
     residual_out[i] = r
     preconditioned_out[i] = s
     search_out[i] = s
-    wp.atomic_add(cg_scalars_out, 0, CG_RS, wp.float64(wp.dot(r, s)))
-    wp.atomic_add(cg_scalars_out, 0, CG_RR, wp.float64(wp.dot(r, r)))
+    wp.atomic_add(cg_scalars_out, 0, w * CG_COLUMNS_C + CG_RS, wp.float64(wp.dot(r, s)))
+    wp.atomic_add(cg_scalars_out, 0, w * CG_COLUMNS_C + CG_RR, wp.float64(wp.dot(r, r)))
 
 
 @wp.kernel(enable_backward=False)
@@ -943,6 +995,8 @@ def compose_warm_start(
     contact_normal: wp.array(dtype=wp.vec3),
     contact_dv: wp.array(dtype=wp.vec3),
     use_previous: wp.array(dtype=wp.int32),
+    particle_world: wp.array(dtype=wp.int32),
+    worlds: int,
     # outputs
     guess_out: wp.array(dtype=wp.vec3),
 ):
@@ -953,7 +1007,7 @@ def compose_warm_start(
         guess_out[i] = dv_pinned[i]
         return
     free = wp.vec3(0.0)
-    if use_previous[0] != 0:
+    if use_previous[particle_world_of(i, particle_world, worlds)] != 0:
         free = dv_previous[i]
     guess_out[i] = contact_filter(contact_normal[i], free) + contact_dv[i]
 
@@ -1216,6 +1270,13 @@ def stops(relative: wp.float64, stop: wp.float64) -> bool:
 
 
 @wp.kernel(enable_backward=False)
+def begin_batch_solve(loop_out: wp.array(dtype=wp.int32)):
+    """Batched worlds (1 thread): clear the batch's loop state before `begin_linear_solve`'s worlds set it."""
+    loop_out[LOOP_RUNNING] = 0
+    loop_out[LOOP_ITERATION] = 0
+
+
+@wp.kernel(enable_backward=False)
 def begin_linear_solve(
     warm_scalars: wp.array2d(dtype=wp.float64),
     warm: wp.array(dtype=wp.int32),
@@ -1226,44 +1287,53 @@ def begin_linear_solve(
     warm_reduction: wp.float64,
     warm_floor: wp.float64,
     max_iterations: int,
+    worlds: int,
     # outputs
     cg_scalars_out: wp.array2d(dtype=wp.float64),
     status_out: wp.array(dtype=wp.float64),
     loop_out: wp.array(dtype=wp.int32),
 ):
-    """Start a solve (1 thread): the reference |r_0|^2 is row 0 of `cg_scalars_out` (the zero guess's residual, as
-    assembled); a warm start (use_warm and warm[0]) replaces row 0 by its guess's (`warm_scalars`) and may stop
+    """Start a solve (1 thread per world): the reference |r_0|^2 is row 0 of `cg_scalars_out` (the zero guess's residual,
+    as assembled); a warm start (use_warm and warm[world]) replaces row 0 by its guess's (`warm_scalars`) and may stop
     at warm_reduction times its starting residual (not below warm_floor); a restart from a composed guess
     (`restarted`: collider contacts in the solve) replaces row 0 too; a re-solve of the step (`resolve`, rows
     zeroed by the caller) keeps the step's reference and the iterations carried from its earlier solves. Iterates when the reference is
-    positive and the starting residual above the stop."""
-    reference = cg_scalars_out[0, CG_RR]
+    positive and the starting residual above the stop. With batched worlds the batch's loop state (cleared by the
+    caller) runs while any world does."""
+    w = wp.tid()
+    base = world_loop(w, worlds)
+    col = w * CG_COLUMNS_C
+    st = w * STATUS_SIZE_C
+    reference = cg_scalars_out[0, col + CG_RR]
     if resolve != 0:
-        reference = status_out[STATUS_REFERENCE]  # the step's, measured by its first solve
-    is_warm = use_warm != 0 and warm[0] != 0
+        reference = status_out[st + STATUS_REFERENCE]  # the step's, measured by its first solve
+    is_warm = use_warm != 0 and warm[w] != 0
     if is_warm or restarted != 0:
-        cg_scalars_out[0, CG_RS] = warm_scalars[0, CG_RS]
-        cg_scalars_out[0, CG_RR] = warm_scalars[0, CG_RR]
-    relative = relative_residual(cg_scalars_out[0, CG_RR], reference)
+        cg_scalars_out[0, col + CG_RS] = warm_scalars[0, col + CG_RS]
+        cg_scalars_out[0, col + CG_RR] = warm_scalars[0, col + CG_RR]
+    relative = relative_residual(cg_scalars_out[0, col + CG_RR], reference)
     stop = tolerance
     if is_warm:
         stop = wp.min(tolerance, wp.max(warm_reduction * relative, warm_floor))
-    status_out[STATUS_REFERENCE] = reference
-    status_out[STATUS_STOP] = stop
-    status_out[STATUS_RELATIVE] = relative
-    loop_out[LOOP_ITERATION] = 0
-    loop_out[LOOP_CHECK] = 0
+    status_out[st + STATUS_REFERENCE] = reference
+    status_out[st + STATUS_STOP] = stop
+    status_out[st + STATUS_RELATIVE] = relative
+    loop_out[base + LOOP_ITERATION] = 0
+    loop_out[base + LOOP_CHECK] = 0
     if resolve == 0:
-        loop_out[LOOP_CARRIED] = 0
-    loop_out[LOOP_RUNNING] = 0
+        loop_out[base + LOOP_CARRIED] = 0
+    loop_out[base + LOOP_RUNNING] = 0
     if reference > wp.float64(1.0e-300) and relative > stop and max_iterations > 0:
-        loop_out[LOOP_RUNNING] = 1
+        loop_out[base + LOOP_RUNNING] = 1
+        if worlds > 1:
+            wp.atomic_max(loop_out, LOOP_RUNNING, 1)
 
 
 @wp.kernel(enable_backward=False)
 def end_cg_iteration(
     check_every: int,
     max_iterations: int,
+    worlds: int,
     # outputs
     cg_sums_out: wp.array(dtype=wp.float64),
     cg_scalars_out: wp.array2d(dtype=wp.float64),
@@ -1271,27 +1341,41 @@ def end_cg_iteration(
     status_out: wp.array(dtype=wp.float64),
     loop_out: wp.array(dtype=wp.int32),
 ):
-    """Count a CG iteration (1 thread): the new residual's r.s and r.r (summed by `cg_residual_dots` into cg_sums_out,
-    cleared here) into the next row, and the next direction's beta into step_out[CG_BETA]; every `check_every` iterations and at the cap, measure the relative residual and
-    stop at the tolerance (or a non-finite residual); stop at the cap."""
-    k = loop_out[LOOP_ITERATION] + 1
-    loop_out[LOOP_ITERATION] = k
-    cg_scalars_out[k, CG_RS] = cg_sums_out[CG_RS]
-    cg_scalars_out[k, CG_RR] = cg_sums_out[CG_RR]
-    cg_sums_out[CG_RS] = wp.float64(0.0)
-    cg_sums_out[CG_RR] = wp.float64(0.0)
-    rs = cg_scalars_out[k - 1, CG_RS]
+    """Count a CG iteration (1 thread per world): the new residual's r.s and r.r (summed by `cg_residual_dots` into
+    cg_sums_out, cleared here) into the next row, and the next direction's beta into step_out[CG_BETA]; every
+    `check_every` iterations and at the cap, measure the relative residual and stop at the tolerance (or a non-finite
+    residual); stop at the cap. A world that stopped only clears its sums; with batched worlds the batch's loop runs
+    on while any world does (its flag cleared by `cg_step_size`), its iteration count the largest."""
+    w = wp.tid()
+    base = world_loop(w, worlds)
+    col = w * CG_COLUMNS_C
+    st = w * STATUS_SIZE_C
+    rs_new = cg_sums_out[col + CG_RS]
+    rr_new = cg_sums_out[col + CG_RR]
+    cg_sums_out[col + CG_RS] = wp.float64(0.0)
+    cg_sums_out[col + CG_RR] = wp.float64(0.0)
+    if loop_out[base + LOOP_RUNNING] == 0:
+        return
+    k = loop_out[base + LOOP_ITERATION] + 1
+    loop_out[base + LOOP_ITERATION] = k
+    cg_scalars_out[k, col + CG_RS] = rs_new
+    cg_scalars_out[k, col + CG_RR] = rr_new
+    rs = cg_scalars_out[k - 1, col + CG_RS]
     beta = float(0.0)
     if rs > wp.float64(0.0):
-        beta = float(cg_scalars_out[k, CG_RS] / rs)
-    step_out[CG_BETA] = beta  # r_new.s_new / r.s: `cg_direction`'s
+        beta = float(rs_new / rs)
+    step_out[w * 2 + CG_BETA] = beta  # r_new.s_new / r.s: `cg_direction`'s
     if k % check_every == 0 or k >= max_iterations:
-        relative = relative_residual(cg_scalars_out[k, CG_RR], status_out[STATUS_REFERENCE])
-        status_out[STATUS_RELATIVE] = relative
-        if stops(relative, status_out[STATUS_STOP]):
-            loop_out[LOOP_RUNNING] = 0
+        relative = relative_residual(rr_new, status_out[st + STATUS_REFERENCE])
+        status_out[st + STATUS_RELATIVE] = relative
+        if stops(relative, status_out[st + STATUS_STOP]):
+            loop_out[base + LOOP_RUNNING] = 0
     if k >= max_iterations:
-        loop_out[LOOP_RUNNING] = 0
+        loop_out[base + LOOP_RUNNING] = 0
+    if worlds > 1:
+        wp.atomic_max(loop_out, LOOP_ITERATION, k)
+        if loop_out[base + LOOP_RUNNING] != 0:
+            wp.atomic_max(loop_out, LOOP_RUNNING, 1)
 
 
 @wp.kernel(enable_backward=False)
@@ -1340,44 +1424,51 @@ def end_linear_solve(
     keep_start: int,
     contact_counts: wp.array(dtype=wp.int32),
     release: wp.array(dtype=wp.int32),
+    worlds: int,
     # outputs
     record_out: wp.array(dtype=wp.float64),
     previous_ready_out: wp.array(dtype=wp.int32),
 ):
-    """Record a finished solve (1 thread); with `keep_start`, its dv starts the next solve unless it failed."""
-    relative = status[STATUS_RELATIVE]
-    iterations = wp.float64(loop[LOOP_ITERATION] + loop[LOOP_CARRIED])
-    solves = record_out[RECORD_SOLVES] + wp.float64(1.0)
-    record_out[RECORD_SOLVES] = solves
-    record_out[RECORD_ITERATIONS] = record_out[RECORD_ITERATIONS] + iterations
-    record_out[RECORD_CONTACTS] = record_out[RECORD_CONTACTS] + wp.float64(contact_counts[0])
-    record_out[RECORD_SELF_CONTACTS] = record_out[RECORD_SELF_CONTACTS] + wp.float64(contact_counts[1])  # kernels/contact.py COUNT_SELF_CONTACTS
-    record_out[RECORD_RESOLVES] = record_out[RECORD_RESOLVES] + wp.float64(release[RELEASE_ROUNDS])
-    record_out[RECORD_MOST_ITERATIONS] = wp.max(record_out[RECORD_MOST_ITERATIONS], iterations)
-    record_out[RECORD_LAST_RESIDUAL] = relative
+    """Record a finished solve (1 thread per world, into its record); with `keep_start`, its dv starts the next solve
+    unless it failed."""
+    w = wp.tid()
+    base = world_loop(w, worlds)
+    rec = w * RECORD_SIZE_C
+    relative = status[w * STATUS_SIZE_C + STATUS_RELATIVE]
+    iterations = wp.float64(loop[base + LOOP_ITERATION] + loop[base + LOOP_CARRIED])
+    solves = record_out[rec + RECORD_SOLVES] + wp.float64(1.0)
+    record_out[rec + RECORD_SOLVES] = solves
+    record_out[rec + RECORD_ITERATIONS] = record_out[rec + RECORD_ITERATIONS] + iterations
+    record_out[rec + RECORD_CONTACTS] = record_out[rec + RECORD_CONTACTS] + wp.float64(contact_counts[0])
+    record_out[rec + RECORD_SELF_CONTACTS] = record_out[rec + RECORD_SELF_CONTACTS] + wp.float64(contact_counts[1])  # kernels/contact.py COUNT_SELF_CONTACTS
+    record_out[rec + RECORD_RESOLVES] = record_out[rec + RECORD_RESOLVES] + wp.float64(release[RELEASE_ROUNDS])
+    record_out[rec + RECORD_MOST_ITERATIONS] = wp.max(record_out[rec + RECORD_MOST_ITERATIONS], iterations)
+    record_out[rec + RECORD_LAST_RESIDUAL] = relative
     failed = not wp.isfinite(relative)
     if failed:
-        record_out[RECORD_FAILED] = record_out[RECORD_FAILED] + wp.float64(1.0)
-        if record_out[RECORD_FIRST_FAILED] == wp.float64(0.0):
-            record_out[RECORD_FIRST_FAILED] = solves
+        record_out[rec + RECORD_FAILED] = record_out[rec + RECORD_FAILED] + wp.float64(1.0)
+        if record_out[rec + RECORD_FIRST_FAILED] == wp.float64(0.0):
+            record_out[rec + RECORD_FIRST_FAILED] = solves
     else:
-        record_out[RECORD_WORST_RESIDUAL] = wp.max(record_out[RECORD_WORST_RESIDUAL], relative)
+        record_out[rec + RECORD_WORST_RESIDUAL] = wp.max(record_out[rec + RECORD_WORST_RESIDUAL], relative)
         if relative > tolerance:
-            record_out[RECORD_UNCONVERGED] = record_out[RECORD_UNCONVERGED] + wp.float64(1.0)
+            record_out[rec + RECORD_UNCONVERGED] = record_out[rec + RECORD_UNCONVERGED] + wp.float64(1.0)
     if keep_start != 0:
-        previous_ready_out[0] = wp.where(failed, 0, 1)
+        previous_ready_out[w] = wp.where(failed, 0, 1)
 
 
 @wp.kernel(enable_backward=False)
 def keep_velocity_change(
     previous_ready: wp.array(dtype=wp.int32),
     dv: wp.array(dtype=wp.vec3),
+    particle_world: wp.array(dtype=wp.int32),
+    worlds: int,
     # outputs
     dv_previous_out: wp.array(dtype=wp.vec3),
 ):
-    """The solve's dv as the next solve's start (when it did not fail)."""
+    """The solve's dv as the next solve's start (when its world's solve did not fail)."""
     i = wp.tid()
-    if previous_ready[0] != 0:
+    if previous_ready[particle_world_of(i, particle_world, worlds)] != 0:
         dv_previous_out[i] = dv[i]
 
 

@@ -192,6 +192,13 @@ class SolverImplicitEuler(SolverBase):
         if not (0.0 < warm_start_reduction <= 1.0):
             raise ValueError(f"warm_start_reduction must be in (0, 1], got {warm_start_reduction!r}")
         self.warm_start_reduction = float(warm_start_reduction)
+        if model.world_count > 1:
+            unbatched = [what for what, on in (("linear_solver='jacobi'", self.linear_solver != LinearSolver.CG),
+                                               ("collider_contacts='solve'", collider_contacts == "solve"),
+                                               ("self_contacts='solve'", self_contacts == "solve")) if on]
+            if unbatched:
+                raise ValueError(f"batched worlds ({model.world_count}) do not run {', '.join(unbatched)} yet: use the CG "
+                                 "with contacts as passes")
         n, s, t = model.particle_count, max(model.spring_count, 1), max(model.tri_count, 1)
         dev = model.device
         self.stiffness_block = wp.zeros(s, dtype=wp.mat33, device=dev)
@@ -218,18 +225,20 @@ class SolverImplicitEuler(SolverBase):
         self.preconditioned = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.search = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.product = wp.zeros(n, dtype=wp.vec3, device=dev)  # A c (c: the CG search direction)
-        self.cg_scalars = wp.zeros((self.max_iterations + 2, ki.CG_COLUMNS), dtype=wp.float64, device=dev)
-        self.warm_scalars = wp.zeros((1, ki.CG_COLUMNS), dtype=wp.float64, device=dev)  # a warm start's row 0
-        self.cg_step = wp.zeros(2, dtype=float, device=dev)  # the iteration's alpha and beta (kernels/implicit.py CG_ALPHA, CG_BETA)
-        self.cg_sums = wp.zeros(ki.CG_COLUMNS, dtype=wp.float64, device=dev)  # an iteration's reductions, moved into cg_scalars
+        # Per-solve scalars, one set per world (batched worlds: kernels/implicit.py, world w's at w * <size>)
+        worlds = self.worlds = int(model.world_count)
+        self.cg_scalars = wp.zeros((self.max_iterations + 2, worlds * ki.CG_COLUMNS), dtype=wp.float64, device=dev)
+        self.warm_scalars = wp.zeros((1, worlds * ki.CG_COLUMNS), dtype=wp.float64, device=dev)  # a warm start's row 0
+        self.cg_step = wp.zeros(worlds * 2, dtype=float, device=dev)  # the iteration's alpha and beta (kernels/implicit.py CG_ALPHA, CG_BETA)
+        self.cg_sums = wp.zeros(worlds * ki.CG_COLUMNS, dtype=wp.float64, device=dev)  # an iteration's reductions, moved into cg_scalars
         self.effective_mass = wp.zeros(n, dtype=float, device=dev)  # M'_i = m_i (1 + h gamma) + h^2 k_pin [kg] of the assembled step
         # the solve's state on the device (kernels/implicit.py LOOP_*, STATUS_*, RECORD_*): no host read inside a step
-        self.loop = wp.zeros(ki.LOOP_SIZE, dtype=wp.int32, device=dev)
-        self.solve_status = wp.zeros(ki.STATUS_SIZE, dtype=wp.float64, device=dev)
-        self.solve_record = wp.zeros(ki.RECORD_SIZE, dtype=wp.float64, device=dev)
-        self.previous_ready = wp.zeros(1, dtype=wp.int32, device=dev)  # 1: dv_previous starts the next forward solve
-        self._enabled = wp.ones(1, dtype=wp.int32, device=dev)
-        self._disabled = wp.zeros(1, dtype=wp.int32, device=dev)
+        self.loop = wp.zeros(ki.LOOP_SIZE * (1 if worlds == 1 else worlds + 1), dtype=wp.int32, device=dev)
+        self.solve_status = wp.zeros(worlds * ki.STATUS_SIZE, dtype=wp.float64, device=dev)
+        self.solve_record = wp.zeros(worlds * ki.RECORD_SIZE, dtype=wp.float64, device=dev)
+        self.previous_ready = wp.zeros(worlds, dtype=wp.int32, device=dev)  # 1: dv_previous starts the world's next forward solve
+        self._enabled = wp.ones(worlds, dtype=wp.int32, device=dev)
+        self._disabled = wp.zeros(worlds, dtype=wp.int32, device=dev)
         # collider contacts in the solve (kernels/contact.py; zero normals: none, as in every other solve)
         self.contact_collider = wp.zeros(n, dtype=wp.int32, device=dev)
         self.contact_normal = wp.zeros(n, dtype=wp.vec3, device=dev)
@@ -319,7 +328,7 @@ class SolverImplicitEuler(SolverBase):
             inputs=[*self._product_args()[:9], m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, force, self.stiffness_block,
                     self.system_block, self.bend_vector, self.drag_vector, self.membrane_kv, self.membrane_diag, self.membrane_az,
                     state_in.particle_q, state_in.particle_qd,
-                    control.pin_target, wp.vec3(*m.gravity), m.global_damping, dt],
+                    control.pin_target, wp.vec3(*m.gravity), m.global_damping, dt, m.particle_world, self.worlds],
             outputs=[self.rhs, self.precond, self.dv, self.residual, self.preconditioned, self.search, self.cg_scalars, self.effective_mass],
             device=dev,
         )
@@ -417,18 +426,20 @@ class SolverImplicitEuler(SolverBase):
             wp.launch(ki.scatter_drag_product, dim=m.tri_count,
                       inputs=[m.tri_vertices, m.tri_corner_weights, self.drag_vector, c, dt], outputs=[q], device=dev)
         self._plate_product(c, dt, q)
+        worlds, batched = self.worlds, self.worlds > 1
         launch_reduction(ki.cg_product, ki.cg_product_blocks, m.particle_count,
-                         inputs=[self.effective_mass, m.particle_pinned, c, self.contact_normal, int(self._contacts_on)],
-                         outputs=[q, self.cg_sums], device=dev)
-        wp.launch(ki.cg_step_size, dim=1, inputs=[self.loop], outputs=[self.cg_sums, self.cg_scalars, self.cg_step], device=dev)
-        wp.launch(ki.cg_update, dim=m.particle_count, inputs=[self.precond, c, self.cg_step],
+                         inputs=[self.effective_mass, m.particle_pinned, c, self.contact_normal, int(self._contacts_on), m.particle_world, worlds],
+                         outputs=[q, self.cg_sums], device=dev, per_item=batched)
+        wp.launch(ki.cg_step_size, dim=worlds, inputs=[worlds, self.loop], outputs=[self.cg_sums, self.cg_scalars, self.cg_step], device=dev)
+        wp.launch(ki.cg_update, dim=m.particle_count, inputs=[self.precond, c, self.cg_step, m.particle_world, worlds],
                   outputs=[q, self.dv, self.residual, self.preconditioned], device=dev)
         launch_reduction(ki.cg_residual_dots, ki.cg_residual_dots_blocks, m.particle_count,
-                         inputs=[self.residual, self.preconditioned],
-                         outputs=[self.cg_sums], device=dev)
-        wp.launch(ki.end_cg_iteration, dim=1, inputs=[self.check_every, self.max_iterations],
+                         inputs=[self.residual, self.preconditioned, m.particle_world, worlds],
+                         outputs=[self.cg_sums], device=dev, per_item=batched)
+        wp.launch(ki.end_cg_iteration, dim=worlds, inputs=[self.check_every, self.max_iterations, worlds],
                   outputs=[self.cg_sums, self.cg_scalars, self.cg_step, self.solve_status, self.loop], device=dev)
-        wp.launch(ki.cg_direction, dim=m.particle_count, inputs=[self.preconditioned, self.cg_step, self.loop], outputs=[c], device=dev)
+        wp.launch(ki.cg_direction, dim=m.particle_count, inputs=[self.preconditioned, self.cg_step, self.loop, m.particle_world, worlds],
+                  outputs=[c], device=dev)
 
     def solve_jacobi(self, dt: float, warm: bool = False) -> wp.array:
         """Block Jacobi on the assembled system (`warm` as in :meth:`solve_cg`), iterating on the device; returns
@@ -468,10 +479,12 @@ class SolverImplicitEuler(SolverBase):
 
     def _begin_iterations(self, warm: bool, restarted: bool = False, resolve: bool = False):
         """The reference residual, the stop and whether to iterate, on the device (:func:`~cloth_warp.kernels.implicit.begin_linear_solve`)."""
-        wp.launch(ki.begin_linear_solve, dim=1,
+        if self.worlds > 1:
+            wp.launch(ki.begin_batch_solve, dim=1, outputs=[self.loop], device=self.model.device)
+        wp.launch(ki.begin_linear_solve, dim=self.worlds,
                   inputs=[self.warm_scalars, self.previous_ready, int(warm), int(restarted), int(resolve), wp.float64(self.tolerance),
                           wp.float64(self.warm_start_reduction),
-                          wp.float64(WARM_START_FLOOR), self.max_iterations],
+                          wp.float64(WARM_START_FLOOR), self.max_iterations, self.worlds],
                   outputs=[self.cg_scalars, self.solve_status, self.loop], device=self.model.device)
 
     # -- the solve's report (each property reads the device; the Simulator reads the record once per frame) ----------
@@ -506,8 +519,23 @@ class SolverImplicitEuler(SolverBase):
         return [(self, "solve_record")]
 
     def read_report(self) -> LinearSolveReport:
-        """The solves since :meth:`reset_report` (one read of a few numbers, or the frame record's copy)."""
-        r = record_values(self.solve_record).astype(np.float64)
+        """The solves since :meth:`reset_report` (one read of a few numbers, or the frame record's copy); batched
+        worlds' summed (most and worst: the largest, last residual: the last world's)."""
+        rows = record_values(self.solve_record).astype(np.float64).reshape(self.worlds, ki.RECORD_SIZE)
+        r = rows.sum(0)
+        for k in (ki.RECORD_MOST_ITERATIONS, ki.RECORD_WORST_RESIDUAL):
+            r[k] = rows[:, k].max()
+        r[ki.RECORD_LAST_RESIDUAL] = rows[-1, ki.RECORD_LAST_RESIDUAL]
+        first = rows[rows[:, ki.RECORD_FIRST_FAILED] > 0, ki.RECORD_FIRST_FAILED]
+        r[ki.RECORD_FIRST_FAILED] = first.min() if len(first) else 0.0
+        return self._report_of(r)
+
+    def read_world_reports(self) -> list[LinearSolveReport]:
+        """The solves since :meth:`reset_report`, one report per world."""
+        rows = record_values(self.solve_record).astype(np.float64).reshape(self.worlds, ki.RECORD_SIZE)
+        return [self._report_of(r) for r in rows]
+
+    def _report_of(self, r: np.ndarray) -> LinearSolveReport:
         return LinearSolveReport(
             solves=int(r[ki.RECORD_SOLVES]), iterations=int(r[ki.RECORD_ITERATIONS]), most_iterations=int(r[ki.RECORD_MOST_ITERATIONS]),
             failed=int(r[ki.RECORD_FAILED]), first_failed=int(r[ki.RECORD_FIRST_FAILED]), unconverged=int(r[ki.RECORD_UNCONVERGED]),
@@ -557,11 +585,12 @@ class SolverImplicitEuler(SolverBase):
                     self._restart_from_previous(dt)
                 dv = self._iterate(dt, warm)
         m = self.model
-        wp.launch(ki.end_linear_solve, dim=1, inputs=[self.solve_status, self.loop, wp.float64(self.tolerance), int(self.warm_start),
-                                                      self.contact_counts, self.release],
+        wp.launch(ki.end_linear_solve, dim=self.worlds, inputs=[self.solve_status, self.loop, wp.float64(self.tolerance), int(self.warm_start),
+                                                                self.contact_counts, self.release, self.worlds],
                   outputs=[self.solve_record, self.previous_ready], device=m.device)
         if self.warm_start:  # a non-finite solve is no start for the next (nor for a retry of this step)
-            wp.launch(ki.keep_velocity_change, dim=m.particle_count, inputs=[self.previous_ready, dv], outputs=[self.dv_previous],
+            wp.launch(ki.keep_velocity_change, dim=m.particle_count, inputs=[self.previous_ready, dv, m.particle_world, self.worlds],
+                      outputs=[self.dv_previous],
                       device=m.device)
         if contacts and not state_in.requires_grad:  # a taped step's friction is on the tape (_taped_velocity_change)
             self._apply_contact_friction(state_in)
@@ -587,7 +616,8 @@ class SolverImplicitEuler(SolverBase):
         particles and this step's z on pinned ones, and its residual in `warm_scalars`."""
         m = self.model
         wp.launch(ki.compose_warm_start, dim=m.particle_count,
-                  inputs=[m.particle_pinned, self.dv_previous, self.dv, self.contact_normal, self.contact_dv, self._enabled],
+                  inputs=[m.particle_pinned, self.dv_previous, self.dv, self.contact_normal, self.contact_dv, self._enabled,
+                          m.particle_world, self.worlds],
                   outputs=[self.dv_alt], device=m.device)
         self._start_from_guess(dt, self.previous_ready, self.warm_scalars)
 
@@ -608,7 +638,7 @@ class SolverImplicitEuler(SolverBase):
                   outputs=[self.precond, self.precond_free], device=dev)
         wp.launch(ki.compose_warm_start, dim=m.particle_count,
                   inputs=[m.particle_pinned, self.dv_previous, self.dv, self.contact_normal, self.contact_dv,
-                          self.previous_ready if warm else self._disabled],
+                          self.previous_ready if warm else self._disabled, m.particle_world, self.worlds],
                   outputs=[self.dv_alt], device=dev)
         self._start_from_guess(dt, self._enabled, self.warm_scalars)
         self.solve_cg(dt, warm, restarted=True)
@@ -667,7 +697,7 @@ class SolverImplicitEuler(SolverBase):
             dim=m.particle_count,
             inputs=[*self._product_args(), m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, self.system_block,
                     self.bend_vector, self.drag_vector, self.membrane_block, self.plate_product, self.precond, self.rhs, self.dv_alt,
-                    self.contact_normal, m.global_damping, dt, enabled],
+                    self.contact_normal, m.global_damping, dt, enabled, m.particle_world, self.worlds],
             outputs=[self.dv, self.residual, self.preconditioned, self.search, scalars],
             device=m.device,
         )
