@@ -3,6 +3,8 @@ convergence check and per-step record of the limiter (so graph-captured runs che
 
 import warp as wp
 
+from .worlds import particle_world_of, world_slot
+
 LENGTH_EPS = wp.constant(1.0e-9)
 ATTACHMENT_MAX = wp.constant(4)  # long-range attachments per particle
 
@@ -75,10 +77,14 @@ def apply_attachment_limit(
     # State in
     x_in: wp.array(dtype=wp.vec3),
     max_strain: float,
+    particle_world: wp.array(dtype=wp.int32),
+    worlds: int,
+    loop: wp.array(dtype=wp.int32),
     # outputs
     x_out: wp.array(dtype=wp.vec3),
 ):
-    """Long-range attachments (Kim et al. 2012): |x_i - x_p| <= (1 + max_strain) g_ip for pinned p.
+    """Long-range attachments (Kim et al. 2012): |x_i - x_p| <= (1 + max_strain) g_ip for pinned p (batched worlds:
+    in the worlds still sweeping, `loop`).
 
     g_ip is the shortest rest length along limited springs from i to p, so any state whose springs all
     satisfy the strain limit satisfies these too; projecting onto them removes in one pass the global
@@ -86,7 +92,10 @@ def apply_attachment_limit(
     """
     i = wp.tid()
     xi = x_in[i]
-    if particle_pinned[i] == 0:
+    sweeping = True
+    if worlds > 1:
+        sweeping = loop[world_slot(particle_world[i], worlds, LIMIT_LOOP_SIZE)] != 0
+    if particle_pinned[i] == 0 and sweeping:
         for a in range(ATTACHMENT_MAX):  # a constant range is unrolled: xi stays differentiable from one to the next
             p = -1
             if a < attachment_particle.shape[1]:
@@ -111,13 +120,20 @@ def apply_strain_limit_springs(
     particle_pinned: wp.array(dtype=wp.int32),
     max_strain: float,
     relaxation: float,
+    particle_world: wp.array(dtype=wp.int32),
+    worlds: int,
+    loop: wp.array(dtype=wp.int32),
     # updated in place (forward only: no two springs of a colour share a particle, so no races)
     x_out: wp.array(dtype=wp.vec3),
 ):
-    """The same projection as apply_strain_limit_color, one thread per spring of the colour, in place."""
+    """The same projection as apply_strain_limit_color, one thread per spring of the colour, in place (batched
+    worlds: only in the worlds still sweeping, `loop`)."""
     s = color_springs[first + wp.tid()]
     a = spring_indices[s, 0]
     b = spring_indices[s, 1]
+    if worlds > 1:
+        if loop[world_slot(particle_world[a], worlds, LIMIT_LOOP_SIZE)] == 0:
+            return
     wa = 0.0
     wb = 0.0
     if particle_pinned[a] == 0:
@@ -140,6 +156,11 @@ def apply_strain_limit_springs(
 # -- convergence bookkeeping (on the device, so a captured graph checks too) ---------------------------------
 # status: [excess before limiting, structural excess, shear excess] of the last apply (l / L - 1 - max_strain);
 # loop: [continue (the capture_while condition), sweeps done]; record: see StrainLimiter.read_report.
+# Batched worlds (cloth_warp.worlds): excess, status and record per world (world w's at w * their size), the loop state
+# of world w at LIMIT_LOOP_SIZE * (1 + w) after the batch's (kernels/worlds.py world_slot).
+LIMIT_LOOP_SIZE = wp.constant(2)
+EXCESS_SIZE = wp.constant(2)
+STATUS_SIZE = wp.constant(3)
 EXCESS_FLOOR = wp.constant(-1.0e30)
 RECORD_STRUCTURAL = wp.constant(0)
 RECORD_SHEAR = wp.constant(1)
@@ -148,13 +169,15 @@ RECORD_STEPS = wp.constant(3)
 RECORD_MISSED = wp.constant(4)
 RECORD_SWEEPS = wp.constant(5)
 RECORD_MOST_SWEEPS = wp.constant(6)
+RECORD_SIZE = wp.constant(7)
 
 
 @wp.kernel(enable_backward=False)
 def reset_strain_excess(excess_out: wp.array(dtype=float)):
-    """Empty the per-kind excess accumulator (before eval_strain_excess_kinds)."""
-    excess_out[0] = EXCESS_FLOOR
-    excess_out[1] = EXCESS_FLOOR
+    """Empty the per-kind excess accumulator (before eval_strain_excess_kinds; one thread per world)."""
+    w = wp.tid()
+    excess_out[w * EXCESS_SIZE] = EXCESS_FLOOR
+    excess_out[w * EXCESS_SIZE + 1] = EXCESS_FLOOR
 
 
 @wp.func
@@ -177,15 +200,19 @@ def eval_strain_excess_kinds(
     # State
     x: wp.array(dtype=wp.vec3),
     max_strain: float,
+    particle_world: wp.array(dtype=wp.int32),
+    worlds: int,
     # outputs (reset by the caller)
     excess_out: wp.array(dtype=float),
 ):
-    """excess_out[k] = max over limited springs of kind k (0 structural, 1 shear) of l / L - 1 - max_strain; one
-    thread per spring (the CPU's form; see cloth_warp.reductions)."""
+    """excess_out[k] = max over limited springs of kind k (0 structural, 1 shear) of l / L - 1 - max_strain (per world
+    when batched); one thread per spring (the CPU's form, and batched worlds'; see cloth_warp.reductions)."""
     s = wp.tid()
     if spring_limited[s] == 0:
         return
-    wp.atomic_max(excess_out, wp.min(spring_kind[s], 1), strain_excess(s, spring_indices, spring_rest_length, spring_limited, x, max_strain))
+    w = particle_world_of(spring_indices[s, 0], particle_world, worlds)
+    wp.atomic_max(excess_out, w * EXCESS_SIZE + wp.min(spring_kind[s], 1),
+                  strain_excess(s, spring_indices, spring_rest_length, spring_limited, x, max_strain))
 
 
 @wp.kernel(enable_backward=False)
@@ -199,10 +226,12 @@ def eval_strain_excess_kinds_blocks(
     # State
     x: wp.array(dtype=wp.vec3),
     max_strain: float,
+    particle_world: wp.array(dtype=wp.int32),
+    worlds: int,
     # outputs (reset by the caller)
     excess_out: wp.array(dtype=float),
 ):
-    """:func:`eval_strain_excess_kinds` with the maxima taken per block, then once per block (the GPU's form)."""
+    """:func:`eval_strain_excess_kinds` with the maxima taken per block, then once per block (the GPU's form, one world)."""
     block, lane = wp.tid()
     s = block * wp.block_dim() + lane
     structural = EXCESS_FLOOR
@@ -220,12 +249,12 @@ def eval_strain_excess_kinds_blocks(
 
 
 @wp.func
-def take_strain_excess(excess_out: wp.array(dtype=float), status_out: wp.array(dtype=float)):
-    """Move the accumulated per-kind excess into status_out[1:3] and empty the accumulator."""
-    status_out[1] = excess_out[0]
-    status_out[2] = excess_out[1]
-    excess_out[0] = EXCESS_FLOOR
-    excess_out[1] = EXCESS_FLOOR
+def take_strain_excess(w: int, excess_out: wp.array(dtype=float), status_out: wp.array(dtype=float)):
+    """Move world w's accumulated per-kind excess into its status [1:3] and empty its accumulator."""
+    status_out[w * STATUS_SIZE + 1] = excess_out[w * EXCESS_SIZE]
+    status_out[w * STATUS_SIZE + 2] = excess_out[w * EXCESS_SIZE + 1]
+    excess_out[w * EXCESS_SIZE] = EXCESS_FLOOR
+    excess_out[w * EXCESS_SIZE + 1] = EXCESS_FLOOR
 
 
 @wp.kernel(enable_backward=False)
@@ -233,21 +262,33 @@ def begin_strain_limit(
     max_sweeps: int,
     tolerance: float,
     check: int,
+    worlds: int,
     # outputs
     excess_out: wp.array(dtype=float),
     status_out: wp.array(dtype=float),
     loop_out: wp.array(dtype=wp.int32),
 ):
     """Read the excess before limiting, empty the accumulator and decide whether to sweep at all (with `check`,
-    only when the excess is above the tolerance)."""
-    e = wp.max(excess_out[0], excess_out[1])
-    status_out[0] = e
-    take_strain_excess(excess_out, status_out)
-    loop_out[1] = 0
+    only when the excess is above the tolerance); one thread per world (batched: the batch sweeps while any world
+    does, its flag cleared by `begin_strain_limit_batch`)."""
+    w = wp.tid()
+    base = world_slot(w, worlds, LIMIT_LOOP_SIZE)
+    e = wp.max(excess_out[w * EXCESS_SIZE], excess_out[w * EXCESS_SIZE + 1])
+    status_out[w * STATUS_SIZE] = e
+    take_strain_excess(w, excess_out, status_out)
+    loop_out[base + 1] = 0
     go = max_sweeps > 0
     if check != 0 and e <= tolerance:
         go = False
-    loop_out[0] = wp.where(go, 1, 0)
+    loop_out[base] = wp.where(go, 1, 0)
+    if worlds > 1 and go:
+        wp.atomic_max(loop_out, 0, 1)
+
+
+@wp.kernel(enable_backward=False)
+def begin_strain_limit_batch(loop_out: wp.array(dtype=wp.int32)):
+    """Batched worlds (1 thread): clear the batch's flag before the worlds' `begin_strain_limit` or sweep's end set it."""
+    loop_out[0] = 0
 
 
 @wp.kernel(enable_backward=False)
@@ -255,21 +296,31 @@ def end_strain_limit_sweep(
     max_sweeps: int,
     tolerance: float,
     check: int,
+    worlds: int,
     # outputs
     excess_out: wp.array(dtype=float),
     status_out: wp.array(dtype=float),
     loop_out: wp.array(dtype=wp.int32),
 ):
     """Count a sweep; with `check`, take the excess it left (and empty the accumulator): sweep on while it is
-    above the tolerance and fewer than max_sweeps sweeps were done."""
-    n = loop_out[1] + 1
-    loop_out[1] = n
+    above the tolerance and fewer than max_sweeps sweeps were done. One thread per world; a world that stopped
+    only empties its accumulator."""
+    w = wp.tid()
+    base = world_slot(w, worlds, LIMIT_LOOP_SIZE)
+    if loop_out[base] == 0:
+        excess_out[w * EXCESS_SIZE] = EXCESS_FLOOR
+        excess_out[w * EXCESS_SIZE + 1] = EXCESS_FLOOR
+        return
+    n = loop_out[base + 1] + 1
+    loop_out[base + 1] = n
     go = n < max_sweeps
     if check != 0:
-        take_strain_excess(excess_out, status_out)
-        if wp.max(status_out[1], status_out[2]) <= tolerance:
+        take_strain_excess(w, excess_out, status_out)
+        if wp.max(status_out[w * STATUS_SIZE + 1], status_out[w * STATUS_SIZE + 2]) <= tolerance:
             go = False
-    loop_out[0] = wp.where(go, 1, 0)
+    loop_out[base] = wp.where(go, 1, 0)
+    if worlds > 1 and go:
+        wp.atomic_max(loop_out, 0, 1)
 
 
 @wp.kernel(enable_backward=False)
@@ -278,8 +329,8 @@ def finish_strain_limit(
     excess_out: wp.array(dtype=float),
     status_out: wp.array(dtype=float),
 ):
-    """Take the excess measured after the last sweep (fixed-sweep runs measure once, at the end)."""
-    take_strain_excess(excess_out, status_out)
+    """Take the excess measured after the last sweep (fixed-sweep runs measure once, at the end; one thread per world)."""
+    take_strain_excess(wp.tid(), excess_out, status_out)
 
 
 @wp.kernel(enable_backward=False)
@@ -287,24 +338,28 @@ def record_strain_limit(
     status: wp.array(dtype=float),
     loop: wp.array(dtype=wp.int32),
     tolerance: float,
+    worlds: int,
     # outputs
     record_out: wp.array(dtype=float),
     backup_out: wp.array(dtype=float),
 ):
     """Add the last step to the record (kept first in backup_out, so a rejected step can be taken back):
     worst excess after limiting per kind and before it (floored at 0), steps, steps left above the
-    tolerance, sweeps and the most sweeps in one step."""
-    for k in range(record_out.shape[0]):
-        backup_out[k] = record_out[k]
-    record_out[RECORD_STRUCTURAL] = wp.max(record_out[RECORD_STRUCTURAL], status[1])
-    record_out[RECORD_SHEAR] = wp.max(record_out[RECORD_SHEAR], status[2])
-    record_out[RECORD_INITIAL] = wp.max(record_out[RECORD_INITIAL], status[0])
-    record_out[RECORD_STEPS] = record_out[RECORD_STEPS] + 1.0
-    if wp.max(status[1], status[2]) > tolerance:
-        record_out[RECORD_MISSED] = record_out[RECORD_MISSED] + 1.0
-    sweeps = float(loop[1])
-    record_out[RECORD_SWEEPS] = record_out[RECORD_SWEEPS] + sweeps
-    record_out[RECORD_MOST_SWEEPS] = wp.max(record_out[RECORD_MOST_SWEEPS], sweeps)
+    tolerance, sweeps and the most sweeps in one step. One thread per world, into its record."""
+    w = wp.tid()
+    r = w * RECORD_SIZE
+    st = w * STATUS_SIZE
+    for k in range(RECORD_SIZE):
+        backup_out[r + k] = record_out[r + k]
+    record_out[r + RECORD_STRUCTURAL] = wp.max(record_out[r + RECORD_STRUCTURAL], status[st + 1])
+    record_out[r + RECORD_SHEAR] = wp.max(record_out[r + RECORD_SHEAR], status[st + 2])
+    record_out[r + RECORD_INITIAL] = wp.max(record_out[r + RECORD_INITIAL], status[st])
+    record_out[r + RECORD_STEPS] = record_out[r + RECORD_STEPS] + 1.0
+    if wp.max(status[st + 1], status[st + 2]) > tolerance:
+        record_out[r + RECORD_MISSED] = record_out[r + RECORD_MISSED] + 1.0
+    sweeps = float(loop[world_slot(w, worlds, LIMIT_LOOP_SIZE) + 1])
+    record_out[r + RECORD_SWEEPS] = record_out[r + RECORD_SWEEPS] + sweeps
+    record_out[r + RECORD_MOST_SWEEPS] = wp.max(record_out[r + RECORD_MOST_SWEEPS], sweeps)
 
 
 @wp.kernel(enable_backward=False)

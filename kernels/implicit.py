@@ -43,6 +43,7 @@ from .forces import (
     triangle_drag_force,
 )
 from . import contracting_cpu_flags
+from .worlds import particle_world_of, world_slot
 
 wp.set_module_options({"cpu_compiler_flags": contracting_cpu_flags()})
 
@@ -99,17 +100,16 @@ MEMBRANE_DIAGONAL_WEIGHT = wp.constant(1.5)
 @wp.func
 def world_loop(w: int, worlds: int):
     """Where world w's loop state starts in `loop` (see above)."""
-    if worlds == 1:
-        return 0
-    return LOOP_SIZE_C * (1 + w)
+    return world_slot(w, worlds, LOOP_SIZE_C)
 
 
 @wp.func
-def particle_world_of(i: int, particle_world: wp.array(dtype=wp.int32), worlds: int):
-    """The world of particle i (0 without batched worlds: no read)."""
+def world_iterates(i: int, particle_world: wp.array(dtype=wp.int32), worlds: int, loop: wp.array(dtype=wp.int32)):
+    """Whether particle i's world is still iterating (always with one world: the loop body only runs then). The CG's
+    kernels skip the work of batched worlds that stopped: their step is zero, and skipping keeps them as they were."""
     if worlds == 1:
-        return 0
-    return particle_world[i]
+        return True
+    return loop[world_loop(particle_world[i], worlds) + LOOP_RUNNING] != 0
 
 
 @wp.kernel(enable_backward=False)
@@ -633,6 +633,7 @@ def cg_product(
     filtered: int,
     particle_world: wp.array(dtype=wp.int32),
     worlds: int,
+    loop: wp.array(dtype=wp.int32),
     # outputs: holds the element part (the scatter_*_product kernels) on entry, q on exit
     product_out: wp.array(dtype=wp.vec3),
     cg_sums_out: wp.array(dtype=wp.float64),
@@ -640,6 +641,8 @@ def cg_product(
     """q = S A c, and c . q summed into cg_sums_out[CG_CAC] of the particle's world (`cg_step_size` moves it into the
     iteration's row), one thread per particle (the CPU's form, and batched worlds'; see cloth_warp.reductions)."""
     i = wp.tid()
+    if not world_iterates(i, particle_world, worlds, loop):
+        return
     cq = cg_product_row(i, effective_mass, particle_pinned, search, contact_normal, filtered, product_out)
     wp.atomic_add(cg_sums_out, particle_world_of(i, particle_world, worlds) * CG_COLUMNS_C + CG_CAC, cq)
 
@@ -655,6 +658,7 @@ def cg_product_blocks(
     filtered: int,
     particle_world: wp.array(dtype=wp.int32),
     worlds: int,
+    loop: wp.array(dtype=wp.int32),
     # outputs: holds the element part (the scatter_*_product kernels) on entry, q on exit
     product_out: wp.array(dtype=wp.vec3),
     cg_sums_out: wp.array(dtype=wp.float64),
@@ -671,7 +675,7 @@ def cg_product_blocks(
 
 
 @wp.kernel(enable_backward=False)
-def cg_step_size(worlds: int, loop: wp.array(dtype=wp.int32), cg_sums_out: wp.array(dtype=wp.float64),
+def cg_step_size(worlds: int, loop_out: wp.array(dtype=wp.int32), cg_sums_out: wp.array(dtype=wp.float64),
                  cg_scalars_out: wp.array2d(dtype=wp.float64), step_out: wp.array(dtype=float)):
     """One thread per world: c.Ac (summed by `cg_product` into cg_sums_out, cleared here) into row loop[LOOP_ITERATION],
     and that iteration's alpha = r.s / c.Ac (0 when c.Ac <= 0) once for `cg_update`'s threads (0 for a world that
@@ -684,9 +688,9 @@ def cg_step_size(worlds: int, loop: wp.array(dtype=wp.int32), cg_sums_out: wp.ar
     cg_sums_out[col + CG_CAC] = wp.float64(0.0)
     alpha = float(0.0)
     if worlds > 1 and w == 0:
-        loop[LOOP_RUNNING] = 0  # the batch's flag: set again by `end_cg_iteration`'s worlds that go on
-    if loop[base + LOOP_RUNNING] != 0:
-        iteration = loop[base + LOOP_ITERATION]
+        loop_out[LOOP_RUNNING] = 0  # the batch's flag: set again by `end_cg_iteration`'s worlds that go on
+    if loop_out[base + LOOP_RUNNING] != 0:
+        iteration = loop_out[base + LOOP_ITERATION]
         cg_scalars_out[iteration, col + CG_CAC] = cac
         if cac > wp.float64(0.0):
             alpha = float(cg_scalars_out[iteration, col + CG_RS] / cac)
@@ -700,6 +704,7 @@ def cg_update(
     step: wp.array(dtype=float),
     particle_world: wp.array(dtype=wp.int32),
     worlds: int,
+    loop: wp.array(dtype=wp.int32),
     # outputs (updated in place: forward-only solve, its gradient comes from an adjoint solve)
     product_out: wp.array(dtype=wp.vec3),
     dv_out: wp.array(dtype=wp.vec3),
@@ -712,6 +717,8 @@ def cg_update(
     i = wp.tid()
     q = product_out[i]
     product_out[i] = wp.vec3(0.0)
+    if not world_iterates(i, particle_world, worlds, loop):
+        return
     alpha = step[particle_world_of(i, particle_world, worlds) * 2 + CG_ALPHA]
     dv_out[i] = dv_out[i] + alpha * search[i]
     r = residual_out[i] - alpha * q
@@ -726,12 +733,15 @@ def cg_residual_dots(
     preconditioned: wp.array(dtype=wp.vec3),
     particle_world: wp.array(dtype=wp.int32),
     worlds: int,
+    loop: wp.array(dtype=wp.int32),
     cg_sums_out: wp.array(dtype=wp.float64),
 ):
     """r.s and r.r of the updated residual summed into cg_sums_out of the particle's world (`end_cg_iteration` moves
     them into the next iteration's row), one thread per particle (the CPU's form, and batched worlds'; see
     cloth_warp.reductions)."""
     i = wp.tid()
+    if not world_iterates(i, particle_world, worlds, loop):
+        return
     r = residual[i]
     col = particle_world_of(i, particle_world, worlds) * CG_COLUMNS_C
     wp.atomic_add(cg_sums_out, col + CG_RS, wp.float64(wp.dot(r, preconditioned[i])))
@@ -745,6 +755,7 @@ def cg_residual_dots_blocks(
     preconditioned: wp.array(dtype=wp.vec3),
     particle_world: wp.array(dtype=wp.int32),
     worlds: int,
+    loop: wp.array(dtype=wp.int32),
     cg_sums_out: wp.array(dtype=wp.float64),
 ):
     """:func:`cg_residual_dots` summed per block and added once per block (the GPU's form, one world only)."""

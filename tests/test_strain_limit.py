@@ -305,7 +305,8 @@ def test_taped_limiter_gradient_matches_tape_and_finite_differences(device, rng)
             for _ in range(sweeps):
                 y = wp.zeros_like(x_k, requires_grad=True)
                 wp.launch(kc.apply_attachment_limit, dim=m.particle_count, inputs=[lim.attachment_particle, lim.attachment_rest_distance,
-                                                                                   m.particle_pinned, x_k, LIMIT], outputs=[y], device=device)
+                                                                                   m.particle_pinned, x_k, LIMIT, m.particle_world, 1,
+                                                                                   lim._loop], outputs=[y], device=device)
                 x_k = y
                 for color in range(m.strain_limit_color_count):
                     y = wp.zeros_like(x_k, requires_grad=True)

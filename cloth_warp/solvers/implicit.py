@@ -427,14 +427,15 @@ class SolverImplicitEuler(SolverBase):
                       inputs=[m.tri_vertices, m.tri_corner_weights, self.drag_vector, c, dt], outputs=[q], device=dev)
         self._plate_product(c, dt, q)
         worlds, batched = self.worlds, self.worlds > 1
+        gate = [m.particle_world, worlds, self.loop]  # batched worlds: a world that stopped keeps its dv and residual
         launch_reduction(ki.cg_product, ki.cg_product_blocks, m.particle_count,
-                         inputs=[self.effective_mass, m.particle_pinned, c, self.contact_normal, int(self._contacts_on), m.particle_world, worlds],
+                         inputs=[self.effective_mass, m.particle_pinned, c, self.contact_normal, int(self._contacts_on), *gate],
                          outputs=[q, self.cg_sums], device=dev, per_item=batched)
         wp.launch(ki.cg_step_size, dim=worlds, inputs=[worlds, self.loop], outputs=[self.cg_sums, self.cg_scalars, self.cg_step], device=dev)
-        wp.launch(ki.cg_update, dim=m.particle_count, inputs=[self.precond, c, self.cg_step, m.particle_world, worlds],
+        wp.launch(ki.cg_update, dim=m.particle_count, inputs=[self.precond, c, self.cg_step, *gate],
                   outputs=[q, self.dv, self.residual, self.preconditioned], device=dev)
         launch_reduction(ki.cg_residual_dots, ki.cg_residual_dots_blocks, m.particle_count,
-                         inputs=[self.residual, self.preconditioned, m.particle_world, worlds],
+                         inputs=[self.residual, self.preconditioned, *gate],
                          outputs=[self.cg_sums], device=dev, per_item=batched)
         wp.launch(ki.end_cg_iteration, dim=worlds, inputs=[self.check_every, self.max_iterations, worlds],
                   outputs=[self.cg_sums, self.cg_scalars, self.cg_step, self.solve_status, self.loop], device=dev)

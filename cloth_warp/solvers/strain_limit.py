@@ -28,7 +28,6 @@ DEFAULT_SWEEPS = 128
 """Cap of Gauss-Seidel sweeps per step (API and scene default)."""
 REPORT_TOLERANCE = 1.0e-3
 """Excess strain counted as a miss when the limiter runs a fixed number of sweeps (tolerance None)."""
-RECORD_SIZE = 7
 
 
 class StrainLimitWarning(UserWarning):
@@ -93,11 +92,12 @@ class StrainLimiter(StepPass):
         self.tolerance = None if tolerance is None else float(tolerance)
         self.relaxation = float(relaxation)
         dev = model.device
-        self._excess = wp.zeros(2, dtype=float, device=dev)  # per-kind accumulator, empty between uses
-        self._status = wp.zeros(3, dtype=float, device=dev)  # [before, structural, shear] excess of the last step
-        self._loop = wp.zeros(2, dtype=wp.int32, device=dev)  # [continue, sweeps]
-        self.record = wp.zeros(RECORD_SIZE, dtype=float, device=dev)
-        self._record_backup = wp.zeros(RECORD_SIZE, dtype=float, device=dev)
+        worlds = self.worlds = int(model.world_count)  # batched worlds: one set of each per world (kernels/constraints.py)
+        self._excess = wp.zeros(worlds * kc.EXCESS_SIZE, dtype=float, device=dev)  # per-kind accumulator, empty between uses
+        self._status = wp.zeros(worlds * kc.STATUS_SIZE, dtype=float, device=dev)  # [before, structural, shear] excess of the last step
+        self._loop = wp.zeros(kc.LIMIT_LOOP_SIZE * (1 if worlds == 1 else worlds + 1), dtype=wp.int32, device=dev)  # [continue, sweeps]
+        self.record = wp.zeros(worlds * kc.RECORD_SIZE, dtype=float, device=dev)
+        self._record_backup = wp.zeros(worlds * kc.RECORD_SIZE, dtype=float, device=dev)
         self._buffers: dict = {}  # taped steps' work arrays (see the taped path)
         if not (0 <= int(attachments) <= kc.ATTACHMENT_MAX):
             raise ValueError(f"attachments: must be in [0, {kc.ATTACHMENT_MAX}], got {attachments!r}")
@@ -107,7 +107,7 @@ class StrainLimiter(StepPass):
         if self.attachment_count:
             self.attachment_particle = wp.array(ids, dtype=wp.int32, device=dev)
             self.attachment_rest_distance = wp.array(dist.astype(np.float32), dtype=float, device=dev)
-        wp.launch(kc.reset_strain_excess, dim=1, outputs=[self._excess], device=dev, record_tape=False)
+        wp.launch(kc.reset_strain_excess, dim=worlds, outputs=[self._excess], device=dev, record_tape=False)
 
     def notify_model_changed(self, flags: int) -> None:
         """Model fields changed (:class:`~cloth_warp.model.ModelFlags`): new rest lengths give new attachment
@@ -160,7 +160,7 @@ class StrainLimiter(StepPass):
     def record_step(self):
         """Add the last apply() to the record (once per step, after its last round: :meth:`end_step`)."""
         with paused_tape():
-            wp.launch(kc.record_strain_limit, dim=1, inputs=[self._status, self._loop, self.report_tolerance],
+            wp.launch(kc.record_strain_limit, dim=self.worlds, inputs=[self._status, self._loop, self.report_tolerance, self.worlds],
                       outputs=[self.record, self._record_backup], device=self.model.device)
 
     def discard_step(self):
@@ -174,8 +174,10 @@ class StrainLimiter(StepPass):
         return [(self, "record")]
 
     def read_report(self) -> StrainLimitReport:
-        """The record since the last :meth:`reset_report` (one read of 7 numbers)."""
-        r = record_values(self.record).astype(np.float64)
+        """The record since the last :meth:`reset_report` (one read of 7 numbers per world; batched worlds': the worst
+        world's excess, misses and sweeps)."""
+        r = record_values(self.record).astype(np.float64).reshape(self.worlds, kc.RECORD_SIZE)
+        r = np.where(np.arange(kc.RECORD_SIZE) == kc.RECORD_SWEEPS, r.sum(0), r.max(0))
         missed = int(r[kc.RECORD_MISSED])
         return StrainLimitReport(
             max_strain=self.max_strain, tolerance=self.report_tolerance, max_sweeps=self.iterations,
@@ -200,27 +202,32 @@ class StrainLimiter(StepPass):
     # the tolerance bookkeeping (counters and excess measures: no gradient) stays off a tape
     def _begin(self, x):
         m = self.model
-        wp.launch(kc.reset_strain_excess, dim=1, outputs=[self._excess], device=m.device, record_tape=False)
+        wp.launch(kc.reset_strain_excess, dim=self.worlds, outputs=[self._excess], device=m.device, record_tape=False)
         self._measure(x)
-        wp.launch(kc.begin_strain_limit, dim=1, inputs=[self.iterations, self.report_tolerance, self._check],
+        if self.worlds > 1:
+            wp.launch(kc.begin_strain_limit_batch, dim=1, outputs=[self._loop], device=m.device, record_tape=False)
+        wp.launch(kc.begin_strain_limit, dim=self.worlds, inputs=[self.iterations, self.report_tolerance, self._check, self.worlds],
                   outputs=[self._excess, self._status, self._loop], device=m.device, record_tape=False)
 
     def _end_sweep(self, x):
         if self._check:
             self._measure(x)
-        wp.launch(kc.end_strain_limit_sweep, dim=1, inputs=[self.iterations, self.report_tolerance, self._check],
+        if self.worlds > 1:
+            wp.launch(kc.begin_strain_limit_batch, dim=1, outputs=[self._loop], device=self.model.device, record_tape=False)
+        wp.launch(kc.end_strain_limit_sweep, dim=self.worlds, inputs=[self.iterations, self.report_tolerance, self._check, self.worlds],
                   outputs=[self._excess, self._status, self._loop], device=self.model.device, record_tape=False)
 
     def _finish(self, x):
         if not self._check:  # fixed sweeps: measure what they left, once
             self._measure(x)
-            wp.launch(kc.finish_strain_limit, dim=1, outputs=[self._excess, self._status], device=self.model.device, record_tape=False)
+            wp.launch(kc.finish_strain_limit, dim=self.worlds, outputs=[self._excess, self._status], device=self.model.device, record_tape=False)
 
     def _measure(self, x):
         m = self.model
         launch_reduction(kc.eval_strain_excess_kinds, kc.eval_strain_excess_kinds_blocks, m.spring_count,
-                         inputs=[m.spring_indices, m.spring_rest_length, m.spring_limited, m.spring_kind, x, self.max_strain],
-                         outputs=[self._excess], device=m.device)
+                         inputs=[m.spring_indices, m.spring_rest_length, m.spring_limited, m.spring_kind, x, self.max_strain,
+                                 m.particle_world, self.worlds],
+                         outputs=[self._excess], device=m.device, per_item=self.worlds > 1)
 
     def _apply_forward(self, x_in, v_in, state_out: State, dt: float):
         """Forward-only path: sweeps in place on state_out, one thread per spring of a colour."""
@@ -242,7 +249,7 @@ class StrainLimiter(StepPass):
                 kc.apply_strain_limit_springs,
                 dim=int(offsets[c + 1] - offsets[c]),
                 inputs=[m.strain_limit_color_springs, int(offsets[c]), m.spring_indices, m.spring_rest_length,
-                        m.particle_mass, m.particle_pinned, self.max_strain, self.relaxation],
+                        m.particle_mass, m.particle_pinned, self.max_strain, self.relaxation, m.particle_world, self.worlds, self._loop],
                 outputs=[x],
                 device=m.device,
             )
@@ -258,6 +265,9 @@ class StrainLimiter(StepPass):
 
     def _apply_taped(self, x_in, v_in, state_out: State, dt: float):
         m = self.model
+        if self.worlds > 1:
+            raise NotImplementedError("batched worlds: taped strain limiting is not batched yet (its sweeps would run in every "
+                                      "world until the last one converges)")
         if m.device.is_capturing:
             raise RuntimeError("taped strain limiting cannot be captured into a graph: its sweeps are counted on the host "
                                "so that the backward pass knows them")
@@ -289,7 +299,7 @@ class StrainLimiter(StepPass):
         out = []
         if self.attachment_count:
             out.append((kc.apply_attachment_limit, [self.attachment_particle, self.attachment_rest_distance, m.particle_pinned],
-                        [self.max_strain]))
+                        [self.max_strain, m.particle_world, self.worlds, self._loop]))
         for c in range(m.strain_limit_color_count):
             out.append((kc.apply_strain_limit_color, [m.strain_limit_colors, m.spring_indices, m.spring_rest_length,
                                                       m.particle_mass, m.particle_pinned], [c, self.max_strain, self.relaxation]))
@@ -349,7 +359,8 @@ class StrainLimiter(StepPass):
         wp.launch(
             kc.apply_attachment_limit,
             dim=m.particle_count,
-            inputs=[self.attachment_particle, self.attachment_rest_distance, m.particle_pinned, x_src, self.max_strain],
+            inputs=[self.attachment_particle, self.attachment_rest_distance, m.particle_pinned, x_src, self.max_strain, m.particle_world,
+                    self.worlds, self._loop],
             outputs=[x_dst],
             device=m.device,
         )

@@ -1,0 +1,21 @@
+"""Batched worlds' indexing (cloth_warp.worlds): where a world's scalars sit in the arrays that hold one set per world."""
+
+import warp as wp
+
+
+@wp.func
+def world_slot(w: int, worlds: int, size: int):
+    """Where world w's `size` loop entries start in a loop-state array: with one world its entries are the first;
+    with batched worlds the first `size` entries are the batch's (running while any world does) and world w's
+    follow at size * (1 + w)."""
+    if worlds == 1:
+        return 0
+    return size * (1 + w)
+
+
+@wp.func
+def particle_world_of(i: int, particle_world: wp.array(dtype=wp.int32), worlds: int):
+    """The world of particle i (0 without batched worlds, with no read)."""
+    if worlds == 1:
+        return 0
+    return particle_world[i]
