@@ -96,7 +96,7 @@ def main():
         f"# Batched worlds: {args.worlds} x {args.scene} {args.resolution}^2 ({', '.join(materials)} in turn), {report['device']}",
         "",
         f"`python benchmarks/bench_worlds.py --scene {args.scene} --worlds {args.worlds} --resolution {args.resolution} "
-        f"--frames {args.frames} --warmup {args.warmup} --device {args.device}`",
+        f"--materials {args.materials} --frames {args.frames} --warmup {args.warmup} --device {args.device}`",
         "",
         "| way | wall s | cloth-s / wall s |",
         "|---|---:|---:|",
