@@ -59,14 +59,16 @@ def build_worlds(scenes: Sequence, device=None, requires_grad: bool = False) -> 
 
 def _resolved(scene, key: str):
     """A scene key's value, or a table's values with the schema's defaults filled in (arrays of tables as written)."""
-    from .scene import SCHEMA
+    from .scene import SCHEMA, Key
 
     node = SCHEMA
     for part in key.split("."):
         node = node[part]
+    if isinstance(node, Key):
+        return scene.get(key)
     if type(node) is dict:
         return {name: _resolved(scene, f"{key}.{name}") for name in node}
-    return scene.get(key) if not hasattr(node, "items") else scene.data.get(key)
+    return scene.data.get(key)  # an array of tables ([[colliders]])
 
 
 def world_slices(model: Model) -> list[slice]:

@@ -270,7 +270,7 @@ def begin_strain_limit(
 ):
     """Read the excess before limiting, empty the accumulator and decide whether to sweep at all (with `check`,
     only when the excess is above the tolerance); one thread per world (batched: the batch sweeps while any world
-    does, its flag cleared by `begin_strain_limit_batch`)."""
+    does, its flag cleared by the caller)."""
     w = wp.tid()
     base = world_slot(w, worlds, LIMIT_LOOP_SIZE)
     e = wp.max(excess_out[w * EXCESS_SIZE], excess_out[w * EXCESS_SIZE + 1])
@@ -286,12 +286,6 @@ def begin_strain_limit(
 
 
 @wp.kernel(enable_backward=False)
-def begin_strain_limit_batch(loop_out: wp.array(dtype=wp.int32)):
-    """Batched worlds (1 thread): clear the batch's flag before the worlds' `begin_strain_limit` or sweep's end set it."""
-    loop_out[0] = 0
-
-
-@wp.kernel(enable_backward=False)
 def end_strain_limit_sweep(
     max_sweeps: int,
     tolerance: float,
@@ -304,7 +298,7 @@ def end_strain_limit_sweep(
 ):
     """Count a sweep; with `check`, take the excess it left (and empty the accumulator): sweep on while it is
     above the tolerance and fewer than max_sweeps sweeps were done. One thread per world; a world that stopped
-    only empties its accumulator."""
+    only empties its accumulator; batched, the batch's flag (cleared by the caller) is set while any world sweeps on."""
     w = wp.tid()
     base = world_slot(w, worlds, LIMIT_LOOP_SIZE)
     if loop_out[base] == 0:

@@ -51,8 +51,7 @@ LENGTH_EPS = wp.constant(1.0e-9)
 CG_RS = wp.constant(0)
 CG_CAC = wp.constant(1)
 CG_RR = wp.constant(2)
-CG_COLUMNS = 3
-CG_COLUMNS_C = wp.constant(CG_COLUMNS)
+CG_COLUMNS = wp.constant(3)
 CG_ALPHA = wp.constant(0)  # the iteration's step sizes (float32, computed once per iteration by one thread)
 CG_BETA = wp.constant(1)
 JACOBI_CHECK_ROW = wp.constant(1)  # block Jacobi's residual checks accumulate |r|^2 here (row 0 keeps |r_0|^2)
@@ -61,8 +60,7 @@ LOOP_RUNNING = wp.constant(0)
 LOOP_ITERATION = wp.constant(1)
 LOOP_CHECK = wp.constant(2)  # block Jacobi: a residual check is due before the next iteration
 LOOP_CARRIED = wp.constant(3)  # iterations of the step's earlier solves (a re-solve after contacts were released)
-LOOP_SIZE = 4
-LOOP_SIZE_C = wp.constant(LOOP_SIZE)
+LOOP_SIZE = wp.constant(4)
 # Collider contacts in the solve: the release loop's state (int32) and its cap of re-solves per step.
 RELEASE_FLAG = wp.constant(0)  # a contact was released: solve again
 RELEASE_ROUNDS = wp.constant(1)
@@ -74,8 +72,7 @@ RELEASE_SIZE = 2
 STATUS_REFERENCE = wp.constant(0)  # |S (b - A z)|^2 of the zero guess: the tolerance is relative to it
 STATUS_STOP = wp.constant(1)  # the relative residual at which this solve stops
 STATUS_RELATIVE = wp.constant(2)  # the last relative residual measured (NaN: the system is not finite)
-STATUS_SIZE = 3
-STATUS_SIZE_C = wp.constant(STATUS_SIZE)
+STATUS_SIZE = wp.constant(3)
 # The record of solves since its reset (float64), read once per frame.
 RECORD_SOLVES = wp.constant(0)
 RECORD_ITERATIONS = wp.constant(1)
@@ -88,8 +85,7 @@ RECORD_LAST_RESIDUAL = wp.constant(7)
 RECORD_CONTACTS = wp.constant(8)  # collider contacts constrained in the solves (summed over them)
 RECORD_RESOLVES = wp.constant(9)  # re-solves after contacts were released
 RECORD_SELF_CONTACTS = wp.constant(10)  # self-contact elements in the systems (summed over the solves)
-RECORD_SIZE = 11
-RECORD_SIZE_C = wp.constant(RECORD_SIZE)
+RECORD_SIZE = wp.constant(11)
 # A membrane element's diagonal blocks enter the block-diagonal preconditioner P^-1 this many times over.
 # Block Jacobi (dv <- dv + P (b - A dv)) converges when 2 P^-1 - A is positive definite: a spring's 6x6 block
 # satisfies it with weight 1, a 3-corner element only with 3/2 (a PSD matrix of 3x3 blocks is <= 3x its block
@@ -100,16 +96,16 @@ MEMBRANE_DIAGONAL_WEIGHT = wp.constant(1.5)
 @wp.func
 def world_loop(w: int, worlds: int):
     """Where world w's loop state starts in `loop` (see above)."""
-    return world_slot(w, worlds, LOOP_SIZE_C)
+    return world_slot(w, worlds, LOOP_SIZE)
 
 
 @wp.func
-def world_iterates(i: int, particle_world: wp.array(dtype=wp.int32), worlds: int, loop: wp.array(dtype=wp.int32)):
-    """Whether particle i's world is still iterating (always with one world: the loop body only runs then). The CG's
-    kernels skip the work of batched worlds that stopped: their step is zero, and skipping keeps them as they were."""
+def world_iterates(w: int, worlds: int, loop: wp.array(dtype=wp.int32)):
+    """Whether world w is still iterating (always with one world: the loop body only runs then). The CG's per-particle
+    kernels skip batched worlds that stopped, which so keep their dv, residual and direction."""
     if worlds == 1:
         return True
-    return loop[world_loop(particle_world[i], worlds) + LOOP_RUNNING] != 0
+    return loop[world_loop(w, worlds) + LOOP_RUNNING] != 0
 
 
 @wp.kernel(enable_backward=False)
@@ -513,7 +509,7 @@ def eval_implicit_system(
     residual_out[i] = r
     preconditioned_out[i] = s0
     search_out[i] = s0
-    col = particle_world_of(i, particle_world, worlds) * CG_COLUMNS_C
+    col = particle_world_of(i, particle_world, worlds) * CG_COLUMNS
     wp.atomic_add(cg_scalars_out, 0, col + CG_RS, wp.float64(wp.dot(r, s0)))
     wp.atomic_add(cg_scalars_out, 0, col + CG_RR, wp.float64(wp.dot(r, r)))
 
@@ -641,10 +637,11 @@ def cg_product(
     """q = S A c, and c . q summed into cg_sums_out[CG_CAC] of the particle's world (`cg_step_size` moves it into the
     iteration's row), one thread per particle (the CPU's form, and batched worlds'; see cloth_warp.reductions)."""
     i = wp.tid()
-    if not world_iterates(i, particle_world, worlds, loop):
+    w = particle_world_of(i, particle_world, worlds)
+    if not world_iterates(w, worlds, loop):
         return
     cq = cg_product_row(i, effective_mass, particle_pinned, search, contact_normal, filtered, product_out)
-    wp.atomic_add(cg_sums_out, particle_world_of(i, particle_world, worlds) * CG_COLUMNS_C + CG_CAC, cq)
+    wp.atomic_add(cg_sums_out, w * CG_COLUMNS + CG_CAC, cq)
 
 
 @wp.kernel(enable_backward=False)
@@ -683,7 +680,7 @@ def cg_step_size(worlds: int, loop_out: wp.array(dtype=wp.int32), cg_sums_out: w
     row through the loop state per thread, cost the CPU a fifth of an iteration.)"""
     w = wp.tid()
     base = world_loop(w, worlds)
-    col = w * CG_COLUMNS_C
+    col = w * CG_COLUMNS
     cac = cg_sums_out[col + CG_CAC]
     cg_sums_out[col + CG_CAC] = wp.float64(0.0)
     alpha = float(0.0)
@@ -717,9 +714,10 @@ def cg_update(
     i = wp.tid()
     q = product_out[i]
     product_out[i] = wp.vec3(0.0)
-    if not world_iterates(i, particle_world, worlds, loop):
+    w = particle_world_of(i, particle_world, worlds)
+    if not world_iterates(w, worlds, loop):
         return
-    alpha = step[particle_world_of(i, particle_world, worlds) * 2 + CG_ALPHA]
+    alpha = step[w * 2 + CG_ALPHA]
     dv_out[i] = dv_out[i] + alpha * search[i]
     r = residual_out[i] - alpha * q
     residual_out[i] = r
@@ -740,10 +738,11 @@ def cg_residual_dots(
     them into the next iteration's row), one thread per particle (the CPU's form, and batched worlds'; see
     cloth_warp.reductions)."""
     i = wp.tid()
-    if not world_iterates(i, particle_world, worlds, loop):
+    w = particle_world_of(i, particle_world, worlds)
+    if not world_iterates(w, worlds, loop):
         return
     r = residual[i]
-    col = particle_world_of(i, particle_world, worlds) * CG_COLUMNS_C
+    col = w * CG_COLUMNS
     wp.atomic_add(cg_sums_out, col + CG_RS, wp.float64(wp.dot(r, preconditioned[i])))
     wp.atomic_add(cg_sums_out, col + CG_RR, wp.float64(wp.dot(r, r)))
 
@@ -788,7 +787,7 @@ def cg_direction(
     particle's world stopped)."""
     i = wp.tid()
     w = particle_world_of(i, particle_world, worlds)
-    if loop[world_loop(w, worlds) + LOOP_RUNNING] == 0:
+    if loop[world_loop(w, worlds) + LOOP_RUNNING] == 0:  # (with one world too: none after the last iteration)
         return
     search_out[i] = preconditioned[i] + step[w * 2 + CG_BETA] * search_out[i]
 
@@ -994,8 +993,8 @@ def cg_warm_start(
     residual_out[i] = r
     preconditioned_out[i] = s
     search_out[i] = s
-    wp.atomic_add(cg_scalars_out, 0, w * CG_COLUMNS_C + CG_RS, wp.float64(wp.dot(r, s)))
-    wp.atomic_add(cg_scalars_out, 0, w * CG_COLUMNS_C + CG_RR, wp.float64(wp.dot(r, r)))
+    wp.atomic_add(cg_scalars_out, 0, w * CG_COLUMNS + CG_RS, wp.float64(wp.dot(r, s)))
+    wp.atomic_add(cg_scalars_out, 0, w * CG_COLUMNS + CG_RR, wp.float64(wp.dot(r, r)))
 
 
 @wp.kernel(enable_backward=False)
@@ -1281,13 +1280,6 @@ def stops(relative: wp.float64, stop: wp.float64) -> bool:
 
 
 @wp.kernel(enable_backward=False)
-def begin_batch_solve(loop_out: wp.array(dtype=wp.int32)):
-    """Batched worlds (1 thread): clear the batch's loop state before `begin_linear_solve`'s worlds set it."""
-    loop_out[LOOP_RUNNING] = 0
-    loop_out[LOOP_ITERATION] = 0
-
-
-@wp.kernel(enable_backward=False)
 def begin_linear_solve(
     warm_scalars: wp.array2d(dtype=wp.float64),
     warm: wp.array(dtype=wp.int32),
@@ -1313,8 +1305,8 @@ def begin_linear_solve(
     caller) runs while any world does."""
     w = wp.tid()
     base = world_loop(w, worlds)
-    col = w * CG_COLUMNS_C
-    st = w * STATUS_SIZE_C
+    col = w * CG_COLUMNS
+    st = w * STATUS_SIZE
     reference = cg_scalars_out[0, col + CG_RR]
     if resolve != 0:
         reference = status_out[st + STATUS_REFERENCE]  # the step's, measured by its first solve
@@ -1359,8 +1351,8 @@ def end_cg_iteration(
     on while any world does (its flag cleared by `cg_step_size`), its iteration count the largest."""
     w = wp.tid()
     base = world_loop(w, worlds)
-    col = w * CG_COLUMNS_C
-    st = w * STATUS_SIZE_C
+    col = w * CG_COLUMNS
+    st = w * STATUS_SIZE
     rs_new = cg_sums_out[col + CG_RS]
     rr_new = cg_sums_out[col + CG_RR]
     cg_sums_out[col + CG_RS] = wp.float64(0.0)
@@ -1444,8 +1436,8 @@ def end_linear_solve(
     unless it failed."""
     w = wp.tid()
     base = world_loop(w, worlds)
-    rec = w * RECORD_SIZE_C
-    relative = status[w * STATUS_SIZE_C + STATUS_RELATIVE]
+    rec = w * RECORD_SIZE
+    relative = status[w * STATUS_SIZE + STATUS_RELATIVE]
     iterations = wp.float64(loop[base + LOOP_ITERATION] + loop[base + LOOP_CARRIED])
     solves = record_out[rec + RECORD_SOLVES] + wp.float64(1.0)
     record_out[rec + RECORD_SOLVES] = solves

@@ -7,10 +7,15 @@ import warp as wp
 def world_slot(w: int, worlds: int, size: int):
     """Where world w's `size` loop entries start in a loop-state array: with one world its entries are the first;
     with batched worlds the first `size` entries are the batch's (running while any world does) and world w's
-    follow at size * (1 + w)."""
+    follow at size * (1 + w) (the batch's entries are cleared by their owner before the worlds set them)."""
     if worlds == 1:
         return 0
     return size * (1 + w)
+
+
+def world_slots_length(size: int, worlds: int) -> int:
+    """Length of a loop-state array of `size` entries per world laid out as :func:`world_slot` reads it."""
+    return size * (1 if worlds == 1 else worlds + 1)
 
 
 @wp.func

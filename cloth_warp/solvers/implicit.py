@@ -20,6 +20,7 @@ from ..kernels import forces as kf
 from ..kernels import contact as kct
 from ..kernels import implicit as ki
 from ..kernels import selfcollide as ksc
+from ..kernels.worlds import world_slots_length
 from ..model import Control, Model, State
 from .base import SolverBase
 from .strain_limit import DEFAULT_SWEEPS
@@ -233,7 +234,7 @@ class SolverImplicitEuler(SolverBase):
         self.cg_sums = wp.zeros(worlds * ki.CG_COLUMNS, dtype=wp.float64, device=dev)  # an iteration's reductions, moved into cg_scalars
         self.effective_mass = wp.zeros(n, dtype=float, device=dev)  # M'_i = m_i (1 + h gamma) + h^2 k_pin [kg] of the assembled step
         # the solve's state on the device (kernels/implicit.py LOOP_*, STATUS_*, RECORD_*): no host read inside a step
-        self.loop = wp.zeros(ki.LOOP_SIZE * (1 if worlds == 1 else worlds + 1), dtype=wp.int32, device=dev)
+        self.loop = wp.zeros(world_slots_length(ki.LOOP_SIZE, worlds), dtype=wp.int32, device=dev)
         self.solve_status = wp.zeros(worlds * ki.STATUS_SIZE, dtype=wp.float64, device=dev)
         self.solve_record = wp.zeros(worlds * ki.RECORD_SIZE, dtype=wp.float64, device=dev)
         self.previous_ready = wp.zeros(worlds, dtype=wp.int32, device=dev)  # 1: dv_previous starts the world's next forward solve
@@ -480,8 +481,8 @@ class SolverImplicitEuler(SolverBase):
 
     def _begin_iterations(self, warm: bool, restarted: bool = False, resolve: bool = False):
         """The reference residual, the stop and whether to iterate, on the device (:func:`~cloth_warp.kernels.implicit.begin_linear_solve`)."""
-        if self.worlds > 1:
-            wp.launch(ki.begin_batch_solve, dim=1, outputs=[self.loop], device=self.model.device)
+        if self.worlds > 1:  # the batch's loop state, set by the worlds that iterate
+            self.loop[:ki.LOOP_SIZE].zero_()
         wp.launch(ki.begin_linear_solve, dim=self.worlds,
                   inputs=[self.warm_scalars, self.previous_ready, int(warm), int(restarted), int(resolve), wp.float64(self.tolerance),
                           wp.float64(self.warm_start_reduction),

@@ -19,6 +19,7 @@ from ..autodiff import paused_tape
 from ..diagnostics import StrainLimitReport
 from ..graphs import device_while
 from ..kernels import constraints as kc
+from ..kernels.worlds import world_slots_length
 from ..model import Control, Model, ModelFlags, State
 from ..passes import StepPass
 from ..records import record_values
@@ -95,7 +96,7 @@ class StrainLimiter(StepPass):
         worlds = self.worlds = int(model.world_count)  # batched worlds: one set of each per world (kernels/constraints.py)
         self._excess = wp.zeros(worlds * kc.EXCESS_SIZE, dtype=float, device=dev)  # per-kind accumulator, empty between uses
         self._status = wp.zeros(worlds * kc.STATUS_SIZE, dtype=float, device=dev)  # [before, structural, shear] excess of the last step
-        self._loop = wp.zeros(kc.LIMIT_LOOP_SIZE * (1 if worlds == 1 else worlds + 1), dtype=wp.int32, device=dev)  # [continue, sweeps]
+        self._loop = wp.zeros(world_slots_length(kc.LIMIT_LOOP_SIZE, worlds), dtype=wp.int32, device=dev)  # [continue, sweeps]
         self.record = wp.zeros(worlds * kc.RECORD_SIZE, dtype=float, device=dev)
         self._record_backup = wp.zeros(worlds * kc.RECORD_SIZE, dtype=float, device=dev)
         self._buffers: dict = {}  # taped steps' work arrays (see the taped path)
@@ -174,8 +175,8 @@ class StrainLimiter(StepPass):
         return [(self, "record")]
 
     def read_report(self) -> StrainLimitReport:
-        """The record since the last :meth:`reset_report` (one read of 7 numbers per world; batched worlds': the worst
-        world's excess, misses and sweeps)."""
+        """The record since the last :meth:`reset_report` (one read of 7 numbers per world; batched worlds': the sweeps
+        summed over them, the excess, misses and most sweeps the worst world's)."""
         r = record_values(self.record).astype(np.float64).reshape(self.worlds, kc.RECORD_SIZE)
         r = np.where(np.arange(kc.RECORD_SIZE) == kc.RECORD_SWEEPS, r.sum(0), r.max(0))
         missed = int(r[kc.RECORD_MISSED])
@@ -204,18 +205,21 @@ class StrainLimiter(StepPass):
         m = self.model
         wp.launch(kc.reset_strain_excess, dim=self.worlds, outputs=[self._excess], device=m.device, record_tape=False)
         self._measure(x)
-        if self.worlds > 1:
-            wp.launch(kc.begin_strain_limit_batch, dim=1, outputs=[self._loop], device=m.device, record_tape=False)
+        self._clear_batch_flag()
         wp.launch(kc.begin_strain_limit, dim=self.worlds, inputs=[self.iterations, self.report_tolerance, self._check, self.worlds],
                   outputs=[self._excess, self._status, self._loop], device=m.device, record_tape=False)
 
     def _end_sweep(self, x):
         if self._check:
             self._measure(x)
-        if self.worlds > 1:
-            wp.launch(kc.begin_strain_limit_batch, dim=1, outputs=[self._loop], device=self.model.device, record_tape=False)
+        self._clear_batch_flag()
         wp.launch(kc.end_strain_limit_sweep, dim=self.worlds, inputs=[self.iterations, self.report_tolerance, self._check, self.worlds],
                   outputs=[self._excess, self._status, self._loop], device=self.model.device, record_tape=False)
+
+    def _clear_batch_flag(self):
+        """Batched worlds: clear the batch's loop state before the worlds' kernels set it (kernels/worlds.py world_slot)."""
+        if self.worlds > 1:
+            self._loop[:kc.LIMIT_LOOP_SIZE].zero_()
 
     def _finish(self, x):
         if not self._check:  # fixed sweeps: measure what they left, once
