@@ -83,6 +83,8 @@ class Simulator:
         fps = check_number("fps", fps, LIMITS["fps"])
         substeps = check_number("substeps", substeps, LIMITS["substeps"])
         dt_min = check_number("dt_min", dt_min, LIMITS["dt_min"])
+        if adaptive and model.world_count > 1:
+            raise ValueError(f"adaptive steps: batched worlds ({model.world_count}) step together at one fixed step size")
         self.model = model
         self.solver = solver
         self.fps = float(fps)
