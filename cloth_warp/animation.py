@@ -30,7 +30,9 @@ from .model import Control, Model
 
 
 def refit_mesh_bvh(mesh: wp.Mesh) -> None:
-    """Refit a deforming collider mesh's BVH to its points (on the CPU a host call between a frame's graphs)."""
+    """Refit a deforming collider mesh's BVH to its points: on the CPU a host call between a frame's graphs. (A function,
+    not the bound ``mesh.refit``: ``wp.Mesh.refit`` is looked up at every replay, so a profiler that wraps it, as
+    :class:`~cloth_warp.profiling.LaunchCounter` does, sees the replayed refits.)"""
     mesh.refit()
 
 
