@@ -37,7 +37,8 @@ to a temporary name renamed over the last. :meth:`CacheWriter.close` stamps the 
 partial file (as of its last good save) to the final name -- also after an interruption, a divergence or
 a failed save -- so a file under the final name is always a valid cache of the frames it says it holds
 (``frames_written``). A hard kill (SIGKILL, power loss) leaves the partial file as of its last save
-(status ``partial``), which ``cloth-warp run --resume`` continues. Each save also stores the simulator's
+(status ``partial``), which ``cloth-warp run --resume`` continues (a kill inside a crate save leaves its
+rollback journal, and ``--resume`` first rolls the file back: :func:`~cloth_warp.outputs.recover_partial`). Each save also stores the simulator's
 checkpoint at the last frame written (:func:`read_checkpoint`), a custom attribute of ``/World``.
 """
 
@@ -58,7 +59,7 @@ import numpy as np
 from . import looks
 from .topology import seam_roots
 from .outputs import (USD_SUFFIXES, CacheWriteError, CrateRollback, OutputLock, atomic_path, check_output, partial_path,
-                      usd_error_text)
+                      remove_partial, usd_error_text)
 
 log = logging.getLogger(__name__)
 
@@ -449,7 +450,7 @@ class CacheWriter:
         self._owns_lock = lock is None  # a lock handed in is the caller's to release
         self.lock = lock if lock is not None else OutputLock(self.path).acquire()
         self.partial = partial_path(self.path)
-        self.partial.unlink(missing_ok=True)  # a file of a dead process that had our pid
+        remove_partial(self.partial)  # a file of a dead process that had our pid
         self.meta = {"generator": "cloth_warp", "versions": package_versions(), "status": "running", "frames_written": 0,
                      "fps": self.fps, "start_frame": self.start_frame, "up_axis": model.up_axis, **(metadata or {})}
 
@@ -532,14 +533,14 @@ class CacheWriter:
                 raise CacheWriteError(f"{self.path}: cannot rename {self.partial.name} to it: {exc.strerror or exc}; "
                                       f"the frames are in {self.partial}") from None
         else:
-            self.partial.unlink(missing_ok=True)
+            remove_partial(self.partial)
 
     def abort(self):
         """Give up: remove the partial file (whatever it holds) and release the output."""
         if not self.closed:
             self.closed = True
             self._release()
-            self.partial.unlink(missing_ok=True)
+            remove_partial(self.partial)
             if self._owns_lock:
                 self.lock.release()
 
@@ -729,15 +730,25 @@ class UsdCacheWriter(CacheWriter):
             return
         rollback = CrateRollback(self.partial)
         try:
+            rollback.write_journal()  # a kill during the save leaves it: --resume rolls back (outputs.recover_partial)
+        except OSError as exc:
+            raise CacheWriteError(f"{self.partial}: cannot write its rollback journal: {exc.strerror or exc}") from None
+        try:
             ok, why = self.layer.Save(), "the save failed"
         except Tf.ErrorException as exc:
             ok, why = False, usd_error_text(exc)
-        if not ok:
+        if ok:
             try:
-                rollback.restore()
+                rollback.discard_journal()
             except OSError as exc:
-                why += f"; restoring the last good save failed too ({exc.strerror or exc})"
-            raise CacheWriteError(f"{self.partial}: cannot write: {why}")
+                raise CacheWriteError(f"{self.partial}: cannot sync: {exc.strerror or exc}") from None
+            return
+        try:
+            rollback.restore()
+            rollback.discard_journal()
+        except OSError as exc:
+            why += f"; restoring the last good save failed too ({exc.strerror or exc})"
+        raise CacheWriteError(f"{self.partial}: cannot write: {why}")
 
     def _release(self):
         # A failed crate save leaves the layer unusable: drop it without saving (saving again crashes USD).

@@ -15,7 +15,10 @@ simulating, atomic replacement and crate saves that roll back when they fail.
   the file), then the new structural sections and rewrites the 88-byte bootstrap at offset 0. A save that
   fails half way (disk full, I/O error) leaves a bootstrap pointing past the end of the file. Before each
   save the bootstrap and the structural tail (a few kB) are copied; after a failed save they are written
-  back and the file is truncated to its old length, so it is byte for byte the last good save.
+  back and the file is truncated to its old length, so it is byte for byte the last good save. The copy is
+  also written, before the save, to a journal beside the file (``.<name>.rollback``, atomically and synced)
+  and removed after it: a process killed half way through a save (SIGKILL, power loss) leaves the journal,
+  and :func:`recover_partial` (``--resume`` calls it) rolls the file back to its last good save.
 """
 
 from __future__ import annotations
@@ -110,6 +113,13 @@ def stale_partials(path) -> list[pathlib.Path]:
     pattern = re.compile(rf"{re.escape(path.stem)}\.partial-\d+-\d+{re.escape(path.suffix)}")
     found = [p for p in path.parent.iterdir() if pattern.fullmatch(p.name) and p != partial_path(path)]
     return sorted(found, key=lambda p: p.stat().st_mtime)
+
+
+def remove_partial(path):
+    """Remove a partial file and its crate journal (:class:`CrateRollback`), if any."""
+    path = pathlib.Path(path)
+    path.unlink(missing_ok=True)
+    CrateRollback.journal_path(path).unlink(missing_ok=True)
 
 
 def check_output(path, bytes_needed: int = 0) -> pathlib.Path:
@@ -216,6 +226,8 @@ class DeferredSignals:
 _CRATE_MAGIC = b"PXR-USDC"
 _BOOTSTRAP = 88  # ident[8], version[8], tocOffset int64, reserved int64[8]
 _SECTION = struct.Struct("<16sqq")  # name[16], start, size
+_JOURNAL = struct.Struct("<8sBqq")  # magic, kind (0: no file, 1: bootstrap + tail, 2: whole file), size, start
+_JOURNAL_MAGIC = b"CWROLLBK"
 
 
 class CrateRollback:
@@ -250,6 +262,51 @@ class CrateRollback:
                 fh.seek(0)
                 self.whole, self.boot, self.tail = fh.read(), None, None
 
+    @staticmethod
+    def journal_path(path) -> pathlib.Path:
+        path = pathlib.Path(path)
+        return path.with_name(f".{path.name}.rollback")
+
+    def write_journal(self):
+        """Store this rollback beside the file (atomically, synced) before a save that may be cut off."""
+        kind = 0 if not self.exists else (2 if self.whole is not None else 1)
+        head = _JOURNAL.pack(_JOURNAL_MAGIC, kind, self.size, self.start)
+        journal = self.journal_path(self.path)
+        with atomic_path(journal) as tmp:
+            with open(tmp, "wb") as fh:
+                fh.write(head + (self.whole if kind == 2 else (self.boot + self.tail) if kind == 1 else b""))
+                fh.flush()
+                os.fsync(fh.fileno())
+
+    def discard_journal(self):
+        """The save went through: sync the file, then drop the journal."""
+        if self.path.exists():
+            with open(self.path, "rb") as fh:
+                os.fsync(fh.fileno())
+        self.journal_path(self.path).unlink(missing_ok=True)
+
+    @classmethod
+    def from_journal(cls, path) -> "CrateRollback | None":
+        """The rollback a cut-off save left in its journal, or None when there is none (or it is incomplete: it
+        is written under a temporary name and renamed, so an incomplete one means the save had not begun)."""
+        journal = cls.journal_path(path)
+        try:
+            data = journal.read_bytes()
+        except FileNotFoundError:
+            return None
+        if len(data) < _JOURNAL.size or data[:8] != _JOURNAL_MAGIC:
+            raise ValueError(f"{journal}: not a cloth_warp rollback journal")
+        _, kind, size, start = _JOURNAL.unpack_from(data)
+        body = data[_JOURNAL.size:]
+        self = cls.__new__(cls)
+        self.path, self.exists, self.size, self.start = pathlib.Path(path), kind != 0, size, start
+        self.boot = self.tail = self.whole = None
+        if kind == 1:
+            self.boot, self.tail = body[:_BOOTSTRAP], body[_BOOTSTRAP:]
+        elif kind == 2:
+            self.whole = body
+        return self
+
     def restore(self):
         """Make the file what it was when this rollback was taken (remove it if it did not exist)."""
         if not self.exists:
@@ -268,3 +325,21 @@ class CrateRollback:
             fh.truncate(self.size)
             fh.flush()
             os.fsync(fh.fileno())
+
+
+def recover_partial(path, copy_to=None) -> bool:
+    """Roll a partial crate file back to its last good save when a save of it was cut off (its journal is
+    there: the writing process was killed during a save); returns whether there was one. Call while holding
+    the output's lock (a live writer has a journal during each save); to look without writing, give
+    `copy_to`: the file is copied there and the copy rolled back."""
+    rollback = CrateRollback.from_journal(path)
+    if rollback is None:
+        return False
+    if copy_to is not None:
+        if rollback.exists:
+            shutil.copyfile(path, copy_to)
+        rollback.path = pathlib.Path(copy_to)
+    rollback.restore()
+    if copy_to is None:
+        CrateRollback.journal_path(path).unlink(missing_ok=True)
+    return True

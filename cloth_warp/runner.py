@@ -92,25 +92,37 @@ def default_output(scene: Scene) -> pathlib.Path:
     return scene.resolve(out) if out is not None else pathlib.Path("out") / f"{scene.name}.usdc"
 
 
-def _resume_source(out: pathlib.Path):
+def _resume_source(out: pathlib.Path, recover: bool = True):
     """The newest cache of `out` (its final file or a dead run's partial file) holding a resume checkpoint:
-    (path, frames, checkpoint, metadata), or None. Call while holding the output's lock."""
+    (path, frames, checkpoint, metadata), or None. A partial file whose last save was cut off is first rolled
+    back to the save before (:func:`~cloth_warp.outputs.recover_partial`): call while holding the output's
+    lock, or with ``recover=False`` to look at a rolled-back copy instead."""
+    import tempfile
+
     from .cache import read_checkpoint
-    from .outputs import stale_partials
+    from .outputs import recover_partial, stale_partials
 
     candidates = ([out] if out.exists() else []) + stale_partials(out)
-    for path in sorted(candidates, key=lambda p: p.stat().st_mtime, reverse=True):
-        try:
-            return (path, *read_checkpoint(path))
-        except (ValueError, OSError, KeyError) as exc:
-            log.warning("--resume: skipping %s: %s", path, exc)
+    with tempfile.TemporaryDirectory() as scratch:
+        for path in sorted(candidates, key=lambda p: p.stat().st_mtime, reverse=True):
+            source = path
+            try:
+                copy = pathlib.Path(scratch) / path.name
+                if path != out and recover_partial(path, copy_to=None if recover else copy):
+                    log.warning("--resume: %s: its last save was cut off; rolled back to the save before", path)
+                    source = path if recover else copy
+                if not source.exists():
+                    continue  # cut off in its first save: nothing was saved
+                return (path, *read_checkpoint(source))
+            except (ValueError, OSError, KeyError) as exc:
+                log.warning("--resume: skipping %s: %s", path, exc)
     return None
 
 
 def can_resume(out) -> bool:
     """Whether the cache path `out` has something ``--resume`` continues: its final file or a dead run's partial file
     holding a resume checkpoint (read-only; the resumed run takes the output's lock and reads it again)."""
-    return _resume_source(pathlib.Path(out)) is not None
+    return _resume_source(pathlib.Path(out), recover=False) is not None
 
 
 def _changed_keys(a, b, prefix="") -> list[str]:
@@ -229,7 +241,7 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
 
     from .cache import CACHE_SUFFIXES, open_cache
     from .cache import CacheError
-    from .outputs import CacheWriteError, DeferredSignals, OutputLock, check_output, stale_partials
+    from .outputs import CacheWriteError, DeferredSignals, OutputLock, check_output, remove_partial, stale_partials
     from .simulator import Simulator
     from .solvers import SimulationDiverged
 
@@ -401,7 +413,7 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
                     writer.close(summary["status"], info, checkpoint=checkpoint)
                     if summary["status"] == "complete":  # killed runs' partial files, superseded by this cache
                         for stale in stale_partials(out):
-                            stale.unlink(missing_ok=True)
+                            remove_partial(stale)
             except CacheWriteError as exc:
                 if write_error is None:
                     summary.update(status="failed", message=str(exc))
@@ -409,7 +421,7 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
             finally:
                 lock.release()
             if source is not None and source[0] != out and writer.saved_frames >= source[1]:
-                source[0].unlink(missing_ok=True)  # the dead run's partial file, now continued in the cache
+                remove_partial(source[0])  # the dead run's partial file, now continued in the cache
             summary.update(frames_written=writer.saved_frames, end_frame=start + writer.saved_frames - 1,
                            output_bytes=out.stat().st_size if out.exists() else 0)
         if deferred.pending and interrupted is None:

@@ -83,6 +83,51 @@ def test_failed_save_keeps_the_last_good_save(tmp_path, suffix, seed):
     assert _frames_in(path, model) == int(saved) > 0
 
 
+KILL_CHILD = textwrap.dedent("""
+    import resource, signal, sys
+    sys.path.insert(0, {tests!r})
+    from test_faults import _model, _frame
+    from cloth_warp.cache import open_cache
+    model = _model(12)
+    writer = open_cache({path!r}, model, fps=24, save_every=2)
+    print("PARTIAL", writer.partial, flush=True)
+    signal.signal(signal.SIGXFSZ, signal.SIG_DFL)  # Python ignores it
+    resource.setrlimit(resource.RLIMIT_CORE, (0, 0))
+    resource.setrlimit(resource.RLIMIT_FSIZE, ({limit}, {limit}))  # SIGXFSZ kills at the write that crosses it
+    for k in range(4096):
+        saved = writer.saved_frames
+        writer.write(*_frame(model, k))
+        if writer.saved_frames != saved:
+            print("SAVED", writer.saved_frames, flush=True)
+""")
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_killed_during_a_save_rolls_back_to_the_last_good_save(tmp_path, seed):
+    """Check that a process killed at a random byte of a crate save (SIGXFSZ's default action at the file-size
+    limit: no handler runs, as with SIGKILL or a power cut) leaves a partial file that --resume's recovery
+    rolls back to exactly the frames of the last save that went through, and that a look at a rolled-back
+    copy leaves the file as it is."""
+    from cloth_warp.outputs import recover_partial
+
+    path = tmp_path / "killed.usdc"
+    model = _model(12)
+    limit = int(np.random.default_rng(seed).uniform(3, 300) * model.particle_count * 36)
+    script = KILL_CHILD.format(tests=str(ROOT / "tests"), path=str(path), limit=limit)
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert out.returncode == -signal.SIGXFSZ, (out.returncode, out.stderr[-2000:])
+    lines = out.stdout.split()
+    partial = pathlib.Path(lines[lines.index("PARTIAL") + 1])
+    saved = int(lines[len(lines) - 1 - lines[::-1].index("SAVED") + 1])
+    assert partial.exists() and not path.exists()
+    before, copy = partial.read_bytes(), tmp_path / "copy.usdc"
+    assert recover_partial(partial, copy_to=copy) and partial.read_bytes() == before  # a look leaves it as it is
+    assert _frames_in(copy, model) == saved
+    assert recover_partial(partial)
+    assert _frames_in(partial, model) == saved and saved >= 2
+    assert not recover_partial(partial)  # the journal is gone
+
+
 def test_writer_refuses_bad_values(tmp_path):
     """Check the cache writer refuses fps <= 0 and non-finite positions, naming them, and writes nothing."""
     model = _model()
