@@ -40,23 +40,27 @@ class StepStats:
 
 
 class Diagnostics:
-    """Measures :class:`StepStats` with one kernel launch and one 20-byte read."""
+    """Measures :class:`StepStats` with one kernel launch and one small read (per world in a batch:
+    :meth:`read_worlds`)."""
 
     def __init__(self, model: Model):
         self.model = model
-        self.stats = wp.zeros(kd.STAT_MAXIMA + kd.STAT_SUMS, dtype=float, device=model.device)
+        self.worlds = worlds = int(model.world_count)
+        self.stats = wp.zeros(worlds * (kd.STAT_MAXIMA + kd.STAT_SUMS), dtype=float, device=model.device)
         mass = model.particle_mass.numpy().astype(np.float64)
         free = model.particle_pinned.numpy() == 0
         self.total_mass_free = float(mass[free].sum())
         # gravity's potential is measured from the free particles' initial centre of mass (small float32 sums),
-        # and its initial value in float64 is subtracted on the host
+        # and its initial value in float64 (per world) is subtracted on the host
         x0 = model.particle_q.numpy().astype(np.float64)
         g = np.asarray(model.gravity, np.float64)
         origin = (mass[free, None] * x0[free]).sum(0) / self.total_mass_free if self.total_mass_free > 0.0 else np.zeros(3)
         self._origin = wp.vec3(*origin.astype(np.float32))
         self._gravity = wp.vec3(*g.astype(np.float32))
         origin32 = origin.astype(np.float32).astype(np.float64)
-        self._potential0 = float((mass[free] * ((x0[free] - origin32) @ g)).sum()) if self.total_mass_free > 0.0 else 0.0
+        potential = np.where(free, mass * ((x0 - origin32) @ g), 0.0)
+        world = model.particle_world.numpy() if worlds > 1 else np.zeros(len(mass), np.int32)
+        self._potential0 = np.bincount(world, weights=potential, minlength=worlds) if self.total_mass_free > 0.0 else np.zeros(worlds)
 
     def measure(self, state: State) -> StepStats:
         """:meth:`launch` then :meth:`read`."""
@@ -67,13 +71,14 @@ class Diagnostics:
         """Measure `state` on the device (capturable: a fill and one launch)."""
         m = self.model
         self.stats.zero_()
+        split = self.worlds * kd.STAT_MAXIMA
         wp.launch(
             kd.eval_step_statistics,
             dim=m.particle_count,
             inputs=[m.particle_spring_offsets, m.particle_spring_ids, m.particle_spring_role, m.spring_indices, m.spring_rest_length,
                     m.spring_limited, m.particle_mass, m.particle_pinned, state.particle_q, state.particle_qd, self._gravity,
-                    self._origin],
-            outputs=[self.stats[: kd.STAT_MAXIMA], self.stats[kd.STAT_MAXIMA :]],
+                    self._origin, m.particle_world, self.worlds],
+            outputs=[self.stats[:split], self.stats[split:]],
             device=m.device,
         )
 
@@ -82,11 +87,23 @@ class Diagnostics:
         return [(self, "stats")]
 
     def read(self) -> StepStats:
-        """The statistics the last :meth:`launch` measured (one 20-byte read, or the frame record's copy)."""
+        """The statistics the last :meth:`launch` measured (one small read, or the frame record's copy), over
+        every world of a batch (the largest maxima, the summed sums)."""
+        if self.worlds == 1:
+            return self.read_worlds()[0]
+        per = self.read_worlds()
+        return StepStats(max(s.max_strain for s in per), sum(s.kinetic_energy for s in per), max(s.max_speed for s in per),
+                         sum(s.nonfinite for s in per), sum(s.gravity_work for s in per))
+
+    def read_worlds(self) -> list[StepStats]:
+        """The statistics of each world (a one-world model: one)."""
         s = record_values(self.stats)
-        maxima, sums = s[: kd.STAT_MAXIMA], s[kd.STAT_MAXIMA :]
-        return StepStats(float(maxima[kd.STAT_MAX_STRAIN]), float(sums[kd.STAT_KINETIC_ENERGY]), float(maxima[kd.STAT_MAX_SPEED]),
-                         int(sums[kd.STAT_NONFINITE]), float(sums[kd.STAT_GRAVITY_POTENTIAL]) - self._potential0)
+        split = self.worlds * kd.STAT_MAXIMA
+        maxima = s[:split].reshape(self.worlds, kd.STAT_MAXIMA)
+        sums = s[split:].reshape(self.worlds, kd.STAT_SUMS)
+        return [StepStats(float(mx[kd.STAT_MAX_STRAIN]), float(sm[kd.STAT_KINETIC_ENERGY]), float(mx[kd.STAT_MAX_SPEED]),
+                          int(sm[kd.STAT_NONFINITE]), float(sm[kd.STAT_GRAVITY_POTENTIAL]) - float(p0))
+                for mx, sm, p0 in zip(maxima, sums, self._potential0)]
 
 
 @dataclass(frozen=True)

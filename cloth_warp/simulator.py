@@ -132,6 +132,12 @@ class Simulator:
         self._carried = [(a, wp.empty_like(a)) for a in carried]
         self.strain_limit_frame: StrainLimitReport | None = None
         self.strain_limit_total: StrainLimitReport | None = None
+        # batched worlds (model.world_count > 1): each world checked on its own; one that diverges is held at its
+        # last good state while the others go on (see step_frame)
+        self.world_stats: list[StepStats] = []
+        self.world_solves: list | None = None
+        self.world_failures: dict[int, SimulationDiverged] = {}
+        self._held: dict[int, wp.array] = {}
 
     def notify_model_changed(self, flags: int) -> None:
         """Model fields changed (:class:`~cloth_warp.model.ModelFlags`) between frames: the solver and its passes
@@ -251,6 +257,7 @@ class Simulator:
                     self.pass_reports = self.solver.read_pass_reports()
                     solves = self.solver.read_report()
                     stats = self.diagnostics.read()
+                    self._read_worlds()
                 asking = [p for p in self.solver.passes if p.needs_rerun(self.pass_reports[p.name])]
                 if asking and not (solves is not None and solves.failed):  # a failed solve is reported, not re-run
                     self._rerun(asking)
@@ -258,6 +265,7 @@ class Simulator:
                         self.pass_reports = self.solver.read_pass_reports()
                         solves = self.solver.read_report()
                         stats = self.diagnostics.read()
+                        self._read_worlds()
         except SimulationDiverged as exc:
             self.wall_time += _time.perf_counter() - t0
             raise exc.in_frame(self.frame + 1) from None
@@ -270,14 +278,16 @@ class Simulator:
             self.frame_report = FrameReport(stats=stats, dt_min=self.dt, dt_max=self.dt, iterations=solves.iterations if solves else 0,
                                             residual=solves.last_residual if solves else 0.0, solves=solves, passes=self.pass_reports,
                                             reruns=self.reruns - reruns)
-            if solves is not None and solves.failed:
+            if self.model.world_count > 1:
+                stats = self._check_worlds(self.time + self.frame_dt)  # the live worlds' (raises when none is left)
+            elif solves is not None and solves.failed:
                 self.wall_time += _time.perf_counter() - t0
                 reason = f"non-finite residual in the linear solve of step {solves.first_failed} of {self.substeps}"
                 raise self._diverged("non-finite residual", reason, stats, self.time + solves.first_failed * self.dt).in_frame(self.frame + 1)
         if self.strain_limiter is not None:
             self._note_strain_limit(self.pass_reports[self.strain_limiter.name])
         end = (self.frame + 1) * self.frame_dt
-        bad = self.bounds.violation(stats)
+        bad = self.bounds.violation(stats) if self.model.world_count == 1 else None
         self.wall_time += _time.perf_counter() - t0
         if bad is not None:
             raise self._diverged(bad[0], bad[1], stats, end).in_frame(self.frame + 1)
@@ -287,6 +297,42 @@ class Simulator:
             self.control.time = end  # what the last step's control was set for (the device clock's time)
         self.last_stats = stats
         return stats
+
+    def _read_worlds(self):
+        """Batched worlds: each world's statistics and solves (from the frame's record)."""
+        if self.model.world_count > 1:
+            self.world_stats = self.diagnostics.read_worlds()
+            self.world_solves = self.solver.read_world_reports() if hasattr(self.solver, "read_world_reports") else None
+
+    def _check_worlds(self, t: float) -> StepStats:
+        """Batched worlds: check each live world against the scene's divergence bounds and its own solves; a world
+        that fails gets its diagnosis in :attr:`world_failures` and is held at its state before the frame (velocity
+        0, warm start forgotten) from then on, so that the others go on. Returns the statistics over the live
+        worlds; raises the first failure when none is left."""
+        from .worlds import world_slices
+
+        slices = world_slices(self.model)
+        for k, stats in enumerate(self.world_stats):
+            if k in self.world_failures:
+                continue
+            solves = self.world_solves[k] if self.world_solves is not None else None
+            if solves is not None and solves.failed:
+                bad = ("non-finite residual", f"non-finite residual in the linear solve of step {solves.first_failed} of {self.substeps}")
+            else:
+                bad = self.bounds.violation(stats)
+            if bad is not None:
+                self.world_failures[k] = self._diverged(bad[0], f"world {k}: {bad[1]}", stats, t).in_frame(self.frame + 1)
+                saved_q = self._carried[0][1]
+                self._held[k] = wp.clone(saved_q[slices[k]])
+        for k, held in self._held.items():
+            wp.copy(self.state.particle_q[slices[k]], held)
+            self.state.particle_qd[slices[k]].zero_()
+            self.solver.forget_world(k, slices[k])
+        live = [s for k, s in enumerate(self.world_stats) if k not in self.world_failures]
+        if not live:
+            raise self.world_failures[min(self.world_failures)]
+        return StepStats(max(s.max_strain for s in live), sum(s.kinetic_energy for s in live), max(s.max_speed for s in live),
+                         sum(s.nonfinite for s in live), sum(s.gravity_work for s in live))
 
     def _note_strain_limit(self, report: StrainLimitReport):
         self.strain_limit_frame = report

@@ -18,12 +18,19 @@ its single-world run bit for bit (tests/test_worlds.py). A world that stopped st
 
 The worlds of a batch share the colliders (each scene's must be the same) and the global settings (gravity, damping,
 up axis, the [solver] table): they are variants of one scene in their cloths (material, size, mesh, pins, handles,
-initial state). Not batched yet: self-collision, contacts in the solve, block Jacobi, taped strain limiting, per-world
-diagnostics, divergence and caches, attachments.
+initial state).
+
+Each world is checked on its own (:class:`~cloth_warp.simulator.Simulator` with a batch: ``world_stats``, ``world_solves``,
+``world_failures``): a world that diverges gets its diagnosis and is held at its last good state while the others
+go on. :func:`run_worlds` steps a batch and writes one cache per world (a diverged world's closed as ``diverged``
+with the frames before it). Not batched yet: self-collision, contacts in the solve, block Jacobi, taped strain
+limiting, attachments, checkpoints of a batch.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import pathlib
 from collections.abc import Sequence
 
 import numpy as np
@@ -80,3 +87,87 @@ def world_slices(model: Model) -> list[slice]:
 def split_worlds(model: Model, values: np.ndarray) -> list[np.ndarray]:
     """Per-particle values (positions, velocities) cut into one array per world."""
     return [values[sl] for sl in world_slices(model)]
+
+
+@dataclasses.dataclass(frozen=True)
+class WorldResult:
+    """One world of a :func:`run_worlds` batch: its cache, ``complete`` or ``diverged``, the frames written
+    (the initial state included) and, for a diverged world, the diagnosis."""
+
+    world: int
+    output: pathlib.Path
+    status: str
+    frames_written: int
+    message: str = ""
+
+
+def run_worlds(scenes: Sequence, outputs: Sequence, frames: int | None = None, device=None) -> list[WorldResult]:
+    """Simulate the scenes as one batch (:func:`build_worlds`) for `frames` frames (default: the first scene's
+    ``output.frames``) and write world k's frames to ``outputs[k]`` (a cache :func:`~cloth_warp.cache.open_cache`
+    writes, as ``cloth-warp run`` would for that scene alone: frame 0 is the initial state). A world that diverges
+    does not stop the others: its cache is closed at once with status ``diverged`` and the diagnosis; the batch
+    stops only when every world has."""
+    import json
+
+    from .cache import open_cache
+    from .scene import build_model, build_solver, build_wind
+    from .simulator import Simulator
+
+    if len(outputs) != len(scenes):
+        raise ValueError(f"run_worlds: {len(scenes)} scenes but {len(outputs)} outputs")
+    if len({pathlib.Path(o).resolve() for o in outputs}) != len(outputs):
+        raise ValueError("run_worlds: two worlds write the same output")
+    first = scenes[0]
+    model = build_worlds(scenes, device)
+    solver = build_solver(first, model)
+    fps = float(first.get("output.fps"))
+    n_frames = int(frames if frames is not None else first.get("output.frames"))
+    sim = Simulator(model, solver, fps=fps, substeps=int(first.get("solver.substeps")), wind=build_wind(first))
+    slices = world_slices(model)
+    writers = []
+    try:
+        for k, (scene, out) in enumerate(zip(scenes, outputs)):
+            alone = build_model(scene, device)  # the world's own model: its cache's meshes, UVs and colliders
+            meta = {"scene_path": str(scene.path) if scene.path else None, "resolved_scene": json.dumps(scene.resolved(), sort_keys=True),
+                    "batch": json.dumps({"world": k, "worlds": len(scenes)}), "integrator": solver.name,
+                    "frames_requested": n_frames}
+            writers.append(open_cache(out, alone, fps=fps, save_every=int(scene.get("output.save_every")),
+                                      normals=bool(scene.get("output.normals")), velocities=bool(scene.get("output.velocities")),
+                                      metadata=meta))
+        q, qd = sim.state.particle_q.numpy(), sim.state.particle_qd.numpy()
+        for w, sl in zip(writers, slices):
+            w.write(q[sl], qd[sl])
+        results: dict[int, WorldResult] = {}
+        for _ in range(n_frames):
+            try:
+                sim.step_frame()
+            except Exception:
+                if len(sim.world_failures) != len(scenes):
+                    raise
+            q, qd = sim.state.particle_q.numpy(), sim.state.particle_qd.numpy()
+            for k, (w, sl) in enumerate(zip(writers, slices)):
+                if k in results:
+                    continue
+                failure = sim.world_failures.get(k)
+                if failure is not None:
+                    w.close("diverged", {"message": str(failure)})
+                    results[k] = WorldResult(k, w.path, "diverged", w.saved_frames, str(failure))
+                    continue
+                stats = sim.world_stats[k]
+                solves = sim.world_solves[k] if sim.world_solves is not None else None
+                w.write(q[sl], qd[sl], {"maxStrain": stats.max_strain, "dt": sim.dt,
+                                        "solverIterations": solves.iterations if solves else 0,
+                                        "solverResidual": solves.last_residual if solves else 0.0})
+            if len(results) == len(scenes):
+                break
+        for k, w in enumerate(writers):
+            if k not in results:
+                w.close("complete")
+                results[k] = WorldResult(k, w.path, "complete", w.saved_frames)
+        return [results[k] for k in range(len(scenes))]
+    except BaseException as exc:
+        for w in writers:
+            if not w.closed:
+                w.close("interrupted" if isinstance(exc, KeyboardInterrupt) else "failed")
+        raise
+

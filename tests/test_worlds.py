@@ -73,3 +73,67 @@ def test_one_world_model_is_unbatched():
     m = build_model(scene, "cpu")
     assert m.world_count == 1 and not m.particle_world.numpy().any()
     assert list(m.world_particle_start) == [0, m.particle_count]
+
+
+def test_a_diverged_world_is_held_and_the_others_go_on():
+    """A world whose forces turn non-finite in the middle of a run (a spring's rest length set to NaN, a fault
+    injected into one world) is diagnosed on its own and held at its last good state, finite; the other worlds
+    still equal their single runs bit for bit, and each world's statistics are its own."""
+    variants = [{"material.preset": p, "cloth.grid.resolution": [8, 8]} for p in ("cotton", "silk", "denim")]
+    scenes = [load_scene(find_scene("hanging_cloth"), v) for v in variants]
+    singles = [_run(build_model(s, "cpu"), s)[0] for s in scenes]
+    model = build_worlds(scenes, "cpu")
+    batch, _ = _run(model, scenes[0], frames=4)
+    held = split_worlds(model, batch.positions())[1].copy()
+    spring = int(np.flatnonzero(model.particle_world.numpy()[model.spring_indices.numpy().reshape(-1, 2)[:, 0]] == 1)[0])
+    model.spring_rest_length.numpy()[spring] = np.nan  # (a CPU array's numpy() is a view)
+    for _ in range(FRAMES - 4):
+        stats = batch.step_frame()
+    assert list(batch.world_failures) == [1], batch.world_failures
+    assert "world 1" in str(batch.world_failures[1]) and batch.world_failures[1].frame == 5
+    worlds = split_worlds(model, batch.positions())
+    assert np.array_equal(worlds[1], held) and np.isfinite(stats.max_speed)
+    for k in (0, 2):
+        assert np.array_equal(worlds[k], singles[k].positions()), k
+        assert batch.world_stats[k] == singles[k].last_stats, k  # its own statistics, not the batch's
+
+
+def test_run_worlds_writes_one_cache_per_world(tmp_path):
+    """run_worlds: one cache per world with that world's frames (equal to the batch's), and the worlds' own
+    diagnostics; two worlds on one output are refused."""
+    from cloth_warp.cache import CacheReader
+    from cloth_warp.worlds import run_worlds
+
+    scenes = [load_scene(find_scene("hanging_cloth"), {"material.preset": p, "cloth.grid.resolution": [6, 6 + k]})
+              for k, p in enumerate(("cotton", "silk"))]
+    outs = [tmp_path / f"w{k}.usdc" for k in range(2)]
+    results = run_worlds(scenes, outs, frames=5, device="cpu")
+    assert [r.status for r in results] == ["complete"] * 2 and [r.frames_written for r in results] == [6, 6]
+    single = _run(build_model(scenes[1], "cpu"), scenes[1], frames=5)[0]
+    reader = CacheReader(outs[1])
+    assert reader.frame_count == 6 and reader.metadata["status"] == "complete"
+    np.testing.assert_array_equal(reader.points(reader.start_frame + 5), single.positions())
+    with pytest.raises(ValueError, match="same output"):
+        run_worlds(scenes, [outs[0], outs[0]], frames=1, device="cpu")
+
+
+def test_run_worlds_closes_a_diverged_world_and_finishes_the_others(tmp_path):
+    """A world too stiff for the batch's explicit step (stretch stiffness 1e5 N/m at 40 symplectic substeps: it
+    diverges in its first frame, alone as in the batch) gets a cache closed as diverged with its initial frame and
+    the diagnosis; the other world runs to the end and equals its single run."""
+    from cloth_warp.cache import CacheReader
+    from cloth_warp.simulator import SimulationDiverged
+    from cloth_warp.worlds import run_worlds
+
+    base = {"cloth.grid.resolution": [6, 6], "solver.integrator": "symplectic_euler", "solver.substeps": 40}
+    scenes = [load_scene(find_scene("hanging_cloth"), base), load_scene(find_scene("hanging_cloth"), {**base, "material.stretch_stiffness": 1e5})]
+    with pytest.raises(SimulationDiverged):
+        _run(build_model(scenes[1], "cpu"), scenes[1], frames=1)
+    outs = [tmp_path / "ok.usdc", tmp_path / "bad.usdc"]
+    ok, bad = run_worlds(scenes, outs, frames=6, device="cpu")
+    assert (ok.status, ok.frames_written) == ("complete", 7)
+    assert (bad.status, bad.frames_written) == ("diverged", 1) and "world 1" in bad.message and "frame 1" in bad.message
+    assert CacheReader(outs[1]).metadata["status"] == "diverged"
+    single = _run(build_model(scenes[0], "cpu"), scenes[0], frames=6)[0]
+    reader = CacheReader(outs[0])
+    np.testing.assert_array_equal(reader.points(reader.start_frame + 6), single.positions())

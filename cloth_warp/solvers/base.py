@@ -87,6 +87,10 @@ class SolverBase:
         copies of them; the implicit solver's warm start)."""
         return []
 
+    def forget_world(self, world: int, particles: slice) -> None:
+        """Batched worlds: world `world` (its `particles`) was held after it diverged; forget what a step carries
+        for it (the implicit solver's warm start), so its next solve starts afresh."""
+
     def reset_pass_reports(self):
         """Start new records of every pass."""
         for p in self.passes:

@@ -548,6 +548,10 @@ class SolverImplicitEuler(SolverBase):
     def carried_arrays(self) -> list:
         return [self.dv_previous, self.previous_ready]
 
+    def forget_world(self, world: int, particles: slice) -> None:
+        self.dv_previous[particles].zero_()
+        self.previous_ready[world : world + 1].zero_()
+
     # -- checkpoints --------------------------------------------------------------------------
     def checkpoint_state(self) -> dict:
         """The warm start (the previous step's dv and whether there is one) on top of the base's state; every
