@@ -39,6 +39,13 @@ class StepStats:
         return self.nonfinite == 0
 
 
+def combined_stats(per_world: list[StepStats]) -> StepStats:
+    """The statistics of several worlds together: the largest maxima, the summed sums."""
+    return StepStats(max(s.max_strain for s in per_world), sum(s.kinetic_energy for s in per_world),
+                     max(s.max_speed for s in per_world), sum(s.nonfinite for s in per_world),
+                     sum(s.gravity_work for s in per_world))
+
+
 class Diagnostics:
     """Measures :class:`StepStats` with one kernel launch and one small read (per world in a batch:
     :meth:`read_worlds`)."""
@@ -89,11 +96,8 @@ class Diagnostics:
     def read(self) -> StepStats:
         """The statistics the last :meth:`launch` measured (one small read, or the frame record's copy), over
         every world of a batch (the largest maxima, the summed sums)."""
-        if self.worlds == 1:
-            return self.read_worlds()[0]
         per = self.read_worlds()
-        return StepStats(max(s.max_strain for s in per), sum(s.kinetic_energy for s in per), max(s.max_speed for s in per),
-                         sum(s.nonfinite for s in per), sum(s.gravity_work for s in per))
+        return per[0] if self.worlds == 1 else combined_stats(per)
 
     def read_worlds(self) -> list[StepStats]:
         """The statistics of each world (a one-world model: one)."""

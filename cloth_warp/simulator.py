@@ -9,7 +9,7 @@ import time as _time
 import numpy as np
 import warp as wp
 
-from .diagnostics import Diagnostics, FrameReport, StepStats, StrainLimitReport
+from .diagnostics import Diagnostics, FrameReport, StepStats, StrainLimitReport, combined_stats
 from .graphs import record
 from .animation import ControlAnimator
 from .model import Model
@@ -275,12 +275,12 @@ class Simulator:
                                             residual=float(self.solver.last_residual), passes=self.pass_reports, rejected=r.rejected,
                                             reruns=None)
         else:
+            if self.model.world_count > 1:
+                stats = self._check_worlds(self.time + self.frame_dt)  # the live worlds' (raises when none is left)
             self.frame_report = FrameReport(stats=stats, dt_min=self.dt, dt_max=self.dt, iterations=solves.iterations if solves else 0,
                                             residual=solves.last_residual if solves else 0.0, solves=solves, passes=self.pass_reports,
                                             reruns=self.reruns - reruns)
-            if self.model.world_count > 1:
-                stats = self._check_worlds(self.time + self.frame_dt)  # the live worlds' (raises when none is left)
-            elif solves is not None and solves.failed:
+            if self.model.world_count == 1 and solves is not None and solves.failed:
                 self.wall_time += _time.perf_counter() - t0
                 reason = f"non-finite residual in the linear solve of step {solves.first_failed} of {self.substeps}"
                 raise self._diverged("non-finite residual", reason, stats, self.time + solves.first_failed * self.dt).in_frame(self.frame + 1)
@@ -331,8 +331,7 @@ class Simulator:
         live = [s for k, s in enumerate(self.world_stats) if k not in self.world_failures]
         if not live:
             raise self.world_failures[min(self.world_failures)]
-        return StepStats(max(s.max_strain for s in live), sum(s.kinetic_energy for s in live), max(s.max_speed for s in live),
-                         sum(s.nonfinite for s in live), sum(s.gravity_work for s in live))
+        return combined_stats(live)
 
     def _note_strain_limit(self, report: StrainLimitReport):
         self.strain_limit_frame = report
