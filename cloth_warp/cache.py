@@ -38,8 +38,9 @@ partial file (as of its last good save) to the final name -- also after an inter
 a failed save -- so a file under the final name is always a valid cache of the frames it says it holds
 (``frames_written``). A hard kill (SIGKILL, power loss) leaves the partial file as of its last save
 (status ``partial``), which ``cloth-warp run --resume`` continues (a kill inside a crate save leaves its
-rollback journal, and ``--resume`` first rolls the file back: :func:`~cloth_warp.outputs.recover_partial`). Each save also stores the simulator's
-checkpoint at the last frame written (:func:`read_checkpoint`), a custom attribute of ``/World``.
+rollback journal, and ``--resume`` first rolls the file back: :func:`~cloth_warp.outputs.recover_partial`).
+Each save also stores the simulator's checkpoint at the last frame written (:func:`read_checkpoint`), a custom
+attribute of ``/World``.
 """
 
 from __future__ import annotations

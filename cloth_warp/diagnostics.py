@@ -67,7 +67,7 @@ class Diagnostics:
         origin32 = origin.astype(np.float32).astype(np.float64)
         potential = np.where(free, mass * ((x0 - origin32) @ g), 0.0)
         world = model.particle_world.numpy() if worlds > 1 else np.zeros(len(mass), np.int32)
-        self._potential0 = np.bincount(world, weights=potential, minlength=worlds) if self.total_mass_free > 0.0 else np.zeros(worlds)
+        self._potential0 = np.bincount(world, weights=potential, minlength=worlds)
 
     def measure(self, state: State) -> StepStats:
         """:meth:`launch` then :meth:`read`."""

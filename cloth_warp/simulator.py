@@ -130,6 +130,7 @@ class Simulator:
         # (live, saved) pairs of what a step carries to the next: a frame saves them as it starts, a re-run restores them
         carried = [self.state.particle_q, self.state.particle_qd, self.animator.clock, *solver.carried_arrays()]
         self._carried = [(a, wp.empty_like(a)) for a in carried]
+        self._frame_start_q = self._carried[0][1]  # the positions the frame started from (a held world returns to them)
         self.strain_limit_frame: StrainLimitReport | None = None
         self.strain_limit_total: StrainLimitReport | None = None
         # batched worlds (model.world_count > 1): each world checked on its own; one that diverges is held at its
@@ -282,8 +283,7 @@ class Simulator:
                                             reruns=self.reruns - reruns)
             if self.model.world_count == 1 and solves is not None and solves.failed:
                 self.wall_time += _time.perf_counter() - t0
-                reason = f"non-finite residual in the linear solve of step {solves.first_failed} of {self.substeps}"
-                raise self._diverged("non-finite residual", reason, stats, self.time + solves.first_failed * self.dt).in_frame(self.frame + 1)
+                raise self._failed_solve(solves, stats).in_frame(self.frame + 1)
         if self.strain_limiter is not None:
             self._note_strain_limit(self.pass_reports[self.strain_limiter.name])
         end = (self.frame + 1) * self.frame_dt
@@ -317,13 +317,13 @@ class Simulator:
                 continue
             solves = self.world_solves[k] if self.world_solves is not None else None
             if solves is not None and solves.failed:
-                bad = ("non-finite residual", f"non-finite residual in the linear solve of step {solves.first_failed} of {self.substeps}")
+                failure = self._failed_solve(solves, stats, f"world {k}: ")
             else:
                 bad = self.bounds.violation(stats)
-            if bad is not None:
-                self.world_failures[k] = self._diverged(bad[0], f"world {k}: {bad[1]}", stats, t).in_frame(self.frame + 1)
-                saved_q = self._carried[0][1]
-                self._held[k] = wp.clone(saved_q[slices[k]])
+                failure = self._diverged(bad[0], f"world {k}: {bad[1]}", stats, t) if bad is not None else None
+            if failure is not None:
+                self.world_failures[k] = failure.in_frame(self.frame + 1)
+                self._held[k] = wp.clone(self._frame_start_q[slices[k]])
         for k, held in self._held.items():
             wp.copy(self.state.particle_q[slices[k]], held)
             self.state.particle_qd[slices[k]].zero_()
@@ -336,6 +336,11 @@ class Simulator:
     def _note_strain_limit(self, report: StrainLimitReport):
         self.strain_limit_frame = report
         self.strain_limit_total = report if self.strain_limit_total is None else self.strain_limit_total + report
+
+    def _failed_solve(self, solves, stats: StepStats, prefix: str = "") -> SimulationDiverged:
+        """The diagnosis of a frame whose linear solve went non-finite (at the step the record names)."""
+        reason = f"{prefix}non-finite residual in the linear solve of step {solves.first_failed} of {self.substeps}"
+        return self._diverged("non-finite residual", reason, stats, self.time + solves.first_failed * self.dt)
 
     def _diverged(self, kind: str, reason: str, stats: StepStats, t: float) -> SimulationDiverged:
         """The diagnosis of a fixed-step run that failed at time t: the step to try is a whole number of

@@ -128,7 +128,8 @@ def run_worlds(scenes: Sequence, outputs: Sequence, frames: int | None = None, d
     try:
         for k, (scene, out) in enumerate(zip(scenes, outputs)):
             alone = build_model(scene, device)  # the world's own model: its cache's meshes, UVs and colliders
-            meta = {"scene_path": str(scene.path) if scene.path else None, "resolved_scene": json.dumps(scene.resolved(), sort_keys=True),
+            meta = {"scene_path": str(scene.path) if scene.path else None,
+                    "resolved_scene": json.dumps(scene.resolved(), sort_keys=True),
                     "batch": json.dumps({"world": k, "worlds": len(scenes)}), "integrator": solver.name,
                     "frames_requested": n_frames}
             writers.append(open_cache(out, alone, fps=fps, save_every=int(scene.get("output.save_every")),
@@ -170,4 +171,3 @@ def run_worlds(scenes: Sequence, outputs: Sequence, frames: int | None = None, d
             if not w.closed:
                 w.close("interrupted" if isinstance(exc, KeyboardInterrupt) else "failed")
         raise
-

@@ -126,7 +126,7 @@ def test_run_worlds_closes_a_diverged_world_and_finishes_the_others(tmp_path):
     from cloth_warp.worlds import run_worlds
 
     base = {"cloth.grid.resolution": [6, 6], "solver.integrator": "symplectic_euler", "solver.substeps": 40}
-    scenes = [load_scene(find_scene("hanging_cloth"), base), load_scene(find_scene("hanging_cloth"), {**base, "material.stretch_stiffness": 1e5})]
+    scenes = [load_scene(find_scene("hanging_cloth"), v) for v in (base, {**base, "material.stretch_stiffness": 1e5})]
     with pytest.raises(SimulationDiverged):
         _run(build_model(scenes[1], "cpu"), scenes[1], frames=1)
     outs = [tmp_path / "ok.usdc", tmp_path / "bad.usdc"]
