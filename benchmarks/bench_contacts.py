@@ -1,7 +1,8 @@
 """Benchmark: contacts resolved after the step (the colliders and self-collision passes) or also inside the implicit solve.
 
 For each scene and mode ("pass": both after the step; "solve": `solver.collider_contacts = "solve"`; "solve+self": also
-`solver.self_contacts = "solve"`, in scenes with self-collision), the shipped scene is run as `cloth-warp run`
+`solver.self_contacts = "solve"`, in scenes with self-collision; "+friction": the collider contacts' friction in the solve,
+`solver.contact_friction = "solve"`), the shipped scene is run as `cloth-warp run`
 builds it for `--frames` frames (default 300: 5 s at 60 fps). Reported: ms per frame (median over the run), the
 largest particle speed over the last 20 frames (median and max: at rest means <= 1 mm/s, issue 17's target), the
 largest strain of a strain-limited spring at the end and how many exceed the limit by more than 1 % (a ring
@@ -12,6 +13,7 @@ frames re-run because a self-collision buffer overflowed or a step needed impact
 
 Run:  python benchmarks/bench_contacts.py                      (pile and drape_sphere, a few minutes on 2 cores)
       python benchmarks/bench_contacts.py --scenes pile --frames 120 --set cloth.grid.resolution=[48,48]
+      python benchmarks/bench_contacts.py --modes solve solve+friction --set collision.self_collision=false
 """
 
 from __future__ import annotations
@@ -25,7 +27,9 @@ import sys
 import time
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
-MODES = {"pass": ("pass", "pass"), "solve": ("solve", "pass"), "solve+self": ("solve", "solve")}  # -> (collider, self) contacts
+# mode -> (collider contacts, self-contacts, the collider contacts' friction)
+MODES = {"pass": ("pass", "pass", "after"), "solve": ("solve", "pass", "after"), "solve+self": ("solve", "solve", "after"),
+         "solve+friction": ("solve", "pass", "solve"), "solve+self+friction": ("solve", "solve", "solve")}
 TAIL = 20
 
 
@@ -33,6 +37,7 @@ def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scenes", nargs="+", default=["pile", "drape_sphere"])
     p.add_argument("--frames", type=int, default=300)
+    p.add_argument("--modes", nargs="+", default=list(MODES), choices=list(MODES))
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="scene override (TOML value), repeatable")
     p.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "bench_contacts.md"))
     return p.parse_args(argv)
@@ -45,8 +50,9 @@ def run(scene_name: str, mode: str, frames: int, overrides: dict) -> dict:
     from cloth_warp.scene import build_model, build_solver, build_wind, load_scene
     from cloth_warp.simulator import Simulator
 
-    collider, self_contacts = MODES[mode]
-    scene = load_scene(find_scene(scene_name), {**overrides, "solver.collider_contacts": collider, "solver.self_contacts": self_contacts})
+    collider, self_contacts, friction = MODES[mode]
+    scene = load_scene(find_scene(scene_name), {**overrides, "solver.collider_contacts": collider, "solver.self_contacts": self_contacts,
+                                                "solver.contact_friction": friction})
     model = build_model(scene, "cpu")
     solver = build_solver(scene, model)
     load_kernels(solver, model.device)
@@ -95,15 +101,15 @@ def main(argv=None) -> int:
 
     for name in args.scenes:
         self_collision = bool(load_scene(find_scene(name), overrides).get("collision.self_collision"))
-        for mode in MODES:
-            if mode == "solve+self" and not self_collision:
+        for mode in args.modes:
+            if MODES[mode][1] == "solve" and not self_collision:
                 continue
             r = run(name, mode, args.frames, overrides)
             rows.append(r)
             print(json.dumps(r), flush=True)
     command = "python benchmarks/bench_contacts.py " + " ".join(sys.argv[1:] if argv is None else argv)
     lines = ["# bench_contacts: contacts after the step (\"pass\") or also inside the implicit solve (\"solve\": collider contacts; "
-             "\"solve+self\": and self-contacts)", "",
+             "\"solve+self\": and self-contacts; \"+friction\": their friction in the solve too)", "",
              f"Machine: {platform.machine()}, Python {platform.python_version()}, Warp {wp.config.version}, device cpu. "
              f"Command: `{command.strip()}`" + (f"; overrides {overrides}" if overrides else ""), "",
              f"{args.frames} frames per run; speeds and counts over the last {TAIL} frames (at rest: <= 1 mm/s).", "",

@@ -610,10 +610,12 @@ def _main(argv) -> int:
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
     from .outputs import CacheWriteError, DeferredSignals
 
-    with DeferredSignals(raise_after=True):  # a Ctrl-C while these load is raised after (trimesh swallows it)
+    # A Ctrl-C while these load is raised after: trimesh swallows it, and so does USD's loader of its Python modules
+    # (seen as "Error loading lib usdShade's module" and a run that went on), so every pxr module the caches use loads here.
+    with DeferredSignals(raise_after=True):
         import trimesh  # noqa: F401
         import warp as wp
-        from pxr import Usd  # noqa: F401
+        from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdPhysics, UsdShade, Vt  # noqa: F401
 
         from .scene import SceneError
         from .topology import MeshError

@@ -78,6 +78,8 @@ UP_AXES = ("Y", "Z")
 LINEAR_SOLVERS = ("cg", "jacobi")
 # The same names as cloth_warp.solvers.implicit.COLLIDER_CONTACTS (a test compares).
 COLLIDER_CONTACTS = ("pass", "solve")
+# The same names as cloth_warp.solvers.implicit.CONTACT_FRICTION (a test compares).
+CONTACT_FRICTION = ("after", "solve")
 # The same names as cloth_warp.solvers.SOLVERS (kept here so validation does not import Warp; a test compares).
 INTEGRATORS = ("implicit_euler", "symplectic_euler", "explicit_euler", "midpoint", "rk4")
 PRESETS = tuple(MATERIAL_PRESETS)
@@ -266,6 +268,9 @@ SCHEMA: dict = {
         "collider_contacts": Key("str", "pass", "where implicit Euler resolves collider contacts: after the step only (\"pass\"), "
                                  "or also inside its CG solve as constraints (\"solve\": in progress, see the README)",
                                  allowed=COLLIDER_CONTACTS),
+        "contact_friction": Key("str", "after", "where \"solve\" collider contacts' Coulomb friction acts: on the solved "
+                                "velocities (\"after\"), or inside the solve (\"solve\": in progress, see the README)",
+                                allowed=CONTACT_FRICTION),
         "self_contacts": Key("str", "pass", "where implicit Euler resolves cloth-cloth contacts: after the step only (\"pass\"), "
                              "or also inside its CG solve as repulsion elements (\"solve\": in progress, see the README)",
                              allowed=COLLIDER_CONTACTS),
@@ -612,6 +617,9 @@ def _check_values(scene: Scene):
         if scene.get(key) == "solve" and (scene.get("solver.integrator") != "implicit_euler" or scene.get("solver.linear_solver") != "cg"):
             raise SceneError(f"{key}: \"solve\" needs solver.integrator = \"implicit_euler\" with "
                              "solver.linear_solver = \"cg\" (the contacts are in its CG)")
+    if scene.get("solver.contact_friction") == "solve" and scene.get("solver.collider_contacts") != "solve":
+        raise SceneError("solver.contact_friction: \"solve\" needs solver.collider_contacts = \"solve\" (the friction of the "
+                         "contacts in the solve)")
     if scene.get("solver.adaptive") and scene.get("solver.dt_min") >= dt:
         raise SceneError(f"solver.dt_min: {scene.get('solver.dt_min')!r} s must be below the step 1 / (output.fps x solver.substeps) "
                          f"= {dt:.4g} s, which the adaptive stepper halves down to it")
@@ -965,7 +973,7 @@ def solver_options(scene: Scene, implicit: bool) -> dict:
     if implicit:
         opts.update(linear_solver=scene.get("solver.linear_solver"), tolerance=float(scene.get("solver.tolerance")),
                     max_iterations=int(scene.get("solver.max_iterations")), collider_contacts=scene.get("solver.collider_contacts"),
-                    self_contacts=scene.get("solver.self_contacts"))
+                    self_contacts=scene.get("solver.self_contacts"), contact_friction=scene.get("solver.contact_friction"))
     return opts
 
 

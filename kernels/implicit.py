@@ -64,6 +64,9 @@ LOOP_SIZE = wp.constant(4)
 # Collider contacts in the solve: the release loop's state (int32) and its cap of re-solves per step.
 RELEASE_FLAG = wp.constant(0)  # a contact was released: solve again
 RELEASE_ROUNDS = wp.constant(1)
+# A sticking contact (eval_contact_friction_terms) slides from the next step when its solved slip passes the stick speed
+# by this factor (the solve's round-off in the slip stays below it).
+SLIP_ALLOWANCE = wp.constant(1.01)
 RELEASE_SIZE = 2
 # Batched worlds (Model.world_count W > 1): every per-solve scalar is kept per world, world w's at w * <size> of its
 # array (cg_sums, cg_step, solve status and record, the columns of cg_scalars); the loop state of world w sits at
@@ -961,6 +964,7 @@ def cg_warm_start(
     rhs: wp.array(dtype=wp.vec3),
     guess: wp.array(dtype=wp.vec3),
     contact_normal: wp.array(dtype=wp.vec3),
+    friction_mass: wp.array(dtype=float),
     global_damping: float,
     dt: float,
     enabled: wp.array(dtype=wp.int32),
@@ -974,7 +978,8 @@ def cg_warm_start(
     cg_scalars_out: wp.array2d(dtype=wp.float64),
 ):
     """Restart CG from `guess` (last step's dv on free particles, z on pinned): r0 = S (b - A guess), r.s and r.r
-    into row 0 of `cg_scalars_out`; nothing where enabled[world] is 0 (no previous step: the assembled cold start stays)."""
+    into row 0 of `cg_scalars_out` (A with a sticking contact's friction damper, `eval_contact_friction_terms`); nothing
+    where enabled[world] is 0 (no previous step: the assembled cold start stays)."""
     i = wp.tid()
     w = particle_world_of(i, particle_world, worlds)
     if enabled[w] == 0:
@@ -986,7 +991,7 @@ def cg_warm_start(
         preconditioned_out[i] = wp.vec3(0.0)
         search_out[i] = wp.vec3(0.0)
         return
-    m_eff = effective_mass(i, particle_mass, particle_pin_stiffness, global_damping, dt)
+    m_eff = effective_mass(i, particle_mass, particle_pin_stiffness, global_damping, dt) + friction_mass[i]
     n = contact_normal[i]
     r = contact_filter(n, rhs[i] - system_product(i, spring_offsets, spring_ids, spring_role, spring_indices, spring_middle, tri_offsets, tri_ids, tri_indices, tri_corner_weights, membrane_offsets, membrane_ids, membrane_vertices, system_block, bend_vector, drag_vector, membrane_block, plate_product, m_eff, guess, dt))
     s = precond[i] * r
@@ -1064,7 +1069,6 @@ def eval_contact_release(
     drag_vector: wp.array(dtype=wp.vec3),
     membrane_block: wp.array2d(dtype=wp.mat33),
     plate_product: wp.array(dtype=wp.vec3),
-    rhs: wp.array(dtype=wp.vec3),
     dv: wp.array(dtype=wp.vec3),
     precond_free: wp.array(dtype=wp.mat33),
     global_damping: float,
@@ -1072,6 +1076,10 @@ def eval_contact_release(
     release_impulse: float,
     max_rounds: int,
     # outputs
+    rhs_out: wp.array(dtype=wp.vec3),
+    effective_mass_out: wp.array(dtype=float),
+    friction_mass_out: wp.array(dtype=float),
+    friction_impulse_out: wp.array(dtype=wp.vec3),
     precond_out: wp.array(dtype=wp.mat33),
     contact_collider_out: wp.array(dtype=wp.int32),
     contact_normal_out: wp.array(dtype=wp.vec3),
@@ -1082,9 +1090,9 @@ def eval_contact_release(
     """The impulse [kg m/s] each collider contact exerts along its normal in the solved step, lambda = n . (A dv - b)_i
     (the part of the momentum balance the filter took out); a contact that pulls (lambda < -release_impulse m_i
     [m/s x kg]: the cloth wants to leave the surface faster than prescribed; the threshold keeps the solve's
-    round-off in lambda from releasing a contact that barely bears any load) is released (collider -1, n = 0, z = 0, its unfiltered preconditioner block back)
-    and release_out[RELEASE_FLAG] set, while
-    fewer than `max_rounds` re-solves were run this step."""
+    round-off in lambda from releasing a contact that barely bears any load) is released (collider -1, n = 0, z = 0,
+    its unfiltered preconditioner block back, its friction terms (`eval_contact_friction_terms`) out of the system) and
+    release_out[RELEASE_FLAG] set, while fewer than `max_rounds` re-solves were run this step."""
     i = wp.tid()
     n = contact_normal_out[i]
     if particle_pinned[i] != 0 or wp.dot(n, n) == 0.0:
@@ -1094,9 +1102,13 @@ def eval_contact_release(
     a_dv = system_product(i, spring_offsets, spring_ids, spring_role, spring_indices, spring_middle, tri_offsets, tri_ids, tri_indices,
                           tri_corner_weights, membrane_offsets, membrane_ids, membrane_vertices, system_block, bend_vector, drag_vector,
                           membrane_block, plate_product, m_eff, dv, dt)
-    impulse = wp.dot(n, a_dv - rhs[i])
+    impulse = wp.dot(n, a_dv - rhs_out[i])  # (the friction terms are tangential: no part of it)
     contact_impulse_out[i] = impulse
     if impulse < -release_impulse * particle_mass[i] and release_out[RELEASE_ROUNDS] < max_rounds:
+        rhs_out[i] = rhs_out[i] - friction_impulse_out[i]
+        effective_mass_out[i] = effective_mass_out[i] - friction_mass_out[i]
+        friction_impulse_out[i] = wp.vec3(0.0)
+        friction_mass_out[i] = 0.0
         contact_collider_out[i] = -1
         contact_normal_out[i] = wp.vec3(0.0)
         contact_dv_out[i] = wp.vec3(0.0)
@@ -1115,6 +1127,66 @@ def begin_contact_resolve(
     release_out[RELEASE_FLAG] = 0
     release_out[RELEASE_ROUNDS] = release_out[RELEASE_ROUNDS] + 1
     loop_out[LOOP_CARRIED] = loop_out[LOOP_CARRIED] + loop_out[LOOP_ITERATION]
+
+
+@wp.kernel(enable_backward=False)
+def eval_contact_friction_terms(
+    particle_mass: wp.array(dtype=float),
+    particle_seam_root: wp.array(dtype=wp.int32),
+    contact_collider: wp.array(dtype=wp.int32),
+    contact_normal: wp.array(dtype=wp.vec3),
+    contact_velocity: wp.array(dtype=wp.vec3),
+    previous_impulse: wp.array(dtype=float),
+    collider_static_friction: wp.array(dtype=float),
+    collider_kinetic_friction: wp.array(dtype=float),
+    v0: wp.array(dtype=wp.vec3),
+    precond_free: wp.array(dtype=wp.mat33),
+    slipping: wp.array(dtype=wp.int32),
+    stick_speed: float,
+    # outputs
+    rhs_out: wp.array(dtype=wp.vec3),
+    effective_mass_out: wp.array(dtype=float),
+    precond_out: wp.array(dtype=wp.mat33),
+    friction_mass_out: wp.array(dtype=float),
+    friction_impulse_out: wp.array(dtype=wp.vec3),
+):
+    """Coulomb friction of a collider contact as terms of the step's system (forward steps), from the normal impulse
+    lambda [kg m/s] of the contact's last step (lagged, as in IPC's friction). A contact whose tangential momentum
+    relative to the surface m v_T at the start of the step static friction could stop (m |v_T| <= mu_s lambda) sticks:
+    a tangential damper of mass d = mu_s lambda / eps [kg] (eps = `stick_speed` [m/s]; A += d T, b -= d T (v0 - u),
+    T = I - n n^T), whose impulse reaches the static bound only where the solved slip reaches eps, so the solve holds
+    the contact instead of moving the cloth around a slide that friction undoes after it. A faster one, or one that
+    slid or whose damper passed the bound in the last step (`slipping`, from `apply_contact_friction`), slides: the
+    kinetic impulse -mu_k lambda v_T / |v_T| in b (`apply_contact_friction` stops it where the solve reverses it).
+    Neither without a last impulse (a new contact) or on a sewn point: `apply_contact_friction` after the solve. A
+    sticking contact's preconditioner block becomes S (P_free^-1 + d T)^-1 S; the CG's product takes d on the effective
+    mass (S d c = S d T c)."""
+    i = wp.tid()
+    friction_mass_out[i] = 0.0
+    friction_impulse_out[i] = wp.vec3(0.0)
+    c = contact_collider[i]
+    impulse = previous_impulse[i]
+    if c < 0 or particle_seam_root[i] >= 0 or impulse <= 0.0:
+        return
+    n = contact_normal[i]
+    rel = v0[i] - contact_velocity[i]
+    tangential = rel - wp.dot(rel, n) * n
+    speed = wp.length(tangential)
+    if particle_mass[i] * speed > collider_static_friction[c] * impulse or (slipping[i] != 0 and speed > 0.0):
+        slide = (-collider_kinetic_friction[c] * impulse / speed) * tangential
+        friction_impulse_out[i] = slide
+        rhs_out[i] = rhs_out[i] + slide
+        return
+    d = collider_static_friction[c] * impulse / stick_speed
+    if d <= 0.0:
+        return
+    s = wp.identity(n=3, dtype=float) - wp.outer(n, n)
+    stick = -d * tangential
+    friction_mass_out[i] = d
+    friction_impulse_out[i] = stick
+    rhs_out[i] = rhs_out[i] + stick
+    effective_mass_out[i] = effective_mass_out[i] + d
+    precond_out[i] = s * wp.inverse(wp.inverse(precond_free[i]) + d * s) * s
 
 
 @wp.func
@@ -1177,16 +1249,47 @@ def apply_contact_friction(
     group_momentum: wp.array(dtype=wp.vec3),
     group_mass: wp.array(dtype=float),
     group_impulse: wp.array(dtype=float),
+    friction_mass: wp.array(dtype=float),
+    friction_impulse: wp.array(dtype=wp.vec3),
+    stick_speed: float,
     # outputs
     dv_out: wp.array(dtype=wp.vec3),
+    slipping_out: wp.array(dtype=wp.int32),
 ):
-    """Coulomb friction (`coulomb_friction`) on each contact's solved dv, from the impulse the release check measured.
+    """Friction on each contact's solved dv. A contact whose friction was in the solve (`eval_contact_friction_terms`):
+    one that stuck has its solved slip (within the static bound: at most `stick_speed` [m/s]) taken out, so that cloth
+    held by static friction does not creep, or, past the bound, is marked to slide from the next step (`slipping_out`;
+    its damper held it a step beyond the bound: the transition lags a step instead of solving the step again); one
+    that slid is stopped where the kinetic impulse reversed its tangential velocity, else marked to slide on (kinetic friction
+    until it stops). Any other: Coulomb friction (`coulomb_friction`) from the impulse the release check measured (one
+    that slid marked to slide on).
     A sewn point's particles (`gather_seam_friction`) take it as one point: the law on their mass-weighted tangential
     velocity and summed impulse, the same change for each (in its own tangent plane), so friction never holds a seam's
     two sides apart (each side stuck where it landed) while the seam spring pulls them together."""
     i = wp.tid()
+    slipping_out[i] = 0
     c = contact_collider[i]
     if c < 0:
+        return
+    d = friction_mass[i]
+    if d > 0.0:  # stuck by the damper: held exactly within the static bound, past it: as solved, sliding from the next step
+        n = contact_normal[i]
+        rel = v0[i] + dv_out[i] - contact_velocity[i]
+        slip = rel - wp.dot(rel, n) * n
+        if wp.length(slip) <= SLIP_ALLOWANCE * stick_speed:
+            dv_out[i] = dv_out[i] - slip
+        else:
+            slipping_out[i] = 1
+        return
+    slide = friction_impulse[i]
+    if wp.dot(slide, slide) > 0.0:
+        n_slide = contact_normal[i]
+        rel = v0[i] + dv_out[i] - contact_velocity[i]
+        tangential = rel - wp.dot(rel, n_slide) * n_slide
+        if wp.dot(tangential, slide) > 0.0:
+            dv_out[i] = dv_out[i] - tangential
+        else:
+            slipping_out[i] = 1  # still sliding: kinetic friction until it stops
         return
     r = particle_seam_root[i]
     if r >= 0 and contact_impulse[i] > 0.0:
@@ -1201,8 +1304,13 @@ def apply_contact_friction(
             n = contact_normal[i]
             dv_out[i] = dv_out[i] - (change - wp.dot(change, n) * n)
             return
-    dv_out[i] = coulomb_friction(dv_out[i], v0[i], contact_velocity[i], contact_normal[i], contact_impulse[i], particle_mass[i],
-                                 collider_static_friction[c], collider_kinetic_friction[c])
+    dv = coulomb_friction(dv_out[i], v0[i], contact_velocity[i], contact_normal[i], contact_impulse[i], particle_mass[i],
+                          collider_static_friction[c], collider_kinetic_friction[c])
+    dv_out[i] = dv
+    n_new = contact_normal[i]
+    rel = v0[i] + dv - contact_velocity[i]
+    if contact_impulse[i] > 0.0 and wp.length(rel - wp.dot(rel, n_new) * n_new) > 0.0:
+        slipping_out[i] = 1  # it slid: kinetic friction in the next solve until it stops
 
 
 @wp.kernel

@@ -30,6 +30,8 @@ WARM_START_FLOOR = 1.0e-6  # the smallest relative residual a warm-started float
 
 # Where collider contacts are resolved: after the step by the colliders pass, or also inside the CG solve.
 COLLIDER_CONTACTS = ("pass", "solve")
+# Where "solve" contacts' Coulomb friction acts: on the solved velocities ("after"), or in the solve ("solve").
+CONTACT_FRICTION = ("after", "solve")
 
 @dataclasses.dataclass(frozen=True)
 class TapedContacts:
@@ -90,8 +92,9 @@ class SolverImplicitEuler(SolverBase):
             gets its end-of-step normal velocity prescribed, the one that ends the step at the collider's thickness
             (kernels/contact.py), the rest of its motion solved with the cloth; a contact whose solved impulse pulls
             is released and the step solved again (at most `contact_release_rounds` times), and Coulomb friction
-            acts on the solved tangential velocity with that impulse (on a garment's sewn points as one point: the
-            particles a seam joins share the law, so friction never holds a seam's sides apart); the colliders pass
+            acts (`contact_friction`) on the solved tangential velocity with that impulse (on a garment's sewn points as
+            one point: the particles a seam joins share the law, so friction never holds a seam's sides apart); the
+            colliders pass
             still runs after the step as the guarantee). Taped steps differentiated by the adjoint hold them too
             (below; their friction is per particle); CG only.
         contact_margin: "solve" contacts: a particle within the thickness x (1 + margin) at the step's start is in
@@ -99,6 +102,16 @@ class SolverImplicitEuler(SolverBase):
         contact_release_fraction: "solve" contacts: a contact is released when it pulls with more than this fraction
             of the particle's weight (times the step): below it the pull is the solve's round-off, and a released
             particle has no friction.
+        contact_friction: "solve" contacts' Coulomb friction: "after" the solve (above), or in the "solve" (forward
+            steps; kernels/implicit.py eval_contact_friction_terms), with the contact's normal impulse of its last step:
+            a sticking contact as a tangential damper that reaches the static bound at `contact_stick_speed` (its solved
+            slip then taken out: no creep; past the bound it slides from the next step), a sliding one as the kinetic
+            impulse; a new contact and a sewn point take it after the solve. The solve then holds the stuck contacts
+            instead of moving the cloth around slides that friction undoes (a drape's contacts slid by up to 1.4 m/s
+            in the solve), which lets draped cloth come to rest; it costs iterations (see the README).
+        contact_stick_speed: "solve" contacts: the slip [m/s] at which a sticking contact's damper reaches the static
+            friction bound; a contact slipping faster at the start of a step slides. It bounds the creep of cloth held
+            by static friction (below it, in proportion to the load's share of the bound).
         self_contacts: "pass" (cloth-cloth contacts resolved after the step by the self-collision pass only) or "solve"
             (also inside the solve: each vertex-face or edge-edge pair closer than the cloth thickness (1 + 5 %) at the
             step's start, among the pairs the self-collision pass found close in the last step, is a repulsion element
@@ -144,6 +157,8 @@ class SolverImplicitEuler(SolverBase):
         contact_margin: float = 0.01,
         contact_release_rounds: int = 2,
         contact_release_fraction: float = 0.05,
+        contact_friction: str = "after",
+        contact_stick_speed: float = 1.0e-4,
         self_contacts: str = "pass",
     ):
         super().__init__(model, strain_limit=strain_limit, strain_limit_iterations=strain_limit_iterations,
@@ -176,6 +191,15 @@ class SolverImplicitEuler(SolverBase):
         self.contact_margin = float(contact_margin)
         self.contact_release_rounds = int(contact_release_rounds)
         self.contact_release_fraction = float(contact_release_fraction)
+        if contact_friction not in CONTACT_FRICTION:
+            raise ValueError(f"unknown contact_friction {contact_friction!r}; allowed: {', '.join(CONTACT_FRICTION)}")
+        if contact_friction == "solve" and collider_contacts != "solve":
+            raise ValueError("contact_friction='solve' needs collider_contacts='solve' (the friction of the contacts in the "
+                             "solve)")
+        self.contact_friction = contact_friction
+        if not contact_stick_speed > 0.0:
+            raise ValueError(f"contact_stick_speed must be positive, got {contact_stick_speed!r}")
+        self.contact_stick_speed = float(contact_stick_speed)
         self._gravity_norm = float(np.linalg.norm(np.asarray(model.gravity, np.float64)))
         # Backward-pass report: adjoint solves run and their iterations (summed).
         self.adjoint_solves = 0
@@ -247,6 +271,11 @@ class SolverImplicitEuler(SolverBase):
         self.contact_dv = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.contact_impulse = wp.zeros(n, dtype=float, device=dev)
         self.precond_free = wp.zeros(n, dtype=wp.mat33, device=dev)  # contacts' unfiltered preconditioner blocks
+        # their friction in the solve (kernels/implicit.py eval_contact_friction_terms): a sticking contact's damper
+        # mass [kg], and the friction impulse [kg m/s] in the right-hand side (sticking or sliding)
+        self.contact_friction_mass = wp.zeros(n, dtype=float, device=dev)
+        self.contact_friction_impulse = wp.zeros(n, dtype=wp.vec3, device=dev)
+        self.contact_slipping = wp.zeros(n, dtype=wp.int32, device=dev)  # 1: its damper passed the static bound last step
         # sewn points take friction as one point (kernels/implicit.py gather_seam_friction): per particle its seam's
         # root (-1: not sewn), per root the sums the friction law needs
         sewn = sewn_point_roots(model) if collider_contacts == "solve" else None
@@ -546,10 +575,13 @@ class SolverImplicitEuler(SolverBase):
             self_contacts=int(r[ki.RECORD_SELF_CONTACTS]))
 
     def carried_arrays(self) -> list:
-        return [self.dv_previous, self.previous_ready]
+        """The warm start, and the contacts' last normal impulses and slips past the static bound (their next friction)."""
+        return [self.dv_previous, self.previous_ready, self.contact_impulse, self.contact_slipping]
 
     def forget_world(self, world: int, particles: slice) -> None:
         self.dv_previous[particles].zero_()
+        self.contact_impulse[particles].zero_()
+        self.contact_slipping[particles].zero_()
         self.previous_ready[world : world + 1].zero_()
 
     # -- checkpoints --------------------------------------------------------------------------
@@ -559,6 +591,8 @@ class SolverImplicitEuler(SolverBase):
         out = super().checkpoint_state()
         out["has_previous"] = self.has_previous
         out["dv_previous"] = self.dv_previous.numpy().copy()
+        out["contact_impulse"] = self.contact_impulse.numpy().copy()
+        out["contact_slipping"] = self.contact_slipping.numpy().copy()
         return out
 
     def restore_state(self, state: dict) -> None:
@@ -566,6 +600,9 @@ class SolverImplicitEuler(SolverBase):
         dv = np.asarray(state["dv_previous"], np.float32).reshape(self.model.particle_count, 3)
         self.dv_previous.assign(dv)
         self.previous_ready.fill_(int(bool(state["has_previous"])))
+        if "contact_impulse" in state:  # (checkpoints written before friction was in the solve: none)
+            self.contact_impulse.assign(np.asarray(state["contact_impulse"], np.float32).reshape(self.model.particle_count))
+            self.contact_slipping.assign(np.asarray(state["contact_slipping"], np.int32).reshape(self.model.particle_count))
 
     # -- the step ----------------------------------------------------------------------------
     def solve(self, state_in: State, control: Control, dt: float) -> wp.array:
@@ -586,6 +623,7 @@ class SolverImplicitEuler(SolverBase):
             else:
                 if self.collider_contacts == "solve":  # none this step (no collider, an unrolled taped step): no filter
                     self.contact_normal.zero_()
+                    self.contact_friction_mass.zero_()
                     self.release.zero_()
                 if warm:
                     self._restart_from_previous(dt)
@@ -642,6 +680,18 @@ class SolverImplicitEuler(SolverBase):
                            self.contact_counts], device=dev)
         wp.launch(ki.filter_contact_preconditioner, dim=m.particle_count, inputs=[self.contact_normal],
                   outputs=[self.precond, self.precond_free], device=dev)
+        if state_in.requires_grad or self.contact_friction != "solve":  # after the solve (a taped step's: on the tape)
+            self.contact_friction_mass.zero_()
+            self.contact_friction_impulse.zero_()
+        else:
+            wp.launch(ki.eval_contact_friction_terms, dim=m.particle_count,
+                      inputs=[m.particle_mass, self.particle_seam_root, self.contact_collider, self.contact_normal,
+                              self.contact_velocity, self.contact_impulse, m.collider_static_friction, m.collider_kinetic_friction,
+                              state_in.particle_qd,
+                              self.precond_free, self.contact_slipping, self.contact_stick_speed],
+                      outputs=[self.rhs, self.effective_mass, self.precond, self.contact_friction_mass,
+                               self.contact_friction_impulse],
+                      device=dev)
         wp.launch(ki.compose_warm_start, dim=m.particle_count,
                   inputs=[m.particle_pinned, self.dv_previous, self.dv, self.contact_normal, self.contact_dv,
                           self.previous_ready if warm else self._disabled, m.particle_world, self.worlds],
@@ -668,8 +718,9 @@ class SolverImplicitEuler(SolverBase):
         wp.launch(ki.apply_contact_friction, dim=m.particle_count,
                   inputs=[m.particle_mass, self.contact_collider, self.contact_normal, self.contact_velocity, self.contact_impulse,
                           m.collider_static_friction, m.collider_kinetic_friction, state_in.particle_qd, self.particle_seam_root,
-                          self.seam_momentum, self.seam_mass, self.seam_impulse],
-                  outputs=[self.dv], device=m.device)
+                          self.seam_momentum, self.seam_mass, self.seam_impulse, self.contact_friction_mass,
+                          self.contact_friction_impulse, self.contact_stick_speed],
+                  outputs=[self.dv, self.contact_slipping], device=m.device)
 
     def _check_release(self, dt: float):
         """Each contact's solved impulse; release those that pull (:func:`~cloth_warp.kernels.implicit.eval_contact_release`)."""
@@ -677,10 +728,11 @@ class SolverImplicitEuler(SolverBase):
         self._plate_product(self.dv, dt)
         wp.launch(ki.eval_contact_release, dim=m.particle_count,
                   inputs=[*self._product_args(), m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, self.system_block,
-                          self.bend_vector, self.drag_vector, self.membrane_block, self.plate_product, self.rhs, self.dv,
+                          self.bend_vector, self.drag_vector, self.membrane_block, self.plate_product, self.dv,
                           self.precond_free, m.global_damping, dt, self.contact_release_fraction * self._gravity_norm * dt,
                           self.contact_release_rounds],
-                  outputs=[self.precond, self.contact_collider, self.contact_normal, self.contact_dv, self.contact_impulse, self.release],
+                  outputs=[self.rhs, self.effective_mass, self.contact_friction_mass, self.contact_friction_impulse, self.precond,
+                           self.contact_collider, self.contact_normal, self.contact_dv, self.contact_impulse, self.release],
                   device=m.device)
 
     def _resolve(self, dt: float):
@@ -703,7 +755,8 @@ class SolverImplicitEuler(SolverBase):
             dim=m.particle_count,
             inputs=[*self._product_args(), m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, self.system_block,
                     self.bend_vector, self.drag_vector, self.membrane_block, self.plate_product, self.precond, self.rhs, self.dv_alt,
-                    self.contact_normal, m.global_damping, dt, enabled, m.particle_world, self.worlds],
+                    self.contact_normal, self.contact_friction_mass, m.global_damping, dt, enabled, m.particle_world,
+                    self.worlds],
             outputs=[self.dv, self.residual, self.preconditioned, self.search, scalars],
             device=m.device,
         )
