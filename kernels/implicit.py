@@ -1170,7 +1170,7 @@ def eval_contact_friction_terms(
         return
     n = contact_normal[i]
     rel = v0[i] - contact_velocity[i]
-    tangential = rel - wp.dot(rel, n) * n
+    tangential = contact_filter(n, rel)
     speed = wp.length(tangential)
     if particle_mass[i] * speed > collider_static_friction[c] * impulse or (slipping[i] != 0 and speed > 0.0):
         slide = (-collider_kinetic_friction[c] * impulse / speed) * tangential
@@ -1199,7 +1199,7 @@ def coulomb_friction(dv: wp.vec3, v0: wp.vec3, surface_velocity: wp.vec3, n: wp.
         return dv
     normal_change = impulse / mass
     rel = v0 + dv - surface_velocity
-    tangential = rel - wp.dot(rel, n) * n
+    tangential = contact_filter(n, rel)
     speed = wp.length(tangential)
     if speed <= static_friction * normal_change:
         return dv - tangential
@@ -1275,7 +1275,7 @@ def apply_contact_friction(
     if d > 0.0:  # stuck by the damper: held exactly within the static bound, past it: as solved, sliding from the next step
         n = contact_normal[i]
         rel = v0[i] + dv_out[i] - contact_velocity[i]
-        slip = rel - wp.dot(rel, n) * n
+        slip = contact_filter(n, rel)
         if wp.length(slip) <= SLIP_ALLOWANCE * stick_speed:
             dv_out[i] = dv_out[i] - slip
         else:
@@ -1285,7 +1285,7 @@ def apply_contact_friction(
     if wp.dot(slide, slide) > 0.0:
         n_slide = contact_normal[i]
         rel = v0[i] + dv_out[i] - contact_velocity[i]
-        tangential = rel - wp.dot(rel, n_slide) * n_slide
+        tangential = contact_filter(n_slide, rel)
         if wp.dot(tangential, slide) > 0.0:
             dv_out[i] = dv_out[i] - tangential
         else:
@@ -1309,7 +1309,7 @@ def apply_contact_friction(
     dv_out[i] = dv
     n_new = contact_normal[i]
     rel = v0[i] + dv - contact_velocity[i]
-    if contact_impulse[i] > 0.0 and wp.length(rel - wp.dot(rel, n_new) * n_new) > 0.0:
+    if contact_impulse[i] > 0.0 and wp.length(contact_filter(n_new, rel)) > 0.0:
         slipping_out[i] = 1  # it slid: kinetic friction in the next solve until it stops
 
 
