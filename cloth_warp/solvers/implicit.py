@@ -94,8 +94,7 @@ class SolverImplicitEuler(SolverBase):
             is released and the step solved again (at most `contact_release_rounds` times), and Coulomb friction
             acts (`contact_friction`) on the solved tangential velocity with that impulse (on a garment's sewn points as
             one point: the particles a seam joins share the law, so friction never holds a seam's sides apart); the
-            colliders pass
-            still runs after the step as the guarantee). Taped steps differentiated by the adjoint hold them too
+            colliders pass still runs after the step as the guarantee). Taped steps differentiated by the adjoint hold them too
             (below; their friction is per particle); CG only.
         contact_margin: "solve" contacts: a particle within the thickness x (1 + margin) at the step's start is in
             contact (as is one inside, or predicted to reach the surface within the step).
@@ -275,7 +274,7 @@ class SolverImplicitEuler(SolverBase):
         # mass [kg], and the friction impulse [kg m/s] in the right-hand side (sticking or sliding)
         self.contact_friction_mass = wp.zeros(n, dtype=float, device=dev)
         self.contact_friction_impulse = wp.zeros(n, dtype=wp.vec3, device=dev)
-        self.contact_slipping = wp.zeros(n, dtype=wp.int32, device=dev)  # 1: its damper passed the static bound last step
+        self.contact_slipping = wp.zeros(n, dtype=wp.int32, device=dev)  # 1: slid, or its damper passed the bound, last step
         # sewn points take friction as one point (kernels/implicit.py gather_seam_friction): per particle its seam's
         # root (-1: not sewn), per root the sums the friction law needs
         sewn = sewn_point_roots(model) if collider_contacts == "solve" else None
@@ -687,8 +686,7 @@ class SolverImplicitEuler(SolverBase):
             wp.launch(ki.eval_contact_friction_terms, dim=m.particle_count,
                       inputs=[m.particle_mass, self.particle_seam_root, self.contact_collider, self.contact_normal,
                               self.contact_velocity, self.contact_impulse, m.collider_static_friction, m.collider_kinetic_friction,
-                              state_in.particle_qd,
-                              self.precond_free, self.contact_slipping, self.contact_stick_speed],
+                              state_in.particle_qd, self.precond_free, self.contact_slipping, self.contact_stick_speed],
                       outputs=[self.rhs, self.effective_mass, self.precond, self.contact_friction_mass,
                                self.contact_friction_impulse],
                       device=dev)
