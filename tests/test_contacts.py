@@ -539,15 +539,18 @@ def drape_over_ball(resolution, mu, seed, friction):
 @pytest.mark.parametrize("resolution,mu,seed", [(16, 0.4, 0), (24, 0.8, 2)])
 def test_friction_in_the_solve_holds_the_stuck_contacts_it_solved(resolution, mu, seed):
     """Check what friction in the solve is for, on the shipped drape_sphere (a cotton square dropped over a ball on
-    the ground) without self-collision, at other resolutions, ball frictions and seeds, over its first 2 s: the
-    friction after the solve changes no sticking contact's solved velocity by more than the stick speed (the solve
-    already held it: measured <= 1.01e-4 m/s), where friction after a frictionless solve stops contacts the solve
-    slid at up to ~1 m/s (measured > 0.1 m/s here: the cloth around them moved as if they slid)."""
+    the ground) without self-collision, at other resolutions, ball frictions and seeds, over its first 2 s: most
+    sticking contacts' solved slip stays within the stick speed (the solve held them: measured 76-84 % of the sticking
+    contact-steps; a damper 100x too weak: 0.02-0.04 %), and the friction after the solve then changes their solved
+    velocity by no more than that, where friction after a frictionless solve stops contacts the solve slid at up to
+    ~1 m/s (measured > 0.1 m/s here: the cloth around them moved as if they slid)."""
 
-    def largest_friction_change(friction):
+    def friction_after_the_solve(friction):
+        """The largest change the friction after the solve made to a held contact's solved velocity [m/s], and the
+        contact-steps sticking in the solve and held within the stick speed."""
         m, solver = drape_over_ball(resolution, mu, seed, friction)
         sim = cw.Simulator(m, solver, fps=60, substeps=2, capture=False)
-        worst = [0.0]
+        worst, sticking, held_count = [0.0], [0], [0]
         apply = solver._apply_contact_friction
 
         def measured(state_in):
@@ -555,18 +558,22 @@ def test_friction_in_the_solve_holds_the_stuck_contacts_it_solved(resolution, mu
             apply(state_in)
             held = solver.contact_collider.numpy() >= 0
             if friction == "solve":  # the contacts whose friction was in the solve and stuck
-                held &= solver.contact_friction_mass.numpy() > 0
-                held &= solver.contact_slipping.numpy() == 0
+                stuck = solver.contact_friction_mass.numpy() > 0
+                held &= stuck & (solver.contact_slipping.numpy() == 0)
+                sticking[0] += int(stuck.sum())
+                held_count[0] += int(held.sum())
             change = np.linalg.norm(solver.dv.numpy() - before, axis=1)[held]
             worst[0] = max(worst[0], float(change.max(initial=0.0)))
 
         solver._apply_contact_friction = measured
         for _ in range(120):
             sim.step_frame()
-        return worst[0]
+        return worst[0], sticking[0], held_count[0]
 
-    assert largest_friction_change("solve") <= 1.01e-4 * (1 + 1e-3)
-    assert largest_friction_change("after") > 0.1
+    change, sticking, held = friction_after_the_solve("solve")
+    assert sticking > 0 and held >= 0.5 * sticking
+    assert change <= 1.01e-4 * (1 + 1e-3)
+    assert friction_after_the_solve("after")[0] > 0.1
 
 
 @pytest.mark.parametrize("resolution,mu,seed", [(16, 0.4, 0), (24, 0.4, 1), (24, 0.8, 2),

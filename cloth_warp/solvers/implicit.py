@@ -679,10 +679,10 @@ class SolverImplicitEuler(SolverBase):
                            self.contact_counts], device=dev)
         wp.launch(ki.filter_contact_preconditioner, dim=m.particle_count, inputs=[self.contact_normal],
                   outputs=[self.precond, self.precond_free], device=dev)
-        if state_in.requires_grad or self.contact_friction != "solve":  # after the solve (a taped step's: on the tape)
+        if self.contact_friction == "solve" and state_in.requires_grad:  # a taped step's friction is on the tape
             self.contact_friction_mass.zero_()
             self.contact_friction_impulse.zero_()
-        else:
+        elif self.contact_friction == "solve":  # (after the solve: the terms stay zero)
             wp.launch(ki.eval_contact_friction_terms, dim=m.particle_count,
                       inputs=[m.particle_mass, self.particle_seam_root, self.contact_collider, self.contact_normal,
                               self.contact_velocity, self.contact_impulse, m.collider_static_friction, m.collider_kinetic_friction,
