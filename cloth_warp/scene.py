@@ -268,8 +268,9 @@ SCHEMA: dict = {
         "collider_contacts": Key("str", "pass", "where implicit Euler resolves collider contacts: after the step only (\"pass\"), "
                                  "or also inside its CG solve as constraints (\"solve\": in progress, see the README)",
                                  allowed=COLLIDER_CONTACTS),
-        "contact_friction": Key("str", "after", "where \"solve\" collider contacts' Coulomb friction acts: on the solved "
-                                "velocities (\"after\"), or inside the solve (\"solve\": in progress, see the README)",
+        "contact_friction": Key("str", "after", "where \"solve\" contacts' Coulomb friction acts: on the solved velocities "
+                                "(\"after\"), or inside the solve (\"solve\": the collider contacts' and, with self_contacts = "
+                                "\"solve\", the self-contacts'; see the README)",
                                 allowed=CONTACT_FRICTION),
         "self_contacts": Key("str", "pass", "where implicit Euler resolves cloth-cloth contacts: after the step only (\"pass\"), "
                              "or also inside its CG solve as repulsion elements (\"solve\": in progress, see the README)",

@@ -22,6 +22,7 @@ the filter itself belong to the solver; this module only finds the contacts.
 import warp as wp
 
 from .collide import shape_distance, surface_velocity, mesh_surface_velocity
+from .implicit import SLIP_ALLOWANCE
 from .selfcollide import NORMAL_EPS, add_impulse, inverse_mass_weight, pair_indices, start_weights, weighted_sum
 
 wp.set_module_options({"enable_backward": False})
@@ -180,6 +181,24 @@ def eval_contact_constraints(
 # at 0.5-0.8 mm/s, and element damping c = m / h at 0.9 mm/s, against 0.015 mm/s.
 
 
+@wp.func
+def self_contact_friction_terms(v_t: wp.vec3, impulse: float, mass_weight: float, friction: float, stick_speed: float):
+    """A self-contact element's Coulomb friction in the solve, on the pair's relative tangential velocity v_t [m/s] at
+    the step's start, with its normal impulse over the step lambda = h k (r - d0) [kg m/s] and mass weight
+    w = sum_r alpha_r^2 / m_r [1/kg], as the collider contacts' (kernels/implicit.py eval_contact_friction_terms): a
+    pair sliding faster than friction could stop in a step (|v_t| > mu lambda w) takes the kinetic impulse
+    J = -mu lambda v_t / |v_t| (member r: alpha_r J); any other a tangential damper of mass d = mu lambda / max(eps, |v_t|)
+    [kg] on its relative velocity (A += d alpha_r alpha_s T, b_r -= d alpha_r T v_rel0). Returns (d, J)."""
+    if impulse <= 0.0 or mass_weight <= 0.0 or friction <= 0.0:
+        return wp.vec4(0.0)
+    speed = wp.length(v_t)
+    bound = friction * impulse
+    if speed > bound * mass_weight:
+        j = (-bound / speed) * v_t
+        return wp.vec4(0.0, j[0], j[1], j[2])
+    return wp.vec4(bound / wp.max(stick_speed, speed), 0.0, 0.0, 0.0)
+
+
 @wp.kernel
 def eval_self_contacts(
     # candidates: the last step's close pairs of one kind (the first count[0] of `pairs`)
@@ -196,11 +215,18 @@ def eval_self_contacts(
     stiffness: float,
     dt: float,
     capacity: int,
+    # friction in the solve (friction_in_solve != 0)
+    inv_mass: wp.array(dtype=float),
+    friction: float,
+    stick_speed: float,
+    friction_in_solve: int,
     # outputs: the elements (appended) and their force, K v0 and diagonal blocks (accumulated per particle)
     element_indices_out: wp.array(dtype=wp.vec4i),
     element_weights_out: wp.array(dtype=wp.vec4),
     element_normal_out: wp.array(dtype=wp.vec3),
     element_overlap_out: wp.array(dtype=float),
+    element_friction_mass_out: wp.array(dtype=float),
+    element_friction_impulse_out: wp.array(dtype=wp.vec3),
     element_count_out: wp.array(dtype=wp.int32),
     force_out: wp.array(dtype=wp.vec3),
     kv_out: wp.array(dtype=wp.vec3),
@@ -208,7 +234,8 @@ def eval_self_contacts(
     counts_out: wp.array(dtype=wp.int32),
 ):
     """Each candidate pair closer than `rest_distance` r [m] at x0, none of its particles pinned, becomes a repulsion
-    element of `stiffness` k [N/m] (see above); its overlap r - d [m] is kept for friction."""
+    element of `stiffness` k [N/m] (see above); its overlap r - d [m] is kept for friction. With `friction_in_solve`,
+    its Coulomb friction (coefficient `friction`) enters the system as well (see `self_contact_friction_terms`)."""
     tid = wp.tid()
     if tid >= count[0]:
         return
@@ -225,16 +252,28 @@ def eval_self_contacts(
     if e >= capacity:
         return
     n = gap / d
-    v_n = wp.dot(n, weighted_sum(alpha, v0[idx[0]], v0[idx[1]], v0[idx[2]], v0[idx[3]]))
+    v_rel = weighted_sum(alpha, v0[idx[0]], v0[idx[1]], v0[idx[2]], v0[idx[3]])
+    v_n = wp.dot(n, v_rel)
     element_indices_out[e] = idx
     element_weights_out[e] = alpha
     element_normal_out[e] = n
     overlap = rest_distance - d
     element_overlap_out[e] = overlap
-    block = (dt * dt * stiffness) * wp.outer(n, n)
+    friction_mass = float(0.0)
+    slide = wp.vec3(0.0)
+    if friction_in_solve != 0:
+        terms = self_contact_friction_terms(v_rel - v_n * n, dt * stiffness * overlap, inverse_mass_weight(alpha, idx, inv_mass),
+                                            friction, stick_speed)
+        friction_mass = terms[0]
+        slide = wp.vec3(terms[1], terms[2], terms[3])
+    element_friction_mass_out[e] = friction_mass
+    element_friction_impulse_out[e] = slide
+    # the damper's b part, -d alpha_r v_T, and the slide's alpha_r J, as forces (b = h (f0 - h K v0))
+    push = slide - friction_mass * (v_rel - v_n * n)
+    block = (dt * dt * stiffness) * wp.outer(n, n) + friction_mass * (wp.identity(n=3, dtype=float) - wp.outer(n, n))
     for r in range(4):
         a = alpha[r]
-        wp.atomic_add(force_out, idx[r], (a * stiffness * overlap) * n)
+        wp.atomic_add(force_out, idx[r], (a * stiffness * overlap) * n + (a / dt) * push)
         wp.atomic_add(kv_out, idx[r], (a * stiffness * v_n) * n)
         wp.atomic_add(diag_out, idx[r], (a * a) * block)
     wp.atomic_add(counts_out, COUNT_SELF_CONTACTS, 1)
@@ -246,22 +285,26 @@ def scatter_self_contact_product(
     element_indices: wp.array(dtype=wp.vec4i),
     element_weights: wp.array(dtype=wp.vec4),
     element_normal: wp.array(dtype=wp.vec3),
+    element_friction_mass: wp.array(dtype=float),
     coefficient: float,
     p: wp.array(dtype=wp.vec3),
     # outputs (accumulated)
     product_out: wp.array(dtype=wp.vec3),
 ):
-    """The self-contact elements' part of A p: h^2 k alpha_r n (n . sum alpha_s p_s) to each member r (`coefficient` =
-    h^2 k; launched over the elements' capacity, the first element_count[0])."""
+    """The self-contact elements' part of A p: h^2 k alpha_r n (n . q) + d alpha_r T q to each member r, q = sum alpha_s p_s
+    (`coefficient` = h^2 k; d the element's friction damper, T = I - n n^T; launched over the elements' capacity, the
+    first element_count[0])."""
     e = wp.tid()
     if e >= element_count[0]:
         return
     idx = element_indices[e]
     alpha = element_weights[e]
     n = element_normal[e]
-    d = coefficient * wp.dot(n, weighted_sum(alpha, p[idx[0]], p[idx[1]], p[idx[2]], p[idx[3]]))
+    q = weighted_sum(alpha, p[idx[0]], p[idx[1]], p[idx[2]], p[idx[3]])
+    q_n = wp.dot(n, q)
+    c = coefficient * q_n * n + element_friction_mass[e] * (q - q_n * n)
     for r in range(4):
-        wp.atomic_add(product_out, idx[r], (alpha[r] * d) * n)
+        wp.atomic_add(product_out, idx[r], alpha[r] * c)
 
 
 @wp.kernel
@@ -271,12 +314,15 @@ def eval_self_contact_friction(
     element_weights: wp.array(dtype=wp.vec4),
     element_normal: wp.array(dtype=wp.vec3),
     element_overlap: wp.array(dtype=float),
+    element_friction_mass: wp.array(dtype=float),
+    element_friction_impulse: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
     v0: wp.array(dtype=wp.vec3),
     dv: wp.array(dtype=wp.vec3),
     stiffness: float,
     friction: float,
     dt: float,
+    stick_speed: float,
     # outputs (accumulated; averaged per particle by kernels/selfcollide.py apply_velocity_changes)
     dv_sum_out: wp.array(dtype=wp.vec3),
     weight_out: wp.array(dtype=float),
@@ -284,7 +330,9 @@ def eval_self_contact_friction(
     """Coulomb friction between the layers of each self-contact element (velocity level, as the self-collision pass's
     proximity impulses): the element's normal impulse over the step, lambda = h k ((r - d0) - h v_n) with v_n
     the pair's relative normal end velocity (the force linearised at the step's end, as the solve has it), slows the
-    pair's relative tangential end velocity by mu lambda sum_r alpha_r^2 / m_r, at most to a stop."""
+    pair's relative tangential end velocity by mu lambda sum_r alpha_r^2 / m_r, at most to a stop. An element whose
+    friction was in the solve (`self_contact_friction_terms`) only has its slip taken out where its damper held it
+    within `stick_speed` [m/s] (no creep), or where the kinetic impulse reversed it (stopped)."""
     e = wp.tid()
     if e >= element_count[0]:
         return
@@ -292,13 +340,18 @@ def eval_self_contact_friction(
     alpha = element_weights[e]
     n = element_normal[e]
     v_rel = weighted_sum(alpha, v0[idx[0]] + dv[idx[0]], v0[idx[1]] + dv[idx[1]], v0[idx[2]] + dv[idx[2]], v0[idx[3]] + dv[idx[3]])
-    impulse = dt * stiffness * (element_overlap[e] - dt * wp.dot(v_rel, n))
     mass_weight = inverse_mass_weight(alpha, idx, inv_mass)
-    if impulse <= 0.0 or mass_weight <= 0.0:
-        return
     v_t = v_rel - wp.dot(v_rel, n) * n
     speed = wp.length(v_t)
-    if speed <= 0.0:
+    if mass_weight <= 0.0 or speed <= 0.0:
+        return
+    slide = element_friction_impulse[e]
+    if element_friction_mass[e] > 0.0 or wp.dot(slide, slide) > 0.0:  # friction in the solve
+        if (element_friction_mass[e] > 0.0 and speed <= SLIP_ALLOWANCE * stick_speed) or wp.dot(slide, v_t) > 0.0:
+            add_impulse(idx, alpha, inv_mass, (-1.0 / mass_weight) * v_t, dv_sum_out, weight_out)
+        return
+    impulse = dt * stiffness * (element_overlap[e] - dt * wp.dot(v_rel, n))
+    if impulse <= 0.0:
         return
     keep = wp.max(1.0 - friction * impulse * mass_weight / speed, 0.0)
     add_impulse(idx, alpha, inv_mass, ((keep - 1.0) / mass_weight) * v_t, dv_sum_out, weight_out)

@@ -64,8 +64,8 @@ LOOP_SIZE = wp.constant(4)
 # Collider contacts in the solve: the release loop's state (int32) and its cap of re-solves per step.
 RELEASE_FLAG = wp.constant(0)  # a contact was released: solve again
 RELEASE_ROUNDS = wp.constant(1)
-# A sticking contact (eval_contact_friction_terms) slides from the next step when its solved slip passes the stick speed
-# by this factor (the solve's round-off in the slip stays below it).
+# A friction damper (eval_contact_friction_terms; self-contacts: kernels/contact.py) holds its contact, the slip then
+# taken out, when the solved slip is within this factor of the stick speed (the solve's round-off stays below it).
 SLIP_ALLOWANCE = wp.constant(1.01)
 RELEASE_SIZE = 2
 # Batched worlds (Model.world_count W > 1): every per-solve scalar is kept per world, world w's at w * <size> of its
@@ -1075,6 +1075,11 @@ def eval_contact_release(
     dt: float,
     release_impulse: float,
     max_rounds: int,
+    v0: wp.array(dtype=wp.vec3),
+    contact_velocity: wp.array(dtype=wp.vec3),
+    collider_static_friction: wp.array(dtype=float),
+    collider_kinetic_friction: wp.array(dtype=float),
+    stick_speed: float,
     # outputs
     rhs_out: wp.array(dtype=wp.vec3),
     effective_mass_out: wp.array(dtype=float),
@@ -1092,7 +1097,12 @@ def eval_contact_release(
     [m/s x kg]: the cloth wants to leave the surface faster than prescribed; the threshold keeps the solve's
     round-off in lambda from releasing a contact that barely bears any load) is released (collider -1, n = 0, z = 0,
     its unfiltered preconditioner block back, its friction terms (`eval_contact_friction_terms`) out of the system) and
-    release_out[RELEASE_FLAG] set, while fewer than `max_rounds` re-solves were run this step."""
+    release_out[RELEASE_FLAG] set, while fewer than `max_rounds` re-solves were run this step. A contact held by a
+    friction damper is first let slide instead (the kinetic impulse -mu_k lambda+ s / |s| along its solved slip s
+    relative to the surface, `v0` + dv - `contact_velocity`, in place of the damper; the flag set) where static friction
+    cannot hold it: lambda pulls, or the damper's impulse d |s| passed the bound mu_s lambda with |s| above the stick
+    speed [m/s]. A damper held past the bound made the stuck cloth pull off the surface where it would fall back
+    sliding, and the contact chattered between the two."""
     i = wp.tid()
     n = contact_normal_out[i]
     if particle_pinned[i] != 0 or wp.dot(n, n) == 0.0:
@@ -1104,6 +1114,27 @@ def eval_contact_release(
                           membrane_block, plate_product, m_eff, dv, dt)
     impulse = wp.dot(n, a_dv - rhs_out[i])  # (the friction terms are tangential: no part of it)
     contact_impulse_out[i] = impulse
+    d = friction_mass_out[i]
+    if d > 0.0 and release_out[RELEASE_ROUNDS] < max_rounds:
+        # a sticking contact that static friction cannot hold (its damper past the bound, or no push left to hold
+        # it): it slides in this step, solved again (its release, if it still pulls, is the next round's)
+        c = contact_collider_out[i]
+        slip = contact_filter(n, v0[i] + dv[i] - contact_velocity[i])
+        speed = wp.length(slip)
+        push = wp.max(impulse, 0.0)
+        if (impulse < -release_impulse * particle_mass[i]
+                or (speed > SLIP_ALLOWANCE * stick_speed and d * speed > SLIP_ALLOWANCE * collider_static_friction[c] * push)):
+            slide = wp.vec3(0.0)
+            if speed > 0.0:
+                slide = (-collider_kinetic_friction[c] * push / speed) * slip
+            rhs_out[i] = rhs_out[i] - friction_impulse_out[i] + slide
+            effective_mass_out[i] = effective_mass_out[i] - d
+            friction_mass_out[i] = 0.0
+            friction_impulse_out[i] = slide
+            s = wp.identity(n=3, dtype=float) - wp.outer(n, n)
+            precond_out[i] = s * precond_free[i] * s
+            release_out[RELEASE_FLAG] = 1
+        return
     if impulse < -release_impulse * particle_mass[i] and release_out[RELEASE_ROUNDS] < max_rounds:
         rhs_out[i] = rhs_out[i] - friction_impulse_out[i]
         effective_mass_out[i] = effective_mass_out[i] - friction_mass_out[i]
@@ -1141,7 +1172,6 @@ def eval_contact_friction_terms(
     collider_kinetic_friction: wp.array(dtype=float),
     v0: wp.array(dtype=wp.vec3),
     precond_free: wp.array(dtype=wp.mat33),
-    slipping: wp.array(dtype=wp.int32),
     stick_speed: float,
     # outputs
     rhs_out: wp.array(dtype=wp.vec3),
@@ -1151,16 +1181,18 @@ def eval_contact_friction_terms(
     friction_impulse_out: wp.array(dtype=wp.vec3),
 ):
     """Coulomb friction of a collider contact as terms of the step's system (forward steps), from the normal impulse
-    lambda [kg m/s] of the contact's last step (lagged, as in IPC's friction). A contact whose tangential momentum
-    relative to the surface m v_T at the start of the step static friction could stop (m |v_T| <= mu_s lambda) sticks:
-    a tangential damper of mass d = mu_s lambda / eps [kg] (eps = `stick_speed` [m/s]; A += d T, b -= d T (v0 - u),
-    T = I - n n^T), whose impulse reaches the static bound only where the solved slip reaches eps, so the solve holds
-    the contact instead of moving the cloth around a slide that friction undoes after it. A faster one, or one that
-    slid or whose damper passed the bound in the last step (`slipping`, from `apply_contact_friction`), slides: the
-    kinetic impulse -mu_k lambda v_T / |v_T| in b (`apply_contact_friction` stops it where the solve reverses it).
-    Neither without a last impulse (a new contact) or on a sewn point: `apply_contact_friction` after the solve. A
-    sticking contact's preconditioner block becomes S (P_free^-1 + d T)^-1 S; the CG's product takes d on the effective
-    mass (S d c = S d T c)."""
+    lambda [kg m/s] of the contact's last step (lagged, as in IPC's friction) and its tangential velocity relative to
+    the surface at the step's start, v_T. A contact faster than static friction could stop in a step
+    (m |v_T| > mu_s lambda) slides: the kinetic impulse -mu_k lambda v_T / |v_T| in b (`apply_contact_friction` stops
+    it where the solve reverses it). Any other gets a tangential damper of mass d = mu_s lambda / max(eps, |v_T|) [kg]
+    (eps = `stick_speed` [m/s]; A += d T, b -= d T (v0 - u), T = I - n n^T): at rest its impulse reaches the static
+    bound where the solved slip reaches eps, so the solve holds the contact instead of moving the cloth around a
+    slide that friction undoes after it; creeping at |v_T| it is Coulomb's force linearised there (its impulse is
+    mu_s lambda at the same speed), which takes a contact from stick to slide and back without the switch kicking
+    the cloth around it. `eval_contact_release` switches a damper the solve pushed past the bound to the kinetic
+    impulse and solves again. Neither without a last impulse (a new contact) or on a sewn point:
+    `apply_contact_friction` after the solve. A damped contact's preconditioner block becomes
+    S (P_free^-1 + d T)^-1 S; the CG's product takes d on the effective mass (S d c = S d T c)."""
     i = wp.tid()
     friction_mass_out[i] = 0.0
     friction_impulse_out[i] = wp.vec3(0.0)
@@ -1172,12 +1204,12 @@ def eval_contact_friction_terms(
     rel = v0[i] - contact_velocity[i]
     tangential = contact_filter(n, rel)
     speed = wp.length(tangential)
-    if particle_mass[i] * speed > collider_static_friction[c] * impulse or (slipping[i] != 0 and speed > 0.0):
+    if particle_mass[i] * speed > collider_static_friction[c] * impulse:
         slide = (-collider_kinetic_friction[c] * impulse / speed) * tangential
         friction_impulse_out[i] = slide
         rhs_out[i] = rhs_out[i] + slide
         return
-    d = collider_static_friction[c] * impulse / stick_speed
+    d = collider_static_friction[c] * impulse / wp.max(stick_speed, speed)
     if d <= 0.0:
         return
     s = wp.identity(n=3, dtype=float) - wp.outer(n, n)
@@ -1257,12 +1289,10 @@ def apply_contact_friction(
     slipping_out: wp.array(dtype=wp.int32),
 ):
     """Friction on each contact's solved dv. A contact whose friction was in the solve (`eval_contact_friction_terms`):
-    one that stuck has its solved slip (within the static bound: at most `stick_speed` [m/s]) taken out, so that cloth
-    held by static friction does not creep, or, past the bound, is marked to slide from the next step (`slipping_out`;
-    its damper held it a step beyond the bound: the transition lags a step instead of solving the step again); one
-    that slid is stopped where the kinetic impulse reversed its tangential velocity, else marked to slide on (kinetic friction
-    until it stops). Any other: Coulomb friction (`coulomb_friction`) from the impulse the release check measured (one
-    that slid marked to slide on).
+    one its damper held within the stick speed (`stick_speed` [m/s]) has that slip taken out, so that cloth held by
+    static friction does not creep; one that slid is stopped where the kinetic impulse reversed its tangential
+    velocity. Any other: Coulomb friction (`coulomb_friction`) from the impulse the release check measured.
+    `slipping_out` marks the contacts left sliding (a diagnostic: the next step's friction starts from their velocity).
     A sewn point's particles (`gather_seam_friction`) take it as one point: the law on their mass-weighted tangential
     velocity and summed impulse, the same change for each (in its own tangent plane), so friction never holds a seam's
     two sides apart (each side stuck where it landed) while the seam spring pulls them together."""
@@ -1272,7 +1302,7 @@ def apply_contact_friction(
     if c < 0:
         return
     d = friction_mass[i]
-    if d > 0.0:  # stuck by the damper: held exactly within the static bound, past it: as solved, sliding from the next step
+    if d > 0.0:  # damped: held exactly within the stick speed, past it (creeping): as solved
         n = contact_normal[i]
         rel = v0[i] + dv_out[i] - contact_velocity[i]
         slip = contact_filter(n, rel)
@@ -1289,7 +1319,7 @@ def apply_contact_friction(
         if wp.dot(tangential, slide) > 0.0:
             dv_out[i] = dv_out[i] - tangential
         else:
-            slipping_out[i] = 1  # still sliding: kinetic friction until it stops
+            slipping_out[i] = 1  # still sliding
         return
     r = particle_seam_root[i]
     if r >= 0 and contact_impulse[i] > 0.0:
@@ -1310,7 +1340,7 @@ def apply_contact_friction(
     n_new = contact_normal[i]
     rel = v0[i] + dv - contact_velocity[i]
     if contact_impulse[i] > 0.0 and wp.length(contact_filter(n_new, rel)) > 0.0:
-        slipping_out[i] = 1  # it slid: kinetic friction in the next solve until it stops
+        slipping_out[i] = 1  # it slid
 
 
 @wp.kernel

@@ -103,14 +103,16 @@ class SolverImplicitEuler(SolverBase):
             particle has no friction.
         contact_friction: "solve" contacts' Coulomb friction: "after" the solve (above), or in the "solve" (forward
             steps; kernels/implicit.py eval_contact_friction_terms), with the contact's normal impulse of its last step:
-            a sticking contact as a tangential damper that reaches the static bound at `contact_stick_speed` (its solved
-            slip then taken out: no creep; past the bound it slides from the next step), a sliding one as the kinetic
-            impulse; a new contact and a sewn point take it after the solve. The solve then holds the stuck contacts
+            a sticking or creeping contact as a tangential damper that reaches the static bound at
+            `contact_stick_speed` from rest (its solved slip then taken out: no creep) and gives Coulomb's force at the
+            speed it creeps at; one the solve pushes past the bound slides, solved again; a sliding one as the kinetic
+            impulse; a new contact and a sewn point take it after the solve. With ``self_contacts="solve"`` the
+            self-contact elements' friction is in the solve alike (kernels/contact.py self_contact_friction_terms: a
+            damper on the pair's relative tangential velocity, or the kinetic impulse). The solve then holds the stuck contacts
             instead of moving the cloth around slides that friction undoes (a drape's contacts slid by up to 1.4 m/s
             in the solve), which lets draped cloth come to rest; it costs iterations (see the README).
         contact_stick_speed: "solve" contacts: the slip [m/s] at which a sticking contact's damper reaches the static
-            friction bound; a contact slipping faster at the start of a step slides. It bounds the creep of cloth held
-            by static friction (below it, in proportion to the load's share of the bound).
+            friction bound from rest; slower slips are taken out after the solve (no creep under static friction).
         self_contacts: "pass" (cloth-cloth contacts resolved after the step by the self-collision pass only) or "solve"
             (also inside the solve: each vertex-face or edge-edge pair closer than the cloth thickness (1 + 5 %) at the
             step's start, among the pairs the self-collision pass found close in the last step, is a repulsion element
@@ -274,7 +276,7 @@ class SolverImplicitEuler(SolverBase):
         # mass [kg], and the friction impulse [kg m/s] in the right-hand side (sticking or sliding)
         self.contact_friction_mass = wp.zeros(n, dtype=float, device=dev)
         self.contact_friction_impulse = wp.zeros(n, dtype=wp.vec3, device=dev)
-        self.contact_slipping = wp.zeros(n, dtype=wp.int32, device=dev)  # 1: slid, or its damper passed the bound, last step
+        self.contact_slipping = wp.zeros(n, dtype=wp.int32, device=dev)  # 1: the contact was left sliding by the last step
         # sewn points take friction as one point (kernels/implicit.py gather_seam_friction): per particle its seam's
         # root (-1: not sewn), per root the sums the friction law needs
         sewn = sewn_point_roots(model) if collider_contacts == "solve" else None
@@ -288,13 +290,14 @@ class SolverImplicitEuler(SolverBase):
         self.seam_impulse = wp.zeros(m_sewn, dtype=float, device=dev)
         # self-contact elements in the solve (kernels/contact.py eval_self_contacts; capacity: the candidates')
         self.self_contact_count = wp.zeros(1, dtype=wp.int32, device=dev)
-        self._self_contact_elements = None  # (indices, weights, normals, overlaps) at the candidates' total capacity
+        self._self_contact_elements = None  # (indices, weights, normals, overlaps, friction masses, friction impulses), capacity: the candidates'
         self._self_contacts_on = False  # whether the step being solved has self-contact elements
         self.friction_dv = wp.zeros(n, dtype=wp.vec3, device=dev)  # self-contact friction: summed changes and their count
         self.friction_weight = wp.zeros(n, dtype=float, device=dev)
         self._contacts_on = False  # whether the solve being recorded filters contacts
         self.contact_counts = wp.zeros(kct.COUNT_SIZE, dtype=wp.int32, device=dev)
         self.release = wp.zeros(ki.RELEASE_SIZE, dtype=wp.int32, device=dev)
+        self._release_v0 = None  # the step's v0 while its contacts are checked (_solve_with_contacts)
 
     def notify_model_changed(self, flags: int) -> None:
         """Model fields changed: besides the passes (:meth:`SolverBase.notify_model_changed`), the previous step's
@@ -372,14 +375,17 @@ class SolverImplicitEuler(SolverBase):
         capacity = sum(pairs.shape[0] for pairs, _ in candidates)
         if self._self_contact_elements is None or self._self_contact_elements[0].shape[0] != capacity:
             self._self_contact_elements = (wp.zeros(capacity, dtype=wp.vec4i, device=dev), wp.zeros(capacity, dtype=wp.vec4, device=dev),
-                                           wp.zeros(capacity, dtype=wp.vec3, device=dev), wp.zeros(capacity, dtype=float, device=dev))
+                                           wp.zeros(capacity, dtype=wp.vec3, device=dev), wp.zeros(capacity, dtype=float, device=dev),
+                                           wp.zeros(capacity, dtype=float, device=dev), wp.zeros(capacity, dtype=wp.vec3, device=dev))
         self.self_contact_count.zero_()
         thickness = float(m.cloth_thickness)
         for kind, (pairs, count) in enumerate(candidates):
             wp.launch(kct.eval_self_contacts, dim=pairs.shape[0],
                       inputs=[count, pairs, kind, m.tri_indices, self._self_collision.edge_indices,
                               m.particle_pinned, state_in.particle_q, state_in.particle_qd,
-                              thickness * (1.0 + float(kct.SELF_CLEARANCE)), float(m.self_collision_stiffness), dt, capacity],
+                              thickness * (1.0 + float(kct.SELF_CLEARANCE)), float(m.self_collision_stiffness), dt, capacity,
+                              self._self_collision.inv_mass, float(m.cloth_friction), self.contact_stick_speed,
+                              int(self.contact_friction == "solve")],
                       outputs=[*self._self_contact_elements, self.self_contact_count, force, self.membrane_kv, self.membrane_diag,
                                self.contact_counts], device=dev)
 
@@ -387,7 +393,8 @@ class SolverImplicitEuler(SolverBase):
         """Add the self-contact elements' part of A p to `out`."""
         m = self.model
         wp.launch(kct.scatter_self_contact_product, dim=self._self_contact_elements[0].shape[0],
-                  inputs=[self.self_contact_count, *self._self_contact_elements[:3], dt * dt * float(m.self_collision_stiffness), p],
+                  inputs=[self.self_contact_count, *self._self_contact_elements[:3], self._self_contact_elements[4],
+                          dt * dt * float(m.self_collision_stiffness), p],
                   outputs=[out], device=m.device)
 
     def _apply_self_contact_friction(self, state_in: State, dt: float):
@@ -399,7 +406,8 @@ class SolverImplicitEuler(SolverBase):
         self.friction_weight.zero_()
         wp.launch(kct.eval_self_contact_friction, dim=self._self_contact_elements[0].shape[0],
                   inputs=[self.self_contact_count, *self._self_contact_elements, self._self_collision.inv_mass,
-                          state_in.particle_qd, self.dv, float(m.self_collision_stiffness), float(m.cloth_friction), dt],
+                          state_in.particle_qd, self.dv, float(m.self_collision_stiffness), float(m.cloth_friction), dt,
+                          self.contact_stick_speed],
                   outputs=[self.friction_dv, self.friction_weight], device=dev)
         wp.launch(ksc.apply_velocity_changes, dim=m.particle_count, inputs=[self.dv, self.friction_dv, self.friction_weight],
                   outputs=[self.dv], device=dev)  # in place: each thread reads and writes its own particle
@@ -574,13 +582,12 @@ class SolverImplicitEuler(SolverBase):
             self_contacts=int(r[ki.RECORD_SELF_CONTACTS]))
 
     def carried_arrays(self) -> list:
-        """The warm start, and the contacts' last normal impulses and slips past the static bound (their next friction)."""
-        return [self.dv_previous, self.previous_ready, self.contact_impulse, self.contact_slipping]
+        """The warm start, and the contacts' last normal impulses (their next friction)."""
+        return [self.dv_previous, self.previous_ready, self.contact_impulse]
 
     def forget_world(self, world: int, particles: slice) -> None:
         self.dv_previous[particles].zero_()
         self.contact_impulse[particles].zero_()
-        self.contact_slipping[particles].zero_()
         self.previous_ready[world : world + 1].zero_()
 
     # -- checkpoints --------------------------------------------------------------------------
@@ -591,7 +598,6 @@ class SolverImplicitEuler(SolverBase):
         out["has_previous"] = self.has_previous
         out["dv_previous"] = self.dv_previous.numpy().copy()
         out["contact_impulse"] = self.contact_impulse.numpy().copy()
-        out["contact_slipping"] = self.contact_slipping.numpy().copy()
         return out
 
     def restore_state(self, state: dict) -> None:
@@ -601,7 +607,6 @@ class SolverImplicitEuler(SolverBase):
         self.previous_ready.fill_(int(bool(state["has_previous"])))
         if "contact_impulse" in state:  # (checkpoints written before friction was in the solve: none)
             self.contact_impulse.assign(np.asarray(state["contact_impulse"], np.float32).reshape(self.model.particle_count))
-            self.contact_slipping.assign(np.asarray(state["contact_slipping"], np.int32).reshape(self.model.particle_count))
 
     # -- the step ----------------------------------------------------------------------------
     def solve(self, state_in: State, control: Control, dt: float) -> wp.array:
@@ -686,7 +691,7 @@ class SolverImplicitEuler(SolverBase):
             wp.launch(ki.eval_contact_friction_terms, dim=m.particle_count,
                       inputs=[m.particle_mass, self.particle_seam_root, self.contact_collider, self.contact_normal,
                               self.contact_velocity, self.contact_impulse, m.collider_static_friction, m.collider_kinetic_friction,
-                              state_in.particle_qd, self.precond_free, self.contact_slipping, self.contact_stick_speed],
+                              state_in.particle_qd, self.precond_free, self.contact_stick_speed],
                       outputs=[self.rhs, self.effective_mass, self.precond, self.contact_friction_mass,
                                self.contact_friction_impulse],
                       device=dev)
@@ -696,6 +701,7 @@ class SolverImplicitEuler(SolverBase):
                   outputs=[self.dv_alt], device=dev)
         self._start_from_guess(dt, self._enabled, self.warm_scalars)
         self.solve_cg(dt, warm, restarted=True)
+        self._release_v0 = state_in.particle_qd  # (the checks' slip: v0 + dv relative to the surface)
         self.release.zero_()
         self._check_release(dt)
         device_while(self.release, self._resolve, dt=dt)
@@ -728,7 +734,8 @@ class SolverImplicitEuler(SolverBase):
                   inputs=[*self._product_args(), m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, self.system_block,
                           self.bend_vector, self.drag_vector, self.membrane_block, self.plate_product, self.dv,
                           self.precond_free, m.global_damping, dt, self.contact_release_fraction * self._gravity_norm * dt,
-                          self.contact_release_rounds],
+                          self.contact_release_rounds, self._release_v0, self.contact_velocity, m.collider_static_friction,
+                          m.collider_kinetic_friction, self.contact_stick_speed],
                   outputs=[self.rhs, self.effective_mass, self.contact_friction_mass, self.contact_friction_impulse, self.precond,
                            self.contact_collider, self.contact_normal, self.contact_dv, self.contact_impulse, self.release],
                   device=m.device)
