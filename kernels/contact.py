@@ -22,7 +22,7 @@ the filter itself belong to the solver; this module only finds the contacts.
 import warp as wp
 
 from .collide import shape_distance, surface_velocity, mesh_surface_velocity
-from .implicit import SLIP_ALLOWANCE
+from .implicit import RELEASE_FLAG, RELEASE_ROUNDS, SLIP_ALLOWANCE
 from .selfcollide import NORMAL_EPS, add_impulse, inverse_mass_weight, pair_indices, start_weights, weighted_sum
 
 wp.set_module_options({"enable_backward": False})
@@ -305,6 +305,58 @@ def scatter_self_contact_product(
     c = coefficient * q_n * n + element_friction_mass[e] * (q - q_n * n)
     for r in range(4):
         wp.atomic_add(product_out, idx[r], alpha[r] * c)
+
+
+@wp.kernel
+def slide_self_contacts(
+    element_count: wp.array(dtype=wp.int32),
+    element_indices: wp.array(dtype=wp.vec4i),
+    element_weights: wp.array(dtype=wp.vec4),
+    element_normal: wp.array(dtype=wp.vec3),
+    element_overlap: wp.array(dtype=float),
+    v0: wp.array(dtype=wp.vec3),
+    dv: wp.array(dtype=wp.vec3),
+    stiffness: float,
+    friction: float,
+    dt: float,
+    stick_speed: float,
+    max_rounds: int,
+    # outputs
+    element_friction_mass_out: wp.array(dtype=float),
+    element_friction_impulse_out: wp.array(dtype=wp.vec3),
+    rhs_out: wp.array(dtype=wp.vec3),
+    release_out: wp.array(dtype=wp.int32),
+):
+    """A self-contact element whose friction damper (`self_contact_friction_terms`) the solve pushed past the static
+    bound (solved relative slip s beyond the stick speed [m/s], d |s| > mu lambda) slides within the step, as a collider
+    contact does (kernels/implicit.py eval_contact_release): its damper leaves the system (its b part, -d alpha_r v_T0,
+    taken back) for the kinetic impulse J = -mu lambda s / |s| (alpha_r J to each member), and the step is solved again
+    (release_out[RELEASE_FLAG]), while fewer than `max_rounds` re-solves ran. Without it a pair starting from rest
+    under a load above the bound only sped up by the load's ratio to the bound per step (a cloth on a cloth on a 30 deg
+    incline at 0.15 m/s after 10 frames, 0.39 expected). The preconditioner keeps the damper's block (still SPD)."""
+    e = wp.tid()
+    if e >= element_count[0] or release_out[RELEASE_ROUNDS] >= max_rounds:
+        return
+    d = element_friction_mass_out[e]
+    if d <= 0.0:
+        return
+    idx = element_indices[e]
+    alpha = element_weights[e]
+    n = element_normal[e]
+    v_end = weighted_sum(alpha, v0[idx[0]] + dv[idx[0]], v0[idx[1]] + dv[idx[1]], v0[idx[2]] + dv[idx[2]], v0[idx[3]] + dv[idx[3]])
+    slip = v_end - wp.dot(v_end, n) * n
+    speed = wp.length(slip)
+    bound = friction * dt * stiffness * element_overlap[e]
+    if speed <= SLIP_ALLOWANCE * stick_speed or d * speed <= SLIP_ALLOWANCE * bound:
+        return
+    v_start = weighted_sum(alpha, v0[idx[0]], v0[idx[1]], v0[idx[2]], v0[idx[3]])
+    v_t0 = v_start - wp.dot(v_start, n) * n
+    j = (-bound / speed) * slip
+    for r in range(4):
+        wp.atomic_add(rhs_out, idx[r], alpha[r] * (j + d * v_t0))
+    element_friction_mass_out[e] = 0.0
+    element_friction_impulse_out[e] = j
+    release_out[RELEASE_FLAG] = 1
 
 
 @wp.kernel

@@ -739,6 +739,12 @@ class SolverImplicitEuler(SolverBase):
                   outputs=[self.rhs, self.effective_mass, self.contact_friction_mass, self.contact_friction_impulse, self.precond,
                            self.contact_collider, self.contact_normal, self.contact_dv, self.contact_impulse, self.release],
                   device=m.device)
+        if self._self_contacts_on and self.contact_friction == "solve":  # (after: the collider contacts' rounds are counted)
+            el = self._self_contact_elements
+            wp.launch(kct.slide_self_contacts, dim=el[0].shape[0],
+                      inputs=[self.self_contact_count, *el[:4], self._release_v0, self.dv, float(m.self_collision_stiffness),
+                              float(m.cloth_friction), dt, self.contact_stick_speed, self.contact_release_rounds],
+                      outputs=[el[4], el[5], self.rhs, self.release], device=m.device)
 
     def _resolve(self, dt: float):
         """Solve the step again from its last dv with the released contacts free, then check again."""
