@@ -23,6 +23,7 @@ import warp as wp
 
 from .collide import shape_distance, surface_velocity, mesh_surface_velocity
 from .implicit import RELEASE_FLAG, RELEASE_ROUNDS, SLIP_ALLOWANCE
+from .worlds import particle_world_of
 from .selfcollide import NORMAL_EPS, add_impulse, inverse_mass_weight, pair_indices, start_weights, weighted_sum
 
 wp.set_module_options({"enable_backward": False})
@@ -38,6 +39,9 @@ SELF_CLEARANCE = wp.constant(0.05)
 # (1e-3 of the thickness, kernels/collide.py), so that float32 rounding does not leave the
 # end point a hair inside, where the colliders pass after the step would push it again (8 um for 4 mm).
 CLEARANCE = wp.constant(2.0e-3)
+# A contact within the band above the landing height that is not predicted to reach the surface settles onto it at
+# most this fast [m/s] (eval_collider_contacts), instead of landing in one step.
+SETTLE_SPEED = wp.constant(1.0e-3)
 
 
 @wp.func
@@ -54,10 +58,13 @@ def surface_contact(shape: int, size: wp.vec3, mesh: wp.uint64, mesh_max_distanc
 
 
 @wp.func
-def prescribed_velocity_change(n: wp.vec3, u: wp.vec3, v0: wp.vec3, d0: float, thickness: float, dt: float):
+def prescribed_velocity_change(n: wp.vec3, u: wp.vec3, v0: wp.vec3, d0: float, thickness: float, dt: float, descent: float):
     """z = ((u . n + push) - v0 . n) n [m/s], push = (thickness (1 + clearance) - d0) / h: the normal velocity change
-    that ends the step at the thickness."""
+    that ends the step at the thickness; with `descent` >= 0, a particle above that height moves down towards it at
+    most that fast [m/s] (0: keeps its height)."""
     push = (thickness * (1.0 + CLEARANCE) - d0) * (1.0 / dt)
+    if descent >= 0.0:
+        push = wp.max(push, -descent)
     return (wp.dot(u, n) + push - wp.dot(v0, n)) * n
 
 
@@ -84,6 +91,12 @@ def eval_collider_contacts(
     gravity: wp.vec3,
     dt: float,
     margin: float,
+    hold_band: int,
+    dv_previous: wp.array(dtype=wp.vec3),
+    previous_ready: wp.array(dtype=wp.int32),
+    particle_world: wp.array(dtype=wp.int32),
+    worlds: int,
+    contact_impulse: wp.array(dtype=float),
     # outputs
     contact_collider_out: wp.array(dtype=wp.int32),
     contact_normal_out: wp.array(dtype=wp.vec3),
@@ -94,8 +107,14 @@ def eval_collider_contacts(
     """Per particle: the collider it touches (-1: none), the outward unit normal n (world, end pose; zero without a
     contact), the surface velocity u [m/s] there and the velocity change it prescribes, z = ((u . n + push) - v0 . n) n
     [m/s] with push = (thickness (1 + clearance) - d0) / h the relative normal speed that ends the step at the
-    thickness (zero without a contact)."""
+    thickness (zero without a contact). With `hold_band` (forward steps), a particle within the band above the landing
+    height that is not predicted to pass the thickness (moved by its last step's velocity change, `dv_previous`, where
+    its world has one, else by gravity) is not pulled down onto it in one step: it keeps its height when its contact
+    bore no load in the last step (`contact_impulse`), and settles at SETTLE_SPEED when it did. The cloth often holds
+    such a particle up: pulled down every step, it was found pulling, released and the step solved again (and the warm
+    start around it was off); held at its height while loaded, the lower of two layers stayed bumpy."""
     i = wp.tid()
+    pressed = contact_impulse[i] > 0.0  # (the last step's, read before this step's contacts replace it)
     contact_collider_out[i] = -1
     contact_normal_out[i] = wp.vec3(0.0)
     contact_velocity_out[i] = wp.vec3(0.0)
@@ -104,6 +123,9 @@ def eval_collider_contacts(
         return
     xs = x0[i]
     xp = xs + dt * v0[i] + (dt * dt) * gravity
+    xh = xp  # the band's landing test: moved by the last step's velocity change where there is one (the cloth's support in it)
+    if hold_band != 0 and previous_ready[particle_world_of(i, particle_world, worlds)] != 0:
+        xh = xs + dt * (v0[i] + dv_previous[i])
     best = float(0.0)
     found = int(-1)
     for c in range(collider_count):
@@ -127,7 +149,14 @@ def eval_collider_contacts(
                 best = depth
                 contact_normal_out[i] = n
                 contact_velocity_out[i] = u
-                contact_dv_out[i] = prescribed_velocity_change(n, u, v0[i], d0, thickness, dt)
+                descent = float(-1.0)  # (lands in one step)
+                if hold_band != 0 and d0 < thickness * (1.0 + margin):
+                    d_held, n_held = shape_distance(shape, size, mesh, mesh_max_distance, wp.transform_point(wp.transform_inverse(t_end), xh))
+                    if d_held >= thickness:
+                        descent = 0.0
+                        if pressed:
+                            descent = SETTLE_SPEED
+                contact_dv_out[i] = prescribed_velocity_change(n, u, v0[i], d0, thickness, dt, descent)
     contact_collider_out[i] = found
     if found >= 0:
         wp.atomic_add(counts_out, COUNT_CONTACTS, 1)
@@ -167,7 +196,7 @@ def eval_contact_constraints(
                                collider_transform_start[c], collider_transform_end[c], x0[i], dt)
     contact_normal_out[i] = n
     contact_velocity_out[i] = u
-    contact_dv_out[i] = prescribed_velocity_change(n, u, v0[i], d0, collider_thickness[c], dt)
+    contact_dv_out[i] = prescribed_velocity_change(n, u, v0[i], d0, collider_thickness[c], dt, -1.0)
 
 
 # -- self-contacts in the solve ----------------------------------------------------------------------------------

@@ -97,7 +97,10 @@ class SolverImplicitEuler(SolverBase):
             colliders pass still runs after the step as the guarantee). Taped steps differentiated by the adjoint hold them too
             (below; their friction is per particle); CG only.
         contact_margin: "solve" contacts: a particle within the thickness x (1 + margin) at the step's start is in
-            contact (as is one inside, or predicted to reach the surface within the step).
+            contact (as is one inside, or predicted to reach the surface within the step); on a forward step, one in
+            that band that its last step's velocity change does not carry through the thickness keeps its height, or
+            settles at kernels/contact.py SETTLE_SPEED if its contact bore load (the cloth may hold it up), instead
+            of being pulled down onto the surface in one step.
         contact_release_fraction: "solve" contacts: a contact is released when it pulls with more than this fraction
             of the particle's weight (times the step): below it the pull is the solve's round-off, and a released
             particle has no friction.
@@ -679,7 +682,8 @@ class SolverImplicitEuler(SolverBase):
                   inputs=[m.particle_pinned, m.collider_count, m.collider_shape, m.collider_size, m.collider_mesh, m.collider_deforming,
                           m.collider_thickness, m.collider_static_friction, m.collider_kinetic_friction, m.collider_mesh_max_distance,
                           control.collider_transform_start, control.collider_transform_end, state_in.particle_q, state_in.particle_qd,
-                          wp.vec3(*m.gravity), dt, self.contact_margin],
+                          wp.vec3(*m.gravity), dt, self.contact_margin, int(not state_in.requires_grad), self.dv_previous,
+                          self.previous_ready if self.warm_start else self._disabled, m.particle_world, self.worlds, self.contact_impulse],
                   outputs=[self.contact_collider, self.contact_normal, self.contact_velocity, self.contact_dv,
                            self.contact_counts], device=dev)
         wp.launch(ki.filter_contact_preconditioner, dim=m.particle_count, inputs=[self.contact_normal],
