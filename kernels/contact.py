@@ -336,6 +336,12 @@ def scatter_self_contact_product(
         wp.atomic_add(product_out, idx[r], alpha[r] * c)
 
 
+@wp.func
+def pair_end_velocity(alpha: wp.vec4, idx: wp.vec4i, v0: wp.array(dtype=wp.vec3), dv: wp.array(dtype=wp.vec3)):
+    """A self-contact pair's relative velocity [m/s] at the step's end, sum_r alpha_r (v0_r + dv_r)."""
+    return weighted_sum(alpha, v0[idx[0]] + dv[idx[0]], v0[idx[1]] + dv[idx[1]], v0[idx[2]] + dv[idx[2]], v0[idx[3]] + dv[idx[3]])
+
+
 @wp.kernel
 def slide_self_contacts(
     element_count: wp.array(dtype=wp.int32),
@@ -372,7 +378,7 @@ def slide_self_contacts(
     idx = element_indices[e]
     alpha = element_weights[e]
     n = element_normal[e]
-    v_end = weighted_sum(alpha, v0[idx[0]] + dv[idx[0]], v0[idx[1]] + dv[idx[1]], v0[idx[2]] + dv[idx[2]], v0[idx[3]] + dv[idx[3]])
+    v_end = pair_end_velocity(alpha, idx, v0, dv)
     slip = v_end - wp.dot(v_end, n) * n
     speed = wp.length(slip)
     bound = friction * dt * stiffness * element_overlap[e]
@@ -420,7 +426,7 @@ def eval_self_contact_friction(
     idx = element_indices[e]
     alpha = element_weights[e]
     n = element_normal[e]
-    v_rel = weighted_sum(alpha, v0[idx[0]] + dv[idx[0]], v0[idx[1]] + dv[idx[1]], v0[idx[2]] + dv[idx[2]], v0[idx[3]] + dv[idx[3]])
+    v_rel = pair_end_velocity(alpha, idx, v0, dv)
     mass_weight = inverse_mass_weight(alpha, idx, inv_mass)
     v_t = v_rel - wp.dot(v_rel, n) * n
     speed = wp.length(v_t)
