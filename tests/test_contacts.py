@@ -749,7 +749,7 @@ def test_cloth_on_cloth_sticks_or_slides_by_coulomb_with_friction_in_the_solve(t
     4th; measured within 0.3 %). A
     damper the solve pushes past the static bound slides within the step (kernels/contact.py slide_self_contacts):
     without that, a pair starting from rest only sped up by the load's ratio to the bound per step and the cloth
-    reached 0.15 m/s after 10 frames instead of 0.26 (with the friction after the solve: 0.72, too fast)."""
+    reached 0.15 m/s after 10 frames instead of 0.28 (with the friction after the solve: 0.72, too fast)."""
     mu = 0.3
     sim, upper, downhill = cloth_on_cloth_incline(theta, mu, "solve")
     speeds, travel = {}, {}

@@ -300,7 +300,6 @@ class SolverImplicitEuler(SolverBase):
         self._contacts_on = False  # whether the solve being recorded filters contacts
         self.contact_counts = wp.zeros(kct.COUNT_SIZE, dtype=wp.int32, device=dev)
         self.release = wp.zeros(ki.RELEASE_SIZE, dtype=wp.int32, device=dev)
-        self._release_v0 = None  # the step's v0 while its contacts are checked (_solve_with_contacts)
 
     def notify_model_changed(self, flags: int) -> None:
         """Model fields changed: besides the passes (:meth:`SolverBase.notify_model_changed`), the previous step's
@@ -705,10 +704,9 @@ class SolverImplicitEuler(SolverBase):
                   outputs=[self.dv_alt], device=dev)
         self._start_from_guess(dt, self._enabled, self.warm_scalars)
         self.solve_cg(dt, warm, restarted=True)
-        self._release_v0 = state_in.particle_qd  # (the checks' slip: v0 + dv relative to the surface)
         self.release.zero_()
-        self._check_release(dt)
-        device_while(self.release, self._resolve, dt=dt)
+        self._check_release(dt, state_in.particle_qd)
+        device_while(self.release, self._resolve, dt=dt, v0=state_in.particle_qd)
         return self.dv
 
     def _apply_contact_friction(self, state_in: State):
@@ -730,34 +728,35 @@ class SolverImplicitEuler(SolverBase):
                           self.contact_friction_impulse, self.contact_stick_speed],
                   outputs=[self.dv, self.contact_slipping], device=m.device)
 
-    def _check_release(self, dt: float):
-        """Each contact's solved impulse; release those that pull (:func:`~cloth_warp.kernels.implicit.eval_contact_release`)."""
+    def _check_release(self, dt: float, v0: wp.array):
+        """Each contact's solved impulse; release those that pull (:func:`~cloth_warp.kernels.implicit.eval_contact_release`);
+        friction dampers the solve pushed past the static bound slide (the slip from the step's start velocities `v0`)."""
         m = self.model
         self._plate_product(self.dv, dt)
         wp.launch(ki.eval_contact_release, dim=m.particle_count,
                   inputs=[*self._product_args(), m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, self.system_block,
                           self.bend_vector, self.drag_vector, self.membrane_block, self.plate_product, self.dv,
                           self.precond_free, m.global_damping, dt, self.contact_release_fraction * self._gravity_norm * dt,
-                          self.contact_release_rounds, self._release_v0, self.contact_velocity, m.collider_static_friction,
+                          self.contact_release_rounds, v0, self.contact_velocity, m.collider_static_friction,
                           m.collider_kinetic_friction, self.contact_stick_speed],
                   outputs=[self.rhs, self.effective_mass, self.contact_friction_mass, self.contact_friction_impulse, self.precond,
                            self.contact_collider, self.contact_normal, self.contact_dv, self.contact_impulse, self.release],
                   device=m.device)
-        if self._self_contacts_on and self.contact_friction == "solve":  # (after: the collider contacts' rounds are counted)
+        if self._self_contacts_on and self.contact_friction == "solve":  # (same rounds and flag as the collider contacts')
             el = self._self_contact_elements
             wp.launch(kct.slide_self_contacts, dim=el[0].shape[0],
-                      inputs=[self.self_contact_count, *el[:4], self._release_v0, self.dv, float(m.self_collision_stiffness),
+                      inputs=[self.self_contact_count, *el[:4], v0, self.dv, float(m.self_collision_stiffness),
                               float(m.cloth_friction), dt, self.contact_stick_speed, self.contact_release_rounds],
                       outputs=[el[4], el[5], self.rhs, self.release], device=m.device)
 
-    def _resolve(self, dt: float):
+    def _resolve(self, dt: float, v0: wp.array):
         """Solve the step again from its last dv with the released contacts free, then check again."""
         wp.launch(ki.begin_contact_resolve, dim=1, outputs=[self.release, self.loop], device=self.model.device)
         wp.copy(self.dv_alt, self.dv)
         self._start_from_guess(dt, self._enabled, self.warm_scalars)
         self.cg_scalars.zero_()  # the first solve's rows (the iterations accumulate into them)
         self.solve_cg(dt, restarted=True, resolve=True)
-        self._check_release(dt)
+        self._check_release(dt, v0)
 
     def _start_from_guess(self, dt: float, enabled: wp.array, scalars: wp.array):
         """Restart the iteration from the guess in dv_alt when enabled[0]: r0 = S (rhs - A guess), search direction,
