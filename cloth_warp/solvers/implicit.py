@@ -658,6 +658,11 @@ class SolverImplicitEuler(SolverBase):
         return (self.collider_contacts == "solve" and self.model.collider_count > 0
                 and (not state_in.requires_grad or self.differentiation == "adjoint"))
 
+    def _filtered_inverse(self) -> int:
+        """Whether a contact's preconditioner block is the filtered block's inverse: not yet where the contacts'
+        friction is in the solve (kernels/implicit.py filter_contact_preconditioner)."""
+        return int(self.contact_friction != "solve")
+
     def _iterate(self, dt: float, warm: bool = False) -> wp.array:
         return self.solve_cg(dt, warm) if self.linear_solver == LinearSolver.CG else self.solve_jacobi(dt, warm)
 
@@ -685,7 +690,7 @@ class SolverImplicitEuler(SolverBase):
                           self.previous_ready if self.warm_start else self._disabled, m.particle_world, self.worlds, self.contact_impulse],
                   outputs=[self.contact_collider, self.contact_normal, self.contact_velocity, self.contact_dv,
                            self.contact_counts], device=dev)
-        wp.launch(ki.filter_contact_preconditioner, dim=m.particle_count, inputs=[self.contact_normal],
+        wp.launch(ki.filter_contact_preconditioner, dim=m.particle_count, inputs=[self.contact_normal, self._filtered_inverse()],
                   outputs=[self.precond, self.precond_free], device=dev)
         if self.contact_friction == "solve" and state_in.requires_grad:  # a taped step's friction is on the tape
             self.contact_friction_mass.zero_()
@@ -891,7 +896,7 @@ class SolverImplicitEuler(SolverBase):
             self.contact_normal.zero_()
         else:
             wp.copy(self.contact_normal, contact_normal)
-            wp.launch(ki.filter_contact_preconditioner, dim=m.particle_count, inputs=[self.contact_normal],
+            wp.launch(ki.filter_contact_preconditioner, dim=m.particle_count, inputs=[self.contact_normal, self._filtered_inverse()],
                       outputs=[self.precond, self.precond_free], device=m.device)
         self._contacts_on = contact_normal is not None
         wp.copy(self.rhs, dv.grad)
