@@ -249,6 +249,7 @@ class SolverImplicitEuler(SolverBase):
         self.precond = wp.zeros(n, dtype=wp.mat33, device=dev)
         self.dv = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.dv_alt = wp.zeros(n, dtype=wp.vec3, device=dev)
+        self.dv_best = wp.zeros(n, dtype=wp.vec3, device=dev)  # CG: the iterate with the smallest residual (restore_best_iterate)
         self.dv_previous = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.residual = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.preconditioned = wp.zeros(n, dtype=wp.vec3, device=dev)
@@ -443,6 +444,10 @@ class SolverImplicitEuler(SolverBase):
         self._begin_iterations(warm, restarted, resolve)
         self.product.zero_()  # then each iteration's cg_update clears it for the next
         device_while(self.loop, self._cg_iteration, dt=dt)
+        m = self.model
+        wp.launch(ki.best_iterate_status, dim=self.worlds, inputs=[self.worlds], outputs=[self.solve_status, self.loop], device=m.device)
+        wp.launch(ki.restore_best_iterate, dim=m.particle_count, inputs=[self.solve_status, self.loop, self.dv_best, m.particle_world, self.worlds],
+                  outputs=[self.dv], device=m.device)
         return self.dv
 
     def _cg_iteration(self, dt: float):
@@ -478,8 +483,9 @@ class SolverImplicitEuler(SolverBase):
                          outputs=[self.cg_sums], device=dev, per_item=batched)
         wp.launch(ki.end_cg_iteration, dim=worlds, inputs=[self.check_every, self.max_iterations, worlds],
                   outputs=[self.cg_sums, self.cg_scalars, self.cg_step, self.solve_status, self.loop], device=dev)
-        wp.launch(ki.cg_direction, dim=m.particle_count, inputs=[self.preconditioned, self.cg_step, self.loop, m.particle_world, worlds],
-                  outputs=[c], device=dev)
+        wp.launch(ki.cg_direction, dim=m.particle_count, inputs=[self.preconditioned, self.cg_step, self.loop, m.particle_world, worlds,
+                                                                 self.dv],
+                  outputs=[c, self.dv_best], device=dev)
 
     def solve_jacobi(self, dt: float, warm: bool = False) -> wp.array:
         """Block Jacobi on the assembled system (`warm` as in :meth:`solve_cg`), iterating on the device; returns
