@@ -816,7 +816,6 @@ def cg_direction(
 
 @wp.kernel(enable_backward=False)
 def restore_best_iterate(
-    status: wp.array(dtype=wp.float64),
     loop: wp.array(dtype=wp.int32),
     dv_best: wp.array(dtype=wp.vec3),
     particle_world: wp.array(dtype=wp.int32),

@@ -446,7 +446,7 @@ class SolverImplicitEuler(SolverBase):
         device_while(self.loop, self._cg_iteration, dt=dt)
         m = self.model
         wp.launch(ki.best_iterate_status, dim=self.worlds, inputs=[self.worlds], outputs=[self.solve_status, self.loop], device=m.device)
-        wp.launch(ki.restore_best_iterate, dim=m.particle_count, inputs=[self.solve_status, self.loop, self.dv_best, m.particle_world, self.worlds],
+        wp.launch(ki.restore_best_iterate, dim=m.particle_count, inputs=[self.loop, self.dv_best, m.particle_world, self.worlds],
                   outputs=[self.dv], device=m.device)
         return self.dv
 
