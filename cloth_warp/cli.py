@@ -633,31 +633,27 @@ def main(argv=None) -> int:
     and where SIGINT was ignored at start, as in background jobs) exits 130 without a traceback; `run` and
     `fit` first close what they write."""
     previous = signal.signal(signal.SIGTERM, _on_sigterm), signal.signal(signal.SIGINT, signal.default_int_handler)
+    # The command (argv None), interrupted and exiting, has closed what it writes: a further SIGINT or SIGTERM is then
+    # ignored. A late one killed it by the signal (exit -2, twice in full suite runs, test_ctrl_c_at_any_moment[0.3])
+    # after it had said "cloth-warp: interrupted", instead of exiting 130. In-process calls get their handlers back.
+    exiting = (signal.SIG_IGN, signal.SIG_IGN) if argv is None else previous
     code = None
     try:
         code = _main(argv)
         return code
     except KeyboardInterrupt:
         code = EXIT_INTERRUPTED
-        _ignore_interrupts(argv)
+        _set_handlers(exiting)  # (before the message: a second Ctrl-C while it prints)
         print("cloth-warp: interrupted", file=sys.stderr)
         return code
     finally:
-        if code == EXIT_INTERRUPTED and argv is None:
-            _ignore_interrupts(argv)
-        else:
-            signal.signal(signal.SIGTERM, previous[0])
-            signal.signal(signal.SIGINT, previous[1])
+        _set_handlers(exiting if code == EXIT_INTERRUPTED else previous)
 
 
-def _ignore_interrupts(argv) -> None:
-    """The command (`argv` None), interrupted and exiting: it has closed what it writes, so a further SIGINT or SIGTERM
-    is ignored. A late one killed it by the signal (exit -2, twice in full suite runs, `test_ctrl_c_at_any_moment[0.3]`)
-    after it had said "cloth-warp: interrupted", instead of exiting 130. Called in-process (`argv` given) it
-    restores the caller's handlers instead (`main`'s finally)."""
-    if argv is None:
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
+def _set_handlers(handlers) -> None:
+    """SIGTERM's and SIGINT's handlers, in that order."""
+    signal.signal(signal.SIGTERM, handlers[0])
+    signal.signal(signal.SIGINT, handlers[1])
 
 
 if __name__ == "__main__":
