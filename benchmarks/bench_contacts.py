@@ -14,6 +14,7 @@ frames re-run because a self-collision buffer overflowed or a step needed impact
 Run:  python benchmarks/bench_contacts.py                      (pile and drape_sphere, a few minutes on 2 cores)
       python benchmarks/bench_contacts.py --scenes pile --frames 120 --set cloth.grid.resolution=[48,48]
       python benchmarks/bench_contacts.py --modes solve solve+friction --set collision.self_collision=false
+      python benchmarks/bench_contacts.py --scenes pile --resolutions 32 48 64 --seeds 0 1 --set solver.tolerance=1e-4
 """
 
 from __future__ import annotations
@@ -38,12 +39,15 @@ def parse_args(argv=None):
     p.add_argument("--scenes", nargs="+", default=["pile", "drape_sphere"])
     p.add_argument("--frames", type=int, default=300)
     p.add_argument("--modes", nargs="+", default=list(MODES), choices=list(MODES))
+    p.add_argument("--seeds", nargs="+", type=int, default=None, help="scene.seed values (the cloth's jitter), one run each")
+    p.add_argument("--resolutions", nargs="+", type=int, default=None, help="square grid resolutions (cloth.grid.resolution), one run each")
+    p.add_argument("--device", default="cpu", help="Warp device (cpu, cuda:0)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="scene override (TOML value), repeatable")
     p.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "bench_contacts.md"))
     return p.parse_args(argv)
 
 
-def run(scene_name: str, mode: str, frames: int, overrides: dict) -> dict:
+def run(scene_name: str, mode: str, frames: int, overrides: dict, device: str = "cpu") -> dict:
     import warp as wp
 
     from cloth_warp.runner import find_scene, load_kernels
@@ -53,7 +57,7 @@ def run(scene_name: str, mode: str, frames: int, overrides: dict) -> dict:
     collider, self_contacts, friction = MODES[mode]
     scene = load_scene(find_scene(scene_name), {**overrides, "solver.collider_contacts": collider, "solver.self_contacts": self_contacts,
                                                 "solver.contact_friction": friction})
-    model = build_model(scene, "cpu")
+    model = build_model(scene, device)
     solver = build_solver(scene, model)
     load_kernels(solver, model.device)
     sim = Simulator(model, solver, fps=float(scene.get("output.fps")), substeps=int(scene.get("solver.substeps")),
@@ -87,6 +91,30 @@ def run(scene_name: str, mode: str, frames: int, overrides: dict) -> dict:
             "reruns": sim.reruns}
 
 
+def write_report(rows: list[dict], command: str, device: str, frames: int, overrides: dict, out: pathlib.Path, note: str = ""):
+    """The rows as a markdown table at `out` (and the JSON beside it), printed too."""
+    import warp as wp
+
+    lines = ["# bench_contacts: contacts after the step (\"pass\") or also inside the implicit solve (\"solve\": collider contacts; "
+             "\"solve+self\": and self-contacts; \"+friction\": their friction in the solve too)", "",
+             f"Machine: {platform.machine()}, Python {platform.python_version()}, Warp {wp.config.version}, device {device}. "
+             f"Command: `{command}`" + (f"; overrides {overrides}" if overrides else "") + note, "",
+             f"{frames} frames per run; speeds and counts over the last {TAIL} frames (at rest: <= 1 mm/s).", "",
+             "| scene | resolution | seed | contacts | ms/frame | largest speed, median [mm/s] | largest speed, max [mm/s] | colliders-pass contacts/frame "
+             "| self-collision pass impulses/frame | self-contact elements in the solve/frame "
+             "| CG iterations/frame | frames re-run | max limited strain (end) | springs > limit + 1 % |",
+             "|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        lines.append(f"| {r['scene']} | {r['resolution'] or 'scene'} | {'scene' if r['seed'] is None else r['seed']} | {r['mode']} | "
+                     f"{r['ms_per_frame']:.1f} | {1e3 * r['rest_speed_median']:.2f} | "
+                     f"{1e3 * r['rest_speed_max']:.2f} | {r['pass_contacts']:.0f} | {r['self_impulses']:.0f} | {r['self_elements']:.0f} | "
+                     f"{r['iterations']:.0f} | {r['reruns']} | "
+                     f"{r['max_limited_strain']:.3f} | {r['springs_over_limit']} |")
+    out.write_text("\n".join(lines) + "\n")
+    out.with_suffix(".json").write_text(json.dumps({"command": command, "overrides": overrides, "rows": rows}, indent=1) + "\n")
+    print("\n".join(lines))
+
+
 def main(argv=None) -> int:
     import warp as wp
 
@@ -99,33 +127,20 @@ def main(argv=None) -> int:
     from cloth_warp.runner import find_scene
     from cloth_warp.scene import load_scene
 
+    variants = [{**({"cloth.grid.resolution": [res, res]} if res else {}), **({"scene.seed": seed} if seed is not None else {})}
+                for res in (args.resolutions or [None]) for seed in (args.seeds or [None])]
     for name in args.scenes:
         self_collision = bool(load_scene(find_scene(name), overrides).get("collision.self_collision"))
-        for mode in args.modes:
-            if MODES[mode][1] == "solve" and not self_collision:
-                continue
-            r = run(name, mode, args.frames, overrides)
-            rows.append(r)
-            print(json.dumps(r), flush=True)
+        for variant in variants:
+            for mode in args.modes:
+                if MODES[mode][1] == "solve" and not self_collision:
+                    continue
+                r = run(name, mode, args.frames, {**overrides, **variant}, args.device)
+                r.update(resolution=variant.get("cloth.grid.resolution", [None])[0], seed=variant.get("scene.seed"))
+                rows.append(r)
+                print(json.dumps(r), flush=True)
     command = "python benchmarks/bench_contacts.py " + " ".join(sys.argv[1:] if argv is None else argv)
-    lines = ["# bench_contacts: contacts after the step (\"pass\") or also inside the implicit solve (\"solve\": collider contacts; "
-             "\"solve+self\": and self-contacts; \"+friction\": their friction in the solve too)", "",
-             f"Machine: {platform.machine()}, Python {platform.python_version()}, Warp {wp.config.version}, device cpu. "
-             f"Command: `{command.strip()}`" + (f"; overrides {overrides}" if overrides else ""), "",
-             f"{args.frames} frames per run; speeds and counts over the last {TAIL} frames (at rest: <= 1 mm/s).", "",
-             "| scene | contacts | ms/frame | largest speed, median [mm/s] | largest speed, max [mm/s] | colliders-pass contacts/frame "
-             "| self-collision pass impulses/frame | self-contact elements in the solve/frame "
-             "| CG iterations/frame | frames re-run | max limited strain (end) | springs > limit + 1 % |",
-             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
-    for r in rows:
-        lines.append(f"| {r['scene']} | {r['mode']} | {r['ms_per_frame']:.1f} | {1e3 * r['rest_speed_median']:.2f} | "
-                     f"{1e3 * r['rest_speed_max']:.2f} | {r['pass_contacts']:.0f} | {r['self_impulses']:.0f} | {r['self_elements']:.0f} | "
-                     f"{r['iterations']:.0f} | {r['reruns']} | "
-                     f"{r['max_limited_strain']:.3f} | {r['springs_over_limit']} |")
-    out = pathlib.Path(args.out)
-    out.write_text("\n".join(lines) + "\n")
-    out.with_suffix(".json").write_text(json.dumps({"command": command.strip(), "overrides": overrides, "rows": rows}, indent=1) + "\n")
-    print("\n".join(lines))
+    write_report(rows, command.strip(), args.device, args.frames, overrides, pathlib.Path(args.out))
     return 0
 
 
