@@ -25,7 +25,7 @@ _EXPORTS = {
     "calibrate": ["CalibrationResult", "FabricMeasurements"],
     "cache": ["CacheError", "CacheReader", "UsdCacheWriter", "open_cache"],
     "diagnostics": ["Diagnostics", "StepStats", "StrainLimitReport"],
-    "gradients": ["CentroidLoss", "ChamferLoss", "ChordAngleLoss", "Loss", "PositionLoss", "Rollout"],
+    "gradients": ["CentroidLoss", "ChamferLoss", "ChordAngleLoss", "Loss", "LossSum", "PositionLoss", "Rollout"],
     "materials": ["FabricMaterial"],
     "model": ["Control", "Handle", "Keyframe", "Model", "ModelFlags", "State"],
     "outputs": ["CacheWriteError", "OutputBusy"],

@@ -71,6 +71,27 @@ class PositionLoss(Loss):
         wp.launch(kl.eval_position_loss, dim=target.shape[0], inputs=[x, target, self.weight], outputs=[out], device=x.device)
 
 
+class LossSum(Loss):
+    """The sum of losses, each evaluated at its own steps. With batched worlds (:mod:`cloth_warp.worlds`) one loss
+    per world over that world's particles (:func:`cloth_warp.worlds.world_losses`) fits every world at once: a world's
+    parameters reach only its own term, so each gets the gradient of its own run (tests/test_worlds.py)."""
+
+    def __init__(self, losses):
+        self.losses = list(losses)
+        if not self.losses:
+            raise ValueError("LossSum needs at least one loss")
+        self.steps = frozenset().union(*(loss.steps for loss in self.losses))
+
+    def evaluate(self, step, state, out):
+        for loss in self.losses:
+            if step in loss.steps:
+                loss.evaluate(step, state, out)
+
+    def notify_model_changed(self, flags: int) -> None:
+        for loss in self.losses:
+            loss.notify_model_changed(flags)
+
+
 class ChamferLoss(Loss):
     """Symmetric Chamfer distance [m^2] to target point sets (targets on a different mesh).
 

@@ -23,8 +23,10 @@ initial state).
 Each world is checked on its own (:class:`~cloth_warp.simulator.Simulator` with a batch: ``world_stats``, ``world_solves``,
 ``world_failures``): a world that diverges gets its diagnosis and is held at its last good state while the others
 go on. :func:`run_worlds` steps a batch and writes one cache per world (a diverged world's closed as ``diverged``
-with the frames before it). Not batched yet: self-collision, contacts in the solve, block Jacobi, taped strain
-limiting, attachments, checkpoints of a batch.
+with the frames before it). Gradients: a taped rollout of a batch (:class:`~cloth_warp.gradients.Rollout`) with one
+loss per world (:func:`world_losses`) gives every world its own run's gradient; taped strain limiting sweeps each world
+only while it is above the limit, as the forward path does, and its adjoint replays the same worlds per sweep. Not
+batched yet: self-collision, contacts in the solve, block Jacobi, attachments, checkpoints of a batch.
 """
 
 from __future__ import annotations
@@ -87,6 +89,18 @@ def world_slices(model: Model) -> list[slice]:
 def split_worlds(model: Model, values: np.ndarray) -> list[np.ndarray]:
     """Per-particle values (positions, velocities) cut into one array per world."""
     return [values[sl] for sl in world_slices(model)]
+
+
+def world_losses(model: Model, targets: Sequence[dict]):
+    """One :class:`~cloth_warp.gradients.PositionLoss` per world (`targets[k]`: {step: that world's target
+    positions}) over that world's particles, summed (:class:`~cloth_warp.gradients.LossSum`): a rollout of the batch
+    then gives each world the gradient of its own run with its own loss (bit for bit on the CPU)."""
+    from .gradients import LossSum, PositionLoss
+
+    slices = world_slices(model)
+    if len(targets) != len(slices):
+        raise ValueError(f"world_losses: {len(targets)} targets for {len(slices)} worlds")
+    return LossSum(PositionLoss(t, device=model.device, particles=np.arange(sl.start, sl.stop)) for t, sl in zip(targets, slices))
 
 
 @dataclasses.dataclass(frozen=True)

@@ -22,11 +22,14 @@ def apply_strain_limit_color(
     color: int,
     max_strain: float,
     relaxation: float,
-
+    particle_world: wp.array(dtype=wp.int32),
+    worlds: int,
+    loop: wp.array(dtype=wp.int32),
     # outputs
     x_out: wp.array(dtype=wp.vec3),
 ):
-    """Shorten the colour's over-stretched springs to (1 + max_strain) L, split by inverse mass (Provot 1995).
+    """Shorten the colour's over-stretched springs to (1 + max_strain) L, split by inverse mass (Provot 1995)
+    (batched worlds: in the worlds still sweeping, `loop`; the others pass their positions through).
 
     With relaxation > 1 the excess is over-corrected (successive over-relaxation, never below the rest
     length), which speeds up the propagation of corrections along long chains of active constraints.
@@ -34,7 +37,10 @@ def apply_strain_limit_color(
     i = wp.tid()
     xi = x_in[i]
     s = strain_limit_colors[color, i]
-    if s < 0 or particle_pinned[i] != 0:
+    sweeping = True
+    if worlds > 1:
+        sweeping = loop[world_slot(particle_world[i], worlds, LIMIT_LOOP_SIZE)] != 0
+    if s < 0 or particle_pinned[i] != 0 or not sweeping:
         x_out[i] = xi
         return
     j = spring_indices[s, 0]

@@ -312,7 +312,7 @@ def test_taped_limiter_gradient_matches_tape_and_finite_differences(device, rng)
                     y = wp.zeros_like(x_k, requires_grad=True)
                     wp.launch(kc.apply_strain_limit_color, dim=m.particle_count,
                               inputs=[m.strain_limit_colors, m.spring_indices, m.spring_rest_length, m.particle_mass, m.particle_pinned,
-                                      x_k, color, LIMIT, lim.relaxation], outputs=[y], device=device)
+                                      x_k, color, LIMIT, lim.relaxation, m.particle_world, 1, lim._loop], outputs=[y], device=device)
                     x_k = y
         return tape, x_in, x_k
 

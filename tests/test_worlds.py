@@ -137,3 +137,60 @@ def test_run_worlds_closes_a_diverged_world_and_finishes_the_others(tmp_path):
     single = _run(build_model(scenes[0], "cpu"), scenes[0], frames=6)[0]
     reader = CacheReader(outs[0])
     np.testing.assert_array_equal(reader.points(reader.start_frame + 6), single.positions())
+
+
+def _taped_gradients(model, scene, loss, steps):
+    from cloth_warp.gradients import Rollout, model_grad_arrays
+
+    solver = build_solver(scene, model)
+    load_kernels(solver, model.device)
+    rollout = Rollout(model, solver, dt=1.0 / float(scene.get("output.fps")) / int(scene.get("solver.substeps")), steps=steps)
+    value = rollout.gradient(loss)
+    return value, {k: a.grad.numpy().copy() for k, a in model_grad_arrays(model).items() if a.grad is not None}
+
+
+def _by_endpoints(model, keys: np.ndarray, first: int, count: int) -> dict:
+    """{sorted element vertex tuple (world-local ids): element index} for the elements of the particles first..first+count."""
+    out = {}
+    for e, ids in enumerate(keys):
+        if first <= ids.min() < first + count:
+            out[tuple(sorted(int(i) - first for i in ids))] = e
+    return out
+
+
+def test_batched_worlds_give_each_world_the_gradient_of_its_own_run():
+    """A taped rollout of a batch with one loss per world (world_losses) gives every world's parameters (masses, spring
+    stiffnesses, rest lengths and damping, triangle drag) the gradient its own single-world rollout gives, bit for bit
+    on the CPU, with the strain limiter sweeping different worlds a different number of times (each world only while it
+    is above the limit, the adjoint replaying the same worlds per sweep)."""
+    from cloth_warp.gradients import PositionLoss
+    from cloth_warp.worlds import world_losses, world_slices
+
+    steps = 8
+    variants = [{"material.preset": p, "cloth.grid.resolution": r, "solver.strain_limit": 0.006, "cloth.jitter": 0.002, "scene.seed": k}
+                for k, (p, r) in enumerate([("silk", [7, 5]), ("denim", [6, 6]), ("cotton", [5, 8])])]
+    scenes = [load_scene(find_scene("hanging_cloth"), v) for v in variants]
+    # the worlds differ in their limiter work (forward frames of the same variants, one step each: 4-426 sweeps)
+    sweeps = [_run(build_model(s, "cpu"), s, frames=steps)[1] for s in scenes]
+    assert max(sweeps) > 0 and len(set(sweeps)) > 1, sweeps
+    rng = np.random.default_rng(0)
+    singles, targets = [], []
+    for s in scenes:
+        m = build_model(s, "cpu", requires_grad=True)
+        target = {steps: m.particle_q.numpy() + rng.uniform(-0.02, 0.02, size=(m.particle_count, 3))}
+        targets.append(target)
+        singles.append((m, _taped_gradients(m, s, PositionLoss(target, device="cpu"), steps)))
+    batch = build_worlds(scenes, "cpu", requires_grad=True)
+    value, grads = _taped_gradients(batch, scenes[0], world_losses(batch, targets), steps)
+    # (the batch's terms add into one float32 in another order than each run's: 1e-5 apart here)
+    assert value == pytest.approx(sum(v for _, (v, _) in singles), rel=1e-4)
+    for k, ((m, (_, g)), sl) in enumerate(zip(singles, world_slices(batch))):
+        assert np.array_equal(grads["particle_mass"][sl], g["particle_mass"]), f"world {k}: mass gradients differ"
+        assert np.abs(g["particle_mass"]).max() > 0.0
+        for name, indices in (("spring", "spring_indices"), ("tri", "tri_indices")):
+            local = _by_endpoints(m, getattr(m, indices).numpy().reshape(len(g[f"{name}_drag" if name == "tri" else "spring_stiffness"]), -1), 0, m.particle_count)
+            batched = _by_endpoints(batch, getattr(batch, indices).numpy().reshape(-1, 2 if name == "spring" else 3), sl.start, sl.stop - sl.start)
+            order = [batched[key] for key in sorted(local, key=local.get)]
+            for array in (["spring_stiffness", "spring_rest_length", "spring_damping"] if name == "spring" else ["tri_drag"]):
+                assert np.array_equal(grads[array][order], g[array]), f"world {k}: {array} gradients differ"
+                assert np.abs(g[array]).max() > 0.0, array

@@ -269,9 +269,6 @@ class StrainLimiter(StepPass):
 
     def _apply_taped(self, x_in, v_in, state_out: State, dt: float):
         m = self.model
-        if self.worlds > 1:
-            raise NotImplementedError("batched worlds: taped strain limiting is not batched yet (its sweeps would run in every "
-                                      "world until the last one converges)")
         if m.device.is_capturing:
             raise RuntimeError("taped strain limiting cannot be captured into a graph: its sweeps are counted on the host "
                                "so that the backward pass knows them")
@@ -279,6 +276,7 @@ class StrainLimiter(StepPass):
         every = self.snapshot_every
         with paused_tape() as tape:
             snapshots = [x_in]  # the positions at the start of sweeps 0, every, 2 every, ...
+            gates = []  # batched worlds: which worlds each sweep ran in (the loop state before it)
             run = self._buffer("run")
             x = x_in
             sweeps = 0
@@ -286,6 +284,8 @@ class StrainLimiter(StepPass):
             while self._loop.numpy()[0]:
                 if sweeps and sweeps % every == 0:
                     snapshots.append(wp.clone(x))
+                if self.worlds > 1:
+                    gates.append(wp.clone(self._loop))
                 wp.copy(run, self._sweep(x))
                 x = run
                 sweeps += 1
@@ -294,19 +294,22 @@ class StrainLimiter(StepPass):
             wp.copy(x_out, x)
         if tape is not None:
             grads = [a for a in (x_in, x_out, m.spring_rest_length, m.particle_mass) if a.grad is not None]
-            tape.record_func(lambda: self._backward(snapshots, sweeps, x_in, x_out), grads)
+            tape.record_func(lambda: self._backward(snapshots, gates, sweeps, x_in, x_out), grads)
         wp.launch(kc.correct_velocity, dim=m.particle_count, inputs=[x_in, x_out, v_in, dt], outputs=[state_out.particle_qd], device=m.device)
 
-    def _passes(self):
-        """One sweep as out-of-place passes (thread per particle): (kernel, the inputs before x, the inputs after x)."""
+    def _passes(self, gate: wp.array | None = None):
+        """One sweep as out-of-place passes (thread per particle): (kernel, the inputs before x, the inputs after x).
+        Batched worlds: the passes run in the worlds `gate` (a loop state; default the current one) has sweeping."""
         m = self.model
+        gate = self._loop if gate is None else gate
         out = []
         if self.attachment_count:
             out.append((kc.apply_attachment_limit, [self.attachment_particle, self.attachment_rest_distance, m.particle_pinned],
-                        [self.max_strain, m.particle_world, self.worlds, self._loop]))
+                        [self.max_strain, m.particle_world, self.worlds, gate]))
         for c in range(m.strain_limit_color_count):
             out.append((kc.apply_strain_limit_color, [m.strain_limit_colors, m.spring_indices, m.spring_rest_length,
-                                                      m.particle_mass, m.particle_pinned], [c, self.max_strain, self.relaxation]))
+                                                      m.particle_mass, m.particle_pinned],
+                        [c, self.max_strain, self.relaxation, m.particle_world, self.worlds, gate]))
         return out
 
     def _buffer(self, key):
@@ -315,11 +318,11 @@ class StrainLimiter(StepPass):
             buf = self._buffers[key] = wp.zeros(self.model.particle_count, dtype=wp.vec3, device=self.model.device)
         return buf
 
-    def _sweep(self, x_src, record: list | None = None) -> wp.array:
+    def _sweep(self, x_src, record: list | None = None, gate: wp.array | None = None) -> wp.array:
         """One sweep out of place through the pass buffers; returns the last pass's (a buffer: copy it to keep it).
-        `record` gets the input of every pass."""
+        `record` gets the input of every pass; `gate` as in :meth:`_passes`."""
         m = self.model
-        for k, (kernel, before, after) in enumerate(self._passes()):
+        for k, (kernel, before, after) in enumerate(self._passes(gate)):
             dst = self._buffer(("pass", k))
             wp.launch(kernel, dim=m.particle_count, inputs=[*before, x_src, *after], outputs=[dst], device=m.device)
             if record is not None:
@@ -327,13 +330,17 @@ class StrainLimiter(StepPass):
             x_src = dst
         return x_src
 
-    def _backward(self, snapshots: list, sweeps: int, x_in: wp.array, x_out: wp.array):
+    def _backward(self, snapshots: list, gates: list, sweeps: int, x_in: wp.array, x_out: wp.array):
         """Adjoint of a taped apply(): d/dx_out -> d/dx_in (and the rest lengths and masses, when they have gradients).
 
         Segment by segment from the last: the sweep starts of the segment are recomputed from its snapshot, then
-        each sweep's passes from its start (bit-identical to the forward run) and their adjoints run in reverse."""
+        each sweep's passes from its start (bit-identical to the forward run, in the worlds it ran in: `gates`) and
+        their adjoints run in reverse."""
         m = self.model
-        passes = self._passes()
+
+        def gate(k):
+            return gates[k] if gates else None
+
         every = self.snapshot_every
         adj, spare = self._buffer("adjoint0"), self._buffer("adjoint1")
         wp.copy(adj, x_out.grad)
@@ -344,11 +351,13 @@ class StrainLimiter(StepPass):
             starts = [snapshots[first // every]]
             for k in range(first + 1, min(first + every, sweeps)):
                 seg = self._buffer(("segment", k - first))
-                wp.copy(seg, self._sweep(starts[-1]))
+                wp.copy(seg, self._sweep(starts[-1], gate=gate(k - 1)))
                 starts.append(seg)
-            for start in reversed(starts):
+            for k in range(first + len(starts) - 1, first - 1, -1):
+                start = starts[k - first]
                 sources: list = []
-                self._sweep(start, sources)
+                self._sweep(start, sources, gate=gate(k))
+                passes = self._passes(gate(k))
                 for j in range(len(passes) - 1, -1, -1):
                     kernel, before, after = passes[j]
                     spare.zero_()
@@ -420,7 +429,10 @@ def attachment_table(model: Model, count: int) -> tuple[np.ndarray, np.ndarray]:
                 if d + w < d_g[r]:
                     heapq.heappush(heap, (d + w, r, src))
     k = min(count, len(groups))
-    order = np.argsort(dist, axis=0)[:k]  # nearest groups per particle
+    # nearest groups per particle; ties (a symmetric cloth's two pinned corners) in group order, which a batch of
+    # worlds keeps for each world (an unstable sort ordered them differently there, and the projections onto two
+    # active attachments do not commute)
+    order = np.argsort(dist, axis=0, kind="stable")[:k]
     cols = np.arange(n)
     ids = source[order, cols].T.astype(np.int32)
     dd = dist[order, cols].T
