@@ -26,6 +26,8 @@ Run:  python benchmarks/bench_step.py --ref e899fc8 --frames 10        (all scen
       python benchmarks/bench_step.py --scenes hanging_cloth --profile   (per-stage table, frames not captured)
       python benchmarks/bench_step.py --device cuda:0 --scenes pile --set cloth.grid.resolution=[128,128] --out X.md
                                                                           (scene values overridden as `cloth-warp run --set`)
+      python benchmarks/bench_step.py --ref a34246f --scenes pile drape_sphere --warmup 1 --frames 300 --no-cold-start \
+          --set-new solver.collider_contacts=\"solve\" --set-new solver.tolerance=1e-4    (a mode the ref lacks, this tree only)
 """
 
 from __future__ import annotations
@@ -68,6 +70,8 @@ def parse_args(argv=None):
                    "more frames run without graph capture, and print the per-stage table")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a scene value in every scene measured, as `cloth-warp run --set` (repeatable)")
+    p.add_argument("--set-new", action="append", default=[], metavar="KEY=VALUE",
+                   help="scene override for this tree only (with --ref: a mode the ref does not have, measured against the ref's default)")
     p.add_argument("--no-cold-start", action="store_true", help="skip the cold-start measurement (empty kernel cache)")
     p.add_argument("--out", default=None, help="default benchmarks/results/bench_step[_cuda].md (and .json beside it)")
     # internal: the worker processes
@@ -321,7 +325,8 @@ def per_frame(counts: list[dict]) -> dict:
 def measure_scene(workers: dict[str, Worker], scene: str, args) -> dict:
     row = {"scene": scene}
     for label, w in workers.items():
-        r = w.ask(op="setup", scene=scene, device=args.device, warmup=args.warmup, **({"overrides": args.overrides} if args.overrides else {}))
+        overrides = {**args.overrides, **(args.new_overrides if label == "new" else {})}
+        r = w.ask(op="setup", scene=scene, device=args.device, warmup=args.warmup, **({"overrides": overrides} if overrides else {}))
         row[label] = r
     live = [label for label in workers if "error" not in row[label]]
     times = {label: [] for label in live}
@@ -366,6 +371,7 @@ def main():
     from cloth_warp.cli import parse_set
 
     args.overrides = parse_set(args.set)
+    args.new_overrides = parse_set(args.set_new)
     unknown = [s for s in scenes if not (ROOT / "scenes" / f"{s}.toml").is_file()]
     if unknown:
         sys.exit(f"bench_step: unknown scene(s) {', '.join(unknown)}; shipped: {', '.join(shipped_scenes())}")
