@@ -257,6 +257,7 @@ print("SOLVER-DONE contacts", flush=True)
 """
 
 
+@pytest.mark.slow
 def test_taped_steps_never_overwrite_what_the_tape_read(device):
     """Tape hygiene: with verify_autograd_array_access on, no solver writes an array a taped kernel read."""
     import pathlib
