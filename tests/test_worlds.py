@@ -149,8 +149,9 @@ def _taped_gradients(model, scene, loss, steps):
     return value, {k: a.grad.numpy().copy() for k, a in model_grad_arrays(model).items() if a.grad is not None}
 
 
-def _by_endpoints(model, keys: np.ndarray, first: int, count: int) -> dict:
-    """{sorted element vertex tuple (world-local ids): element index} for the elements of the particles first..first+count."""
+def _by_endpoints(keys: np.ndarray, first: int, count: int) -> dict:
+    """{sorted element vertex tuple (world-local ids): element index} for the elements (rows of particle ids) of the
+    particles first..first+count (a batch orders its springs and triangles its own way)."""
     out = {}
     for e, ids in enumerate(keys):
         if first <= ids.min() < first + count:
@@ -187,10 +188,12 @@ def test_batched_worlds_give_each_world_the_gradient_of_its_own_run():
     for k, ((m, (_, g)), sl) in enumerate(zip(singles, world_slices(batch))):
         assert np.array_equal(grads["particle_mass"][sl], g["particle_mass"]), f"world {k}: mass gradients differ"
         assert np.abs(g["particle_mass"]).max() > 0.0
-        for name, indices in (("spring", "spring_indices"), ("tri", "tri_indices")):
-            local = _by_endpoints(m, getattr(m, indices).numpy().reshape(len(g[f"{name}_drag" if name == "tri" else "spring_stiffness"]), -1), 0, m.particle_count)
-            batched = _by_endpoints(batch, getattr(batch, indices).numpy().reshape(-1, 2 if name == "spring" else 3), sl.start, sl.stop - sl.start)
+        for indices, width, arrays in (("spring_indices", 2, ["spring_stiffness", "spring_rest_length", "spring_damping"]),
+                                       ("tri_indices", 3, ["tri_drag"])):
+            local = _by_endpoints(getattr(m, indices).numpy().reshape(-1, width), 0, m.particle_count)
+            batched = _by_endpoints(getattr(batch, indices).numpy().reshape(-1, width), sl.start, sl.stop - sl.start)
+            assert len(local) == len(getattr(m, indices).numpy().reshape(-1, width))  # (no two elements on the same particles)
             order = [batched[key] for key in sorted(local, key=local.get)]
-            for array in (["spring_stiffness", "spring_rest_length", "spring_damping"] if name == "spring" else ["tri_drag"]):
+            for array in arrays:
                 assert np.array_equal(grads[array][order], g[array]), f"world {k}: {array} gradients differ"
                 assert np.abs(g[array]).max() > 0.0, array
