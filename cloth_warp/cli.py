@@ -8,7 +8,8 @@
     cloth-warp preview CACHE -o OUT.png|OUT.gif [--frame K] [--size W H] [--every N]
     cloth-warp fit SCENE [--target CACHE] [--param KEY[=LO:HI] ...] [--loss positions|final|chamfer]
                          [--iters N] [--lr X] [--frames N] [-o FITTED.toml] [--set ...] [--quiet]
-                                                (target and params default to the scene's [fit] table)
+                                                (target and params default to the scene's [fit] table;
+                                                several --target: fitted at once, one batch, one result each)
     cloth-warp calibrate MEASUREMENTS.toml -o FABRIC.toml [--iters N] [--no-drape] [--device D] [--quiet]
                                                 fit a material to fabric measurements (report: FABRIC.json;
                                                 a simulated test that is not finite exits 3)
@@ -28,6 +29,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import pathlib
 import signal
 import sys
 import time
@@ -348,6 +350,30 @@ def _fmt_value(v) -> str:
     return f"{v:.5g}"
 
 
+def _fit_summary(result, paths) -> list[str]:
+    lines = [f"{result.status}: {result.iterations} iterations in {result.wall_s:.1f} s, loss {result.initial_loss:.4e} -> "
+             f"{result.final_loss:.4e} ({result.loss_kind})"]
+    for key in result.parameters:
+        lines.append(f"  {key:<28} {_fmt_value(result.initial_values[key])} -> {_fmt_value(result.final_values[key])}")
+    for key, value in result.measured.items():
+        lines.append(f"  {key:<28} {value if isinstance(value, str) else _fmt_value(value)}")
+    tol = result.solver_tolerance
+    if tol is not None:
+        lines.append(f"  solver tolerance {'none' if tol.tolerance is None else f'{tol.tolerance:g}'} ({tol.reason})")
+    lines.append(f"  fitted scene  {paths['scene']}")
+    lines.append(f"  report        {paths['report']}")
+    lines.append(f"  loss curve    {paths['loss_curve']}")
+    return lines
+
+
+def _batch_outputs(output: pathlib.Path, targets: list[str]) -> list[pathlib.Path]:
+    """Target k's fitted scene beside `output`: <output stem>_<target stem>.toml (the target's index added where two
+    targets share a stem)."""
+    stems = [pathlib.Path(t).stem for t in targets]
+    names = [s if stems.count(s) == 1 else f"{s}_{k}" for k, s in enumerate(stems)]
+    return [output.with_name(f"{output.stem}_{name}{output.suffix or '.toml'}") for name in names]
+
+
 def cmd_fit(args) -> int:
     from .fitting import SceneFit, write_fit_outputs
     from .runner import find_scene
@@ -360,11 +386,14 @@ def cmd_fit(args) -> int:
         raise BadInput(f"--iters must be >= 1, got {iterations}")
     if not (learning_rate > 0.0):
         raise BadInput(f"--lr must be > 0, got {learning_rate}")
+    targets = args.target or []
+    output = pathlib.Path(args.output or f"out/{scene.name}_fitted.toml")
+    if len(targets) > 1:
+        return _fit_batch(args, scene, targets, output, iterations, learning_rate)
     try:
-        fit = SceneFit(scene, args.target, args.param, loss=args.loss, frames=args.frames, device=args.device)
+        fit = SceneFit(scene, targets[0] if targets else None, args.param, loss=args.loss, frames=args.frames, device=args.device)
     except ValueError as exc:  # unreadable target cache
         raise BadInput(str(exc)) from exc
-    output = args.output or f"out/{scene.name}_fitted.toml"
     if not args.quiet:
         print(f"cloth-warp fit: {scene.name}, {fit.frames} frames ({fit.rollout.steps} steps), {fit.loss_kind} loss, "
               f"{len(fit.parameters)} parameters, {iterations} iterations", file=sys.stderr)
@@ -378,20 +407,42 @@ def cmd_fit(args) -> int:
     if not args.quiet:
         if progress.tty and result.status != "complete":
             print(file=sys.stderr)
-        lines = [f"{result.status}: {result.iterations} iterations in {result.wall_s:.1f} s, loss {result.initial_loss:.4e} -> "
-                 f"{result.final_loss:.4e} ({result.loss_kind})"]
-        for key in result.parameters:
-            lines.append(f"  {key:<28} {_fmt_value(result.initial_values[key])} -> {_fmt_value(result.final_values[key])}")
-        for key, value in result.measured.items():
-            lines.append(f"  {key:<28} {_fmt_value(value)}")
-        tol = result.solver_tolerance
-        if tol is not None:
-            lines.append(f"  solver tolerance {'none' if tol.tolerance is None else f'{tol.tolerance:g}'} ({tol.reason})")
-        lines.append(f"  fitted scene  {paths['scene']}")
-        lines.append(f"  report        {paths['report']}")
-        lines.append(f"  loss curve    {paths['loss_curve']}")
-        print("\n".join(lines))
+        print("\n".join(_fit_summary(result, paths)))
     return EXIT_INTERRUPTED if result.status == "interrupted" else EXIT_OK
+
+
+def _fit_batch(args, scene, targets: list[str], output: pathlib.Path, iterations: int, learning_rate: float) -> int:
+    """`fit` with several targets: one batch (cloth_warp.batch_fit), one fitted scene, report and curve per target."""
+    from .batch_fit import BatchFit
+    from .fitting import write_fit_outputs
+
+    try:
+        fit = BatchFit(scene, targets, args.param, loss=args.loss, frames=args.frames, device=args.device)
+    except ValueError as exc:  # unreadable target cache
+        raise BadInput(str(exc)) from exc
+    outputs = _batch_outputs(output, targets)
+    if not args.quiet:
+        print(f"cloth-warp fit: {scene.name}, {len(targets)} targets in one batch, {fit.frames} frames "
+              f"({fit.rollout.steps} steps), {fit.loss_kind} loss, {len(fit.fits[0].parameters)} parameters, "
+              f"{iterations} iterations", file=sys.stderr)
+    progress = FitProgress(quiet=args.quiet)
+    try:
+        results = fit.run(iterations=iterations, learning_rate=learning_rate,
+                          progress=lambda it, total, losses: progress(it, total, sum(losses), {"worst": max(losses)}))  # (the targets' sum)
+    except KeyboardInterrupt:
+        print("cloth-warp: interrupted before the first iteration; nothing written", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    lines = []
+    for target, single, result, out in zip(targets, fit.fits, results, outputs):
+        paths = write_fit_outputs(single, result, out)
+        lines += [f"target {target}", *("  " + line for line in _fit_summary(result, paths))]
+    if not args.quiet:
+        if progress.tty:
+            print(file=sys.stderr)
+        print("\n".join(lines))
+    if any(r.status == "interrupted" for r in results):
+        return EXIT_INTERRUPTED
+    return EXIT_FAILED if any(r.status == "failed" for r in results) else EXIT_OK
 
 
 class CalibrateProgress(Progress):
@@ -501,8 +552,9 @@ def build_parser() -> argparse.ArgumentParser:
                          description="Fit scene keys so the simulated cloth matches a target cache. Parameters: "
                                      + ", ".join(allowed_parameters()) + ". Positive ones are fitted in log space.")
     fit.add_argument("scene", help="scene file (.toml) or a shipped scene name; its values are the start")
-    fit.add_argument("--target", help="target cache (.usdc, .usda, .usd, .npz); its frame k is the scene's frame k "
-                     "(default: the scene's [fit.target]: a cache, a centroid or a chord angle)")
+    fit.add_argument("--target", action="append", help="target cache (.usdc, .usda, .usd, .npz); its frame k is the scene's frame k "
+                     "(default: the scene's [fit.target]: a cache, a centroid or a chord angle); repeated: every target fitted "
+                     "at once, one world each in a batch, each target's results in -o's name + _<target>")
     fit.add_argument("--param", action="append", metavar="KEY[=LO:HI]",
                      help="a scene key to fit, with optional bounds; repeatable (default: the scene's fit.params)")
     fit.add_argument("--loss", choices=LOSSES, help="how a target cache is matched: positions (every frame), final (last frame), "

@@ -45,7 +45,7 @@ import warp as wp
 
 from .cache import CacheError
 from .gradients import CentroidLoss, ChamferLoss, ChordAngleLoss, Loss, PositionLoss, Rollout, model_grad_arrays
-from .model import FIELD_FLAGS, ModelFlags
+from .model import FIELD_FLAGS, Model, ModelFlags
 from .scene import FIT_LOSSES, Scene, SceneError, build_material, build_model, build_solver, scene_selection, with_values
 from .validation import LIMITS, check_number
 
@@ -392,31 +392,13 @@ class SceneFit:
         return {name: a.numpy().astype(np.float64) for name, a in model_grad_arrays(m).items() if name != "particle_q"}
 
     def _apply(self, values: dict) -> dict[str, np.ndarray]:
-        """Write what a fresh build of the scene with `values` holds into the fit's model (its differentiable arrays
-        and the values derived from them, such as the default self-collision stiffness, which follows the stretch
-        stiffness), tell the solver and the loss which fields changed, and set the wind. Returns the build's
-        differentiable arrays (float64, for the chain rule)."""
+        """Write what a fresh build of the scene with `values` holds into the fit's model (:func:`load_build`) and set
+        the wind. Returns the build's differentiable arrays (float64, for the chain rule)."""
         fresh = build_model(self._scene_with(values), "cpu", requires_grad=True)
-        arrays = self._arrays(values, fresh)
-        flags = ModelFlags(0)
-        for name, a in arrays.items():
-            new = a.astype(np.float32)
-            target = getattr(self.model, name)
-            if not np.array_equal(target.numpy(), new):
-                target.assign(new)
-                flags |= FIELD_FLAGS[name]
-        for name in _DERIVED_SCALARS:
-            if getattr(fresh, name) != getattr(self.model, name):
-                setattr(self.model, name, getattr(fresh, name))
-                flags |= FIELD_FLAGS[name]
-        for mine, theirs in zip(self.model.cloths, fresh.cloths):
-            mine.material = theirs.material  # the host-side description, for reports
-        if flags:
-            self.rollout.notify_model_changed(flags)  # the solver and its passes
-            self.loss.notify_model_changed(flags)
+        load_build(fresh, self.model, (self.rollout, self.loss))
         wind = values.get("forces.wind", self.scene.get("forces.wind"))
         self.rollout.control.wind.assign(np.asarray(wind, np.float32).reshape(1, 3))
-        return arrays
+        return self._arrays(values, fresh)
 
     def set_values(self, values: list[np.ndarray]):
         """Put parameter values (one array per parameter, as :attr:`parameters` orders them) into the fit's model
@@ -425,8 +407,7 @@ class SceneFit:
 
     def loss_and_gradient(self, values: list[np.ndarray]) -> tuple[float, list[np.ndarray]]:
         """The loss at parameter values and its gradient with respect to each of them."""
-        named = self._values(values)
-        base = self._apply(named)
+        self._apply(self._values(values))
         state0 = self.model.state(requires_grad=True)  # the model's initial velocity is the fitted one
         loss = self.rollout.gradient(self.loss, state0)
         self.evaluations += 1
@@ -434,10 +415,17 @@ class SceneFit:
         self.last_measured = measure(self.rollout.final_state) if measure is not None else {}
         grads = {name: a.grad.numpy().astype(np.float64) for name, a in model_grad_arrays(self.model).items() if name != "particle_q"}
         grads["particle_qd"] = state0.particle_qd.grad.numpy().astype(np.float64)
+        grads["forces.wind"] = self.rollout.control.wind.grad.numpy().astype(np.float64).reshape(3)
+        return loss, self.chain_rule(values, grads)
+
+    def chain_rule(self, values: list[np.ndarray], grads: dict[str, np.ndarray]) -> list[np.ndarray]:
+        """d loss / d each parameter at `values`, from the loss's gradients with respect to the model's differentiable
+        arrays (`grads`: name -> float64 array in this fit's model's layout, ``particle_qd`` the initial state's,
+        ``forces.wind`` the wind's)."""
         out = []
         for p, v in zip(self.parameters, values):
             if p.key == "forces.wind":
-                out.append(self.rollout.control.wind.grad.numpy().astype(np.float64).reshape(3))
+                out.append(grads["forces.wind"])
                 continue
             g = np.zeros(p.size)
             for k in range(p.size):
@@ -450,9 +438,9 @@ class SceneFit:
                     moved = [x.copy() for x in values]
                     moved[self.parameters.index(p)][k] += sign * step
                     ends.append(self._arrays(self._values(moved)))
-                g[k] = sum(float(np.sum(grads[name] * (ends[0][name] - ends[1][name]))) for name in base) / (2.0 * step)
+                g[k] = sum(float(np.sum(grads[name] * (ends[0][name] - ends[1][name]))) for name in ends[0]) / (2.0 * step)
             out.append(g)
-        return loss, out
+        return out
 
     # -- the optimization --------------------------------------------------------------------
     def run(self, iterations: int = 50, learning_rate: float = 0.05, decay: float = 0.1, progress=None,
@@ -471,57 +459,16 @@ class SceneFit:
         called after every evaluation. `betas`: Adam's moment decay rates (default: the scene's fit.betas,
         (0.9, 0.999)); a one-parameter fit settles with less overshoot at lower ones. Ctrl-C ends the fit
         early with the best values so far (status ``interrupted``)."""
-        from warp.optim import Adam
-
-        if iterations < 1:
-            raise SceneError(f"iterations: must be >= 1, got {iterations}")
-        t0 = time.perf_counter()
-        thetas = [wp.array(p.encode().astype(np.float32), dtype=float, device="cpu") for p in self.parameters]
-        betas = tuple(self.scene.get("fit.betas")) if betas is None else tuple(betas)
-        optimizers = [Adam([theta], lr=learning_rate, betas=betas) for theta in thetas]
-        initial = {p.key: p.scene_value() for p in self.parameters}
-        losses, history = [], []
-        self._best = (math.inf, [p.value for p in self.parameters], {})
+        run = FitRun(self, iterations, learning_rate, decay, betas, progress)
         status = "complete"
         try:
-            self._iterate(thetas, optimizers, iterations, learning_rate, decay, losses, history, progress, betas[0])
+            for it in range(iterations):
+                values = run.values()
+                loss, grads = self.loss_and_gradient(values)
+                run.step(it, values, loss, grads, self.last_measured)
         except KeyboardInterrupt:
             status = "interrupted"
-        best = self._best
-        if not losses:
-            raise KeyboardInterrupt
-        for p, v in zip(self.parameters, best[1]):
-            p.value = v
-        self.set_values(best[1])  # the model and solver handed back simulate the best values
-        final = {p.key: p.scene_value() for p in self.parameters}
-        return FitResult([p.key for p in self.parameters], initial, final, losses[0], best[0], len(losses), losses, history,
-                         time.perf_counter() - t0, self.loss_kind, self.frames, status, best[2], self.tolerance)
-
-    def _iterate(self, thetas, optimizers, iterations, learning_rate, decay, losses, history, progress, beta1):
-        norm_sq = [0.0] * len(self.parameters)  # per vector parameter: the running mean of |gradient|^2 (memory beta1)
-        for it in range(iterations):
-            values = [p.decode(theta.numpy().astype(np.float64)) for p, theta in zip(self.parameters, thetas)]
-            loss, grads = self.loss_and_gradient(values)
-            named = self._values(values)
-            losses.append(loss)
-            history.append(named)
-            if not math.isfinite(loss):
-                raise FloatingPointError(f"fit: the loss is not finite at iteration {it} with {named}")
-            if loss < self._best[0]:
-                self._best = (loss, values, self.last_measured)
-            if progress is not None:
-                progress(it + 1, iterations, loss, named)
-            for k, (p, g, v, theta, opt) in enumerate(zip(self.parameters, grads, values, thetas, optimizers)):
-                g_theta = p.encoded_gradient(g, v)
-                if not np.isfinite(g_theta).all():
-                    raise FloatingPointError(f"fit: non-finite gradient of {p.key} at iteration {it} with {named}")
-                if p.size > 1:
-                    norm_sq[k] = beta1 * norm_sq[k] + (1.0 - beta1) * float(np.dot(g_theta, g_theta))
-                    running = math.sqrt(norm_sq[k] / (1.0 - beta1 ** (it + 1)))  # bias-corrected, as Adam's moments
-                    opt.eps = max(VECTOR_NOISE_FLOOR * running, 1.0e-30)
-                opt.lr = learning_rate * decay ** (it / max(iterations - 1, 1))
-                opt.step([wp.array(g_theta.astype(np.float32), dtype=float, device="cpu")])
-                theta.assign(p.encode(p.decode(theta.numpy().astype(np.float64))).astype(np.float32))  # clip to the bounds
+        return run.result(status)
 
     # -- outputs -------------------------------------------------------------------------------
     def fitted_scene_toml(self, output: pathlib.Path) -> str:
@@ -546,6 +493,95 @@ class SceneFit:
         if self.tolerance.tolerance is not None:
             header += f"# The fit ran the implicit solve at tolerance {self.tolerance.tolerance:g}: {self.tolerance.reason}\n"
         return header + tomli_w.dumps(data)
+
+
+def load_build(fresh: Model, model: Model, listeners=()) -> ModelFlags:
+    """Write a fresh build's differentiable arrays, and the scalars a build derives from them (the default
+    self-collision stiffness follows the stretch stiffness), into `model`, which simulates exactly what the fresh
+    build would; each listener (a rollout, a loss) is told which fields changed. Returns those fields' flags."""
+    flags = ModelFlags(0)
+    for name, a in model_grad_arrays(fresh).items():
+        if name == "particle_q":
+            continue
+        new = a.numpy()
+        target = getattr(model, name)
+        if not np.array_equal(target.numpy(), new):
+            target.assign(new)
+            flags |= FIELD_FLAGS[name]
+    for name in _DERIVED_SCALARS:
+        if getattr(fresh, name) != getattr(model, name):
+            setattr(model, name, getattr(fresh, name))
+            flags |= FIELD_FLAGS[name]
+    for mine, theirs in zip(model.cloths, fresh.cloths):
+        mine.material = theirs.material  # the host-side description, for reports
+    if flags:
+        for listener in listeners:
+            listener.notify_model_changed(flags)  # the solver and its passes; a loss's derived values
+    return flags
+
+
+class FitRun:
+    """One fit's optimizer over a run (:meth:`SceneFit.run`): a Warp Adam per parameter on its encoded value, the
+    loss and values of every evaluation, and the best seen. :class:`~cloth_warp.batch_fit.BatchFit` keeps one per
+    world."""
+
+    def __init__(self, fit: SceneFit, iterations: int, learning_rate: float, decay: float, betas=None, progress=None):
+        from warp.optim import Adam
+
+        if iterations < 1:
+            raise SceneError(f"iterations: must be >= 1, got {iterations}")
+        self.fit, self.iterations, self.learning_rate, self.decay, self.progress = fit, iterations, learning_rate, decay, progress
+        self.t0 = time.perf_counter()
+        self.thetas = [wp.array(p.encode().astype(np.float32), dtype=float, device="cpu") for p in fit.parameters]
+        self.betas = tuple(fit.scene.get("fit.betas")) if betas is None else tuple(betas)
+        self.optimizers = [Adam([theta], lr=learning_rate, betas=self.betas) for theta in self.thetas]
+        self.initial = {p.key: p.scene_value() for p in fit.parameters}
+        self.losses: list[float] = []
+        self.history: list[dict] = []
+        self.best = (math.inf, [p.value for p in fit.parameters], {})
+        self.norm_sq = [0.0] * len(fit.parameters)  # per vector parameter: the running mean of |gradient|^2 (memory beta1)
+
+    def values(self) -> list[np.ndarray]:
+        """The values to evaluate next (decoded from the optimizer's encoded ones)."""
+        return [p.decode(theta.numpy().astype(np.float64)) for p, theta in zip(self.fit.parameters, self.thetas)]
+
+    def step(self, it: int, values: list[np.ndarray], loss: float, grads: list[np.ndarray], measured: dict):
+        """Record evaluation `it` (the loss and gradients at `values`) and take each parameter's Adam step."""
+        params = self.fit.parameters
+        named = self.fit._values(values)
+        self.losses.append(loss)
+        self.history.append(named)
+        if not math.isfinite(loss):
+            raise FloatingPointError(f"fit: the loss is not finite at iteration {it} with {named}")
+        if loss < self.best[0]:
+            self.best = (loss, values, measured)
+        if self.progress is not None:
+            self.progress(it + 1, self.iterations, loss, named)
+        beta1 = self.betas[0]
+        for k, (p, g, v, theta, opt) in enumerate(zip(params, grads, values, self.thetas, self.optimizers)):
+            g_theta = p.encoded_gradient(g, v)
+            if not np.isfinite(g_theta).all():
+                raise FloatingPointError(f"fit: non-finite gradient of {p.key} at iteration {it} with {named}")
+            if p.size > 1:
+                self.norm_sq[k] = beta1 * self.norm_sq[k] + (1.0 - beta1) * float(np.dot(g_theta, g_theta))
+                running = math.sqrt(self.norm_sq[k] / (1.0 - beta1 ** (it + 1)))  # bias-corrected, as Adam's moments
+                opt.eps = max(VECTOR_NOISE_FLOOR * running, 1.0e-30)
+            opt.lr = self.learning_rate * self.decay ** (it / max(self.iterations - 1, 1))
+            opt.step([wp.array(g_theta.astype(np.float32), dtype=float, device="cpu")])
+            theta.assign(p.encode(p.decode(theta.numpy().astype(np.float64))).astype(np.float32))  # clip to the bounds
+
+    def result(self, status: str) -> FitResult:
+        """The run's :class:`FitResult`; the fit's parameters, model and solver left at the best values."""
+        if not self.losses:
+            raise KeyboardInterrupt
+        fit = self.fit
+        loss, values, measured = self.best
+        for p, v in zip(fit.parameters, values):
+            p.value = v
+        fit.set_values(values)  # the model and solver handed back simulate the best values
+        final = {p.key: p.scene_value() for p in fit.parameters}
+        return FitResult([p.key for p in fit.parameters], self.initial, final, self.losses[0], loss, len(self.losses), self.losses,
+                         self.history, time.perf_counter() - self.t0, fit.loss_kind, fit.frames, status, measured, fit.tolerance)
 
 
 def loss_curve_png(losses: list[float], path, title: str = "fit loss", size=(640, 400)) -> pathlib.Path:

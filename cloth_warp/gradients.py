@@ -76,16 +76,29 @@ class LossSum(Loss):
     per world over that world's particles (:func:`cloth_warp.worlds.world_losses`) fits every world at once: a world's
     parameters reach only its own term, so each gets the gradient of its own run (tests/test_worlds.py)."""
 
-    def __init__(self, losses):
+    def __init__(self, losses, record_terms: bool = False, device=None):
         self.losses = list(losses)
         if not self.losses:
             raise ValueError("LossSum needs at least one loss")
         self.steps = frozenset().union(*(loss.steps for loss in self.losses))
+        self.terms = None
+        """With `record_terms`: each loss's value as well, one float per loss on `device` (:meth:`term_values`)."""
+        if record_terms:
+            self.terms = wp.zeros(len(self.losses), dtype=float, device=device, requires_grad=True)
 
     def evaluate(self, step, state, out):
-        for loss in self.losses:
+        for k, loss in enumerate(self.losses):
             if step in loss.steps:
                 loss.evaluate(step, state, out)
+                if self.terms is not None:  # (taped too: its adjoint is zero, the gradients unchanged)
+                    loss.evaluate(step, state, self.terms[k:k + 1])
+
+    def term_values(self, reset: bool = True) -> np.ndarray:
+        """Each loss's value, summed over the evaluations since the last reset (a rollout's, float32); then reset."""
+        values = self.terms.numpy().astype(np.float64)
+        if reset:
+            self.terms.zero_()
+        return values
 
     def notify_model_changed(self, flags: int) -> None:
         for loss in self.losses:

@@ -91,16 +91,40 @@ def split_worlds(model: Model, values: np.ndarray) -> list[np.ndarray]:
     return [values[sl] for sl in world_slices(model)]
 
 
+def element_worlds(model: Model) -> dict[str, np.ndarray]:
+    """For each differentiable model array (:func:`~cloth_warp.gradients.model_grad_arrays`, but the colliders'
+    friction, which the worlds share), the world of each of its elements: the particle arrays by ``particle_world``,
+    the springs, triangles, membranes and plate stencils by their first particle. Taken in order, a world's elements
+    are its own model's, in its own model's order (the builder concatenates worlds, and sorts springs stably by
+    their first particle, which the world offsets keep in order): ``array[owners == k]`` is world k's array."""
+    world = model.particle_world.numpy()
+    first = {"spring": model.spring_indices.numpy().reshape(-1, 2)[:, 0], "tri": model.tri_indices.numpy().reshape(-1, 3)[:, 0],
+             "membrane": model.membrane_vertices.numpy().reshape(-1, 3)[:, 0]}
+    first["plate"] = model.plate_points.numpy()[model.plate_offsets.numpy()[:-1]] if model.plate_count else np.zeros(0, int)
+    from .gradients import model_grad_arrays
+
+    out = {}
+    for name in model_grad_arrays(model):
+        family = name.split("_")[0]
+        if family == "particle":
+            out[name] = world
+        elif family in first:
+            out[name] = world[first[family]]
+    return out
+
+
 def world_losses(model: Model, targets: Sequence[dict]):
     """One :class:`~cloth_warp.gradients.PositionLoss` per world (`targets[k]`: {step: that world's target
     positions}) over that world's particles, summed (:class:`~cloth_warp.gradients.LossSum`): a rollout of the batch
-    then gives each world the gradient of its own run with its own loss (bit for bit on the CPU)."""
+    then gives each world the gradient of its own run with its own loss (bit for bit on the CPU), and each world's
+    loss (``LossSum.term_values()``)."""
     from .gradients import LossSum, PositionLoss
 
     slices = world_slices(model)
     if len(targets) != len(slices):
         raise ValueError(f"world_losses: {len(targets)} targets for {len(slices)} worlds")
-    return LossSum(PositionLoss(t, device=model.device, particles=np.arange(sl.start, sl.stop)) for t, sl in zip(targets, slices))
+    return LossSum((PositionLoss(t, device=model.device, particles=np.arange(sl.start, sl.stop)) for t, sl in zip(targets, slices)),
+                   record_terms=True, device=model.device)
 
 
 @dataclasses.dataclass(frozen=True)
