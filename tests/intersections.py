@@ -2,8 +2,9 @@
 shares no code with the solver).
 
 Two triangles that share no vertex intersect iff an edge of one crosses the other (for triangles in
-general position); every mesh edge is tested against every triangle it is not incident to, after an
-exact bounding-box filter.
+general position); every mesh edge is tested against every triangle it is not incident to whose bounding box
+overlaps its own. The overlapping boxes are found exactly through a uniform grid (`overlapping_boxes`), not by
+testing every edge against every triangle (1.6 s a frame on the dress), with the same answer.
 """
 
 import numpy as np
@@ -31,55 +32,76 @@ def segment_crosses_triangle(p, q, a, b, c, eps=1e-12):
     return ok & (u >= 0.0) & (v >= 0.0) & (u + v <= 1.0) & (t >= 0.0) & (t <= 1.0)
 
 
-def intersecting_pairs(x, tris, chunk=256):
-    """(edge, triangle) index pairs where a mesh edge crosses a triangle not incident to it."""
+def overlapping_boxes(alo, ahi, blo, bhi, max_entries=4_000_000):
+    """Index pairs (i, j), sorted, of boxes [alo_i, ahi_i] and [blo_j, bhi_j] that overlap (closed; exact). Each box is
+    entered in every cell of a uniform grid it touches (cells the size of the median box, a large box in many);
+    two boxes that overlap share a cell, so the pairs sharing one, checked box against box, are all of them."""
+    alo, ahi, blo, bhi = (np.asarray(v, np.float64).reshape(-1, 3) for v in (alo, ahi, blo, bhi))
+    if len(alo) == 0 or len(blo) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    origin = np.minimum(alo.min(0), blo.min(0))
+    extent = np.concatenate([(ahi - alo).max(1), (bhi - blo).max(1)])
+    size = max(float(np.median(extent)), float(extent.max()) / 64.0, 1e-9)
+
+    def cells(lo, hi):
+        first = np.floor((lo - origin) / size).astype(np.int64)
+        dims = np.floor((hi - origin) / size).astype(np.int64) - first + 1
+        count = dims.prod(1)
+        ids = np.repeat(np.arange(len(lo)), count)
+        local = np.arange(count.sum()) - np.repeat(count.cumsum() - count, count)
+        d = dims[ids]
+        c = first[ids] + np.stack([local // (d[:, 1] * d[:, 2]), (local // d[:, 2]) % d[:, 1], local % d[:, 2]], 1)
+        return (c[:, 0] * 2_097_152 + c[:, 1]) * 2_097_152 + c[:, 2], ids
+
+    ka, ia = cells(alo, ahi)
+    kb, ib = cells(blo, bhi)
+    order = np.argsort(kb, kind="stable")
+    kb, ib = kb[order], ib[order]
+    start = np.searchsorted(kb, ka, "left")
+    count = np.searchsorted(kb, ka, "right") - start
+    ends = np.cumsum(count)
+    found = [np.zeros(0, np.int64)]
+    lo = 0
+    while lo < len(ka):  # the candidate pairs in blocks of about max_entries (bounded memory)
+        hi = max(lo + 1, int(np.searchsorted(ends, (ends[lo - 1] if lo else 0) + max_entries, "right")))
+        c = count[lo:hi]
+        i = np.repeat(ia[lo:hi], c)
+        j = ib[np.repeat(start[lo:hi], c) + np.arange(c.sum()) - np.repeat(np.cumsum(c) - c, c)]
+        found.append(np.unique(i * len(blo) + j))
+        lo = hi
+    pairs = np.unique(np.concatenate(found))
+    i, j = pairs // len(blo), pairs % len(blo)
+    overlap = np.all((alo[i] <= bhi[j]) & (blo[j] <= ahi[i]), axis=1)
+    return i[overlap], j[overlap]
+
+
+def intersecting_pairs(x, tris):
+    """(edge, triangle) index pairs, sorted, where a mesh edge crosses a triangle not incident to it."""
     x = np.asarray(x, np.float64)
     tris = np.asarray(tris, np.int64)
     edges = unique_edges(tris)
-    tlo = x[tris].min(1)
-    thi = x[tris].max(1)
-    elo = np.minimum(x[edges[:, 0]], x[edges[:, 1]])
-    ehi = np.maximum(x[edges[:, 0]], x[edges[:, 1]])
-    found = []
-    for s in range(0, len(edges), chunk):
-        lo, hi, ed = elo[s:s + chunk], ehi[s:s + chunk], edges[s:s + chunk]
-        overlap = np.all((lo[:, None] <= thi[None]) & (tlo[None] <= hi[:, None]), axis=2)
-        incident = (tris[None, :, :] == ed[:, None, 0:1]).any(2) | (tris[None, :, :] == ed[:, None, 1:2]).any(2)
-        ei, ti = np.nonzero(overlap & ~incident)
-        if len(ei) == 0:
-            continue
-        e = ed[ei]
-        hit = segment_crosses_triangle(x[e[:, 0]], x[e[:, 1]], x[tris[ti, 0]], x[tris[ti, 1]], x[tris[ti, 2]])
-        found.extend(zip((ei[hit] + s).tolist(), ti[hit].tolist()))
-    return found
+    ei, ti = overlapping_boxes(np.minimum(x[edges[:, 0]], x[edges[:, 1]]), np.maximum(x[edges[:, 0]], x[edges[:, 1]]),
+                               x[tris].min(1), x[tris].max(1))
+    e, t = edges[ei], tris[ti]
+    incident = (t == e[:, 0:1]).any(1) | (t == e[:, 1:2]).any(1)
+    ei, ti, e, t = ei[~incident], ti[~incident], e[~incident], t[~incident]
+    hit = segment_crosses_triangle(x[e[:, 0]], x[e[:, 1]], x[t[:, 0]], x[t[:, 1]], x[t[:, 2]])
+    return list(zip(ei[hit].tolist(), ti[hit].tolist()))
 
 
-def crossing_pairs(xa, tris_a, xb, tris_b, chunk=256):
-    """(mesh, edge, triangle) triples where an edge of one mesh crosses a triangle of the other (mesh 0: an edge of
-    a crossing b's triangle; 1: the other way): two surfaces intersect iff some edge of one crosses the other."""
+def crossing_pairs(xa, tris_a, xb, tris_b):
+    """(mesh, edge, triangle) triples, sorted, where an edge of one mesh crosses a triangle of the other (mesh 0: an
+    edge of a crossing b's triangle; 1: the other way): two surfaces intersect iff some edge of one crosses the other."""
     out = []
     for side, (x, t, y, u) in enumerate(((xa, tris_a, xb, tris_b), (xb, tris_b, xa, tris_a))):
         x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
         edges = unique_edges(np.asarray(t, np.int64))
         u = np.asarray(u, np.int64)
-        tlo, thi = y[u].min(1), y[u].max(1)
-        elo = np.minimum(x[edges[:, 0]], x[edges[:, 1]])
-        ehi = np.maximum(x[edges[:, 0]], x[edges[:, 1]])
-        # only what overlaps the other mesh's bounding box can cross it (exact: a cheap cull for a large body)
-        keep_t = np.all((tlo <= ehi.max(0)) & (elo.min(0) <= thi), axis=1)
-        keep_e = np.all((elo <= thi.max(0)) & (tlo.min(0) <= ehi), axis=1)
-        kept_t = np.flatnonzero(keep_t)
-        u, tlo, thi = u[kept_t], tlo[kept_t], thi[kept_t]
-        edge_ids = np.flatnonzero(keep_e)
-        edges, elo, ehi = edges[keep_e], elo[keep_e], ehi[keep_e]
-        for s in range(0, len(edges), chunk):
-            lo, hi, ed = elo[s:s + chunk], ehi[s:s + chunk], edges[s:s + chunk]
-            ei, ti = np.nonzero(np.all((lo[:, None] <= thi[None]) & (tlo[None] <= hi[:, None]), axis=2))
-            if len(ei) == 0:
-                continue
-            e = ed[ei]
-            hit = segment_crosses_triangle(x[e[:, 0]], x[e[:, 1]], y[u[ti, 0]], y[u[ti, 1]], y[u[ti, 2]])
-            out.extend((side, int(edge_ids[a + s]), int(kept_t[b])) for a, b in zip(ei[hit], ti[hit]))
+        ei, ti = overlapping_boxes(np.minimum(x[edges[:, 0]], x[edges[:, 1]]), np.maximum(x[edges[:, 0]], x[edges[:, 1]]),
+                                   y[u].min(1), y[u].max(1))
+        e = edges[ei]
+        hit = segment_crosses_triangle(x[e[:, 0]], x[e[:, 1]], y[u[ti, 0]], y[u[ti, 1]], y[u[ti, 2]])
+        out.extend((side, int(a), int(b)) for a, b in zip(ei[hit], ti[hit]))
     return out
 
 
