@@ -29,7 +29,9 @@ CONFIGS = {
 }
 
 
-def run(name, overrides, frames, capture, setup=None):
+def run(name, overrides, frames, capture, setup=None, replay_loops=False):
+    """The frames of a shipped scene, recorded and replayed (`capture`) or uncaptured: then every kernel launched one by
+    one, or with `replay_loops` the implicit solver's linear-solve loops replayed as graphs (its default)."""
     sim = make_sim(name, overrides)
     if setup is not None:
         setup(sim)
@@ -37,6 +39,8 @@ def run(name, overrides, frames, capture, setup=None):
         sim.capture = False
         if sim.stepper is not None:
             sim.stepper.capture = False
+        if hasattr(sim.solver, "replay_loops"):
+            sim.solver.replay_loops = replay_loops
     out = []
     for _ in range(frames):
         sim.step_frame()
@@ -54,13 +58,16 @@ def assert_same_frames(a, b):
 def test_replayed_frames_equal_uncaptured_frames(config):
     """Check each pass kind (strain limiter, colliders static and keyframed, self-collision), the implicit solver's
     CG and Jacobi loops, handles and the gusty wind run captured, and give the uncaptured run's frames and counters
-    bit for bit; once recorded, a frame is one replay with no eager launch, copy or fill."""
+    bit for bit (every kernel launched one by one, and with the linear solves' loops replayed as graphs, as an
+    uncaptured run has them); once recorded, a frame is one replay with no eager launch, copy or fill."""
     name, overrides, frames = CONFIGS[config]
     sim, captured = run(name, overrides, frames, True)
     assert sim.capture and sim._graph is not None
     plain, uncaptured = run(name, overrides, frames, False)
     assert not plain.capture
     assert_same_frames(captured, uncaptured)
+    if hasattr(plain.solver, "replay_loops"):
+        assert_same_frames(uncaptured, run(name, overrides, frames, False, replay_loops=True)[1])
     with LaunchCounter() as counts:
         sim.step_frame()
     assert counts.replays == 1 and counts.eager == 0, counts.to_dict()

@@ -11,7 +11,7 @@ import warp as wp
 
 from ..autodiff import paused_tape
 from ..diagnostics import LinearSolveReport
-from ..graphs import device_while
+from ..graphs import LoopGraphs, device_while
 from ..profiling import stage
 from ..records import record_values
 from ..reductions import launch_reduction
@@ -136,6 +136,11 @@ class SolverImplicitEuler(SolverBase):
     filtered alike, and friction acts on the tape with lambda = -n . (b - A dv) (whether a contact sticks is held
     fixed too). The unrolled reference has no contact filter.
     """
+
+    replay_loops: bool = True
+    """Record each linear solve's loop once as a graph and replay it where the step runs eagerly (bit for bit the eager
+    loop; False, per solver or for the class: launch its kernels one by one, the reference tests/test_capture.py and
+    benchmarks/bench_taped_solves.py compare with)."""
 
     name = "implicit_euler"
     kernel_modules = (ki,)
@@ -296,6 +301,7 @@ class SolverImplicitEuler(SolverBase):
         self.self_contact_count = wp.zeros(1, dtype=wp.int32, device=dev)
         self._self_contact_elements = None  # (indices, weights, normals, overlaps, friction masses, friction impulses), capacity: the candidates'
         self._self_contacts_on = False  # whether the step being solved has self-contact elements
+        self._loop_graphs = LoopGraphs()  # the linear solves' loops, recorded once where they run eagerly (_solve_loop)
         self.friction_dv = wp.zeros(n, dtype=wp.vec3, device=dev)  # self-contact friction: summed changes and their count
         self.friction_weight = wp.zeros(n, dtype=float, device=dev)
         self._contacts_on = False  # whether the solve being recorded filters contacts
@@ -307,6 +313,7 @@ class SolverImplicitEuler(SolverBase):
         velocity change no longer predicts this one, so the next solve starts cold."""
         super().notify_model_changed(flags)
         self.previous_ready.zero_()
+        self._loop_graphs.clear()  # (they hold the model's arrays as they were)
 
     # -- the linear system -------------------------------------------------------------------
     def assemble(self, state_in: State, control: Control, dt: float):
@@ -437,13 +444,30 @@ class SolverImplicitEuler(SolverBase):
         if self._self_contacts_on:
             self._self_contact_product(p, dt, out)
 
+    def _solve_loop(self, solver: str, body, dt: float):
+        """A linear solve's iterations on the device while `loop` says so: outside a capture (a taped step's solves, an
+        uncaptured run) recorded once as a graph per configuration and replayed (:class:`~cloth_warp.graphs.LoopGraphs`;
+        a calibration's taped cantilever steps spent 98 % of their time launching the CG's kernels one by one), unless
+        :attr:`replay_loops` is off. The key is what the loop bakes into its launches beyond the solver's fixed buffers:
+        the step, which filters and elements are on (the self-contact elements' arrays, reallocated as their capacity
+        changes, and their stiffness), the iteration cap and check interval. (A model array replaced rather than assigned
+        needs :meth:`notify_model_changed`, which drops the graphs.)"""
+        if not self.replay_loops:
+            device_while(self.loop, body, dt=dt)
+            return
+        elements = None
+        if self._self_contacts_on:
+            elements = (tuple((a.ptr, a.shape[0]) for a in self._self_contact_elements), float(self.model.self_collision_stiffness))
+        key = (solver, float(dt), self._contacts_on, elements, self.max_iterations, self.check_every)
+        self._loop_graphs.run(key, self.loop, body, dt=dt)
+
     def solve_cg(self, dt: float, warm: bool = False, restarted: bool = False, resolve: bool = False) -> wp.array:
         """Filtered PCG on the assembled system (`warm`: a warm start may have replaced the cold one, see
         :meth:`solve`; `restarted`: the start is a composed guess; `resolve`: the step's solve again), iterating on
         the device until the stop residual; returns the array holding dv."""
         self._begin_iterations(warm, restarted, resolve)
         self.product.zero_()  # then each iteration's cg_update clears it for the next
-        device_while(self.loop, self._cg_iteration, dt=dt)
+        self._solve_loop("cg", self._cg_iteration, dt)
         m = self.model
         wp.launch(ki.best_iterate_status, dim=self.worlds, inputs=[self.worlds], outputs=[self.solve_status, self.loop], device=m.device)
         wp.launch(ki.restore_best_iterate, dim=m.particle_count, inputs=[self.loop, self.dv_best, m.particle_world, self.worlds],
@@ -491,7 +515,7 @@ class SolverImplicitEuler(SolverBase):
         """Block Jacobi on the assembled system (`warm` as in :meth:`solve_cg`), iterating on the device; returns
         the array holding dv."""
         self._begin_iterations(warm)
-        device_while(self.loop, self._jacobi_iteration, dt=dt)
+        self._solve_loop("jacobi", self._jacobi_iteration, dt)
         return self.dv
 
     def _jacobi_iteration(self, dt: float):
