@@ -31,18 +31,21 @@ def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scenes", nargs="+", default=["tshirt_walk", "dress_walk", "layered_walk"])
     p.add_argument("--edge", type=float, default=None, help="edge length of every garment [m] (default: the scene's)")
-    p.add_argument("--frames", type=int, default=60, help="frames of the walk timed")
+    p.add_argument("--frames", type=int, default=60, help="frames of the walk timed (0: skip the walk)")
     p.add_argument("--rest", type=int, default=300, help="frames in the still pose for the rest speed (0: skip)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="a scene key for every run, as `cloth-warp run --set` takes it (repeatable)")
     p.add_argument("--device", default="cpu")
     p.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "bench_garments.md"))
     return p.parse_args(argv)
 
 
-def overrides_for(scene_name: str, edge: float | None, still: bool) -> dict:
+def overrides_for(scene_name: str, edge: float | None, still: bool, sets: list[str] = ()) -> dict:
+    from cloth_warp.cli import parse_set
     from cloth_warp.runner import find_scene
     from cloth_warp.scene import load_scene
 
-    out = {}
+    out = parse_set(list(sets))
     scene = load_scene(find_scene(scene_name))
     if edge is not None:
         out["cloth.edge_length"] = edge
@@ -55,7 +58,7 @@ def overrides_for(scene_name: str, edge: float | None, still: bool) -> dict:
     return out
 
 
-def run(scene_name: str, edge: float | None, frames: int, still: bool, device: str) -> dict:
+def run(scene_name: str, edge: float | None, frames: int, still: bool, device: str, sets: list[str] = ()) -> dict:
     import warp as wp
 
     from cloth_warp.runner import find_scene, load_kernels
@@ -63,7 +66,7 @@ def run(scene_name: str, edge: float | None, frames: int, still: bool, device: s
     from cloth_warp.sewing import seam_ends, seam_gap
     from cloth_warp.simulator import Simulator
 
-    scene = load_scene(find_scene(scene_name), overrides_for(scene_name, edge, still))
+    scene = load_scene(find_scene(scene_name), overrides_for(scene_name, edge, still, sets))
     t = time.perf_counter()
     model = build_model(scene, device)
     build_s = time.perf_counter() - t
@@ -96,10 +99,11 @@ def main(argv=None):
     sys.path.insert(0, str(ROOT))
     rows = []
     for name in args.scenes:
-        rows.append(run(name, args.edge, args.frames, False, args.device))
-        print(json.dumps(rows[-1]), flush=True)
+        if args.frames:
+            rows.append(run(name, args.edge, args.frames, False, args.device, args.set))
+            print(json.dumps(rows[-1]), flush=True)
         if args.rest:
-            rows.append(run(name, args.edge, args.rest, True, args.device))
+            rows.append(run(name, args.edge, args.rest, True, args.device, args.set))
             print(json.dumps(rows[-1]), flush=True)
     edge = f"{args.edge:g} m edges" if args.edge else "the scenes' edge lengths"
     lines = [f"# bench_garments ({args.device}, {edge}; Python {platform.python_version()})", "",

@@ -83,7 +83,8 @@ def dress(builder, seconds: float = 1.0, *, closing: float = 0.6, fps: float = 6
         raise InvalidValue("dress: bind attachments after dressing (the builder already has some)")
     # Contacts after the step: held inside the solve, a seam's two particles touching the body on differently
     # inclined facets were measured to chatter 2-5 mm apart instead of closing.
-    options = {**(solver_options or {}), "collider_contacts": "pass"}
+    # (and their friction, which the sewing turns off anyway: in the solve it needs the contacts there)
+    options = {**(solver_options or {}), "collider_contacts": "pass", "contact_friction": "after"}
     return _still_run(builder, seconds, closing, False, fps, substeps, damping, device, options, _cloth_particles(builder, garments))
 
 
