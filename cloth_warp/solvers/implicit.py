@@ -447,12 +447,12 @@ class SolverImplicitEuler(SolverBase):
     def _solve_loop(self, solver: str, body, dt: float):
         """A linear solve's iterations on the device while `loop` says so: outside a capture (a taped step's solves, an
         uncaptured run) recorded once as a graph per configuration and replayed (:class:`~cloth_warp.graphs.LoopGraphs`;
-        a calibration's taped cantilever steps spent 98 % of their time launching the CG's kernels one by one), unless
-        :attr:`replay_loops` is off. The key is what the loop bakes into its launches beyond the solver's fixed buffers:
-        the step, which filters and elements are on (the self-contact elements' arrays, reallocated as their capacity
-        changes, and their stiffness), the iteration cap and check interval. (A model array replaced rather than assigned
-        needs :meth:`notify_model_changed`, which drops the graphs.)"""
-        if not self.replay_loops:
+        a calibration's taped cantilever steps spent 98 % of their time launching the CG's kernels one by one), on the
+        CPU, unless :attr:`replay_loops` is off. The key is what the loop bakes into its launches beyond the solver's
+        fixed buffers: the step, which filters and elements are on (the self-contact elements' arrays, reallocated as
+        their capacity changes, and their stiffness), the iteration cap and check interval. (A model array replaced
+        rather than assigned needs :meth:`notify_model_changed`, which drops the graphs.)"""
+        if not self.replay_loops or not self.model.device.is_cpu:  # (CUDA: not measured yet; eagerly, capture_while)
             device_while(self.loop, body, dt=dt)
             return
         elements = None
