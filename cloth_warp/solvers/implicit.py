@@ -138,9 +138,9 @@ class SolverImplicitEuler(SolverBase):
     """
 
     replay_loops: bool = True
-    """Record each linear solve's loop once as a graph and replay it where the step runs eagerly (bit for bit the eager
-    loop; False, per solver or for the class: launch its kernels one by one, the reference tests/test_capture.py and
-    benchmarks/bench_taped_solves.py compare with)."""
+    """On the CPU, record each linear solve's loop once as a graph and replay it where the step runs eagerly (bit for bit
+    the eager loop; False, per solver or for the class: launch its kernels one by one, the reference
+    tests/test_capture.py and benchmarks/bench_taped_solves.py compare with). CUDA keeps its eager loop for now."""
 
     name = "implicit_euler"
     kernel_modules = (ki,)
