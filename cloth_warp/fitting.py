@@ -387,18 +387,17 @@ class SceneFit:
     def _scene_with(self, values: dict) -> Scene:
         return with_values(self.scene, values)
 
-    def _arrays(self, values: dict, model=None) -> dict[str, np.ndarray]:
-        m = build_model(self._scene_with(values), "cpu", requires_grad=True) if model is None else model
+    def _arrays(self, values: dict) -> dict[str, np.ndarray]:
+        """The differentiable arrays (float64) of a fresh build of the scene with `values` (the chain rule's ends)."""
+        m = build_model(self._scene_with(values), "cpu", requires_grad=True)
         return {name: a.numpy().astype(np.float64) for name, a in model_grad_arrays(m).items() if name != "particle_q"}
 
-    def _apply(self, values: dict) -> dict[str, np.ndarray]:
+    def _apply(self, values: dict):
         """Write what a fresh build of the scene with `values` holds into the fit's model (:func:`load_build`) and set
-        the wind. Returns the build's differentiable arrays (float64, for the chain rule)."""
-        fresh = build_model(self._scene_with(values), "cpu", requires_grad=True)
-        load_build(fresh, self.model, (self.rollout, self.loss))
+        the wind."""
+        load_build(build_model(self._scene_with(values), "cpu", requires_grad=True), self.model, (self.rollout, self.loss))
         wind = values.get("forces.wind", self.scene.get("forces.wind"))
         self.rollout.control.wind.assign(np.asarray(wind, np.float32).reshape(1, 3))
-        return self._arrays(values, fresh)
 
     def set_values(self, values: list[np.ndarray]):
         """Put parameter values (one array per parameter, as :attr:`parameters` orders them) into the fit's model
