@@ -93,7 +93,7 @@ def test_scene_material_file(tmp_path):
 def test_known_material_recovered_from_a_far_start():
     """Measurements of an ideal specimen of KNOWN (Peirce's c, the continuum's free-strip stiffness), fitted from a start
     off by 0.5-2x: every simulated test within TOLERANCE of its measurement and B, C (warp, weft) within 3 % of KNOWN.
-    (Measured: 4 + 4 iterations, 36 s alone on 2 CPU cores; B +0.16 / -0.76 %, C -0.04 / -0.02 %.)"""
+    (Measured: 4 + 4 iterations, 5.5 s alone (36 s before the replayed solve loops); B +0.16 / -0.76 %, C -0.04 / -0.02 %.)"""
     start = {"material.bend_stiffness": 1.0e-5, "material.bend_stiffness_weft": 8.0e-5, "material.stretch_stiffness": 900.0,
              "material.stretch_stiffness_weft": 1000.0}
     seen = []
