@@ -44,6 +44,10 @@ class Loss:
     def notify_model_changed(self, flags: int) -> None:
         """Refresh what the loss derived from the model when it was built (:class:`~cloth_warp.model.ModelFlags`)."""
 
+    def end_segment(self) -> None:
+        """A rollout evaluated the loss over one segment (:meth:`Rollout.gradient` after each taped segment,
+        :meth:`Rollout.forward` after the whole run)."""
+
 
 class PositionLoss(Loss):
     """Mean squared distance [m^2] between the particles and target positions.
@@ -83,6 +87,7 @@ class LossSum(Loss):
         self.steps = frozenset().union(*(loss.steps for loss in self.losses))
         self.terms = None
         """With `record_terms`: each loss's value as well, one float per loss on `device` (:meth:`term_values`)."""
+        self._term_totals = np.zeros(len(self.losses))
         if record_terms:
             self.terms = wp.zeros(len(self.losses), dtype=float, device=device, requires_grad=True)
 
@@ -93,11 +98,18 @@ class LossSum(Loss):
                 if self.terms is not None:  # (taped too: its adjoint is zero, the gradients unchanged)
                     loss.evaluate(step, state, self.terms[k:k + 1])
 
-    def term_values(self, reset: bool = True) -> np.ndarray:
-        """Each loss's value, summed over the evaluations since the last reset (a rollout's, float32); then reset."""
-        values = self.terms.numpy().astype(np.float64)
-        if reset:
+    def end_segment(self) -> None:
+        if self.terms is not None:  # each segment's terms (float32) summed in float64, as the rollout sums its loss
+            self._term_totals += self.terms.numpy().astype(np.float64)
             self.terms.zero_()
+
+    def term_values(self, reset: bool = True) -> np.ndarray:
+        """Each loss's value over the rollout segments since the last reset (each segment's float32 value summed in
+        float64, as :meth:`Rollout.gradient` sums the loss: a world's loss in a batch is its single run's bit for bit);
+        then reset."""
+        values = self._term_totals.copy()
+        if reset:
+            self._term_totals[:] = 0.0
         return values
 
     def notify_model_changed(self, flags: int) -> None:
@@ -307,6 +319,7 @@ class Rollout:
         out = wp.zeros(1, dtype=float, device=self.model.device, requires_grad=True)
         states, _ = self._advance(0, self.steps, state0, loss, out, keep=False)
         self.final_state = states[-1]
+        loss.end_segment()  # (one segment: the whole rollout)
         return float(out.numpy()[0])
 
     def gradient(self, loss: Loss, state0: State | None = None, zero: bool = True) -> float:
@@ -337,6 +350,7 @@ class Rollout:
             if s == len(bounds) - 2:
                 self.final_state = states[-1]
             total += float(out.numpy()[0])
+            loss.end_segment()
             grads = {} if seed is None else {states[-1].particle_q: seed[0], states[-1].particle_qd: seed[1]}
             tape.backward(loss=out, grads=grads)
             self._collect_handle_gradients(a, controls)

@@ -33,16 +33,18 @@ def targets(tmp_path_factory):
     return out
 
 
-def test_each_world_of_a_batched_fit_is_its_single_fit(targets):
+@pytest.mark.parametrize("checkpoint_every", [None, 5])
+def test_each_world_of_a_batched_fit_is_its_single_fit(targets, checkpoint_every):
     """Three targets fitted at once give each target exactly what its own SceneFit gives: the same loss at every
-    iteration, the same values, the same best values, bit for
-    bit (the batch's rollout gives every world its own run's gradient and loss; each world's Adam is its own)."""
+    iteration, the same values, the same best values, bit for bit (the batch's rollout gives every world its own run's
+    gradient and loss, also over checkpointed segments; each world's Adam is its own)."""
     scene = load_scene(SCENES / "fit_hanging.toml", COARSE)
-    batch = BatchFit(scene, targets, KEYS)
+    batch = BatchFit(scene, targets, KEYS, checkpoint_every=checkpoint_every)
     assert batch.model.world_count == 3
+    assert batch.rollout.segment == (5 if checkpoint_every else batch.rollout.steps)
     results = batch.run(iterations=3, learning_rate=0.1)
     for k, (path, result) in enumerate(zip(targets, results)):
-        single = SceneFit(scene, path, KEYS).run(iterations=3, learning_rate=0.1)
+        single = SceneFit(scene, path, KEYS, checkpoint_every=checkpoint_every).run(iterations=3, learning_rate=0.1)
         assert result.status == single.status == "complete"
         assert result.losses == single.losses, f"world {k}"
         assert result.values == single.values, f"world {k}"
