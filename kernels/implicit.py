@@ -883,13 +883,16 @@ def jacobi_iterate(
     dv_in: wp.array(dtype=wp.vec3),
     dt: float,
     loop: wp.array(dtype=wp.int32),
+    particle_world: wp.array(dtype=wp.int32),
+    worlds: int,
     # outputs
     dv_out: wp.array(dtype=wp.vec3),
 ):
     """Block Jacobi: dv_i <- P_i (b_i - sum_{j != i} A_ij dv_j + E_i dv_i), P_i^-1 = A_ii + E_i (E_i: the membrane
-    elements' and plate stencils' extra diagonal weight); pinned rows keep z_i. Nothing once the loop stopped."""
+    elements' and plate stencils' extra diagonal weight); pinned rows keep z_i. Nothing once the particle's world's
+    loop stopped."""
     i = wp.tid()
-    if loop[LOOP_RUNNING] == 0:
+    if loop[world_loop(particle_world_of(i, particle_world, worlds), worlds) + LOOP_RUNNING] == 0:
         return
     if particle_pinned[i] != 0:
         dv_out[i] = dv_in[i]
@@ -960,18 +963,22 @@ def eval_system_residual(
     global_damping: float,
     dt: float,
     loop: wp.array(dtype=wp.int32),
+    particle_world: wp.array(dtype=wp.int32),
+    worlds: int,
     # outputs
     cg_scalars_out: wp.array2d(dtype=wp.float64),
 ):
-    """|S (b - A dv)|^2 into cg_scalars_out[JACOBI_CHECK_ROW, CG_RR] when a check is due (loop[LOOP_CHECK])."""
+    """|S (b - A dv)|^2 of each world into cg_scalars_out[JACOBI_CHECK_ROW, its CG_RR] when its check is due
+    (its loop's LOOP_CHECK)."""
     i = wp.tid()
-    if loop[LOOP_CHECK] == 0:
+    w = particle_world_of(i, particle_world, worlds)
+    if loop[world_loop(w, worlds) + LOOP_CHECK] == 0:
         return
     if particle_pinned[i] != 0:
         return
     m_eff = effective_mass(i, particle_mass, particle_pin_stiffness, global_damping, dt)
     r = rhs[i] - system_product(i, spring_offsets, spring_ids, spring_role, spring_indices, spring_middle, tri_offsets, tri_ids, tri_indices, tri_corner_weights, membrane_offsets, membrane_ids, membrane_vertices, system_block, bend_vector, drag_vector, membrane_block, plate_product, m_eff, dv, dt)
-    wp.atomic_add(cg_scalars_out, JACOBI_CHECK_ROW, CG_RR, wp.float64(wp.dot(r, r)))
+    wp.atomic_add(cg_scalars_out, JACOBI_CHECK_ROW, w * CG_COLUMNS + CG_RR, wp.float64(wp.dot(r, r)))
 
 
 @wp.kernel
@@ -1597,38 +1604,52 @@ def end_cg_iteration(
 def check_jacobi_residual(
     cg_scalars: wp.array2d(dtype=wp.float64),
     max_iterations: int,
+    worlds: int,
     # outputs
     status_out: wp.array(dtype=wp.float64),
     loop_out: wp.array(dtype=wp.int32),
 ):
-    """Block Jacobi (1 thread): when a check is due, the relative residual eval_system_residual measured; stop at the
-    tolerance, a non-finite residual or the cap."""
-    if loop_out[LOOP_CHECK] == 0:
-        return
-    loop_out[LOOP_CHECK] = 0
-    relative = relative_residual(cg_scalars[JACOBI_CHECK_ROW, CG_RR], status_out[STATUS_REFERENCE])
-    status_out[STATUS_RELATIVE] = relative
-    if stops(relative, status_out[STATUS_STOP]) or loop_out[LOOP_ITERATION] >= max_iterations:
+    """Block Jacobi (1 thread per world): when the world's check is due, the relative residual eval_system_residual
+    measured; stop the world at the tolerance, a non-finite residual or the cap. (Batched: the batch's flag is cleared
+    here and set again by `end_jacobi_iteration`'s worlds that go on.)"""
+    w = wp.tid()
+    base = world_loop(w, worlds)
+    st = w * STATUS_SIZE
+    if worlds > 1 and w == 0:
         loop_out[LOOP_RUNNING] = 0
+    if loop_out[base + LOOP_CHECK] == 0:
+        return
+    loop_out[base + LOOP_CHECK] = 0
+    relative = relative_residual(cg_scalars[JACOBI_CHECK_ROW, w * CG_COLUMNS + CG_RR], status_out[st + STATUS_REFERENCE])
+    status_out[st + STATUS_RELATIVE] = relative
+    if stops(relative, status_out[st + STATUS_STOP]) or loop_out[base + LOOP_ITERATION] >= max_iterations:
+        loop_out[base + LOOP_RUNNING] = 0
 
 
 @wp.kernel(enable_backward=False)
 def end_jacobi_iteration(
     check_every: int,
     max_iterations: int,
+    worlds: int,
     # outputs
     cg_scalars_out: wp.array2d(dtype=wp.float64),
     loop_out: wp.array(dtype=wp.int32),
 ):
-    """Count a block-Jacobi iteration (1 thread); every `check_every` iterations and at the cap a residual check is
-    due (its accumulator cleared)."""
-    if loop_out[LOOP_RUNNING] == 0:
+    """Count a block-Jacobi iteration (1 thread per world); every `check_every` iterations and at the cap a residual
+    check is due (its accumulator cleared). Batched: the batch's loop runs on while any world does, its iteration count
+    the largest."""
+    w = wp.tid()
+    base = world_loop(w, worlds)
+    if loop_out[base + LOOP_RUNNING] == 0:
         return
-    k = loop_out[LOOP_ITERATION] + 1
-    loop_out[LOOP_ITERATION] = k
+    k = loop_out[base + LOOP_ITERATION] + 1
+    loop_out[base + LOOP_ITERATION] = k
     if k % check_every == 0 or k >= max_iterations:
-        loop_out[LOOP_CHECK] = 1
-        cg_scalars_out[JACOBI_CHECK_ROW, CG_RR] = wp.float64(0.0)
+        loop_out[base + LOOP_CHECK] = 1
+        cg_scalars_out[JACOBI_CHECK_ROW, w * CG_COLUMNS + CG_RR] = wp.float64(0.0)
+    if worlds > 1:
+        wp.atomic_max(loop_out, LOOP_ITERATION, k)
+        wp.atomic_max(loop_out, LOOP_RUNNING, 1)
 
 
 @wp.kernel(enable_backward=False)

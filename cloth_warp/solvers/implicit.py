@@ -227,12 +227,11 @@ class SolverImplicitEuler(SolverBase):
             raise ValueError(f"warm_start_reduction must be in (0, 1], got {warm_start_reduction!r}")
         self.warm_start_reduction = float(warm_start_reduction)
         if model.world_count > 1:
-            unbatched = [what for what, on in (("linear_solver='jacobi'", self.linear_solver != LinearSolver.CG),
-                                               ("collider_contacts='solve'", collider_contacts == "solve"),
+            unbatched = [what for what, on in (("collider_contacts='solve'", collider_contacts == "solve"),
                                                ("self_contacts='solve'", self_contacts == "solve")) if on]
             if unbatched:
-                raise ValueError(f"batched worlds ({model.world_count}) do not run {', '.join(unbatched)} yet: use the CG "
-                                 "with contacts as passes")
+                raise ValueError(f"batched worlds ({model.world_count}) do not run {', '.join(unbatched)} yet: use "
+                                 "contacts as passes")
         n, s, t = model.particle_count, max(model.spring_count, 1), max(model.tri_count, 1)
         dev = model.device
         self.stiffness_block = wp.zeros(s, dtype=wp.mat33, device=dev)
@@ -529,23 +528,24 @@ class SolverImplicitEuler(SolverBase):
             ki.eval_system_residual,
             dim=m.particle_count,
             inputs=[*common, m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, self.system_block, self.bend_vector,
-                    self.drag_vector, self.membrane_block, self.plate_product, self.rhs, self.dv, m.global_damping, dt, self.loop],
+                    self.drag_vector, self.membrane_block, self.plate_product, self.rhs, self.dv, m.global_damping, dt, self.loop,
+                    m.particle_world, self.worlds],
             outputs=[self.cg_scalars],
             device=dev,
         )
-        wp.launch(ki.check_jacobi_residual, dim=1, inputs=[self.cg_scalars, self.max_iterations], outputs=[self.solve_status, self.loop],
-                  device=dev)
+        wp.launch(ki.check_jacobi_residual, dim=self.worlds, inputs=[self.cg_scalars, self.max_iterations, self.worlds],
+                  outputs=[self.solve_status, self.loop], device=dev)
         wp.launch(
             ki.jacobi_iterate,
             dim=m.particle_count,
             inputs=[*common, m.particle_pinned, self.system_block, self.bend_vector, self.drag_vector, self.membrane_block,
-                    self.plate_product, self.plate_diagonal, self.precond, self.rhs, self.dv, dt, self.loop],
+                    self.plate_product, self.plate_diagonal, self.precond, self.rhs, self.dv, dt, self.loop, m.particle_world, self.worlds],
             outputs=[self.dv_alt],
             device=dev,
         )
         wp.copy(self.dv, self.dv_alt)
-        wp.launch(ki.end_jacobi_iteration, dim=1, inputs=[self.check_every, self.max_iterations], outputs=[self.cg_scalars, self.loop],
-                  device=dev)
+        wp.launch(ki.end_jacobi_iteration, dim=self.worlds, inputs=[self.check_every, self.max_iterations, self.worlds],
+                  outputs=[self.cg_scalars, self.loop], device=dev)
 
     def _begin_iterations(self, warm: bool, restarted: bool = False, resolve: bool = False):
         """The reference residual, the stop and whether to iterate, on the device (:func:`~cloth_warp.kernels.implicit.begin_linear_solve`)."""
