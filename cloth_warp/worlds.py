@@ -9,6 +9,8 @@ reductions are kept per world:
   the record per world; the loop runs while any world iterates, and a world that stopped keeps its dv, residual and
   direction (the per-particle kernels skip it), so each world gets exactly its own solve;
 - block Jacobi (the same kernels): each world's residual check, stop and iteration count;
+- collider contacts in the solve: each world's release flag, re-solve rounds and contact counts; a re-solve takes
+  only the worlds that released a contact, the others keep their solve as it was;
 - the strain limiter (kernels/constraints.py): the excess, the stop test and the record per world, the sweeps
   only in the worlds still above the tolerance.
 
@@ -27,7 +29,7 @@ go on. :func:`run_worlds` steps a batch and writes one cache per world (a diverg
 with the frames before it). Gradients: a taped rollout of a batch (:class:`~cloth_warp.gradients.Rollout`) with one
 loss per world (:func:`world_losses`) gives every world its own run's gradient; taped strain limiting sweeps each world
 only while it is above the limit, as the forward path does, and its adjoint replays the same worlds per sweep. Not
-batched yet: self-collision, contacts in the solve, attachments, checkpoints of a batch.
+batched yet: self-collision (and so the self-contacts in the solve), attachments, checkpoints of a batch.
 """
 
 from __future__ import annotations

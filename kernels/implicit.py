@@ -63,12 +63,13 @@ LOOP_CARRIED = wp.constant(3)  # iterations of the step's earlier solves (a re-s
 LOOP_BEST = wp.constant(4)  # CG: this iteration's dv has the smallest residual yet (`cg_direction` keeps it)
 LOOP_SIZE = wp.constant(5)
 # Collider contacts in the solve: the release loop's state (int32) and its cap of re-solves per step.
-RELEASE_FLAG = wp.constant(0)  # a contact was released: solve again
+RELEASE_FLAG = wp.constant(0)  # a contact was released: solve again (batched: the batch's, set while any world's is)
 RELEASE_ROUNDS = wp.constant(1)
+RELEASE_RESOLVING = wp.constant(2)  # batched: this world takes part in the re-solve (set by begin_contact_resolve)
 # A friction damper (eval_contact_friction_terms; self-contacts: kernels/contact.py) holds its contact, the slip then
 # taken out, when the solved slip is within this factor of the stick speed (the solve's round-off stays below it).
 SLIP_ALLOWANCE = wp.constant(1.01)
-RELEASE_SIZE = 2
+RELEASE_SIZE = wp.constant(3)  # per world, laid out as the loop state (kernels/worlds.py world_slot)
 # Batched worlds (Model.world_count W > 1): every per-solve scalar is kept per world, world w's at w * <size> of its
 # array (cg_sums, cg_step, solve status and record, the columns of cg_scalars); the loop state of world w sits at
 # LOOP_SIZE * (1 + w) of `loop`, whose first LOOP_SIZE entries are then the batch's: LOOP_RUNNING while any world
@@ -1156,6 +1157,8 @@ def eval_contact_release(
     collider_static_friction: wp.array(dtype=float),
     collider_kinetic_friction: wp.array(dtype=float),
     stick_speed: float,
+    particle_world: wp.array(dtype=wp.int32),
+    worlds: int,
     # outputs
     rhs_out: wp.array(dtype=wp.vec3),
     effective_mass_out: wp.array(dtype=float),
@@ -1178,8 +1181,10 @@ def eval_contact_release(
     relative to the surface, `v0` + dv - `contact_velocity`, in place of the damper; the flag set) where static friction
     cannot hold it: lambda pulls, or the damper's impulse d |s| passed the bound mu_s lambda with |s| above the stick
     speed [m/s]. A damper held past the bound made the stuck cloth pull off the surface where it would fall back
-    sliding, and the contact chattered between the two."""
+    sliding, and the contact chattered between the two. (Batched worlds: the flag and the rounds are the particle's
+    world's, and the batch's flag is set with a world's.)"""
     i = wp.tid()
+    rb = world_slot(particle_world_of(i, particle_world, worlds), worlds, RELEASE_SIZE)
     n = contact_normal_out[i]
     if particle_pinned[i] != 0 or wp.dot(n, n) == 0.0:
         contact_impulse_out[i] = 0.0
@@ -1191,7 +1196,7 @@ def eval_contact_release(
     impulse = wp.dot(n, a_dv - rhs_out[i])  # (the friction terms are tangential: no part of it)
     contact_impulse_out[i] = impulse
     d = friction_mass_out[i]
-    if d > 0.0 and release_out[RELEASE_ROUNDS] < max_rounds:
+    if d > 0.0 and release_out[rb + RELEASE_ROUNDS] < max_rounds:
         # a sticking contact that static friction cannot hold (its damper past the bound, or no push left to hold
         # it): it slides in this step, solved again (its release, if it still pulls, is the next round's)
         c = contact_collider_out[i]
@@ -1209,9 +1214,10 @@ def eval_contact_release(
             friction_impulse_out[i] = slide
             s = wp.identity(n=3, dtype=float) - wp.outer(n, n)
             precond_out[i] = s * precond_free[i] * s
+            release_out[rb + RELEASE_FLAG] = 1
             release_out[RELEASE_FLAG] = 1
         return
-    if impulse < -release_impulse * particle_mass[i] and release_out[RELEASE_ROUNDS] < max_rounds:
+    if impulse < -release_impulse * particle_mass[i] and release_out[rb + RELEASE_ROUNDS] < max_rounds:
         rhs_out[i] = rhs_out[i] - friction_impulse_out[i]
         effective_mass_out[i] = effective_mass_out[i] - friction_mass_out[i]
         friction_impulse_out[i] = wp.vec3(0.0)
@@ -1221,19 +1227,32 @@ def eval_contact_release(
         contact_dv_out[i] = wp.vec3(0.0)
         contact_impulse_out[i] = 0.0
         precond_out[i] = precond_free[i]
+        release_out[rb + RELEASE_FLAG] = 1
         release_out[RELEASE_FLAG] = 1
 
 
 @wp.kernel(enable_backward=False)
 def begin_contact_resolve(
+    worlds: int,
     # outputs
     release_out: wp.array(dtype=wp.int32),
     loop_out: wp.array(dtype=wp.int32),
 ):
-    """A re-solve starts (1 thread): one more round, the flag cleared, the last solve's iterations carried."""
-    release_out[RELEASE_FLAG] = 0
-    release_out[RELEASE_ROUNDS] = release_out[RELEASE_ROUNDS] + 1
-    loop_out[LOOP_CARRIED] = loop_out[LOOP_CARRIED] + loop_out[LOOP_ITERATION]
+    """A re-solve starts (1 thread per world): a world with a contact released takes part (RELEASE_RESOLVING): one
+    more round, its flag cleared, its last solve's iterations carried; batched, a world without sits it out, its
+    solve as it was (and the batch's flag is cleared)."""
+    w = wp.tid()
+    rb = world_slot(w, worlds, RELEASE_SIZE)
+    base = world_loop(w, worlds)
+    if worlds > 1 and w == 0:
+        release_out[RELEASE_FLAG] = 0
+    release_out[rb + RELEASE_RESOLVING] = 0
+    if release_out[rb + RELEASE_FLAG] == 0:
+        return
+    release_out[rb + RELEASE_RESOLVING] = 1
+    release_out[rb + RELEASE_FLAG] = 0
+    release_out[rb + RELEASE_ROUNDS] = release_out[rb + RELEASE_ROUNDS] + 1
+    loop_out[base + LOOP_CARRIED] = loop_out[base + LOOP_CARRIED] + loop_out[base + LOOP_ITERATION]
 
 
 @wp.kernel(enable_backward=False)
@@ -1505,6 +1524,7 @@ def begin_linear_solve(
     warm_floor: wp.float64,
     max_iterations: int,
     worlds: int,
+    release: wp.array(dtype=wp.int32),
     # outputs
     cg_scalars_out: wp.array2d(dtype=wp.float64),
     status_out: wp.array(dtype=wp.float64),
@@ -1516,11 +1536,14 @@ def begin_linear_solve(
     (`restarted`: collider contacts in the solve) replaces row 0 too; a re-solve of the step (`resolve`, rows
     zeroed by the caller) keeps the step's reference and the iterations carried from its earlier solves. Iterates when the reference is
     positive and the starting residual above the stop. With batched worlds the batch's loop state (cleared by the
-    caller) runs while any world does."""
+    caller) runs while any world does; in a re-solve, only the worlds taking part (`release`, begin_contact_resolve) start
+    again, the others keep their solve as it was."""
     w = wp.tid()
     base = world_loop(w, worlds)
     col = w * CG_COLUMNS
     st = w * STATUS_SIZE
+    if resolve != 0 and release[world_slot(w, worlds, RELEASE_SIZE) + RELEASE_RESOLVING] == 0:
+        return
     reference = cg_scalars_out[0, col + CG_RR]
     if resolve != 0:
         reference = status_out[st + STATUS_REFERENCE]  # the step's, measured by its first solve
@@ -1675,9 +1698,11 @@ def end_linear_solve(
     solves = record_out[rec + RECORD_SOLVES] + wp.float64(1.0)
     record_out[rec + RECORD_SOLVES] = solves
     record_out[rec + RECORD_ITERATIONS] = record_out[rec + RECORD_ITERATIONS] + iterations
-    record_out[rec + RECORD_CONTACTS] = record_out[rec + RECORD_CONTACTS] + wp.float64(contact_counts[0])
-    record_out[rec + RECORD_SELF_CONTACTS] = record_out[rec + RECORD_SELF_CONTACTS] + wp.float64(contact_counts[1])  # kernels/contact.py COUNT_SELF_CONTACTS
-    record_out[rec + RECORD_RESOLVES] = record_out[rec + RECORD_RESOLVES] + wp.float64(release[RELEASE_ROUNDS])
+    counts = world_slot(w, worlds, 2)  # kernels/contact.py COUNT_SIZE: COUNT_CONTACTS, COUNT_SELF_CONTACTS
+    record_out[rec + RECORD_CONTACTS] = record_out[rec + RECORD_CONTACTS] + wp.float64(contact_counts[counts])
+    record_out[rec + RECORD_SELF_CONTACTS] = record_out[rec + RECORD_SELF_CONTACTS] + wp.float64(contact_counts[counts + 1])
+    record_out[rec + RECORD_RESOLVES] = record_out[rec + RECORD_RESOLVES] + wp.float64(
+        release[world_slot(w, worlds, RELEASE_SIZE) + RELEASE_ROUNDS])
     record_out[rec + RECORD_MOST_ITERATIONS] = wp.max(record_out[rec + RECORD_MOST_ITERATIONS], iterations)
     record_out[rec + RECORD_LAST_RESIDUAL] = relative
     failed = not wp.isfinite(relative)

@@ -227,8 +227,7 @@ class SolverImplicitEuler(SolverBase):
             raise ValueError(f"warm_start_reduction must be in (0, 1], got {warm_start_reduction!r}")
         self.warm_start_reduction = float(warm_start_reduction)
         if model.world_count > 1:
-            unbatched = [what for what, on in (("collider_contacts='solve'", collider_contacts == "solve"),
-                                               ("self_contacts='solve'", self_contacts == "solve")) if on]
+            unbatched = [what for what, on in (("self_contacts='solve'", self_contacts == "solve"),) if on]
             if unbatched:
                 raise ValueError(f"batched worlds ({model.world_count}) do not run {', '.join(unbatched)} yet: use "
                                  "contacts as passes")
@@ -304,8 +303,8 @@ class SolverImplicitEuler(SolverBase):
         self.friction_dv = wp.zeros(n, dtype=wp.vec3, device=dev)  # self-contact friction: summed changes and their count
         self.friction_weight = wp.zeros(n, dtype=float, device=dev)
         self._contacts_on = False  # whether the solve being recorded filters contacts
-        self.contact_counts = wp.zeros(kct.COUNT_SIZE, dtype=wp.int32, device=dev)
-        self.release = wp.zeros(ki.RELEASE_SIZE, dtype=wp.int32, device=dev)
+        self.contact_counts = wp.zeros(world_slots_length(kct.COUNT_SIZE, worlds), dtype=wp.int32, device=dev)
+        self.release = wp.zeros(world_slots_length(ki.RELEASE_SIZE, worlds), dtype=wp.int32, device=dev)
 
     def notify_model_changed(self, flags: int) -> None:
         """Model fields changed: besides the passes (:meth:`SolverBase.notify_model_changed`), the previous step's
@@ -554,7 +553,7 @@ class SolverImplicitEuler(SolverBase):
         wp.launch(ki.begin_linear_solve, dim=self.worlds,
                   inputs=[self.warm_scalars, self.previous_ready, int(warm), int(restarted), int(resolve), wp.float64(self.tolerance),
                           wp.float64(self.warm_start_reduction),
-                          wp.float64(WARM_START_FLOOR), self.max_iterations, self.worlds],
+                          wp.float64(WARM_START_FLOOR), self.max_iterations, self.worlds, self.release],
                   outputs=[self.cg_scalars, self.solve_status, self.loop], device=self.model.device)
 
     # -- the solve's report (each property reads the device; the Simulator reads the record once per frame) ----------
@@ -773,7 +772,7 @@ class SolverImplicitEuler(SolverBase):
                           self.bend_vector, self.drag_vector, self.membrane_block, self.plate_product, self.dv,
                           self.precond_free, m.global_damping, dt, self.contact_release_fraction * self._gravity_norm * dt,
                           self.contact_release_rounds, v0, self.contact_velocity, m.collider_static_friction,
-                          m.collider_kinetic_friction, self.contact_stick_speed],
+                          m.collider_kinetic_friction, self.contact_stick_speed, m.particle_world, self.worlds],
                   outputs=[self.rhs, self.effective_mass, self.contact_friction_mass, self.contact_friction_impulse, self.precond,
                            self.contact_collider, self.contact_normal, self.contact_dv, self.contact_impulse, self.release],
                   device=m.device)
@@ -786,7 +785,8 @@ class SolverImplicitEuler(SolverBase):
 
     def _resolve(self, dt: float, v0: wp.array):
         """Solve the step again from its last dv with the released contacts free, then check again."""
-        wp.launch(ki.begin_contact_resolve, dim=1, outputs=[self.release, self.loop], device=self.model.device)
+        wp.launch(ki.begin_contact_resolve, dim=self.worlds, inputs=[self.worlds], outputs=[self.release, self.loop],
+                  device=self.model.device)
         wp.copy(self.dv_alt, self.dv)
         self._start_from_guess(dt, self._enabled, self.warm_scalars)
         self.cg_scalars.zero_()  # the first solve's rows (the iterations accumulate into them)
