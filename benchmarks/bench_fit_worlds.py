@@ -13,7 +13,6 @@ Run:  python benchmarks/bench_fit_worlds.py                     (16 targets, CPU
 from __future__ import annotations
 
 import argparse
-import json
 import pathlib
 import platform
 import sys
@@ -23,7 +22,11 @@ import time
 HERE = pathlib.Path(__file__).resolve().parent
 ROOT = HERE.parent
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(HERE))
 KEYS = ["material.stretch_stiffness", "material.damping"]
+
+
+from reports import write_results  # noqa: E402
 
 
 def main():
@@ -108,12 +111,7 @@ def main():
         f"{equal} (largest relative loss difference {worst:.3g}).",
         "",
     ]
-    text = "\n".join(lines)
-    print(text)
-    out = pathlib.Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(text)
-    out.with_suffix(".json").write_text(json.dumps(report, indent=1))
+    write_results(args.out, lines, report)
 
 
 if __name__ == "__main__":

@@ -28,6 +28,10 @@ HERE = pathlib.Path(__file__).resolve().parent
 ROOT = HERE.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(HERE))
+
+
+from reports import write_results  # noqa: E402
 
 
 def main():
@@ -96,15 +100,10 @@ def main():
     finally:
         SolverImplicitEuler.replay_loops = True
         target.unlink(missing_ok=True)
-    text = "\n".join([f"# Taped solves: loops replayed as graphs against launched one by one, {report['device']}", "",
-                      f"`python benchmarks/bench_taped_solves.py --device {args.device}`", "",
-                      "| workload | eager loops s | replayed loops s | speed-up | same results bit for bit |", "|---|---:|---:|---:|---|",
-                      *rows, ""])
-    out = pathlib.Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(text)
-    out.with_suffix(".json").write_text(json.dumps(report, indent=1))
-    print(text)
+    write_results(args.out, [f"# Taped solves: loops replayed as graphs against launched one by one, {report['device']}", "",
+                             f"`python benchmarks/bench_taped_solves.py --device {args.device}`", "",
+                             "| workload | eager loops s | replayed loops s | speed-up | same results bit for bit |",
+                             "|---|---:|---:|---:|---|", *rows, ""], report)
 
 
 if __name__ == "__main__":

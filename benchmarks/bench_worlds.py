@@ -19,7 +19,6 @@ Run:  python benchmarks/bench_worlds.py                                  (64 x 3
 from __future__ import annotations
 
 import argparse
-import json
 import pathlib
 import platform
 import sys
@@ -28,6 +27,10 @@ import time
 HERE = pathlib.Path(__file__).resolve().parent
 ROOT = HERE.parent
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(HERE))
+
+
+from reports import write_results  # noqa: E402
 
 
 def main():
@@ -114,12 +117,7 @@ def main():
         f"{equal} (largest difference {max(differences):.3g} m).",
         "",
     ]
-    text = "\n".join(lines)
-    print(text)
-    out = pathlib.Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(text)
-    out.with_suffix(".json").write_text(json.dumps(report, indent=1))
+    write_results(args.out, lines, report)
 
 
 if __name__ == "__main__":
