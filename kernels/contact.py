@@ -22,16 +22,12 @@ the filter itself belong to the solver; this module only finds the contacts.
 import warp as wp
 
 from .collide import shape_distance, surface_velocity, mesh_surface_velocity
-from .implicit import RELEASE_FLAG, RELEASE_ROUNDS, SLIP_ALLOWANCE
+from .implicit import COUNT_CONTACTS, COUNT_SELF_CONTACTS, COUNT_SIZE, RELEASE_FLAG, RELEASE_ROUNDS, SLIP_ALLOWANCE
 from .worlds import particle_world_of, world_slot
 from .selfcollide import NORMAL_EPS, add_impulse, inverse_mass_weight, pair_indices, start_weights, weighted_sum
 
 wp.set_module_options({"enable_backward": False})
 
-# Indices into a contact set's counters.
-COUNT_CONTACTS = wp.constant(0)  # collider contacts
-COUNT_SELF_CONTACTS = wp.constant(1)  # self-contact elements
-COUNT_SIZE = wp.constant(2)  # per world, laid out as the loop state (kernels/worlds.py world_slot)
 # Self-contacts in the solve hold elements this fraction of the cloth thickness apart beyond it, clear of the
 # self-collision pass's proximity band (the thickness), so that layers at rest leave the pass nothing to do.
 SELF_CLEARANCE = wp.constant(0.05)

@@ -70,6 +70,10 @@ RELEASE_RESOLVING = wp.constant(2)  # batched: this world takes part in the re-s
 # taken out, when the solved slip is within this factor of the stick speed (the solve's round-off stays below it).
 SLIP_ALLOWANCE = wp.constant(1.01)
 RELEASE_SIZE = wp.constant(3)  # per world, laid out as the loop state (kernels/worlds.py world_slot)
+# Indices into the contacts' counters (kernels/contact.py counts them, end_linear_solve records them), per world.
+COUNT_CONTACTS = wp.constant(0)  # collider contacts
+COUNT_SELF_CONTACTS = wp.constant(1)  # self-contact elements
+COUNT_SIZE = wp.constant(2)  # per world, laid out as the loop state (kernels/worlds.py world_slot)
 # Batched worlds (Model.world_count W > 1): every per-solve scalar is kept per world, world w's at w * <size> of its
 # array (cg_sums, cg_step, solve status and record, the columns of cg_scalars); the loop state of world w sits at
 # LOOP_SIZE * (1 + w) of `loop`, whose first LOOP_SIZE entries are then the batch's: LOOP_RUNNING while any world
@@ -1698,9 +1702,10 @@ def end_linear_solve(
     solves = record_out[rec + RECORD_SOLVES] + wp.float64(1.0)
     record_out[rec + RECORD_SOLVES] = solves
     record_out[rec + RECORD_ITERATIONS] = record_out[rec + RECORD_ITERATIONS] + iterations
-    counts = world_slot(w, worlds, 2)  # kernels/contact.py COUNT_SIZE: COUNT_CONTACTS, COUNT_SELF_CONTACTS
-    record_out[rec + RECORD_CONTACTS] = record_out[rec + RECORD_CONTACTS] + wp.float64(contact_counts[counts])
-    record_out[rec + RECORD_SELF_CONTACTS] = record_out[rec + RECORD_SELF_CONTACTS] + wp.float64(contact_counts[counts + 1])
+    counts = world_slot(w, worlds, COUNT_SIZE)
+    record_out[rec + RECORD_CONTACTS] = record_out[rec + RECORD_CONTACTS] + wp.float64(contact_counts[counts + COUNT_CONTACTS])
+    record_out[rec + RECORD_SELF_CONTACTS] = record_out[rec + RECORD_SELF_CONTACTS] + wp.float64(
+        contact_counts[counts + COUNT_SELF_CONTACTS])
     record_out[rec + RECORD_RESOLVES] = record_out[rec + RECORD_RESOLVES] + wp.float64(
         release[world_slot(w, worlds, RELEASE_SIZE) + RELEASE_ROUNDS])
     record_out[rec + RECORD_MOST_ITERATIONS] = wp.max(record_out[rec + RECORD_MOST_ITERATIONS], iterations)

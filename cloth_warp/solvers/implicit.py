@@ -303,7 +303,7 @@ class SolverImplicitEuler(SolverBase):
         self.friction_dv = wp.zeros(n, dtype=wp.vec3, device=dev)  # self-contact friction: summed changes and their count
         self.friction_weight = wp.zeros(n, dtype=float, device=dev)
         self._contacts_on = False  # whether the solve being recorded filters contacts
-        self.contact_counts = wp.zeros(world_slots_length(kct.COUNT_SIZE, worlds), dtype=wp.int32, device=dev)
+        self.contact_counts = wp.zeros(world_slots_length(ki.COUNT_SIZE, worlds), dtype=wp.int32, device=dev)
         self.release = wp.zeros(world_slots_length(ki.RELEASE_SIZE, worlds), dtype=wp.int32, device=dev)
 
     def notify_model_changed(self, flags: int) -> None:
