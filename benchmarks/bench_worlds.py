@@ -4,7 +4,8 @@ W variants of one scene (materials cycled over --materials, the cloth at --resol
 two ways, each with its frames recorded and replayed as graphs (the Simulator's default):
 
 1. one by one: each world its own Model, solver and Simulator, run after the other;
-2. batched: all W in one Model (``build_worlds``), one Simulator.
+2. batched: all W in one Model (``build_worlds``), one Simulator (on the CPU, also with the CG in CUDA's form, one
+   thread per particle and element, ``SolverImplicitEuler.world_threads = False``, as a third row).
 
 Each way is warmed up first (--warmup frames: graph recording, first solves), then timed over --frames. Reported:
 simulated cloth-seconds per wall second of each and their ratio (batched / one by one), and whether every batched
@@ -87,6 +88,11 @@ def main():
     t_single = timed(singles) * args.worlds / k
     batch = simulator(build_worlds(scenes, args.device), scenes[0])
     t_batch = timed([batch])
+    t_items = None
+    if wp.get_device(args.device).is_cpu:  # the batch's CG in CUDA's form too: one thread per particle and element
+        items = simulator(build_worlds(scenes, args.device), scenes[0])
+        items.solver.world_threads = False
+        t_items = timed([items])
     worlds = split_worlds(batch.model, batch.positions())
     differences = [float(np.abs(x - s.positions()).max()) for x, s in zip(worlds, singles)]
     equal = all(np.array_equal(x, s.positions()) for x, s in zip(worlds, singles))
@@ -98,6 +104,7 @@ def main():
         "one_by_one_s": t_single, "batched_s": t_batch,
         "one_by_one_throughput": cloth_seconds / t_single, "batched_throughput": cloth_seconds / t_batch,
         "ratio": t_single / t_batch, "bitwise_equal": equal, "largest_difference_m": max(differences),
+        "batched_item_threads_s": t_items, "ratio_item_threads": None if t_items is None else t_single / t_items,
     }
     lines = [
         f"# Batched worlds: {args.worlds} x {args.scene} {args.resolution}^2 ({', '.join(materials)} in turn), {report['device']}",
@@ -112,9 +119,13 @@ def main():
         "|---|---:|---:|",
         f"| one by one (captured) | {t_single:.2f} | {report['one_by_one_throughput']:.2f} |",
         f"| batched (captured) | {t_batch:.2f} | {report['batched_throughput']:.2f} |",
+        *([f"| batched, CG with one thread per item (CUDA's form) | {t_items:.2f} | {cloth_seconds / t_items:.2f} |"]
+          if t_items is not None else []),
         "",
         f"Batched / one by one throughput: **{report['ratio']:.2f}x**. Every world equal to its single run bit for bit: "
         f"{equal} (largest difference {max(differences):.3g} m).",
+        *([f"With the CG's kernels one thread per item, as on CUDA (a world that stopped still costs its items until the "
+           f"batch's slowest stops): {report['ratio_item_threads']:.2f}x.", ""] if t_items is not None else []),
         "",
     ]
     write_results(args.out, lines, report)

@@ -15,8 +15,12 @@ reductions are kept per world:
   only in the worlds still above the tolerance.
 
 On the CPU, where a kernel's threads run in order and each world's atomics add in its own order, every world equals
-its single-world run bit for bit (tests/test_worlds.py). A world that stopped still pays the element products
-(springs, bends, membranes, drag) until the last world stops: gating them per element cost more than it saved
+its single-world run bit for bit (tests/test_worlds.py). The CG's iteration there runs one thread per world
+(kernels/implicit.py cg_*_worlds, over :func:`world_ranges`): each walks its world's elements and particles in the
+order the one-item kernels take them, and a world that stopped costs one test while the batch's slowest iterates.
+With one thread per item (CUDA's form; ``SolverImplicitEuler.world_threads = False``) a stopped world's items
+still cost 2-8 ns each every iteration (gating them per element cost more than it saved): a batch of 64 worlds of
+four materials ran at 0.81x their one-by-one runs that way, 1.06x with a thread per world, in one run
 (benchmarks/bench_worlds.py).
 
 The worlds of a batch share the colliders (each scene's must be the same) and the global settings (gravity, damping,
@@ -87,6 +91,30 @@ def world_slices(model: Model) -> list[slice]:
     """Each world's particles in the model's flat arrays."""
     s = model.world_particle_start
     return [slice(int(s[k]), int(s[k + 1])) for k in range(model.world_count)]
+
+
+def world_ranges(model: Model) -> np.ndarray:
+    """Where each world's items start in each kind of the model's arrays, int32 (RANGE_KINDS, W + 1) in the rows of
+    kernels/worlds.py RANGE_* (particles, linear springs, bend triples, membranes, triangles, plate stencils), each row
+    ending with the kind's count: the ranges the one-thread-per-world kernels walk. An element's world is its first
+    particle's, and each kind's elements are ordered by world (the builder concatenates the worlds)."""
+    from .kernels.worlds import RANGE_KINDS
+
+    world = model.particle_world.numpy() if model.world_count > 1 else np.zeros(model.particle_count, np.int32)
+    springs = model.spring_ends.numpy()[:, 0] if model.spring_count else np.zeros(0, int)
+    bends = model.bend_triples.numpy()[:, 0] if model.spring_count > model.linear_spring_count else np.zeros(0, int)
+    first = [np.arange(model.particle_count), springs[:model.linear_spring_count], bends,
+             model.membrane_vertices.numpy()[:, 0] if model.membrane_count else np.zeros(0, int),
+             model.tri_vertices.numpy()[:, 0] if model.tri_count else np.zeros(0, int),
+             model.plate_points.numpy()[model.plate_offsets.numpy()[:-1]] if model.plate_count else np.zeros(0, int)]
+    assert len(first) == RANGE_KINDS
+    ranges = np.zeros((RANGE_KINDS, model.world_count + 1), np.int32)
+    for k, items in enumerate(first):
+        owners = world[items]
+        if np.any(np.diff(owners) < 0):
+            raise ValueError(f"world_ranges: kind {k}'s items are not ordered by world")
+        ranges[k] = np.searchsorted(owners, np.arange(model.world_count + 1))
+    return ranges
 
 
 def split_worlds(model: Model, values: np.ndarray) -> list[np.ndarray]:

@@ -454,6 +454,18 @@ def plate_curvature(plate_points: wp.array(dtype=wp.int32), plate_weights: wp.ar
     return u
 
 
+@wp.func
+def add_plate_product(s: int, plate_offsets: wp.array(dtype=wp.int32), plate_points: wp.array(dtype=wp.int32),
+                      plate_weights: wp.array(dtype=wp.vec3), plate_stiffness: wp.array(dtype=wp.mat33), p: wp.array(dtype=wp.vec3),
+                      scale: float, product_out: wp.array(dtype=wp.vec3)):
+    """Stencil s's part of scale K p added to its points (`scatter_plate_product`)."""
+    start = plate_offsets[s]
+    end = plate_offsets[s + 1]
+    t = scale * plate_curvature(plate_points, plate_weights, start, end, p) * plate_stiffness[s]
+    for k in range(start, end):
+        wp.atomic_add(product_out, plate_points[k], t * plate_weights[k])
+
+
 @wp.kernel
 def scatter_plate_product(
     # Model
@@ -469,12 +481,7 @@ def scatter_plate_product(
 ):
     """scale K p, scattered: scale U(p) S c_j to each point j of each stencil. The energy is quadratic, so with p the
     positions and scale -1 these are the stencils' forces f = -K x; the implicit solver uses scale h^2."""
-    s = wp.tid()
-    start = plate_offsets[s]
-    end = plate_offsets[s + 1]
-    t = scale * plate_curvature(plate_points, plate_weights, start, end, p) * plate_stiffness[s]
-    for k in range(start, end):
-        wp.atomic_add(product_out, plate_points[k], t * plate_weights[k])
+    add_plate_product(wp.tid(), plate_offsets, plate_points, plate_weights, plate_stiffness, p, scale, product_out)
 
 
 @wp.kernel

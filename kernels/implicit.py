@@ -36,6 +36,7 @@ from .forces import (
     membrane_product,
     membrane_system,
     membrane_voigt,
+    add_plate_product,
     plate_curvature,
     spring_damping_block,
     spring_stiffness_block,
@@ -43,7 +44,8 @@ from .forces import (
     triangle_drag_force,
 )
 from . import contracting_cpu_flags
-from .worlds import particle_world_of, world_slot
+from .worlds import (RANGE_BENDS, RANGE_MEMBRANES, RANGE_PARTICLES, RANGE_PLATES, RANGE_SPRINGS, RANGE_TRIANGLES, particle_world_of,
+                     world_slot)
 
 wp.set_module_options({"cpu_compiler_flags": contracting_cpu_flags()})
 
@@ -542,6 +544,53 @@ def eval_implicit_system(
 # for a 64^2 cloth). product_out holds their sum (zero on entry: `cg_update` clears it); `cg_product` adds the mass term.
 
 
+@wp.func
+def add_spring_product(e: int, spring_ends: wp.array(dtype=wp.vec2i), spring_compact: wp.array(dtype=wp.vec4),
+                       p: wp.array(dtype=wp.vec3), product_out: wp.array(dtype=wp.vec3)):
+    """Linear spring e's part of A p added to its ends (`scatter_spring_product`)."""
+    ends = spring_ends[e]
+    y = compact_product(spring_compact[e], p[ends[0]] - p[ends[1]])
+    wp.atomic_add(product_out, ends[0], y)
+    wp.atomic_sub(product_out, ends[1], y)
+
+
+@wp.func
+def add_bend_product(e: int, bend_triples: wp.array(dtype=wp.vec3i), linear_spring_count: int, bend_vector: wp.array(dtype=wp.vec3),
+                     p: wp.array(dtype=wp.vec3), dt: float, product_out: wp.array(dtype=wp.vec3)):
+    """Bend triple e's part of A p added to its members (`scatter_bend_product`)."""
+    t = bend_triples[e]
+    g = bend_vector[e + linear_spring_count]
+    d = (dt * dt) * triple_dot(g, p, t[0], t[1], t[2])
+    wp.atomic_add(product_out, t[0], g[0] * d)
+    wp.atomic_add(product_out, t[1], g[1] * d)
+    wp.atomic_add(product_out, t[2], g[2] * d)
+
+
+@wp.func
+def add_membrane_product(e: int, membrane_vertices: wp.array(dtype=wp.vec3i), membrane_block: wp.array2d(dtype=wp.mat33),
+                         p: wp.array(dtype=wp.vec3), product_out: wp.array(dtype=wp.vec3)):
+    """Membrane element e's part of A p added to its corners (`scatter_membrane_product`)."""
+    corners = membrane_vertices[e]
+    y0, y1, y2 = membrane_block_product(membrane_vertices, membrane_block, e, p)
+    wp.atomic_add(product_out, corners[0], y0)
+    wp.atomic_add(product_out, corners[1], y1)
+    wp.atomic_add(product_out, corners[2], y2)
+
+
+@wp.func
+def add_drag_product(e: int, tri_vertices: wp.array(dtype=wp.vec3i), tri_corner_weights: wp.array(dtype=wp.vec3),
+                     drag_vector: wp.array(dtype=wp.vec3), p: wp.array(dtype=wp.vec3), dt: float,
+                     product_out: wp.array(dtype=wp.vec3)):
+    """Triangle e's air-drag part of A p added to its corners (`scatter_drag_product`)."""
+    c = tri_vertices[e]
+    w = tri_corner_weights[e]
+    g = drag_vector[e]
+    y = (dt * wp.dot(g, w[0] * p[c[0]] + w[1] * p[c[1]] + w[2] * p[c[2]])) * g
+    wp.atomic_add(product_out, c[0], w[0] * y)
+    wp.atomic_add(product_out, c[1], w[1] * y)
+    wp.atomic_add(product_out, c[2], w[2] * y)
+
+
 @wp.kernel(enable_backward=False)
 def scatter_spring_product(
     spring_ends: wp.array(dtype=wp.vec2i),
@@ -552,11 +601,7 @@ def scatter_spring_product(
 ):
     """Linear springs (the first linear_spring_count springs): B_s (p_a - p_b) to a, its negative to b, from the
     compact block (`spring_compact`)."""
-    e = wp.tid()
-    ends = spring_ends[e]
-    y = compact_product(spring_compact[e], p[ends[0]] - p[ends[1]])
-    wp.atomic_add(product_out, ends[0], y)
-    wp.atomic_sub(product_out, ends[1], y)
+    add_spring_product(wp.tid(), spring_ends, spring_compact, p, product_out)
 
 
 @wp.kernel(enable_backward=False)
@@ -570,13 +615,7 @@ def scatter_bend_product(
     product_out: wp.array(dtype=wp.vec3),
 ):
     """Bend triples (springs linear_spring_count + e): h^2 g_r (g . p_triple) to each member r."""
-    e = wp.tid()
-    t = bend_triples[e]
-    g = bend_vector[e + linear_spring_count]
-    d = (dt * dt) * triple_dot(g, p, t[0], t[1], t[2])
-    wp.atomic_add(product_out, t[0], g[0] * d)
-    wp.atomic_add(product_out, t[1], g[1] * d)
-    wp.atomic_add(product_out, t[2], g[2] * d)
+    add_bend_product(wp.tid(), bend_triples, linear_spring_count, bend_vector, p, dt, product_out)
 
 
 @wp.kernel(enable_backward=False)
@@ -588,12 +627,7 @@ def scatter_membrane_product(
     product_out: wp.array(dtype=wp.vec3),
 ):
     """Membrane elements: (h D_e + h^2 K_e) p to their corners."""
-    e = wp.tid()
-    corners = membrane_vertices[e]
-    y0, y1, y2 = membrane_block_product(membrane_vertices, membrane_block, e, p)
-    wp.atomic_add(product_out, corners[0], y0)
-    wp.atomic_add(product_out, corners[1], y1)
-    wp.atomic_add(product_out, corners[2], y2)
+    add_membrane_product(wp.tid(), membrane_vertices, membrane_block, p, product_out)
 
 
 @wp.kernel(enable_backward=False)
@@ -607,14 +641,7 @@ def scatter_drag_product(
     product_out: wp.array(dtype=wp.vec3),
 ):
     """Triangles' air drag: h w_r (g . p_mean) g to each corner r."""
-    e = wp.tid()
-    c = tri_vertices[e]
-    w = tri_corner_weights[e]
-    g = drag_vector[e]
-    y = (dt * wp.dot(g, w[0] * p[c[0]] + w[1] * p[c[1]] + w[2] * p[c[2]])) * g
-    wp.atomic_add(product_out, c[0], w[0] * y)
-    wp.atomic_add(product_out, c[1], w[1] * y)
-    wp.atomic_add(product_out, c[2], w[2] * y)
+    add_drag_product(wp.tid(), tri_vertices, tri_corner_weights, drag_vector, p, dt, product_out)
 
 
 @wp.func
@@ -716,6 +743,17 @@ def cg_step_size(worlds: int, loop_out: wp.array(dtype=wp.int32), cg_sums_out: w
     step_out[w * 2 + CG_ALPHA] = alpha
 
 
+@wp.func
+def cg_update_row(i: int, q: wp.vec3, alpha: float, precond: wp.array(dtype=wp.mat33), search: wp.array(dtype=wp.vec3),
+                  dv_out: wp.array(dtype=wp.vec3), residual_out: wp.array(dtype=wp.vec3),
+                  preconditioned_out: wp.array(dtype=wp.vec3)):
+    """Row i of `cg_update` (q_i its product, read and cleared by the caller)."""
+    dv_out[i] = dv_out[i] + alpha * search[i]
+    r = residual_out[i] - alpha * q
+    residual_out[i] = r
+    preconditioned_out[i] = precond[i] * r  # (filtered on a contact: `filter_contact_preconditioner`)
+
+
 @wp.kernel(enable_backward=False)
 def cg_update(
     precond: wp.array(dtype=wp.mat33),
@@ -739,11 +777,7 @@ def cg_update(
     w = particle_world_of(i, particle_world, worlds)
     if not world_iterates(w, worlds, loop):
         return
-    alpha = step[w * 2 + CG_ALPHA]
-    dv_out[i] = dv_out[i] + alpha * search[i]
-    r = residual_out[i] - alpha * q
-    residual_out[i] = r
-    preconditioned_out[i] = precond[i] * r  # (filtered on a contact: `filter_contact_preconditioner`)
+    cg_update_row(i, q, step[w * 2 + CG_ALPHA], precond, search, dv_out, residual_out, preconditioned_out)
 
 
 @wp.kernel(enable_backward=False)
@@ -814,9 +848,165 @@ def cg_direction(
     base = world_loop(w, worlds)
     if loop[base + LOOP_RUNNING] == 0:  # (with one world too: none after the last iteration)
         return
-    if loop[base + LOOP_BEST] != 0:
+    cg_direction_row(i, loop[base + LOOP_BEST], step[w * 2 + CG_BETA], preconditioned, dv, search_out, dv_best_out)
+
+
+@wp.func
+def cg_direction_row(i: int, best: int, beta: float, preconditioned: wp.array(dtype=wp.vec3), dv: wp.array(dtype=wp.vec3),
+                     search_out: wp.array(dtype=wp.vec3), dv_best_out: wp.array(dtype=wp.vec3)):
+    """Row i of `cg_direction` (best: the world's LOOP_BEST)."""
+    if best != 0:
         dv_best_out[i] = dv[i]
-    search_out[i] = preconditioned[i] + step[w * 2 + CG_BETA] * search_out[i]
+    search_out[i] = preconditioned[i] + beta * search_out[i]
+
+
+# -- batched worlds on the CPU: one thread per world ---------------------------------------------------------------
+# The CG's per-element and per-particle kernels launched with one thread per item run every world's items each
+# iteration, the stopped worlds' too (the batch iterates until its slowest world stops): at 2-8 ns an item that is
+# most of the work, and a mixed batch's worlds stop far apart. On the CPU a batch runs these forms instead: one
+# thread per world walks its own items (contiguous, `ranges`), in the order the one-item kernels take them, so every
+# world's products and sums are its single run's bit for bit, and a world that stopped costs one test. (A while loop:
+# Warp's range loop costs a CPU about a fifth more per item.) Built with -ffp-contract=fast, the compiler fuses a
+# float32 dot product's multiply-adds as the code round it lets it: r.r taken in the update's loop from the row just
+# computed came out in other last bits than `cg_residual_dots`'s; taken from the stored rows in a loop of their own,
+# as that kernel takes them, it is the same. tests/test_worlds.py runs both forms against single runs.
+
+@wp.kernel(enable_backward=False)
+def cg_product_worlds(
+    ranges: wp.array2d(dtype=wp.int32),
+    worlds: int,
+    loop: wp.array(dtype=wp.int32),
+    # the elements (as the scatter_*_product kernels take them)
+    spring_ends: wp.array(dtype=wp.vec2i),
+    spring_compact: wp.array(dtype=wp.vec4),
+    bend_triples: wp.array(dtype=wp.vec3i),
+    linear_spring_count: int,
+    bend_vector: wp.array(dtype=wp.vec3),
+    dt: float,
+    membrane_vertices: wp.array(dtype=wp.vec3i),
+    membrane_block: wp.array2d(dtype=wp.mat33),
+    tri_vertices: wp.array(dtype=wp.vec3i),
+    tri_corner_weights: wp.array(dtype=wp.vec3),
+    drag_vector: wp.array(dtype=wp.vec3),
+    plate_offsets: wp.array(dtype=wp.int32),
+    plate_points: wp.array(dtype=wp.int32),
+    plate_weights: wp.array(dtype=wp.vec3),
+    plate_stiffness: wp.array(dtype=wp.mat33),
+    plate_scale: float,
+    # the rows (as `cg_product` takes them)
+    effective_mass: wp.array(dtype=float),
+    particle_pinned: wp.array(dtype=wp.int32),
+    search: wp.array(dtype=wp.vec3),
+    contact_normal: wp.array(dtype=wp.vec3),
+    filtered: int,
+    # outputs
+    product_out: wp.array(dtype=wp.vec3),
+    cg_sums_out: wp.array(dtype=wp.float64),
+):
+    """q = S A c of world w (its springs', bends', membranes', triangles' and plate stencils' parts scattered, then
+    its rows) and c . q into its cg_sums_out[CG_CAC]: the scatter kernels and `cg_product` of one world."""
+    w = wp.tid()
+    if not world_iterates(w, worlds, loop):
+        return
+    e = ranges[RANGE_SPRINGS, w]
+    end = ranges[RANGE_SPRINGS, w + 1]
+    while e < end:
+        add_spring_product(e, spring_ends, spring_compact, search, product_out)
+        e += 1
+    e = ranges[RANGE_BENDS, w]
+    end = ranges[RANGE_BENDS, w + 1]
+    while e < end:
+        add_bend_product(e, bend_triples, linear_spring_count, bend_vector, search, dt, product_out)
+        e += 1
+    e = ranges[RANGE_MEMBRANES, w]
+    end = ranges[RANGE_MEMBRANES, w + 1]
+    while e < end:
+        add_membrane_product(e, membrane_vertices, membrane_block, search, product_out)
+        e += 1
+    e = ranges[RANGE_TRIANGLES, w]
+    end = ranges[RANGE_TRIANGLES, w + 1]
+    while e < end:
+        add_drag_product(e, tri_vertices, tri_corner_weights, drag_vector, search, dt, product_out)
+        e += 1
+    e = ranges[RANGE_PLATES, w]
+    end = ranges[RANGE_PLATES, w + 1]
+    while e < end:
+        add_plate_product(e, plate_offsets, plate_points, plate_weights, plate_stiffness, search, plate_scale, product_out)
+        e += 1
+    cac = wp.float64(0.0)
+    i = ranges[RANGE_PARTICLES, w]
+    end = ranges[RANGE_PARTICLES, w + 1]
+    while i < end:
+        cac += cg_product_row(i, effective_mass, particle_pinned, search, contact_normal, filtered, product_out)
+        i += 1
+    wp.atomic_add(cg_sums_out, w * CG_COLUMNS + CG_CAC, cac)
+
+
+@wp.kernel(enable_backward=False)
+def cg_update_worlds(
+    ranges: wp.array2d(dtype=wp.int32),
+    worlds: int,
+    loop: wp.array(dtype=wp.int32),
+    precond: wp.array(dtype=wp.mat33),
+    search: wp.array(dtype=wp.vec3),
+    step: wp.array(dtype=float),
+    # outputs
+    product_out: wp.array(dtype=wp.vec3),
+    dv_out: wp.array(dtype=wp.vec3),
+    residual_out: wp.array(dtype=wp.vec3),
+    preconditioned_out: wp.array(dtype=wp.vec3),
+    cg_sums_out: wp.array(dtype=wp.float64),
+):
+    """`cg_update` and `cg_residual_dots` of world w (q read and cleared, its last iteration leaving it zero)."""
+    w = wp.tid()
+    if not world_iterates(w, worlds, loop):
+        return
+    alpha = step[w * 2 + CG_ALPHA]
+    i = ranges[RANGE_PARTICLES, w]
+    end = ranges[RANGE_PARTICLES, w + 1]
+    while i < end:
+        q = product_out[i]
+        product_out[i] = wp.vec3(0.0)
+        cg_update_row(i, q, alpha, precond, search, dv_out, residual_out, preconditioned_out)
+        i += 1
+    # r.s and r.r summed as `cg_residual_dots` sums them: from the stored rows, in a loop of their own
+    rs = wp.float64(0.0)
+    rr = wp.float64(0.0)
+    i = ranges[RANGE_PARTICLES, w]
+    while i < end:
+        r = residual_out[i]
+        rs += wp.float64(wp.dot(r, preconditioned_out[i]))
+        rr += wp.float64(wp.dot(r, r))
+        i += 1
+    col = w * CG_COLUMNS
+    wp.atomic_add(cg_sums_out, col + CG_RS, rs)
+    wp.atomic_add(cg_sums_out, col + CG_RR, rr)
+
+
+@wp.kernel(enable_backward=False)
+def cg_direction_worlds(
+    ranges: wp.array2d(dtype=wp.int32),
+    worlds: int,
+    loop: wp.array(dtype=wp.int32),
+    preconditioned: wp.array(dtype=wp.vec3),
+    step: wp.array(dtype=float),
+    dv: wp.array(dtype=wp.vec3),
+    # outputs
+    search_out: wp.array(dtype=wp.vec3),
+    dv_best_out: wp.array(dtype=wp.vec3),
+):
+    """`cg_direction` of world w."""
+    w = wp.tid()
+    base = world_loop(w, worlds)
+    if loop[base + LOOP_RUNNING] == 0:
+        return
+    best = loop[base + LOOP_BEST]
+    beta = step[w * 2 + CG_BETA]
+    i = ranges[RANGE_PARTICLES, w]
+    end = ranges[RANGE_PARTICLES, w + 1]
+    while i < end:
+        cg_direction_row(i, best, beta, preconditioned, dv, search_out, dv_best_out)
+        i += 1
 
 
 @wp.kernel(enable_backward=False)

@@ -2,6 +2,16 @@
 
 import warp as wp
 
+# Rows of a batch's world ranges (cloth_warp.worlds.world_ranges, int32 (RANGE_KINDS, W + 1)): row k holds where each
+# world's items of kind k start, and their count after the last world (a world's items are contiguous in each kind).
+RANGE_PARTICLES = wp.constant(0)
+RANGE_SPRINGS = wp.constant(1)  # linear springs (the first linear_spring_count springs)
+RANGE_BENDS = wp.constant(2)  # bend triples (springs linear_spring_count + e)
+RANGE_MEMBRANES = wp.constant(3)
+RANGE_TRIANGLES = wp.constant(4)
+RANGE_PLATES = wp.constant(5)
+RANGE_KINDS = 6
+
 
 @wp.func
 def world_slot(w: int, worlds: int, size: int):

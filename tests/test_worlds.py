@@ -7,12 +7,22 @@ import warp as wp
 from cloth_warp.runner import find_scene, load_kernels
 from cloth_warp.scene import build_model, build_solver, build_wind, load_scene
 from cloth_warp.simulator import Simulator
+from cloth_warp.solvers.implicit import SolverImplicitEuler
 from cloth_warp.worlds import build_worlds, split_worlds
 
 FRAMES = 12
 
 
-def _run(model, scene, frames=FRAMES):
+@pytest.fixture(params=[True, False], ids=["world threads", "item threads"])
+def world_threads(request, monkeypatch):
+    """Both forms of a batch's CG on the CPU: one thread per world (the CPU's) and one per particle and element
+    (CUDA's)."""
+    monkeypatch.setattr(SolverImplicitEuler, "world_threads", request.param)
+    return request.param
+
+
+def _run(model, scene, frames=FRAMES, solves=None):
+    """Step `frames` frames; each frame's solve reports appended to `solves` (a batch's per world)."""
     solver = build_solver(scene, model)
     load_kernels(solver, model.device)
     sim = Simulator(model, solver, fps=float(scene.get("output.fps")), substeps=int(scene.get("solver.substeps")), wind=build_wind(scene))
@@ -20,21 +30,28 @@ def _run(model, scene, frames=FRAMES):
     for _ in range(frames):
         sim.step_frame()
         sweeps.append(sim.frame_report.passes["strain_limit"].sweeps if "strain_limit" in sim.frame_report.passes else 0)
+        if solves is not None:
+            solves.append(sim.world_solves if model.world_count > 1 else sim.frame_report.solves)
     return sim, sum(sweeps)
 
 
 def _check_batch(name, variants):
+    """Each world of the batch equal to its single run bit for bit: its positions, and its solves' records in every
+    frame (iterations, and the residuals, summed in float64: a last-bit difference in r.r shows there first)."""
     scenes = [load_scene(find_scene(name), v) for v in variants]
-    singles = [_run(build_model(s, "cpu"), s) for s in scenes]
-    batch, _ = _run(build_worlds(scenes, "cpu"), scenes[0])
+    records = [[] for _ in scenes]
+    singles = [_run(build_model(s, "cpu"), s, solves=r) for s, r in zip(scenes, records)]
+    batched = []
+    batch, _ = _run(build_worlds(scenes, "cpu"), scenes[0], solves=batched)
     assert batch.model.world_count == len(scenes)
     for k, (x, (single, _)) in enumerate(zip(split_worlds(batch.model, batch.positions()), singles)):
         assert np.array_equal(x, single.positions()), f"world {k} differs from its single run by {np.abs(x - single.positions()).max():.3g} m"
+        assert [f[k] for f in batched] == records[k], f"world {k}: its solves' records differ from its single run's"
     return singles
 
 
 @pytest.mark.parametrize("seed", [0, 1])
-def test_batched_worlds_equal_their_single_runs_bit_for_bit(seed):
+def test_batched_worlds_equal_their_single_runs_bit_for_bit(seed, world_threads):
     """Worlds of different sizes and materials (so their CG iteration counts and strain-limit sweeps differ per step),
     batched in one model, each equal to its own run on the CPU bit for bit."""
     rng = np.random.default_rng(seed)
@@ -46,6 +63,20 @@ def test_batched_worlds_equal_their_single_runs_bit_for_bit(seed):
     its = [single.frame_report.iterations for single, _ in singles]
     # the test's point: worlds that differ in their work per step (limiter sweeps and CG iterations)
     assert max(sweeps) > 0 and len(set(sweeps)) > 1 and len(set(its)) > 1, (sweeps, its)
+
+
+@pytest.mark.parametrize("membrane, bending", [("element", "springs"), ("springs", "stencil"), ("element", "stencil")])
+def test_batched_element_worlds_equal_their_single_runs_bit_for_bit(membrane, bending, world_threads):
+    """Membrane elements and plate stencils batched (every kind of element the CG's product scatters), with worlds
+    whose cells differ in shape and whose CG iteration counts differ, each equal to its own run bit for bit."""
+    variants = [{"material.preset": p, "cloth.grid.resolution": r, "cloth.grid.size": z, "cloth.membrane": membrane,
+                 "cloth.bending": bending, "cloth.jitter": 0.002, "scene.seed": k}
+                for k, (p, r, z) in enumerate([("silk", [6, 9], [1.0, 0.8]), ("denim", [8, 5], [0.7, 1.0]), ("cotton", [7, 7], [1.0, 1.0])])]
+    singles = _check_batch("hanging_cloth", variants)
+    model = singles[0][0].model
+    assert (model.membrane_count > 0) == (membrane == "element") and (model.plate_count > 0) == (bending == "stencil")
+    its = [single.frame_report.iterations for single, _ in singles]
+    assert len(set(its)) > 1, its
 
 
 def test_batched_block_jacobi_worlds_equal_their_single_runs_bit_for_bit():
@@ -72,7 +103,7 @@ def _contact_records(sim, frames, world=None):
 
 
 @pytest.mark.parametrize("scene, friction", [("tablecloth", "after"), ("tablecloth", "solve"), ("sphere_shot", "solve")])
-def test_batched_worlds_with_contacts_in_the_solve_equal_their_single_runs_bit_for_bit(scene, friction):
+def test_batched_worlds_with_contacts_in_the_solve_equal_their_single_runs_bit_for_bit(scene, friction, world_threads):
     """Collider contacts in the solve, batched: each world finds its contacts, releases those that pull and re-solves
     on its own (a world with nothing released sits a re-solve out, its solve as it was), with its own rounds, counts
     and record, so worlds that release and re-solve differently each equal their own run bit for bit, frame by frame."""
@@ -247,3 +278,4 @@ def test_batched_worlds_give_each_world_the_gradient_of_its_own_run():
             for array in arrays:
                 assert np.array_equal(grads[array][order], g[array]), f"world {k}: {array} gradients differ"
                 assert np.abs(g[array]).max() > 0.0, array
+

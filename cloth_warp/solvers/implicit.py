@@ -16,6 +16,7 @@ from ..profiling import stage
 from ..records import record_values
 from ..reductions import launch_reduction
 from ..topology import sewn_point_roots
+from ..worlds import world_ranges
 from ..kernels import forces as kf
 from ..kernels import contact as kct
 from ..kernels import implicit as ki
@@ -141,6 +142,11 @@ class SolverImplicitEuler(SolverBase):
     """On the CPU, record each linear solve's loop once as a graph and replay it where the step runs eagerly (bit for bit
     the eager loop; False, per solver or for the class: launch its kernels one by one, the reference
     tests/test_capture.py and benchmarks/bench_taped_solves.py compare with). CUDA keeps its eager loop for now."""
+
+    world_threads: bool = True
+    """Batched worlds on the CPU: the CG iterates with one thread per world (kernels/implicit.py cg_*_worlds: a world that
+    stopped costs nothing while the batch's slowest goes on); False, per solver or for the class: one thread per
+    particle and element, as on CUDA (bit for bit the same)."""
 
     name = "implicit_euler"
     kernel_modules = (ki,)
@@ -269,6 +275,8 @@ class SolverImplicitEuler(SolverBase):
         self.loop = wp.zeros(world_slots_length(ki.LOOP_SIZE, worlds), dtype=wp.int32, device=dev)
         self.solve_status = wp.zeros(worlds * ki.STATUS_SIZE, dtype=wp.float64, device=dev)
         self.solve_record = wp.zeros(worlds * ki.RECORD_SIZE, dtype=wp.float64, device=dev)
+        # batched worlds on the CPU: each world's items, walked by the one-thread-per-world CG kernels
+        self._world_ranges = wp.array(world_ranges(model), dtype=wp.int32, device=dev) if worlds > 1 and dev.is_cpu else None
         self.previous_ready = wp.zeros(worlds, dtype=wp.int32, device=dev)  # 1: dv_previous starts the world's next forward solve
         self._enabled = wp.ones(worlds, dtype=wp.int32, device=dev)
         self._disabled = wp.zeros(worlds, dtype=wp.int32, device=dev)
@@ -478,6 +486,9 @@ class SolverImplicitEuler(SolverBase):
         m = self.model
         dev = m.device
         c, q = self.search, self.product
+        if self._world_ranges is not None and self.world_threads and not self._self_contacts_on:
+            self._cg_iteration_worlds(dt)
+            return
         bends = m.spring_count - m.linear_spring_count
         if m.linear_spring_count:
             wp.launch(ki.scatter_spring_product, dim=m.linear_spring_count, inputs=[m.spring_ends, self.spring_compact, c],
@@ -507,6 +518,26 @@ class SolverImplicitEuler(SolverBase):
                   outputs=[self.cg_sums, self.cg_scalars, self.cg_step, self.solve_status, self.loop], device=dev)
         wp.launch(ki.cg_direction, dim=m.particle_count, inputs=[self.preconditioned, self.cg_step, self.loop, m.particle_world, worlds,
                                                                  self.dv],
+                  outputs=[c, self.dv_best], device=dev)
+
+    def _cg_iteration_worlds(self, dt: float):
+        """:meth:`_cg_iteration` of a batch on the CPU, one thread per world (kernels/implicit.py cg_*_worlds)."""
+        m = self.model
+        dev = m.device
+        c, q = self.search, self.product
+        worlds, ranges = self.worlds, self._world_ranges
+        wp.launch(ki.cg_product_worlds, dim=worlds,
+                  inputs=[ranges, worlds, self.loop, m.spring_ends, self.spring_compact, m.bend_triples, m.linear_spring_count,
+                          self.bend_vector, dt, m.membrane_vertices, self.membrane_block, m.tri_vertices, m.tri_corner_weights,
+                          self.drag_vector, m.plate_offsets, m.plate_points, m.plate_weights, m.plate_stiffness, dt * dt,
+                          self.effective_mass, m.particle_pinned, c, self.contact_normal, int(self._contacts_on)],
+                  outputs=[q, self.cg_sums], device=dev)
+        wp.launch(ki.cg_step_size, dim=worlds, inputs=[worlds, self.loop], outputs=[self.cg_sums, self.cg_scalars, self.cg_step], device=dev)
+        wp.launch(ki.cg_update_worlds, dim=worlds, inputs=[ranges, worlds, self.loop, self.precond, c, self.cg_step],
+                  outputs=[q, self.dv, self.residual, self.preconditioned, self.cg_sums], device=dev)
+        wp.launch(ki.end_cg_iteration, dim=worlds, inputs=[self.check_every, self.max_iterations, worlds],
+                  outputs=[self.cg_sums, self.cg_scalars, self.cg_step, self.solve_status, self.loop], device=dev)
+        wp.launch(ki.cg_direction_worlds, dim=worlds, inputs=[ranges, worlds, self.loop, self.preconditioned, self.cg_step, self.dv],
                   outputs=[c, self.dv_best], device=dev)
 
     def solve_jacobi(self, dt: float, warm: bool = False) -> wp.array:
