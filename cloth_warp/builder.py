@@ -6,7 +6,7 @@ import logging
 import math
 import os
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import warp as wp
@@ -652,8 +652,6 @@ class ModelBuilder:
                              "batched worlds share their colliders")
         if not self.world_starts:
             self.colliders = list(other.colliders)
-        if other.attachments:
-            raise ValueError("add_world: attachments to a body are not batched yet")
         k = len(self.world_starts)
         start, tri_start, points = self.particle_count, len(self.triangles), len(self.plate_points)
         self.world_starts.append(start)
@@ -677,6 +675,8 @@ class ModelBuilder:
             self.cloths.append((ClothRef(self, f"world{k}/{ref.name}", ref.particle_start + start, ref.topology), material, t0 + tri_start))
         for h in other.handles:
             self.handles.append(Handle(f"world{k}/{h.name}", np.asarray(h.particles) + start, list(h.keyframes), np.asarray(h.pivot).copy()))
+        for a in other.attachments:  # (the colliders are the batch's, in the same order)
+            self.attachments.append(replace(a, name=f"world{k}/{a.name}", particles=np.asarray(a.particles) + start))
         return k
 
     def _check_indices(self, indices) -> np.ndarray:

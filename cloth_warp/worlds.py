@@ -32,8 +32,9 @@ Each world is checked on its own (:class:`~cloth_warp.simulator.Simulator` with 
 go on. :func:`run_worlds` steps a batch and writes one cache per world (a diverged world's closed as ``diverged``
 with the frames before it). Gradients: a taped rollout of a batch (:class:`~cloth_warp.gradients.Rollout`) with one
 loss per world (:func:`world_losses`) gives every world its own run's gradient; taped strain limiting sweeps each world
-only while it is above the limit, as the forward path does, and its adjoint replays the same worlds per sweep. Not
-batched yet: self-collision (and so the self-contacts in the solve), attachments, checkpoints of a batch.
+only while it is above the limit, as the forward path does, and its adjoint replays the same worlds per sweep.
+Attachments bind each world's particles to the shared colliders. Not batched yet: self-collision (and so the
+self-contacts in the solve), checkpoints of a batch.
 """
 
 from __future__ import annotations
