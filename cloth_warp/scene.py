@@ -818,17 +818,25 @@ def _dressing(b, scene: Scene, stage: str, device):
     seconds = float(scene.get(f"dressing.{stage}"))
     if seconds <= 0.0:
         return
+    from .solvers import SimulationDiverged
+
     options = solver_options(scene, implicit=True)
     fps = float(scene.get("output.fps"))
     with _scene_key(f"dressing.{stage}"):
-        if stage == "settle":
-            log.info("dressing.settle: %s", dressing.settle(b, seconds, fps=fps, device=device, solver_options=options))
-            return
-        layers = layer_order(scene)
-        for names in layers:  # from the inside out, the other layers held still (one layer: all at once)
-            report = dressing.dress(b, seconds, fps=fps, device=device, solver_options=options,
-                                    garments=names if len(layers) > 1 else None)
-            log.info("dressing.seconds %s: %s", ", ".join(names), report)
+        try:
+            if stage == "settle":
+                log.info("dressing.settle: %s", dressing.settle(b, seconds, fps=fps, device=device, solver_options=options))
+                return
+            layers = layer_order(scene)
+            for names in layers:  # from the inside out, the other layers held still (one layer: all at once)
+                report = dressing.dress(b, seconds, fps=fps, device=device, solver_options=options,
+                                        garments=names if len(layers) > 1 else None)
+                log.info("dressing.seconds %s: %s", ", ".join(names), report)
+        except SimulationDiverged as exc:  # a clear error before any frame is written, not a traceback
+            doing = "settling under gravity" if stage == "settle" else "being sewn"
+            raise SceneError(f"dressing.{stage}: the garment diverged while {doing}, before the run ({exc}). Nothing was "
+                             f"written. A garment caught in a crease of the body (the armpits) tears there: try a shorter or "
+                             f"longer dressing.{stage}, or the panels placed further from the body") from exc
 
 
 def layer_order(scene: Scene) -> list[list[str]]:

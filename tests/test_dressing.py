@@ -285,3 +285,23 @@ def test_finishing_joins_every_sewn_point_within_a_stitch_and_leaves_wider_ones(
     np.testing.assert_array_equal(y[untouched], x[untouched])
     assert finished == pytest.approx(2.9e-3, rel=1e-9) and finished < SEAM_FINISH
     assert finish_seams(x, np.array(wide))[1] == 0.0
+
+
+def test_a_dressing_that_diverges_stops_with_the_key_and_no_cache(tmp_path, monkeypatch, capsys):
+    """A garment that diverges while it settles (the shipped T-shirt did, caught in an armpit crease) stops the command
+    before the run with an error naming dressing.settle and the diagnosis (exit 2), not a traceback, and writes nothing."""
+    from cloth_warp import dressing
+    from cloth_warp.cli import main
+    from cloth_warp.solvers import SimulationDiverged
+
+    def diverging(*args, **kwargs):
+        raise SimulationDiverged(time=0.6, dt=1.0 / 120.0, max_strain=1.15, reason="strain 1.15 above the bound 1.14",
+                                 suggested_dt=1.0 / 240.0, frame=36)
+
+    monkeypatch.setattr(dressing, "settle", diverging)
+    out = tmp_path / "skirt.usdc"
+    code = main(["run", str(ROOT / "scenes" / "skirt_walk.toml"), "--frames", "2", "--set", "dressing.seconds=0", "-o", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert "dressing.settle: the garment diverged while settling" in err and "strain 1.15" in err and "Traceback" not in err
+    assert not out.exists() and not list(tmp_path.iterdir())
