@@ -14,6 +14,15 @@ Python (a few MB), a ``LocalCluster`` starts in a second or two, and the same ``
 its own (an object store, a raylet, 100+ MB) for nothing a sweep uses. It is an optional extra
 (``pip install "cloth-warp[sweep]"``).
 
+Batched (``--batch K``): up to K pending runs go to a worker as one task, one process stepping them together as
+batched worlds (:func:`~cloth_warp.worlds.run_worlds`: one model, one launch per stage; on the CPU each world bit for
+bit its own run), each world's cache and summary in its run's folder, the process's stderr in the first run's
+log.txt. Their swept keys must be ones worlds may differ in (not the forces, colliders, collision, solver or frame
+rate; no self-collision yet): checked with every variant before any run. A batch saves each run's process start and
+kernel load (short runs: 2.6x on 2 cores, ``benchmarks/results/bench_sweep_batch.md``), and on a GPU fills the device
+(256 worlds: 18.7x one by one). Faults are per world: a diverged world is that run's failure, the others go on; a batch
+killed or interrupted is run again whole, from its first frame (batched worlds keep no resume checkpoint).
+
 Why a subprocess per run: Warp's CPU backend runs one thread per process, so a worker is one process with one
 thread running one run at a time; the run's own process isolates what can go wrong in it (a crash, the kernel's
 out-of-memory killer) from the worker and the sweep, and gives the command line's exit codes and its resumable
@@ -121,6 +130,10 @@ class Sweep:
     overrides: dict = field(default_factory=dict)
     frames: int | None = None
     device: str | None = None
+    batch: int = 1
+    """Runs per process: with K >= 2, up to K pending runs step together as batched worlds (:mod:`cloth_warp.worlds`;
+    their swept keys must be ones worlds may differ in). How the runs are grouped is no part of the sweep's definition:
+    a sweep started again may batch otherwise."""
 
     def runs(self) -> list[SweepRun]:
         """Every variant, in the product's order (the last key varying fastest, then the seed)."""
@@ -146,12 +159,25 @@ class Sweep:
             raise SweepError(f"--seeds must be at least 1, got {self.seeds}")
         if "scene.seed" in self.params and self.seeds is not None:
             raise SweepError("--seeds and --param scene.seed both set the seed: give one")
+        if int(self.batch) < 1:
+            raise SweepError(f"--batch must be at least 1, got {self.batch}")
         path = find_scene(self.scene)
+        scenes = []
         for run in self.runs():
             try:
-                load_scene(path, {**self.overrides, **run.values})
+                scenes.append(load_scene(path, {**self.overrides, **run.values}))
             except SceneError as exc:
                 raise SweepError(f"{run.id} ({format_values(run.values)}): {exc}") from None
+        if self.batch > 1:
+            from .worlds import check_batchable
+
+            try:
+                check_batchable(scenes)
+            except ValueError as exc:
+                raise SweepError(f"--batch: {exc}") from None
+            if self.frames is None and len({s.get("output.frames") for s in scenes}) > 1:
+                raise SweepError("--batch: output.frames differs between the runs; batched worlds step the same frames "
+                                 "(give --frames)")
 
 
 def format_values(values: dict) -> str:
@@ -190,6 +216,80 @@ def run_command(scene: str, values: dict, overrides: dict, run_dir: pathlib.Path
     if resume:
         cmd.append("--resume")
     return cmd
+
+
+def execute_batch(spec: dict) -> list[RunResult]:
+    """One attempt of a batch of runs on a worker (``spec["runs"]``: their ids, folders and values): ``python -m
+    cloth_warp.sweep SPEC`` (:func:`run_batch`, batched worlds in one process) as a subprocess, its stderr appended to
+    the first run's log.txt. A run's exit code is its world's (0 complete, 3 diverged: from its summary.json), else the
+    process's (killed, interrupted, bad input, error: every run of the batch alike)."""
+    from .cli import EXIT_DIVERGED, EXIT_FAILED, EXIT_OK
+
+    runs = spec["runs"]
+    dirs = [pathlib.Path(r["dir"]) for r in runs]
+    for d in dirs:
+        d.mkdir(parents=True, exist_ok=True)
+        (d / "summary.json").unlink(missing_ok=True)
+    spec_path = dirs[0] / "batch.json"
+    atomic_write_text(spec_path, json.dumps(spec, indent=1) + "\n")
+    cmd = [sys.executable, "-m", "cloth_warp.sweep", str(spec_path)]
+    t = time.perf_counter()
+    for d, r in zip(dirs[1:], runs[1:]):
+        with open(d / "log.txt", "a") as log:
+            log.write(f"# attempt {r['attempt']}: batched with {', '.join(x['id'] for x in runs)} (log: ../{runs[0]['id']}/log.txt)\n")
+    with open(dirs[0] / "log.txt", "a") as log:
+        log.write(f"# attempt {runs[0]['attempt']} of the batch {', '.join(x['id'] for x in runs)}: {' '.join(cmd)}\n")
+        log.flush()
+        preexec = _die_with_parent if sys.platform.startswith("linux") else None
+        code = subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=log, preexec_fn=preexec).returncode
+    wall = time.perf_counter() - t
+    out = []
+    for r, d in zip(runs, dirs):
+        stats = d / "summary.json"
+        summary = json.loads(stats.read_text()) if stats.exists() else None
+        if summary is None:
+            run_code = code if code != EXIT_OK else EXIT_FAILED
+        else:
+            run_code = EXIT_OK if summary["status"] == "complete" else EXIT_DIVERGED
+        out.append(RunResult(r["id"], run_code, wall, summary))
+    return out
+
+
+def run_batch(spec: dict) -> int:
+    """The batch process (``python -m cloth_warp.sweep SPEC``): the runs' scenes as batched worlds
+    (:func:`~cloth_warp.worlds.run_worlds`), each world's cache and summary.json in its run's folder; returns the
+    exit code (0 when every world is written, 130 interrupted: SIGTERM too, the caches closed as such)."""
+    from .cli import EXIT_INTERRUPTED, EXIT_OK
+    from .outputs import stale_partials
+    from .scene import load_scene
+    from .worlds import run_worlds
+
+    def stop(signum, frame):
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, stop)
+    runs = spec["runs"]
+    outputs = [pathlib.Path(r["dir"]) / "cache.usdc" for r in runs]
+    for out in outputs:  # a killed attempt's partial files: the batch starts again from the first frame
+        for stale in stale_partials(out):
+            stale.unlink(missing_ok=True)
+    scenes = [load_scene(spec["scene"], {**spec["overrides"], **r["values"]}) for r in runs]
+    frames = int(spec["frames"] if spec["frames"] is not None else scenes[0].get("output.frames"))
+    t = time.perf_counter()
+    try:
+        results = run_worlds(scenes, outputs, frames=frames, device=spec["device"])
+    except KeyboardInterrupt:
+        return EXIT_INTERRUPTED
+    wall = time.perf_counter() - t
+    for r, scene, result in zip(runs, scenes, results):
+        stepped = result.frames_written - 1
+        summary = {"status": result.status, "frames": stepped, "ms_per_frame": 1e3 * wall / max(stepped, 1),
+                   "max_strain": result.max_strain, "particles": result.particles, "wall_s": wall,
+                   "batch": {"world": result.world, "worlds": len(runs)}}
+        if result.message:
+            summary["message"] = result.message
+        atomic_write_text(pathlib.Path(r["dir"]) / "summary.json", json.dumps(summary, indent=1) + "\n")
+    return EXIT_OK
 
 
 def _toml_value(value) -> str:
@@ -369,31 +469,54 @@ def _run_pending(client, manifest: Manifest, scene: str, sweep: Sweep, out_dir: 
     """Submit the pending runs, record each attempt as it ends (the manifest saved each time), resubmit the retried."""
     from distributed import as_completed
 
-    def submit(rid):
+    def spec_of(rid):
         entry = manifest.runs[rid]
-        spec = {"id": rid, "dir": str(out_dir / "runs" / rid), "scene": scene, "values": entry["values"], "overrides": sweep.overrides,
-                "frames": sweep.frames, "device": sweep.device, "attempt": entry["attempts"] + 1}
-        return client.submit(execute_run, spec, key=f"{rid}-attempt{spec['attempt']}-{os.getpid()}-{time.time_ns()}", pure=False)
+        return {"id": rid, "dir": str(out_dir / "runs" / rid), "values": entry["values"], "attempt": entry["attempts"] + 1}
 
-    futures = as_completed([submit(rid) for rid in todo])
+    def submit(rids):
+        """One run (`cloth-warp run`), or with --batch the runs `rids` as one batch (:func:`execute_batch`)."""
+        common = {"scene": scene, "overrides": sweep.overrides, "frames": sweep.frames, "device": sweep.device}
+        key = f"{rids[0]}-attempt{manifest.runs[rids[0]]['attempts'] + 1}-{os.getpid()}-{time.time_ns()}"
+        if sweep.batch > 1:
+            return client.submit(execute_batch, {**common, "runs": [spec_of(r) for r in rids]}, key=key, pure=False)
+        return client.submit(execute_run, {**common, **spec_of(rids[0])}, key=key, pure=False)
+
+    def groups(rids):
+        return [rids[k:k + sweep.batch] for k in range(0, len(rids), sweep.batch)]
+
+    members = {}  # a batch's first run -> its runs (what a failed worker's task held)
+    for g in groups(todo):
+        members[g[0]] = g
+    futures = as_completed([submit(g) for g in groups(todo)])
     total = len(manifest.runs)
     try:
         for future in futures:
+            first = future.key.split("-attempt")[0]
             try:
-                result = future.result()
+                results = future.result()
+                results = results if isinstance(results, list) else [results]
             except Exception as exc:  # the worker died under the run (Dask gave up on it), or the task failed
-                rid = future.key.split("-attempt")[0]
-                result = RunResult(rid, -int(signal.SIGKILL), 0.0, None)
-                (out_dir / "runs" / rid).mkdir(parents=True, exist_ok=True)
-                with open(out_dir / "runs" / rid / "log.txt", "a") as log:
-                    log.write(f"# the worker failed: {type(exc).__name__}: {exc}\n")
-            entry = manifest.record(result)
-            manifest.save()
-            if progress is not None:
-                done = sum(1 for e in manifest.runs.values() if e["status"] != "pending")
-                progress(result.id, entry, done, total)
-            if entry["status"] == "pending":
-                futures.add(submit(result.id))
+                results = [RunResult(rid, -int(signal.SIGKILL), 0.0, None) for rid in members.get(first, [first])]
+                for r in results:
+                    (out_dir / "runs" / r.id).mkdir(parents=True, exist_ok=True)
+                    with open(out_dir / "runs" / r.id / "log.txt", "a") as log:
+                        log.write(f"# the worker failed: {type(exc).__name__}: {exc}\n")
+            retry = []
+            for result in results:
+                entry = manifest.record(result)
+                manifest.save()
+                if progress is not None:
+                    done = sum(1 for e in manifest.runs.values() if e["status"] != "pending")
+                    progress(result.id, entry, done, total)
+                if entry["status"] == "pending":
+                    retry.append(result.id)
+            for g in groups(retry):
+                members[g[0]] = g
+                futures.add(submit(g))
     except KeyboardInterrupt:
         client.cancel(list(futures.futures))
         raise
+
+
+if __name__ == "__main__":  # the batch process of a batched sweep (execute_batch)
+    sys.exit(run_batch(json.loads(pathlib.Path(sys.argv[1]).read_text())))

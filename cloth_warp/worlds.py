@@ -59,12 +59,7 @@ def build_worlds(scenes: Sequence, device=None, requires_grad: bool = False) -> 
     from .builder import ModelBuilder
     from .scene import scene_builder
 
-    if not scenes:
-        raise ValueError("build_worlds: no scenes")
-    for k, scene in enumerate(scenes[1:], 1):
-        for key in SHARED_TABLES:
-            if _resolved(scenes[0], key) != _resolved(scene, key):
-                raise ValueError(f"world {k}: {key} differs from world 0's; batched worlds share {', '.join(SHARED_TABLES)}")
+    check_batchable(scenes)
     batch = ModelBuilder()
     for k, scene in enumerate(scenes):
         b = scene_builder(scene, device)
@@ -72,6 +67,20 @@ def build_worlds(scenes: Sequence, device=None, requires_grad: bool = False) -> 
             raise ValueError(f"world {k}: self-collision is not batched yet (collision.self_collision = false)")
         batch.add_world(b)
     return batch.finalize(device, requires_grad=requires_grad)
+
+
+def check_batchable(scenes: Sequence) -> None:
+    """Refuse (ValueError naming the first key) scenes that cannot be worlds of one batch: none, a table of
+    :data:`SHARED_TABLES` that differs from the first scene's, or self-collision (not batched yet). Reads the scenes
+    only (no model is built): the gate :func:`build_worlds` and a batched sweep check before anything runs."""
+    if not scenes:
+        raise ValueError("build_worlds: no scenes")
+    for k, scene in enumerate(scenes[1:], 1):
+        for key in SHARED_TABLES:
+            if _resolved(scenes[0], key) != _resolved(scene, key):
+                raise ValueError(f"world {k}: {key} differs from world 0's; batched worlds share {', '.join(SHARED_TABLES)}")
+    if scenes[0].get("collision.self_collision"):
+        raise ValueError("collision.self_collision: self-collision is not batched yet")
 
 
 def _resolved(scene, key: str):
@@ -162,13 +171,16 @@ def world_losses(model: Model, targets: Sequence[dict]):
 @dataclasses.dataclass(frozen=True)
 class WorldResult:
     """One world of a :func:`run_worlds` batch: its cache, ``complete`` or ``diverged``, the frames written
-    (the initial state included) and, for a diverged world, the diagnosis."""
+    (the initial state included), for a diverged world the diagnosis, the largest strain at a frame's end, and the
+    world's particle count."""
 
     world: int
     output: pathlib.Path
     status: str
     frames_written: int
     message: str = ""
+    max_strain: float = 0.0
+    particles: int = 0
 
 
 def run_worlds(scenes: Sequence, outputs: Sequence, frames: int | None = None, device=None) -> list[WorldResult]:
@@ -209,6 +221,7 @@ def run_worlds(scenes: Sequence, outputs: Sequence, frames: int | None = None, d
         for w, sl in zip(writers, slices):
             w.write(q[sl], qd[sl])
         results: dict[int, WorldResult] = {}
+        strain = [0.0] * len(scenes)
         for _ in range(n_frames):
             try:
                 sim.step_frame()
@@ -222,9 +235,10 @@ def run_worlds(scenes: Sequence, outputs: Sequence, frames: int | None = None, d
                 failure = sim.world_failures.get(k)
                 if failure is not None:
                     w.close("diverged", {"message": str(failure)})
-                    results[k] = WorldResult(k, w.path, "diverged", w.saved_frames, str(failure))
+                    results[k] = WorldResult(k, w.path, "diverged", w.saved_frames, str(failure), strain[k], sl.stop - sl.start)
                     continue
                 stats = sim.world_stats[k]
+                strain[k] = max(strain[k], float(stats.max_strain))
                 solves = sim.world_solves[k] if sim.world_solves is not None else None
                 w.write(q[sl], qd[sl], {"maxStrain": stats.max_strain, "dt": sim.dt,
                                         "solverIterations": solves.iterations if solves else 0,
@@ -234,7 +248,8 @@ def run_worlds(scenes: Sequence, outputs: Sequence, frames: int | None = None, d
         for k, w in enumerate(writers):
             if k not in results:
                 w.close("complete")
-                results[k] = WorldResult(k, w.path, "complete", w.saved_frames)
+                results[k] = WorldResult(k, w.path, "complete", w.saved_frames, max_strain=strain[k],
+                                         particles=slices[k].stop - slices[k].start)
         return [results[k] for k in range(len(scenes))]
     except BaseException as exc:
         for w in writers:

@@ -160,3 +160,71 @@ def test_an_interrupted_sweep_continues_where_it_stopped(tmp_path):
     assert {rid: (out / "runs" / rid / "cache.usdc").stat().st_mtime_ns for rid in finished} == stamps
     rows = list(csv.DictReader(open(out / "results.csv")))
     assert [r["status"] for r in rows] == ["done"] * 3
+
+
+def test_a_batched_sweep_gives_the_runs_of_the_command_line(tmp_path):
+    """Check `--batch 3` steps the variants as batched worlds, three runs a process: every run done once, each table
+    row with its world's own numbers, every cache equal bit for bit to a `cloth-warp run` of its variant (one per batch
+    checked, the last world of the second), and a sweeping of a key the worlds share refused before anything runs."""
+    from distributed import LocalCluster
+
+    sweep = Sweep("catenary", parse_params(["material.preset=cotton,silk,denim"]), seeds=2, frames=4, batch=3)
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        report = run_sweep(sweep, tmp_path / "sw", address=cluster.scheduler_address)
+    assert report.complete and report.done == 6
+    rows = list(csv.DictReader(open(tmp_path / "sw" / "results.csv")))
+    assert all(r["status"] == "done" and r["attempts"] == "1" and int(r["frames"]) == 4 and int(r["particles"]) > 0 for r in rows)
+    summaries = [json.loads((tmp_path / "sw" / "runs" / r["run"] / "summary.json").read_text()) for r in rows]
+    assert [s["batch"] for s in summaries] == [{"world": k % 3, "worlds": 3} for k in range(6)]
+    assert len({float(r["max_strain"]) for r in rows}) > 1  # each world's own
+    for k, (preset, seed) in ((0, ("cotton", 0)), (5, ("denim", 1))):
+        direct = tmp_path / f"direct{k}.usdc"
+        subprocess.run([sys.executable, "-m", "cloth_warp", "run", "catenary", "--set", f"material.preset={preset}",
+                        "--set", f"scene.seed={seed}", "--frames", "4", "-o", str(direct), "-q"], check=True)
+        np.testing.assert_array_equal(_frames(tmp_path / "sw" / rows[k]["cache"]), _frames(direct))
+    shared = Sweep("catenary", parse_params(["solver.substeps=1,2"]), frames=4, batch=2)
+    with pytest.raises(SweepError, match="--batch: world 1: solver differs"):
+        run_sweep(shared, tmp_path / "refused", workers=1)
+    assert not (tmp_path / "refused").exists()
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="finds the batch's process in /proc")
+def test_a_killed_batch_is_run_again_whole(tmp_path):
+    """Check a batch whose process is killed (SIGKILL) once it has saved frames: both of its runs are recorded killed
+    and retried once as a batch again (from the start: a batch does not resume), and end done after two attempts with
+    every frame in their caches."""
+    out = tmp_path / "sw"
+    frames = 300
+    sweep = Sweep("hanging_cloth", parse_params(["material.preset=cotton,silk"]), overrides={"cloth.grid.resolution": [24, 24]},
+                  frames=frames, batch=2)
+    seen = []
+    done = threading.Event()
+    thread = threading.Thread(target=lambda: (seen.append(run_sweep(sweep, out, workers=1)), done.set()))
+    thread.start()
+    first = out / "runs" / "run-0000"
+
+    def batch_processes():
+        found = []
+        for pid in os.listdir("/proc"):
+            if pid.isdigit():
+                try:
+                    cmd = pathlib.Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
+                except OSError:
+                    continue
+                if "cloth_warp.sweep" in cmd and str(first) in cmd:
+                    found.append(int(pid))
+        return found
+
+    pids = _wait_for(lambda: first.exists() and list(first.glob("cache.partial-*")) and batch_processes())  # writing frames
+    time.sleep(1.0)
+    for pid in pids:
+        os.kill(pid, signal.SIGKILL)
+    thread.join(timeout=300)
+    assert done.is_set()
+    assert seen[0].complete and seen[0].done == 2
+    runs = json.loads((out / "manifest.json").read_text())["runs"]
+    assert all(e["attempts"] == 2 and e["status"] == "done" for e in runs.values()), runs
+    assert "# attempt 2 of the batch run-0000, run-0001" in (first / "log.txt").read_text()
+    for rid in runs:
+        assert len(_frames(out / "runs" / rid / "cache.usdc")) == frames + 1
+        assert not list((out / "runs" / rid).glob("cache.partial-*"))  # the killed attempt's partial files removed
