@@ -89,3 +89,30 @@ def test_fit_command_fits_several_targets_in_one_batch(targets, tmp_path, capsys
         assert fitted.with_name(fitted.stem + "_loss.png").is_file()
         assert load_scene(fitted).get("material.stretch_stiffness") == pytest.approx(report["final_values"]["material.stretch_stiffness"])
         assert str(fitted) in captured.out
+
+
+def test_a_world_whose_gradient_is_not_finite_fails_alone(targets, monkeypatch):
+    """A world whose gradient turns non-finite (here world 1's, made NaN at the second evaluation) stops fitting:
+    its result is ``failed`` with the message and its best values so far, while the other worlds go on, each still
+    equal to its single fit bit for bit."""
+    scene = load_scene(SCENES / "fit_hanging.toml", COARSE)
+    batch = BatchFit(scene, targets, KEYS)
+    original = batch.loss_and_gradient
+    evaluations = []
+
+    def corrupted(values):
+        losses, grads = original(values)
+        evaluations.append(len(evaluations))
+        if len(evaluations) == 2:
+            grads[1] = [np.full_like(np.asarray(g, np.float64), np.nan) for g in grads[1]]
+        return losses, grads
+
+    monkeypatch.setattr(batch, "loss_and_gradient", corrupted)
+    results = batch.run(iterations=3, learning_rate=0.1)
+    assert [r.status for r in results] == ["complete", "failed", "complete"]
+    assert "non-finite gradient" in results[1].measured["failure"]
+    best = int(np.argmin(results[1].losses))  # its best of the two losses it saw (the second's values, the loss finite)
+    assert len(results[1].losses) == 2 and results[1].final_values == results[1].values[best]
+    for k in (0, 2):
+        single = SceneFit(scene, targets[k], KEYS).run(iterations=3, learning_rate=0.1)
+        assert results[k].losses == single.losses and results[k].final_values == single.final_values, f"world {k}"
