@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import time as _time
@@ -22,6 +23,12 @@ from .solvers.base import SolverBase
 log = logging.getLogger(__name__)
 
 CHECKPOINT_VERSION = 1
+
+
+def _failure_fields(e: SimulationDiverged) -> dict:
+    """A diagnosis's fields (the constructor's keywords), for a checkpoint."""
+    return {"time": e.time, "dt": e.dt, "max_strain": e.max_strain, "reason": e.reason, "suggested_dt": e.suggested_dt,
+            "frame": e.frame, "kind": e.kind, "max_speed": e.max_speed, "kinetic_energy": e.kinetic_energy, "detail": e.detail}
 
 
 def _scalar(value):
@@ -387,7 +394,9 @@ class Simulator:
           buffer capacities and counters (``solver.collisions.self.*``: each pass's state under its ``checkpoint_key``);
         * ``stepper.*`` (adaptive only): the current dt, the good steps since the last change, the statistics of
           the last accepted step, the run's report;
-        * ``bounds.wind_speed``: the strongest wind the divergence bounds have seen.
+        * ``bounds.wind_speed``: the strongest wind the divergence bounds have seen;
+        * batched worlds: ``solver.previous_ready`` (each world's warm start); with diverged worlds
+          ``worlds.failures`` (their diagnoses, JSON) and ``worlds.held_q`` [m] (the states they are held at, (n, 3)).
 
         Nothing else persists: the strain limiter sweeps each step from the integrator's output, the collider
         pass keeps no state, the gusty wind is a function of time, deforming colliders are set from their point
@@ -411,6 +420,15 @@ class Simulator:
         if self.stepper is not None:
             out.update({f"stepper.{k}": v for k, v in self.stepper.checkpoint_state().items()})
         out.update({f"bounds.{k}": v for k, v in self.bounds.checkpoint_state().items()})
+        if self.world_failures:  # a batch's diverged worlds: their diagnoses and the states they are held at
+            from .worlds import world_slices
+
+            slices = world_slices(self.model)
+            held = np.zeros_like(q)
+            for k, h in self._held.items():
+                held[slices[k]] = h.numpy()
+            out["worlds.held_q"] = held
+            out["worlds.failures"] = json.dumps({str(k): _failure_fields(e) for k, e in self.world_failures.items()})
         return out
 
     def restore(self, checkpoint: dict) -> None:
@@ -466,6 +484,18 @@ class Simulator:
         self._graph = None  # a pass's restored buffers may be new arrays
         self._record = None
         self.wall_time = float(ck.get("wall_time", 0.0))
+        self.world_failures, self._held = {}, {}
+        if "worlds.failures" in ck:
+            from .worlds import world_slices
+
+            slices = world_slices(self.model)
+            held = vec3("worlds.held_q")
+            for k, fields in json.loads(str(ck["worlds.failures"])).items():
+                k = int(k)
+                if not 0 <= k < len(slices):
+                    raise ValueError(f"checkpoint names world {k} failed, this model has {len(slices)} worlds")
+                self.world_failures[k] = SimulationDiverged(**fields)
+                self._held[k] = wp.array(held[slices[k]], dtype=wp.vec3, device=self.model.device)
         s = ck.get("last_stats")
         self.last_stats = None if s is None else StepStats(float(s[0]), float(s[1]), float(s[2]), int(s[3]), float(s[4]))
         self.frame_report = None

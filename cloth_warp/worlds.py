@@ -33,8 +33,9 @@ go on. :func:`run_worlds` steps a batch and writes one cache per world (a diverg
 with the frames before it). Gradients: a taped rollout of a batch (:class:`~cloth_warp.gradients.Rollout`) with one
 loss per world (:func:`world_losses`) gives every world its own run's gradient; taped strain limiting sweeps each world
 only while it is above the limit, as the forward path does, and its adjoint replays the same worlds per sweep.
-Attachments bind each world's particles to the shared colliders. Not batched yet: self-collision (and so the
-self-contacts in the solve), checkpoints of a batch.
+Attachments bind each world's particles to the shared colliders. A batch's checkpoint keeps its diverged worlds and
+each world's warm start. Not batched yet: self-collision (and so the self-contacts in the solve); :func:`run_worlds`
+does not resume its caches.
 """
 
 from __future__ import annotations

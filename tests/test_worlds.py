@@ -314,3 +314,45 @@ def test_batched_worlds_with_attachments_equal_their_single_runs_bit_for_bit(wor
     assert [a.name for a in model.attachments] == [f"world{k}/attachment0" for k in range(3)]
     for k, (x, single) in enumerate(zip(split_worlds(model, run(model)), singles)):
         assert np.array_equal(x, single), f"world {k} differs from its single run by {np.abs(x - single).max():.3g} m"
+
+
+def test_a_batch_restored_from_a_checkpoint_goes_on_as_the_uninterrupted_batch():
+    """A batch checkpointed after a world diverged (and, separately, before) and restored into a fresh Simulator gives
+    the uninterrupted batch's frames bit for bit: the diverged world still held where it was, with its diagnosis, the
+    others with their warm starts (each world's own), every world's solves' records the same."""
+    variants = [{"material.preset": p, "cloth.grid.resolution": [8, 8]} for p in ("cotton", "silk", "denim")]
+    scenes = [load_scene(find_scene("hanging_cloth"), v) for v in variants]
+
+    def batch():
+        model = build_worlds(scenes, "cpu")
+        spring = int(np.flatnonzero(model.particle_world.numpy()[model.spring_indices.numpy().reshape(-1, 2)[:, 0]] == 1)[0])
+        return _run(model, scenes[0], frames=0)[0], spring
+
+    def poison(sim, spring):
+        sim.model.spring_rest_length.numpy()[spring] = np.nan  # world 1's forces turn non-finite (a CPU view)
+
+    def frames(sim, count):
+        out = []
+        for _ in range(count):
+            sim.step_frame()
+            out.append((sim.positions().copy(), sim.world_solves, sorted(sim.world_failures)))
+        return out
+
+    reference, spring = batch()
+    frames(reference, 3)
+    poison(reference, spring)
+    expected = frames(reference, 7)
+    for at in (0, 3):  # checkpointed before world 1's failure (in frame 4), and after it
+        first, spring = batch()
+        frames(first, 3)
+        poison(first, spring)
+        frames(first, at)
+        ck = first.checkpoint()
+        assert ("worlds.failures" in ck) == (at > 0)
+        resumed, spring = batch()
+        poison(resumed, spring)
+        resumed.restore(ck)
+        assert {k: str(e) for k, e in resumed.world_failures.items()} == {k: str(e) for k, e in first.world_failures.items()}
+        got = frames(resumed, 7 - at)
+        for (x, solves, failed), (y, solves_ref, failed_ref) in zip(got, expected[at:]):
+            assert np.array_equal(x, y) and repr(solves) == repr(solves_ref) and failed == failed_ref, at  # (NaN residuals)

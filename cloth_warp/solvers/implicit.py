@@ -658,6 +658,7 @@ class SolverImplicitEuler(SolverBase):
         other array is rebuilt by each step's assembly before it is read."""
         out = super().checkpoint_state()
         out["has_previous"] = self.has_previous
+        out["previous_ready"] = self.previous_ready.numpy().copy()  # per world (a batch's held worlds have none)
         out["dv_previous"] = self.dv_previous.numpy().copy()
         out["contact_impulse"] = self.contact_impulse.numpy().copy()
         return out
@@ -666,7 +667,11 @@ class SolverImplicitEuler(SolverBase):
         super().restore_state(state)
         dv = np.asarray(state["dv_previous"], np.float32).reshape(self.model.particle_count, 3)
         self.dv_previous.assign(dv)
-        self.previous_ready.fill_(int(bool(state["has_previous"])))
+        ready = np.asarray(state.get("previous_ready", []), np.int32).reshape(-1)
+        if ready.shape == (self.worlds,):
+            self.previous_ready.assign(ready)
+        else:  # (checkpoints written before batched worlds: one flag)
+            self.previous_ready.fill_(int(bool(state["has_previous"])))
         if "contact_impulse" in state:  # (checkpoints written before friction was in the solve: none)
             self.contact_impulse.assign(np.asarray(state["contact_impulse"], np.float32).reshape(self.model.particle_count))
 
