@@ -72,8 +72,8 @@ def test_a_sweep_on_a_local_cluster_gives_the_runs_of_the_command_line(tmp_path)
     np.testing.assert_array_equal(_frames(tmp_path / "sw" / rows[3]["cache"]), _frames(direct))
 
 
-def _processes(pattern: str) -> list[int]:
-    """Pids of this machine's processes whose command line contains `pattern`."""
+def _processes(pattern: str, command: str = "cloth_warp run") -> list[int]:
+    """Pids of this machine's processes whose command line contains `pattern` and `command`."""
     out = []
     for pid in os.listdir("/proc"):
         if pid.isdigit():
@@ -81,7 +81,7 @@ def _processes(pattern: str) -> list[int]:
                 cmd = pathlib.Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
             except OSError:
                 continue
-            if pattern in cmd and "cloth_warp run" in cmd:
+            if pattern in cmd and command in cmd:
                 out.append(int(pid))
     return out
 
@@ -202,20 +202,7 @@ def test_a_killed_batch_is_run_again_whole(tmp_path):
     thread = threading.Thread(target=lambda: (seen.append(run_sweep(sweep, out, workers=1)), done.set()))
     thread.start()
     first = out / "runs" / "run-0000"
-
-    def batch_processes():
-        found = []
-        for pid in os.listdir("/proc"):
-            if pid.isdigit():
-                try:
-                    cmd = pathlib.Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
-                except OSError:
-                    continue
-                if "cloth_warp.sweep" in cmd and str(first) in cmd:
-                    found.append(int(pid))
-        return found
-
-    pids = _wait_for(lambda: first.exists() and list(first.glob("cache.partial-*")) and batch_processes())  # writing frames
+    pids = _wait_for(lambda: first.exists() and list(first.glob("cache.partial-*")) and _processes(str(first), "cloth_warp.sweep"))
     time.sleep(1.0)
     for pid in pids:
         os.kill(pid, signal.SIGKILL)
