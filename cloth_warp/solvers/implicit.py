@@ -14,6 +14,7 @@ from ..diagnostics import LinearSolveReport
 from ..graphs import LoopGraphs, device_while
 from ..profiling import stage
 from ..records import record_values
+from .. import reductions
 from ..reductions import launch_reduction
 from ..topology import sewn_point_roots
 from ..worlds import world_ranges
@@ -144,9 +145,11 @@ class SolverImplicitEuler(SolverBase):
     tests/test_capture.py and benchmarks/bench_taped_solves.py compare with). CUDA keeps its eager loop for now."""
 
     world_threads: bool = True
-    """Batched worlds on the CPU: the CG iterates with one thread per world (kernels/implicit.py cg_*_worlds: a world that
-    stopped costs nothing while the batch's slowest goes on); False, per solver or for the class: one thread per
-    particle and element, as on CUDA (bit for bit the same)."""
+    """On the CPU the CG iterates with one thread per world (kernels/implicit.py cg_*_worlds; one world: one thread):
+    a batch's world that stopped costs nothing while the batch's slowest goes on, and a single cloth's iteration is
+    three kernels instead of seven or more, each a pass over the cloth (7-9 % off a hanging cloth's frame at 32²-128²,
+    benchmarks/bench_worlds.py). False, per solver or for the class, or the CUDA reductions forced on the CPU
+    (cloth_warp.reductions.USE_BLOCKS): one thread per particle and element, as on CUDA. Bit for bit the same."""
 
     name = "implicit_euler"
     kernel_modules = (ki,)
@@ -275,8 +278,8 @@ class SolverImplicitEuler(SolverBase):
         self.loop = wp.zeros(world_slots_length(ki.LOOP_SIZE, worlds), dtype=wp.int32, device=dev)
         self.solve_status = wp.zeros(worlds * ki.STATUS_SIZE, dtype=wp.float64, device=dev)
         self.solve_record = wp.zeros(worlds * ki.RECORD_SIZE, dtype=wp.float64, device=dev)
-        # batched worlds on the CPU: each world's items, walked by the one-thread-per-world CG kernels
-        self._world_ranges = wp.array(world_ranges(model), dtype=wp.int32, device=dev) if worlds > 1 and dev.is_cpu else None
+        # on the CPU: each world's items, walked by the one-thread-per-world CG kernels
+        self._world_ranges = wp.array(world_ranges(model), dtype=wp.int32, device=dev) if dev.is_cpu else None
         self.previous_ready = wp.zeros(worlds, dtype=wp.int32, device=dev)  # 1: dv_previous starts the world's next forward solve
         self._enabled = wp.ones(worlds, dtype=wp.int32, device=dev)
         self._disabled = wp.zeros(worlds, dtype=wp.int32, device=dev)
@@ -486,7 +489,7 @@ class SolverImplicitEuler(SolverBase):
         m = self.model
         dev = m.device
         c, q = self.search, self.product
-        if self._world_ranges is not None and self.world_threads and not self._self_contacts_on:
+        if self._world_ranges is not None and self.world_threads and not self._self_contacts_on and not reductions.USE_BLOCKS:
             self._cg_iteration_worlds(dt)
             return
         bends = m.spring_count - m.linear_spring_count
