@@ -20,8 +20,8 @@ its single-world run bit for bit (tests/test_worlds.py). The CG's iteration ther
 order the one-item kernels take them, and a world that stopped costs one test while the batch's slowest iterates.
 With one thread per item (CUDA's form; ``SolverImplicitEuler.world_threads = False``) a stopped world's items
 still cost 2-8 ns each every iteration (gating them per element cost more than it saved): a batch of 64 worlds of
-four materials ran at 0.81x their one-by-one runs that way, 1.06x with a thread per world, in one run
-(benchmarks/bench_worlds.py).
+four materials ran at 0.86x their one-by-one runs that way, 1.07x with a thread per world, in one run
+(benchmarks/bench_worlds.py; a single cloth's CG takes the one-thread kernels as well).
 
 The worlds of a batch share the colliders (each scene's must be the same) and the global settings (gravity, damping,
 up axis, the [solver] table): they are variants of one scene in their cloths (material, size, mesh, pins, handles,
