@@ -147,8 +147,9 @@ class SolverImplicitEuler(SolverBase):
     world_threads: bool = True
     """On the CPU the CG iterates with one thread per world (kernels/implicit.py cg_*_worlds; one world: one thread):
     a batch's world that stopped costs nothing while the batch's slowest goes on, and a single cloth's iteration is
-    three kernels instead of seven or more, each a pass over the cloth (7-9 % off a hanging cloth's frame at 32²-128²,
-    benchmarks/bench_worlds.py). False, per solver or for the class, or the CUDA reductions forced on the CPU
+    three kernels instead of seven or more, each a pass over the cloth (0.84-1.00 of the frame on shipped scenes,
+    benchmarks/results/bench_step_world_threads.md; self-contacts in the solve scatter with a kernel of their own between
+    the elements and the rows). False, per solver or for the class, or the CUDA reductions forced on the CPU
     (cloth_warp.reductions.USE_BLOCKS): one thread per particle and element, as on CUDA. Bit for bit the same."""
 
     name = "implicit_euler"
@@ -489,7 +490,7 @@ class SolverImplicitEuler(SolverBase):
         m = self.model
         dev = m.device
         c, q = self.search, self.product
-        if self._world_ranges is not None and self.world_threads and not self._self_contacts_on and not reductions.USE_BLOCKS:
+        if self._world_ranges is not None and self.world_threads and not reductions.USE_BLOCKS:
             self._cg_iteration_worlds(dt)
             return
         bends = m.spring_count - m.linear_spring_count
@@ -529,12 +530,16 @@ class SolverImplicitEuler(SolverBase):
         dev = m.device
         c, q = self.search, self.product
         worlds, ranges = self.worlds, self._world_ranges
-        wp.launch(ki.cg_product_worlds, dim=worlds,
-                  inputs=[ranges, worlds, self.loop, m.spring_ends, self.spring_compact, m.bend_triples, m.linear_spring_count,
-                          self.bend_vector, dt, m.membrane_vertices, self.membrane_block, m.tri_vertices, m.tri_corner_weights,
-                          self.drag_vector, m.plate_offsets, m.plate_points, m.plate_weights, m.plate_stiffness, dt * dt,
-                          self.effective_mass, m.particle_pinned, c, self.contact_normal, int(self._contacts_on)],
-                  outputs=[q, self.cg_sums], device=dev)
+        product = [ranges, worlds, self.loop, m.spring_ends, self.spring_compact, m.bend_triples, m.linear_spring_count,
+                   self.bend_vector, dt, m.membrane_vertices, self.membrane_block, m.tri_vertices, m.tri_corner_weights,
+                   self.drag_vector, m.plate_offsets, m.plate_points, m.plate_weights, m.plate_stiffness, dt * dt,
+                   self.effective_mass, m.particle_pinned, c, self.contact_normal, int(self._contacts_on)]
+        if self._self_contacts_on:  # (one world: batches refuse them) their part between the elements' and the rows
+            wp.launch(ki.cg_product_worlds, dim=worlds, inputs=[*product, 1, 0], outputs=[q, self.cg_sums], device=dev)
+            self._self_contact_product(c, dt, q)
+            wp.launch(ki.cg_product_worlds, dim=worlds, inputs=[*product, 0, 1], outputs=[q, self.cg_sums], device=dev)
+        else:
+            wp.launch(ki.cg_product_worlds, dim=worlds, inputs=[*product, 1, 1], outputs=[q, self.cg_sums], device=dev)
         wp.launch(ki.cg_step_size, dim=worlds, inputs=[worlds, self.loop], outputs=[self.cg_sums, self.cg_scalars, self.cg_step], device=dev)
         wp.launch(ki.cg_update_worlds, dim=worlds, inputs=[ranges, worlds, self.loop, self.precond, c, self.cg_step],
                   outputs=[q, self.dv, self.residual, self.preconditioned, self.cg_sums], device=dev)
