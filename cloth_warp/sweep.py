@@ -20,7 +20,7 @@ bit its own run), each world's cache and summary in its run's folder, the proces
 log.txt. Their swept keys must be ones worlds may differ in (not the forces, colliders, collision, solver or frame
 rate; no self-collision yet): checked with every variant before any run. A batch saves each run's process start and
 kernel load (short runs: 2.6x on 2 cores, ``benchmarks/results/bench_sweep_batch.md``), and on a GPU fills the device
-(256 worlds: 18.7x one by one). Faults are per world: a diverged world is that run's failure, the others go on; a batch
+(``benchmarks/bench_worlds.py`` on an H100: 256 worlds at 18.7x their one-by-one runs). Faults are per world: a diverged world is that run's failure, the others go on; a batch
 killed or interrupted is run again whole, from its first frame (batched worlds keep no resume checkpoint).
 
 Why a subprocess per run: Warp's CPU backend runs one thread per process, so a worker is one process with one

@@ -525,7 +525,7 @@ class SolverImplicitEuler(SolverBase):
                   outputs=[c, self.dv_best], device=dev)
 
     def _cg_iteration_worlds(self, dt: float):
-        """:meth:`_cg_iteration` of a batch on the CPU, one thread per world (kernels/implicit.py cg_*_worlds)."""
+        """:meth:`_cg_iteration` on the CPU, one thread per world (kernels/implicit.py cg_*_worlds; one world: one thread)."""
         m = self.model
         dev = m.device
         c, q = self.search, self.product
