@@ -169,6 +169,106 @@ class SelfCollisionPass(StepPass):
         self.self_collision.apply(x_start, x_end, v_end, dt, x_out, v_out)
 
 
+class WorldSelfCollisionPass(StepPass):
+    """Self-collision of batched worlds (:mod:`cloth_warp.worlds`): one :class:`SelfCollisionPass` per world, built on
+    the world's own model (``Model.world_models``: its broad phase, buffers, welded seams and counters are its single
+    run's) and applied to the world's slice of the batch's particle arrays (contiguous views), world after world. On
+    the CPU each world is therefore its single run bit for bit; the batch pays a launch per world and stage (a
+    recorded frame replays them). The report sums the worlds' counters; a frame re-runs when any world's buffers
+    overflowed, those worlds' grown."""
+
+    name = "self_collision"
+    checkpoint_key = "collisions.self"
+    device_loops = True
+
+    def __init__(self, model: Model):
+        from .worlds import world_slices
+
+        self.model = model
+        self.slices = world_slices(model)
+        self.worlds = [SelfCollisionPass(m) for m in model.world_models]
+        self._reports: list[SelfCollisionReport] = []
+        self._views: dict = {}  # (array pointer, world) -> the world's view, one object per array (see _view)
+
+    def _view(self, a: wp.array, k: int) -> wp.array:
+        """World k's slice of particle array `a`, the same view object each time (a self-collision pass knows a later
+        round of its step by its start positions' identity)."""
+        key = (a.ptr, k)
+        view = self._views.get(key)
+        if view is None:
+            view = self._views[key] = a[self.slices[k]]
+        return view
+
+    @property
+    def kernel_modules(self) -> tuple:
+        return self.worlds[0].kernel_modules
+
+    @property
+    def capturable(self) -> bool:
+        return all(p.capturable for p in self.worlds)
+
+    def set_recordable(self, on: bool) -> None:
+        for p in self.worlds:
+            p.set_recordable(on)
+
+    def needs_rerun(self, report: SelfCollisionReport) -> bool:
+        return bool(report.overflowed)
+
+    def prepare_rerun(self, report: SelfCollisionReport) -> bool:
+        grown = False
+        for p, r in zip(self.worlds, self._reports):  # (the others run the frame again as they ran it: as alone)
+            if p.needs_rerun(r):
+                grown = p.prepare_rerun(r) or grown
+        return grown
+
+    def end_rerun(self) -> None:
+        for p in self.worlds:
+            p.end_rerun()
+
+    def notify_model_changed(self, flags: int) -> None:
+        for m, sl, p in zip(self.model.world_models, self.slices, self.worlds):
+            m.particle_mass.assign(self.model.particle_mass[sl])  # (what a self-collision pass reads of the model)
+            m.particle_pinned.assign(self.model.particle_pinned[sl])
+            p.notify_model_changed(flags)
+
+    def begin_step(self):
+        for p in self.worlds:
+            p.begin_step()
+
+    def reset_report(self):
+        for p in self.worlds:
+            p.reset_report()
+
+    def record_arrays(self) -> list:
+        return [pair for p in self.worlds for pair in p.record_arrays()]
+
+    def read_report(self) -> SelfCollisionReport:
+        """The worlds' counters summed (:attr:`world_reports`: each world's)."""
+        self._reports = [p.read_report() for p in self.worlds]
+        counts = {name: sum(getattr(r, name) for r in self._reports) for name in self._reports[0].counters()}
+        overflowed = sorted({kind for r in self._reports for kind in r.overflowed})
+        return SelfCollisionReport.from_counts(counts, tuple(overflowed))
+
+    @property
+    def world_reports(self) -> list[SelfCollisionReport]:
+        """Each world's report from the last :meth:`read_report`."""
+        return list(self._reports)
+
+    def checkpoint_state(self) -> dict:
+        return {f"world{k}.{key}": v for k, p in enumerate(self.worlds) for key, v in p.checkpoint_state().items()}
+
+    def restore_state(self, state: dict) -> None:
+        for k, p in enumerate(self.worlds):
+            prefix = f"world{k}."
+            p.restore_state({key[len(prefix):]: v for key, v in state.items() if key.startswith(prefix)})
+
+    def apply(self, x_start, x_end, v_end, control: Control, dt: float, x_out, v_out):
+        if x_start.requires_grad:
+            raise NotImplementedError("taped steps of batched worlds with self-collision are not supported yet")
+        for k, p in enumerate(self.worlds):
+            p.apply(*(self._view(a, k) for a in (x_start, x_end, v_end)), control, dt, self._view(x_out, k), self._view(v_out, k))
+
+
 def penetration_depths(model: Model, positions: np.ndarray, time: float = 0.0) -> np.ndarray:
     """Per collider, the largest depth [m] by which any free particle lies inside its thickness band
     (0 when none does), measured independently of the kernels with numpy (for tests and reports)."""

@@ -310,6 +310,9 @@ class Model:
         """The world of each particle, shape (n,), int32 (zeros with one world)."""
         self.world_particle_start = np.zeros(2, int)
         """Each world's first particle and the particle count after them, numpy (W + 1,) (worlds are contiguous)."""
+        self.world_models: list | None = None
+        """Batched worlds with self-collision: each world's own Model, which its self-collision pass is built on
+        (cloth_warp.collision.WorldSelfCollisionPass); None otherwise."""
 
         # -- springs and bend triples -------------------------------------------------------------
         self.spring_count = 0

@@ -97,7 +97,7 @@ def build_passes(model: Model, *, strain_limit: float | None = 0.1, strain_limit
     """The passes a model needs, in the order a step runs them: Provot strain limiting (when `strain_limit`
     and the model has limited springs), sewing (when it has seams), then the colliders (when it has any) and
     self-collision (when on)."""
-    from .collision import ColliderPass, SelfCollisionPass
+    from .collision import ColliderPass, SelfCollisionPass, WorldSelfCollisionPass
     from .sewing import SewingPass
     from .solvers.strain_limit import DEFAULT_SWEEPS, StrainLimiter
 
@@ -113,5 +113,5 @@ def build_passes(model: Model, *, strain_limit: float | None = 0.1, strain_limit
     if collisions and model.collider_count:
         out.append(ColliderPass(model))
     if collisions and model.self_collision and model.tri_count:
-        out.append(SelfCollisionPass(model))
+        out.append(WorldSelfCollisionPass(model) if model.world_count > 1 else SelfCollisionPass(model))
     return out

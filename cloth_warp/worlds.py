@@ -34,7 +34,8 @@ with the frames before it). Gradients: a taped rollout of a batch (:class:`~clot
 loss per world (:func:`world_losses`) gives every world its own run's gradient; taped strain limiting sweeps each world
 only while it is above the limit, as the forward path does, and its adjoint replays the same worlds per sweep.
 Attachments bind each world's particles to the shared colliders. A batch's checkpoint keeps its diverged worlds and
-each world's warm start. Not batched yet: self-collision (and so the self-contacts in the solve); :func:`run_worlds`
+each world's warm start. Self-collision runs one pass per world on the world's own model (``Model.world_models``,
+:class:`~cloth_warp.collision.WorldSelfCollisionPass`). Not batched yet: the self-contacts in the solve; :func:`run_worlds`
 does not resume its caches.
 """
 
@@ -62,26 +63,29 @@ def build_worlds(scenes: Sequence, device=None, requires_grad: bool = False) -> 
 
     check_batchable(scenes)
     batch = ModelBuilder()
-    for k, scene in enumerate(scenes):
-        b = scene_builder(scene, device)
-        if b.self_collision:
-            raise ValueError(f"world {k}: self-collision is not batched yet (collision.self_collision = false)")
+    builders = [scene_builder(scene, device) for scene in scenes]
+    for b in builders:
         batch.add_world(b)
-    return batch.finalize(device, requires_grad=requires_grad)
+    model = batch.finalize(device, requires_grad=requires_grad)
+    if model.self_collision:  # each world's self-collision runs on its own model (WorldSelfCollisionPass)
+        model.world_models = [b.finalize(device) for b in builders]
+    return model
 
 
 def check_batchable(scenes: Sequence) -> None:
     """Refuse (ValueError naming the first key) scenes that cannot be worlds of one batch: none, a table of
-    :data:`SHARED_TABLES` that differs from the first scene's, or self-collision (not batched yet). Reads the scenes
-    only (no model is built): the gate :func:`build_worlds` and a batched sweep check before anything runs."""
+    :data:`SHARED_TABLES` that differs from the first scene's, or self-contacts in the implicit solve (not batched
+    yet). Reads the scenes only (no model is built): the gate :func:`build_worlds` and a batched sweep check before
+    anything runs."""
     if not scenes:
         raise ValueError("build_worlds: no scenes")
     for k, scene in enumerate(scenes[1:], 1):
         for key in SHARED_TABLES:
             if _resolved(scenes[0], key) != _resolved(scene, key):
                 raise ValueError(f"world {k}: {key} differs from world 0's; batched worlds share {', '.join(SHARED_TABLES)}")
-    if scenes[0].get("collision.self_collision"):
-        raise ValueError("collision.self_collision: self-collision is not batched yet")
+    if scenes[0].get("collision.self_collision") and scenes[0].get("solver.self_contacts") == "solve":
+        raise ValueError("solver.self_contacts: self-contacts in the solve are not batched yet (\"pass\": the "
+                         "self-collision pass, which is)")
 
 
 def _resolved(scene, key: str):
@@ -210,7 +214,8 @@ def run_worlds(scenes: Sequence, outputs: Sequence, frames: int | None = None, d
     writers = []
     try:
         for k, (scene, out) in enumerate(zip(scenes, outputs)):
-            alone = build_model(scene, device)  # the world's own model: its cache's meshes, UVs and colliders
+            # the world's own model: its cache's meshes, UVs and colliders (built with the batch when it has self-collision)
+            alone = model.world_models[k] if model.world_models else build_model(scene, device)
             meta = {"scene_path": str(scene.path) if scene.path else None,
                     "resolved_scene": json.dumps(scene.resolved(), sort_keys=True),
                     "batch": json.dumps({"world": k, "worlds": len(scenes)}), "integrator": solver.name,
