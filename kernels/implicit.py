@@ -871,58 +871,6 @@ def cg_direction_row(i: int, best: int, beta: float, preconditioned: wp.array(dt
 # computed came out in other last bits than `cg_residual_dots`'s; taken from the stored rows in a loop of their own,
 # as that kernel takes them, it is the same. tests/test_worlds.py runs both forms against single runs.
 
-@wp.func
-def scatter_world_products(
-    w: int,
-    ranges: wp.array2d(dtype=wp.int32),
-    spring_ends: wp.array(dtype=wp.vec2i),
-    spring_compact: wp.array(dtype=wp.vec4),
-    bend_triples: wp.array(dtype=wp.vec3i),
-    linear_spring_count: int,
-    bend_vector: wp.array(dtype=wp.vec3),
-    dt: float,
-    membrane_vertices: wp.array(dtype=wp.vec3i),
-    membrane_block: wp.array2d(dtype=wp.mat33),
-    tri_vertices: wp.array(dtype=wp.vec3i),
-    tri_corner_weights: wp.array(dtype=wp.vec3),
-    drag_vector: wp.array(dtype=wp.vec3),
-    plate_offsets: wp.array(dtype=wp.int32),
-    plate_points: wp.array(dtype=wp.int32),
-    plate_weights: wp.array(dtype=wp.vec3),
-    plate_stiffness: wp.array(dtype=wp.mat33),
-    plate_scale: float,
-    search: wp.array(dtype=wp.vec3),
-    product_out: wp.array(dtype=wp.vec3),
-):
-    """World w's elements' part of A c, in the order the scatter kernels add it (springs, bends, membranes, drag, plate
-    stencils)."""
-    e = ranges[RANGE_SPRINGS, w]
-    end = ranges[RANGE_SPRINGS, w + 1]
-    while e < end:
-        add_spring_product(e, spring_ends, spring_compact, search, product_out)
-        e += 1
-    e = ranges[RANGE_BENDS, w]
-    end = ranges[RANGE_BENDS, w + 1]
-    while e < end:
-        add_bend_product(e, bend_triples, linear_spring_count, bend_vector, search, dt, product_out)
-        e += 1
-    e = ranges[RANGE_MEMBRANES, w]
-    end = ranges[RANGE_MEMBRANES, w + 1]
-    while e < end:
-        add_membrane_product(e, membrane_vertices, membrane_block, search, product_out)
-        e += 1
-    e = ranges[RANGE_TRIANGLES, w]
-    end = ranges[RANGE_TRIANGLES, w + 1]
-    while e < end:
-        add_drag_product(e, tri_vertices, tri_corner_weights, drag_vector, search, dt, product_out)
-        e += 1
-    e = ranges[RANGE_PLATES, w]
-    end = ranges[RANGE_PLATES, w + 1]
-    while e < end:
-        add_plate_product(e, plate_offsets, plate_points, plate_weights, plate_stiffness, search, plate_scale, product_out)
-        e += 1
-
-
 @wp.kernel(enable_backward=False)
 def cg_product_worlds(
     ranges: wp.array2d(dtype=wp.int32),
@@ -963,10 +911,32 @@ def cg_product_worlds(
     w = wp.tid()
     if not world_iterates(w, worlds, loop):
         return
-    if scatter != 0:
-        scatter_world_products(w, ranges, spring_ends, spring_compact, bend_triples, linear_spring_count, bend_vector, dt,
-                               membrane_vertices, membrane_block, tri_vertices, tri_corner_weights, drag_vector, plate_offsets,
-                               plate_points, plate_weights, plate_stiffness, plate_scale, search, product_out)
+    if scatter != 0:  # its elements' part, in the order the scatter kernels add it
+        e = ranges[RANGE_SPRINGS, w]
+        end = ranges[RANGE_SPRINGS, w + 1]
+        while e < end:
+            add_spring_product(e, spring_ends, spring_compact, search, product_out)
+            e += 1
+        e = ranges[RANGE_BENDS, w]
+        end = ranges[RANGE_BENDS, w + 1]
+        while e < end:
+            add_bend_product(e, bend_triples, linear_spring_count, bend_vector, search, dt, product_out)
+            e += 1
+        e = ranges[RANGE_MEMBRANES, w]
+        end = ranges[RANGE_MEMBRANES, w + 1]
+        while e < end:
+            add_membrane_product(e, membrane_vertices, membrane_block, search, product_out)
+            e += 1
+        e = ranges[RANGE_TRIANGLES, w]
+        end = ranges[RANGE_TRIANGLES, w + 1]
+        while e < end:
+            add_drag_product(e, tri_vertices, tri_corner_weights, drag_vector, search, dt, product_out)
+            e += 1
+        e = ranges[RANGE_PLATES, w]
+        end = ranges[RANGE_PLATES, w + 1]
+        while e < end:
+            add_plate_product(e, plate_offsets, plate_points, plate_weights, plate_stiffness, search, plate_scale, product_out)
+            e += 1
     if rows == 0:
         return
     cac = wp.float64(0.0)
