@@ -119,6 +119,10 @@ class SelfCollisionPass(StepPass):
 
     def set_recordable(self, on: bool) -> None:
         self._recordable = self.self_collision.capturable = bool(on)
+        if on:  # its buffers now, not first inside a recorded frame: an allocation there is a memset the graph replays every
+            # frame, which cleared the close pairs the next step's self-contacts in the solve start from (in every frame
+            # of a frame graph recorded first, and not in one recorded later or run eagerly)
+            self.self_collision.prepare_capturable()
 
     def needs_rerun(self, report: SelfCollisionReport) -> bool:
         return bool(report.overflowed)

@@ -398,6 +398,10 @@ class SelfCollision:
     # have the same grid capacities; where the host path patches, this one patches in its own way (or builds
     # again), so the candidate lists (and the order in which impulses add up) differ: then the results differ
     # by round-off.
+    def prepare_capturable(self) -> None:
+        """Allocate the capturable path's arrays now (outside any graph capture; see :meth:`_fixed_buffers`)."""
+        self._fixed_buffers()
+
     def _fixed_buffers(self) -> "_FixedBuffers":
         """The capturable path's arrays, allocated on the host (first use, and after :meth:`grow`)."""
         caps = (self.grid.vertex_face.capacity, self.grid.edge_edge.capacity)
