@@ -193,6 +193,7 @@ class WorldSelfCollisionPass(StepPass):
         self.worlds = [SelfCollisionPass(m) for m in model.world_models]
         self._reports: list[SelfCollisionReport] = []
         self._views: dict = {}  # (array pointer, world) -> the world's view, one object per array (see _view)
+        self._kept: list | None = None  # each world's close pairs at the end of the last frame not run again (see read_report)
 
     def _view(self, a: wp.array, k: int) -> wp.array:
         """World k's slice of particle array `a`, the same view object each time (a self-collision pass knows a later
@@ -220,9 +221,13 @@ class WorldSelfCollisionPass(StepPass):
 
     def prepare_rerun(self, report: SelfCollisionReport) -> bool:
         grown = False
-        for p, r in zip(self.worlds, self._reports):  # (the others run the frame again as they ran it: as alone)
+        for k, (p, r) in enumerate(zip(self.worlds, self._reports)):  # (the others run the frame again as they ran it: as alone)
             if p.needs_rerun(r):
                 grown = p.prepare_rerun(r) or grown
+            elif self._kept is not None:  # and start it from the close pairs they started it from
+                for (pairs, count), (kept, kept_count) in zip(p.self_collision.contact_candidates(), self._kept[k]):
+                    wp.copy(pairs, kept)
+                    wp.copy(count, kept_count)
         return grown
 
     def end_rerun(self) -> None:
@@ -251,6 +256,17 @@ class WorldSelfCollisionPass(StepPass):
         self._reports = [p.read_report() for p in self.worlds]
         counts = {name: sum(getattr(r, name) for r in self._reports) for name in self._reports[0].counters()}
         overflowed = sorted({kind for r in self._reports for kind in r.overflowed})
+        if not overflowed and self.worlds[0].self_collision.share_close_pairs:
+            # a frame that stands: its close pairs (the self-contacts' candidates of the next step, in the solve) are
+            # where a frame run again because another world overflowed starts from in the worlds that did not
+            lists = [p.self_collision.contact_candidates() for p in self.worlds]
+            if self._kept is None or any(k.shape != a.shape for w, kw in zip(lists, self._kept) for (a, _), (k, _) in zip(w, kw)):
+                self._kept = [[(wp.clone(pairs), wp.clone(count)) for pairs, count in w] for w in lists]  # (grown: again)
+            else:
+                for w, kw in zip(lists, self._kept):
+                    for (pairs, count), (kept, kept_count) in zip(w, kw):
+                        wp.copy(kept, pairs)
+                        wp.copy(kept_count, count)
         return SelfCollisionReport.from_counts(counts, tuple(overflowed))
 
     @property

@@ -18,7 +18,7 @@ Batched (``--batch K``): up to K pending runs go to a worker as one task, one pr
 batched worlds (:func:`~cloth_warp.worlds.run_worlds`: one model, one launch per stage; on the CPU each world bit for
 bit its own run), each world's cache and summary in its run's folder, the process's stderr in the first run's
 log.txt. Their swept keys must be ones worlds may differ in (not the forces, colliders, collision, solver or frame
-rate; no self-contacts in the solve yet): checked with every variant before any run. A batch saves each run's process start and
+rate): checked with every variant before any run. A batch saves each run's process start and
 kernel load (short runs: 2.6x on 2 cores, ``benchmarks/results/bench_sweep_batch.md``), and on a GPU fills the device
 (``benchmarks/bench_worlds.py`` on an H100: 256 worlds at 18.7x their one-by-one runs). Faults are per world: a diverged world is that run's failure, the others go on; a batch
 killed or interrupted is run again whole, from its first frame (batched worlds keep no resume checkpoint).

@@ -35,7 +35,8 @@ loss per world (:func:`world_losses`) gives every world its own run's gradient; 
 only while it is above the limit, as the forward path does, and its adjoint replays the same worlds per sweep.
 Attachments bind each world's particles to the shared colliders. A batch's checkpoint keeps its diverged worlds and
 each world's warm start. Self-collision runs one pass per world on the world's own model (``Model.world_models``,
-:class:`~cloth_warp.collision.WorldSelfCollisionPass`). Not batched yet: the self-contacts in the solve; :func:`run_worlds`
+:class:`~cloth_warp.collision.WorldSelfCollisionPass`), the self-contacts in the solve from each world's pass. Not batched
+yet: taped steps with self-collision; :func:`run_worlds`
 does not resume its caches.
 """
 
@@ -74,18 +75,14 @@ def build_worlds(scenes: Sequence, device=None, requires_grad: bool = False) -> 
 
 def check_batchable(scenes: Sequence) -> None:
     """Refuse (ValueError naming the first key) scenes that cannot be worlds of one batch: none, a table of
-    :data:`SHARED_TABLES` that differs from the first scene's, or self-contacts in the implicit solve (not batched
-    yet). Reads the scenes only (no model is built): the gate :func:`build_worlds` and a batched sweep check before
-    anything runs."""
+    :data:`SHARED_TABLES` that differs from the first scene's. Reads the scenes only (no model is built): the gate
+    :func:`build_worlds` and a batched sweep check before anything runs."""
     if not scenes:
         raise ValueError("build_worlds: no scenes")
     for k, scene in enumerate(scenes[1:], 1):
         for key in SHARED_TABLES:
             if _resolved(scenes[0], key) != _resolved(scene, key):
                 raise ValueError(f"world {k}: {key} differs from world 0's; batched worlds share {', '.join(SHARED_TABLES)}")
-    if scenes[0].get("collision.self_collision") and scenes[0].get("solver.self_contacts") == "solve":
-        raise ValueError("solver.self_contacts: self-contacts in the solve are not batched yet (\"pass\": the "
-                         "self-collision pass, which is)")
 
 
 def _resolved(scene, key: str):

@@ -22,7 +22,7 @@ the filter itself belong to the solver; this module only finds the contacts.
 import warp as wp
 
 from .collide import shape_distance, surface_velocity, mesh_surface_velocity
-from .implicit import COUNT_CONTACTS, COUNT_SELF_CONTACTS, COUNT_SIZE, RELEASE_FLAG, RELEASE_ROUNDS, SLIP_ALLOWANCE
+from .implicit import COUNT_CONTACTS, COUNT_SELF_CONTACTS, COUNT_SIZE, RELEASE_FLAG, RELEASE_ROUNDS, RELEASE_SIZE, SLIP_ALLOWANCE  # noqa: F401 (COUNT_SELF_CONTACTS: the solver passes its slot)
 from .worlds import particle_world_of, world_slot
 from .selfcollide import NORMAL_EPS, add_impulse, inverse_mass_weight, pair_indices, start_weights, weighted_sum
 
@@ -245,6 +245,9 @@ def eval_self_contacts(
     friction: float,
     stick_speed: float,
     friction_in_solve: int,
+    particle_offset: int,
+    count_slot: int,
+    coefficient: float,
     # outputs: the elements (appended) and their force, K v0 and diagonal blocks (accumulated per particle)
     element_indices_out: wp.array(dtype=wp.vec4i),
     element_weights_out: wp.array(dtype=wp.vec4),
@@ -257,14 +260,21 @@ def eval_self_contacts(
     kv_out: wp.array(dtype=wp.vec3),
     diag_out: wp.array(dtype=wp.mat33),
     counts_out: wp.array(dtype=wp.int32),
+    element_stiffness_out: wp.array(dtype=float),
+    element_coefficient_out: wp.array(dtype=float),
 ):
     """Each candidate pair closer than `rest_distance` r [m] at x0, none of its particles pinned, becomes a repulsion
     element of `stiffness` k [N/m] (see above); its overlap r - d [m] is kept for friction. With `friction_in_solve`,
-    its Coulomb friction (coefficient `friction`) enters the system as well (see `self_contact_friction_terms`)."""
+    its Coulomb friction (coefficient `friction`) enters the system as well (see `self_contact_friction_terms`).
+    Batched worlds: `pairs`, `tri_indices` and `edge_indices` are one world's (its own model's), its particles from
+    `particle_offset` on in the batch's arrays; the element is counted at counts_out[`count_slot`], its world's. Each
+    element keeps its k and `coefficient` h^2 k (its world's: the worlds' stiffness may differ) for the product and
+    the friction."""
     tid = wp.tid()
     if tid >= count[0]:
         return
-    idx = pair_indices(pairs[tid], kind, tri_indices, edge_indices)
+    o = particle_offset
+    idx = pair_indices(pairs[tid], kind, tri_indices, edge_indices) + wp.vec4i(o, o, o, o)
     for r in range(4):
         if particle_pinned[idx[r]] != 0:
             return
@@ -281,6 +291,8 @@ def eval_self_contacts(
     v_n = wp.dot(n, v_rel)
     element_indices_out[e] = idx
     element_weights_out[e] = alpha
+    element_stiffness_out[e] = stiffness
+    element_coefficient_out[e] = coefficient
     element_normal_out[e] = n
     overlap = rest_distance - d
     element_overlap_out[e] = overlap
@@ -301,7 +313,7 @@ def eval_self_contacts(
         wp.atomic_add(force_out, idx[r], (a * stiffness * overlap) * n + (a / dt) * push)
         wp.atomic_add(kv_out, idx[r], (a * stiffness * v_n) * n)
         wp.atomic_add(diag_out, idx[r], (a * a) * block)
-    wp.atomic_add(counts_out, COUNT_SELF_CONTACTS, 1)
+    wp.atomic_add(counts_out, count_slot, 1)
 
 
 @wp.kernel
@@ -311,13 +323,13 @@ def scatter_self_contact_product(
     element_weights: wp.array(dtype=wp.vec4),
     element_normal: wp.array(dtype=wp.vec3),
     element_friction_mass: wp.array(dtype=float),
-    coefficient: float,
+    element_coefficient: wp.array(dtype=float),
     p: wp.array(dtype=wp.vec3),
     # outputs (accumulated)
     product_out: wp.array(dtype=wp.vec3),
 ):
     """The self-contact elements' part of A p: h^2 k alpha_r n (n . q) + d alpha_r T q to each member r, q = sum alpha_s p_s
-    (`coefficient` = h^2 k; d the element's friction damper, T = I - n n^T; launched over the elements' capacity, the
+    (`element_coefficient` = h^2 k; d the element's friction damper, T = I - n n^T; launched over the elements' capacity, the
     first element_count[0])."""
     e = wp.tid()
     if e >= element_count[0]:
@@ -327,7 +339,7 @@ def scatter_self_contact_product(
     n = element_normal[e]
     q = weighted_sum(alpha, p[idx[0]], p[idx[1]], p[idx[2]], p[idx[3]])
     q_n = wp.dot(n, q)
-    c = coefficient * q_n * n + element_friction_mass[e] * (q - q_n * n)
+    c = element_coefficient[e] * q_n * n + element_friction_mass[e] * (q - q_n * n)
     for r in range(4):
         wp.atomic_add(product_out, idx[r], alpha[r] * c)
 
@@ -347,11 +359,13 @@ def slide_self_contacts(
     element_overlap: wp.array(dtype=float),
     v0: wp.array(dtype=wp.vec3),
     dv: wp.array(dtype=wp.vec3),
-    stiffness: float,
+    element_stiffness: wp.array(dtype=float),
     friction: float,
     dt: float,
     stick_speed: float,
     max_rounds: int,
+    particle_world: wp.array(dtype=wp.int32),
+    worlds: int,
     # outputs
     element_friction_mass_out: wp.array(dtype=float),
     element_friction_impulse_out: wp.array(dtype=wp.vec3),
@@ -367,18 +381,21 @@ def slide_self_contacts(
     incline at 0.15 m/s after 10 frames, against 0.28 with the slide). The preconditioner keeps the damper's block
     (still SPD)."""
     e = wp.tid()
-    if e >= element_count[0] or release_out[RELEASE_ROUNDS] >= max_rounds:
+    if e >= element_count[0]:
+        return
+    idx = element_indices[e]
+    rb = world_slot(particle_world_of(idx[0], particle_world, worlds), worlds, RELEASE_SIZE)  # (batched: its world's)
+    if release_out[rb + RELEASE_ROUNDS] >= max_rounds:
         return
     d = element_friction_mass_out[e]
     if d <= 0.0:
         return
-    idx = element_indices[e]
     alpha = element_weights[e]
     n = element_normal[e]
     v_end = pair_end_velocity(alpha, idx, v0, dv)
     slip = v_end - wp.dot(v_end, n) * n
     speed = wp.length(slip)
-    bound = friction * dt * stiffness * element_overlap[e]
+    bound = friction * dt * element_stiffness[e] * element_overlap[e]
     if speed <= SLIP_ALLOWANCE * stick_speed or d * speed <= SLIP_ALLOWANCE * bound:
         return
     v_start = weighted_sum(alpha, v0[idx[0]], v0[idx[1]], v0[idx[2]], v0[idx[3]])
@@ -388,6 +405,7 @@ def slide_self_contacts(
         wp.atomic_add(rhs_out, idx[r], alpha[r] * (j + d * v_t0))
     element_friction_mass_out[e] = 0.0
     element_friction_impulse_out[e] = j
+    release_out[rb + RELEASE_FLAG] = 1
     release_out[RELEASE_FLAG] = 1
 
 
@@ -400,10 +418,10 @@ def eval_self_contact_friction(
     element_overlap: wp.array(dtype=float),
     element_friction_mass: wp.array(dtype=float),
     element_friction_impulse: wp.array(dtype=wp.vec3),
+    element_stiffness: wp.array(dtype=float),
     inv_mass: wp.array(dtype=float),
     v0: wp.array(dtype=wp.vec3),
     dv: wp.array(dtype=wp.vec3),
-    stiffness: float,
     friction: float,
     dt: float,
     stick_speed: float,
@@ -434,7 +452,7 @@ def eval_self_contact_friction(
         if (element_friction_mass[e] > 0.0 and speed <= SLIP_ALLOWANCE * stick_speed) or wp.dot(slide, v_t) > 0.0:
             add_impulse(idx, alpha, inv_mass, (-1.0 / mass_weight) * v_t, dv_sum_out, weight_out)
         return
-    impulse = dt * stiffness * (element_overlap[e] - dt * wp.dot(v_rel, n))
+    impulse = dt * element_stiffness[e] * (element_overlap[e] - dt * wp.dot(v_rel, n))
     if impulse <= 0.0:
         return
     keep = wp.max(1.0 - friction * impulse * mass_weight / speed, 0.0)

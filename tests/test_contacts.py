@@ -669,7 +669,7 @@ def test_self_contact_friction_in_the_solve_is_a_damper_or_the_kinetic_impulse(r
             p = rng.normal(size=(4, 3))
             product = wp.zeros(4, dtype=wp.vec3)
             wp.launch(kct.scatter_self_contact_product, dim=1,
-                      inputs=[out[6], out[0], out[1], out[2], out[4], h * h * k, wp.array(p, dtype=wp.vec3)], outputs=[product])
+                      inputs=[out[6], out[0], out[1], out[2], out[4], out[12], wp.array(p, dtype=wp.vec3)], outputs=[product])
             full = np.zeros((12, 12))
             for a in range(4):
                 for b_ in range(4):
@@ -682,16 +682,17 @@ def test_self_contact_friction_in_the_solve_is_a_damper_or_the_kinetic_impulse(r
 def self_contact_element(kind, pair, tri, edges, x, v0, r, k, h, friction=0.0, stick_speed=1e-4, mass=None):
     """Build one self-contact element (kernels/contact.py eval_self_contacts) for the pair of 4 particles at x, v0;
     with `friction` > 0 its friction is in the solve. Returns the kernel's outputs: indices, weights, normal, overlap,
-    friction mass, friction impulse, count, force, K v0, diagonal blocks, counters."""
+    friction mass, friction impulse, count, force, K v0, diagonal blocks, counters, k and h^2 k."""
     out = [wp.zeros(1, dtype=wp.vec4i), wp.zeros(1, dtype=wp.vec4), wp.zeros(1, dtype=wp.vec3), wp.zeros(1, dtype=float),
            wp.zeros(1, dtype=float), wp.zeros(1, dtype=wp.vec3), wp.zeros(1, dtype=wp.int32), wp.zeros(4, dtype=wp.vec3),
-           wp.zeros(4, dtype=wp.vec3), wp.zeros(4, dtype=wp.mat33), wp.zeros(kct.COUNT_SIZE, dtype=wp.int32)]
+           wp.zeros(4, dtype=wp.vec3), wp.zeros(4, dtype=wp.mat33), wp.zeros(kct.COUNT_SIZE, dtype=wp.int32),
+           wp.zeros(1, dtype=float), wp.zeros(1, dtype=float)]
     inv_mass = 1.0 / np.full(4, 1e-3) if mass is None else 1.0 / np.asarray(mass)
     wp.launch(kct.eval_self_contacts, dim=1,
               inputs=[wp.array([1], dtype=wp.int32), wp.array([pair], dtype=wp.vec2i), kind, wp.array(tri, dtype=wp.int32),
                       wp.array(edges, dtype=wp.int32), wp.zeros(4, dtype=wp.int32), wp.array(x, dtype=wp.vec3),
                       wp.array(v0, dtype=wp.vec3), r, k, h, 1, wp.array(inv_mass, dtype=float), friction, stick_speed,
-                      int(friction > 0.0)],
+                      int(friction > 0.0), 0, int(kct.COUNT_SELF_CONTACTS), h * h * k],
               outputs=out)
     return out
 

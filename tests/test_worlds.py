@@ -139,12 +139,7 @@ def test_batched_worlds_refuse_what_they_do_not_share():
     base = load_scene(find_scene("hanging_cloth"), {"cloth.grid.resolution": [4, 4]})
     with pytest.raises(ValueError, match="solver"):
         build_worlds([base, load_scene(find_scene("hanging_cloth"), {"cloth.grid.resolution": [4, 4], "solver.tolerance": 1e-5})], "cpu")
-    drape = {"cloth.grid.resolution": [4, 4], "solver.self_contacts": "solve"}
-    with pytest.raises(ValueError, match="self-contacts in the solve are not batched"):
-        build_worlds([load_scene(find_scene("drape_sphere"), drape)] * 2, "cpu")
     model = build_worlds([base, base], "cpu")
-    with pytest.raises(ValueError, match="batched worlds"):
-        build_solver(load_scene(find_scene("hanging_cloth"), {"solver.self_contacts": "solve"}), model)
     with pytest.raises(ValueError, match="batched worlds"):
         Simulator(model, build_solver(base, model), adaptive=True)
 
@@ -358,16 +353,22 @@ def test_a_batch_restored_from_a_checkpoint_goes_on_as_the_uninterrupted_batch()
             assert np.array_equal(x, y) and repr(solves) == repr(solves_ref) and failed == failed_ref, at  # (NaN residuals)
 
 
+SOLVE = {"solver.collider_contacts": "solve", "solver.self_contacts": "solve", "solver.contact_friction": "solve",
+         "solver.tolerance": 1e-4}
+
+
 @pytest.mark.parametrize("scene, contacts", [("pile", {}), ("drape_sphere", {}),
-                                             ("pile", {"solver.collider_contacts": "solve", "solver.contact_friction": "solve"})],
-                         ids=["pile", "drape", "pile-contacts-in-solve"])
+                                             ("pile", {"solver.collider_contacts": "solve", "solver.contact_friction": "solve"}),
+                                             ("pile", SOLVE)],
+                         ids=["pile", "drape", "pile-contacts-in-solve", "pile-everything-in-solve"])
 def test_batched_worlds_with_self_collision_equal_their_single_runs_bit_for_bit(scene, contacts, world_threads):
     """Cloths that fold onto themselves (the pile and the drape over a ball, each world's self-collision its own:
     proximity, CCD and impact zones on its own model and slice), of other materials, sizes and seeds, batched: every
     world equal to its single run bit for bit, frame by frame, with the same solve records, and the batch's
     self-collision counters the sum of the single runs'; also with the collider contacts and their friction in the
-    solve. (A world's pair buffers overflowing re-runs the frame for the whole batch: the others run it again as they
-    ran it.)"""
+    solve, and with the self-contacts in the solve too (each world's elements from its own pass's close pairs, its own
+    stiffness, counted, slid and re-solved in its world). (A world's pair buffers overflowing re-runs the frame for
+    the whole batch: the others run it again as they ran it.)"""
     variants = [{"material.preset": p, "cloth.grid.resolution": [r, r], "scene.seed": k, **contacts}
                 for k, (p, r) in enumerate([("silk", 10), ("denim", 12), ("cotton", 9 if scene == "pile" else 13)])]
     scenes = [load_scene(find_scene(scene), v) for v in variants]

@@ -201,10 +201,21 @@ class SolverImplicitEuler(SolverBase):
         if self_contacts == "solve" and self.linear_solver != LinearSolver.CG:
             raise ValueError("self_contacts='solve' needs linear_solver='cg' (the contact elements are in the CG's product)")
         self.self_contacts = self_contacts
-        self._self_collision = None  # the self-collision pass's SelfCollision, whose close pairs the self-contacts read
-        if self_contacts == "solve" and self.pass_named("self_collision") is not None:
-            self._self_collision = self.pass_named("self_collision").self_collision
-            self._self_collision.share_close_pairs = True
+        # the self-collision passes' SelfCollisions, whose close pairs the self-contacts read: per world (batched worlds:
+        # one each), with its model's triangles and self-collision stiffness [N/m], its first particle and its contact
+        # counter's slot
+        self._self_collisions: list[tuple] = []
+        collisions = self.pass_named("self_collision") if self_contacts == "solve" else None
+        if collisions is not None and model.world_count > 1:
+            for k, (p, wm) in enumerate(zip(collisions.worlds, model.world_models)):
+                self._self_collisions.append((p.self_collision, wm.tri_indices, float(wm.self_collision_stiffness),
+                                              int(model.world_particle_start[k]),
+                                              int(ki.COUNT_SIZE) * (1 + k) + int(ki.COUNT_SELF_CONTACTS)))
+        elif collisions is not None:
+            self._self_collisions.append((collisions.self_collision, model.tri_indices, float(model.self_collision_stiffness), 0,
+                                          int(ki.COUNT_SELF_CONTACTS)))
+        for sc, *_ in self._self_collisions:
+            sc.share_close_pairs = True
         if "solve" in (collider_contacts, self_contacts):
             self.kernel_modules = (ki, kct)
         self.contact_margin = float(contact_margin)
@@ -236,11 +247,6 @@ class SolverImplicitEuler(SolverBase):
         if not (0.0 < warm_start_reduction <= 1.0):
             raise ValueError(f"warm_start_reduction must be in (0, 1], got {warm_start_reduction!r}")
         self.warm_start_reduction = float(warm_start_reduction)
-        if model.world_count > 1:
-            unbatched = [what for what, on in (("self_contacts='solve'", self_contacts == "solve"),) if on]
-            if unbatched:
-                raise ValueError(f"batched worlds ({model.world_count}) do not run {', '.join(unbatched)} yet: use "
-                                 "contacts as passes")
         n, s, t = model.particle_count, max(model.spring_count, 1), max(model.tri_count, 1)
         dev = model.device
         self.stiffness_block = wp.zeros(s, dtype=wp.mat33, device=dev)
@@ -309,7 +315,8 @@ class SolverImplicitEuler(SolverBase):
         self.seam_impulse = wp.zeros(m_sewn, dtype=float, device=dev)
         # self-contact elements in the solve (kernels/contact.py eval_self_contacts; capacity: the candidates')
         self.self_contact_count = wp.zeros(1, dtype=wp.int32, device=dev)
-        self._self_contact_elements = None  # (indices, weights, normals, overlaps, friction masses, friction impulses), capacity: the candidates'
+        self._gathered_inv_mass = None  # batched worlds: the worlds' self-collision inverse masses in one array
+        self._self_contact_elements = None  # (indices, weights, normals, overlaps, friction masses, friction impulses, stiffness, h^2 k), capacity: the candidates'
         self._self_contacts_on = False  # whether the step being solved has self-contact elements
         self._loop_graphs = LoopGraphs()  # the linear solves' loops, recorded once where they run eagerly (_solve_loop)
         self.friction_dv = wp.zeros(n, dtype=wp.vec3, device=dev)  # self-contact friction: summed changes and their count
@@ -391,30 +398,44 @@ class SolverImplicitEuler(SolverBase):
         membrane elements and plate stencils also scatter into."""
         m = self.model
         dev = m.device
-        candidates = self._self_collision.contact_candidates()
-        capacity = sum(pairs.shape[0] for pairs, _ in candidates)
+        candidates = [sc.contact_candidates() for sc, *_ in self._self_collisions]
+        capacity = sum(pairs.shape[0] for world in candidates for pairs, _ in world)
         if self._self_contact_elements is None or self._self_contact_elements[0].shape[0] != capacity:
             self._self_contact_elements = (wp.zeros(capacity, dtype=wp.vec4i, device=dev), wp.zeros(capacity, dtype=wp.vec4, device=dev),
                                            wp.zeros(capacity, dtype=wp.vec3, device=dev), wp.zeros(capacity, dtype=float, device=dev),
-                                           wp.zeros(capacity, dtype=float, device=dev), wp.zeros(capacity, dtype=wp.vec3, device=dev))
+                                           wp.zeros(capacity, dtype=float, device=dev), wp.zeros(capacity, dtype=wp.vec3, device=dev),
+                                           wp.zeros(capacity, dtype=float, device=dev), wp.zeros(capacity, dtype=float, device=dev))
         self.self_contact_count.zero_()
         thickness = float(m.cloth_thickness)
-        for kind, (pairs, count) in enumerate(candidates):
-            wp.launch(kct.eval_self_contacts, dim=pairs.shape[0],
-                      inputs=[count, pairs, kind, m.tri_indices, self._self_collision.edge_indices,
-                              m.particle_pinned, state_in.particle_q, state_in.particle_qd,
-                              thickness * (1.0 + float(kct.SELF_CLEARANCE)), float(m.self_collision_stiffness), dt, capacity,
-                              self._self_collision.inv_mass, float(m.cloth_friction), self.contact_stick_speed,
-                              int(self.contact_friction == "solve")],
-                      outputs=[*self._self_contact_elements, self.self_contact_count, force, self.membrane_kv, self.membrane_diag,
-                               self.contact_counts], device=dev)
+        inv_mass = self._self_contact_inverse_masses()
+        el = self._self_contact_elements
+        for (sc, tris, stiffness, first, slot), world in zip(self._self_collisions, candidates):  # world after world (batched)
+            for kind, (pairs, count) in enumerate(world):
+                wp.launch(kct.eval_self_contacts, dim=pairs.shape[0],
+                          inputs=[count, pairs, kind, tris, sc.edge_indices, m.particle_pinned, state_in.particle_q,
+                                  state_in.particle_qd, thickness * (1.0 + float(kct.SELF_CLEARANCE)), stiffness, dt, capacity,
+                                  inv_mass, float(m.cloth_friction), self.contact_stick_speed, int(self.contact_friction == "solve"),
+                                  first, slot, dt * dt * stiffness],
+                          outputs=[*el[:6], self.self_contact_count, force, self.membrane_kv, self.membrane_diag, self.contact_counts,
+                                   el[6], el[7]], device=dev)
+
+    def _self_contact_inverse_masses(self) -> wp.array:
+        """The self-collision passes' inverse masses [1/kg] in the model's particle order: one world's own array, or the
+        worlds' gathered into one (copied each step: a world's pass refreshes its own on a model change)."""
+        if len(self._self_collisions) == 1:
+            return self._self_collisions[0][0].inv_mass
+        if self._gathered_inv_mass is None:
+            self._gathered_inv_mass = wp.zeros(self.model.particle_count, dtype=float, device=self.model.device)
+        for sc, _, _, first, _ in self._self_collisions:
+            wp.copy(self._gathered_inv_mass, sc.inv_mass, dest_offset=first, count=sc.inv_mass.shape[0])
+        return self._gathered_inv_mass
 
     def _self_contact_product(self, p: wp.array, dt: float, out: wp.array):
         """Add the self-contact elements' part of A p to `out`."""
         m = self.model
         wp.launch(kct.scatter_self_contact_product, dim=self._self_contact_elements[0].shape[0],
                   inputs=[self.self_contact_count, *self._self_contact_elements[:3], self._self_contact_elements[4],
-                          dt * dt * float(m.self_collision_stiffness), p],
+                          self._self_contact_elements[7], p],
                   outputs=[out], device=m.device)
 
     def _apply_self_contact_friction(self, state_in: State, dt: float):
@@ -425,8 +446,8 @@ class SolverImplicitEuler(SolverBase):
         self.friction_dv.zero_()
         self.friction_weight.zero_()
         wp.launch(kct.eval_self_contact_friction, dim=self._self_contact_elements[0].shape[0],
-                  inputs=[self.self_contact_count, *self._self_contact_elements, self._self_collision.inv_mass,
-                          state_in.particle_qd, self.dv, float(m.self_collision_stiffness), float(m.cloth_friction), dt,
+                  inputs=[self.self_contact_count, *self._self_contact_elements[:7], self._self_contact_inverse_masses(),
+                          state_in.particle_qd, self.dv, float(m.cloth_friction), dt,
                           self.contact_stick_speed],
                   outputs=[self.friction_dv, self.friction_weight], device=dev)
         wp.launch(ksc.apply_velocity_changes, dim=m.particle_count, inputs=[self.dv, self.friction_dv, self.friction_weight],
@@ -723,7 +744,7 @@ class SolverImplicitEuler(SolverBase):
 
     def _self_contacts_in_solve(self, state_in: State) -> bool:
         """Whether this step has self-contact elements in its system: forward steps with self-collision on."""
-        return self._self_collision is not None and not state_in.requires_grad
+        return bool(self._self_collisions) and not state_in.requires_grad
 
     def _contacts_in_solve(self, state_in: State) -> bool:
         """Whether this step constrains collider contacts in its solve: forward steps, and taped steps differentiated
@@ -823,8 +844,9 @@ class SolverImplicitEuler(SolverBase):
         if self._self_contacts_on and self.contact_friction == "solve":  # (same rounds and flag as the collider contacts')
             el = self._self_contact_elements
             wp.launch(kct.slide_self_contacts, dim=el[0].shape[0],
-                      inputs=[self.self_contact_count, *el[:4], v0, self.dv, float(m.self_collision_stiffness),
-                              float(m.cloth_friction), dt, self.contact_stick_speed, self.contact_release_rounds],
+                      inputs=[self.self_contact_count, *el[:4], v0, self.dv, el[6],
+                              float(m.cloth_friction), dt, self.contact_stick_speed, self.contact_release_rounds,
+                              m.particle_world, self.worlds],
                       outputs=[el[4], el[5], self.rhs, self.release], device=m.device)
 
     def _resolve(self, dt: float, v0: wp.array):
