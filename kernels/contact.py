@@ -22,7 +22,7 @@ the filter itself belong to the solver; this module only finds the contacts.
 import warp as wp
 
 from .collide import shape_distance, surface_velocity, mesh_surface_velocity
-from .implicit import COUNT_CONTACTS, COUNT_SELF_CONTACTS, COUNT_SIZE, RELEASE_FLAG, RELEASE_ROUNDS, RELEASE_SIZE, SLIP_ALLOWANCE  # noqa: F401 (COUNT_SELF_CONTACTS: the solver passes its slot)
+from .implicit import COUNT_CONTACTS, COUNT_SIZE, RELEASE_FLAG, RELEASE_ROUNDS, RELEASE_SIZE, SLIP_ALLOWANCE
 from .worlds import particle_world_of, world_slot
 from .selfcollide import NORMAL_EPS, add_impulse, inverse_mass_weight, pair_indices, start_weights, weighted_sum
 
