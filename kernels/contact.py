@@ -22,7 +22,7 @@ the filter itself belong to the solver; this module only finds the contacts.
 import warp as wp
 
 from .collide import shape_distance, surface_velocity, mesh_surface_velocity
-from .implicit import COUNT_CONTACTS, COUNT_SIZE, RELEASE_FLAG, RELEASE_ROUNDS, RELEASE_SIZE, SLIP_ALLOWANCE
+from .implicit import COUNT_CONTACTS, COUNT_SELF_CONTACTS, COUNT_SIZE, RELEASE_FLAG, RELEASE_ROUNDS, RELEASE_SIZE, SLIP_ALLOWANCE
 from .worlds import particle_world_of, world_slot
 from .selfcollide import NORMAL_EPS, add_impulse, inverse_mass_weight, pair_indices, start_weights, weighted_sum
 
@@ -246,7 +246,8 @@ def eval_self_contacts(
     stick_speed: float,
     friction_in_solve: int,
     particle_offset: int,
-    count_slot: int,
+    particle_world: wp.array(dtype=wp.int32),
+    worlds: int,
     coefficient: float,
     # outputs: the elements (appended) and their force, K v0 and diagonal blocks (accumulated per particle)
     element_indices_out: wp.array(dtype=wp.vec4i),
@@ -267,7 +268,7 @@ def eval_self_contacts(
     element of `stiffness` k [N/m] (see above); its overlap r - d [m] is kept for friction. With `friction_in_solve`,
     its Coulomb friction (coefficient `friction`) enters the system as well (see `self_contact_friction_terms`).
     Batched worlds: `pairs`, `tri_indices` and `edge_indices` are one world's (its own model's), its particles from
-    `particle_offset` on in the batch's arrays; the element is counted at counts_out[`count_slot`], its world's. Each
+    `particle_offset` on in the batch's arrays; the element is counted in its world's counters. Each
     element keeps its k and `coefficient` h^2 k (its world's: the worlds' stiffness may differ) for the product and
     the friction."""
     tid = wp.tid()
@@ -313,7 +314,7 @@ def eval_self_contacts(
         wp.atomic_add(force_out, idx[r], (a * stiffness * overlap) * n + (a / dt) * push)
         wp.atomic_add(kv_out, idx[r], (a * stiffness * v_n) * n)
         wp.atomic_add(diag_out, idx[r], (a * a) * block)
-    wp.atomic_add(counts_out, count_slot, 1)
+    wp.atomic_add(counts_out, world_slot(particle_world_of(idx[0], particle_world, worlds), worlds, COUNT_SIZE) + COUNT_SELF_CONTACTS, 1)
 
 
 @wp.kernel

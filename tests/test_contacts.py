@@ -683,8 +683,6 @@ def self_contact_element(kind, pair, tri, edges, x, v0, r, k, h, friction=0.0, s
     """Build one self-contact element (kernels/contact.py eval_self_contacts) for the pair of 4 particles at x, v0;
     with `friction` > 0 its friction is in the solve. Returns the kernel's outputs: indices, weights, normal, overlap,
     friction mass, friction impulse, count, force, K v0, diagonal blocks, counters, k and h^2 k."""
-    from cloth_warp.kernels import implicit as ki
-
     out = [wp.zeros(1, dtype=wp.vec4i), wp.zeros(1, dtype=wp.vec4), wp.zeros(1, dtype=wp.vec3), wp.zeros(1, dtype=float),
            wp.zeros(1, dtype=float), wp.zeros(1, dtype=wp.vec3), wp.zeros(1, dtype=wp.int32), wp.zeros(4, dtype=wp.vec3),
            wp.zeros(4, dtype=wp.vec3), wp.zeros(4, dtype=wp.mat33), wp.zeros(kct.COUNT_SIZE, dtype=wp.int32),
@@ -694,7 +692,7 @@ def self_contact_element(kind, pair, tri, edges, x, v0, r, k, h, friction=0.0, s
               inputs=[wp.array([1], dtype=wp.int32), wp.array([pair], dtype=wp.vec2i), kind, wp.array(tri, dtype=wp.int32),
                       wp.array(edges, dtype=wp.int32), wp.zeros(4, dtype=wp.int32), wp.array(x, dtype=wp.vec3),
                       wp.array(v0, dtype=wp.vec3), r, k, h, 1, wp.array(inv_mass, dtype=float), friction, stick_speed,
-                      int(friction > 0.0), 0, int(ki.COUNT_SELF_CONTACTS), h * h * k],
+                      int(friction > 0.0), 0, wp.zeros(4, dtype=wp.int32), 1, h * h * k],
               outputs=out)
     return out
 

@@ -202,18 +202,15 @@ class SolverImplicitEuler(SolverBase):
             raise ValueError("self_contacts='solve' needs linear_solver='cg' (the contact elements are in the CG's product)")
         self.self_contacts = self_contacts
         # the self-collision passes' SelfCollisions, whose close pairs the self-contacts read: per world (batched worlds:
-        # one each), with its model's triangles and self-collision stiffness [N/m], its first particle and its contact
-        # counter's slot
+        # one each), with its model's triangles and self-collision stiffness [N/m] and its first particle
         self._self_collisions: list[tuple] = []
         collisions = self.pass_named("self_collision") if self_contacts == "solve" else None
         if collisions is not None and model.world_count > 1:
             for k, (p, wm) in enumerate(zip(collisions.worlds, model.world_models)):
                 self._self_collisions.append((p.self_collision, wm.tri_indices, float(wm.self_collision_stiffness),
-                                              int(model.world_particle_start[k]),
-                                              int(ki.COUNT_SIZE) * (1 + k) + int(ki.COUNT_SELF_CONTACTS)))
+                                              int(model.world_particle_start[k])))
         elif collisions is not None:
-            self._self_collisions.append((collisions.self_collision, model.tri_indices, float(model.self_collision_stiffness), 0,
-                                          int(ki.COUNT_SELF_CONTACTS)))
+            self._self_collisions.append((collisions.self_collision, model.tri_indices, float(model.self_collision_stiffness), 0))
         for sc, *_ in self._self_collisions:
             sc.share_close_pairs = True
         if "solve" in (collider_contacts, self_contacts):
@@ -409,13 +406,13 @@ class SolverImplicitEuler(SolverBase):
         thickness = float(m.cloth_thickness)
         inv_mass = self._self_contact_inverse_masses()
         el = self._self_contact_elements
-        for (sc, tris, stiffness, first, slot), world in zip(self._self_collisions, candidates):  # world after world (batched)
+        for (sc, tris, stiffness, first), world in zip(self._self_collisions, candidates):  # world after world (batched)
             for kind, (pairs, count) in enumerate(world):
                 wp.launch(kct.eval_self_contacts, dim=pairs.shape[0],
                           inputs=[count, pairs, kind, tris, sc.edge_indices, m.particle_pinned, state_in.particle_q,
                                   state_in.particle_qd, thickness * (1.0 + float(kct.SELF_CLEARANCE)), stiffness, dt, capacity,
                                   inv_mass, float(m.cloth_friction), self.contact_stick_speed, int(self.contact_friction == "solve"),
-                                  first, slot, dt * dt * stiffness],
+                                  first, m.particle_world, self.worlds, dt * dt * stiffness],
                           outputs=[*el[:6], self.self_contact_count, force, self.membrane_kv, self.membrane_diag, self.contact_counts,
                                    el[6], el[7]], device=dev)
 
@@ -426,7 +423,7 @@ class SolverImplicitEuler(SolverBase):
             return self._self_collisions[0][0].inv_mass
         if self._gathered_inv_mass is None:
             self._gathered_inv_mass = wp.zeros(self.model.particle_count, dtype=float, device=self.model.device)
-        for sc, _, _, first, _ in self._self_collisions:
+        for sc, _, _, first in self._self_collisions:
             wp.copy(self._gathered_inv_mass, sc.inv_mass, dest_offset=first, count=sc.inv_mass.shape[0])
         return self._gathered_inv_mass
 
@@ -481,14 +478,14 @@ class SolverImplicitEuler(SolverBase):
         a calibration's taped cantilever steps spent 98 % of their time launching the CG's kernels one by one), on the
         CPU, unless :attr:`replay_loops` is off. The key is what the loop bakes into its launches beyond the solver's
         fixed buffers: the step, which filters and elements are on (the self-contact elements' arrays, reallocated as
-        their capacity changes, and their stiffness), the iteration cap and check interval. (A model array replaced
+        their capacity changes), the iteration cap and check interval. (A model array replaced
         rather than assigned needs :meth:`notify_model_changed`, which drops the graphs.)"""
         if not self.replay_loops or not self.model.device.is_cpu:  # (CUDA: not measured yet; eagerly, capture_while)
             device_while(self.loop, body, dt=dt)
             return
         elements = None
         if self._self_contacts_on:
-            elements = (tuple((a.ptr, a.shape[0]) for a in self._self_contact_elements), float(self.model.self_collision_stiffness))
+            elements = tuple((a.ptr, a.shape[0]) for a in self._self_contact_elements)  # (their stiffness: in the arrays)
         key = (solver, float(dt), self._contacts_on, elements, self.max_iterations, self.check_every)
         self._loop_graphs.run(key, self.loop, body, dt=dt)
 
@@ -555,7 +552,7 @@ class SolverImplicitEuler(SolverBase):
                    self.bend_vector, dt, m.membrane_vertices, self.membrane_block, m.tri_vertices, m.tri_corner_weights,
                    self.drag_vector, m.plate_offsets, m.plate_points, m.plate_weights, m.plate_stiffness, dt * dt,
                    self.effective_mass, m.particle_pinned, c, self.contact_normal, int(self._contacts_on)]
-        if self._self_contacts_on:  # (one world: batches refuse them) their part between the elements' and the rows
+        if self._self_contacts_on:  # their part between the elements' and the rows (the one-item kernels' order)
             wp.launch(ki.cg_product_worlds, dim=worlds, inputs=[*product, 1, 0], outputs=[q, self.cg_sums], device=dev)
             self._self_contact_product(c, dt, q)
             wp.launch(ki.cg_product_worlds, dim=worlds, inputs=[*product, 0, 1], outputs=[q, self.cg_sums], device=dev)
