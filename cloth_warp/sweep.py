@@ -233,16 +233,11 @@ def execute_batch(spec: dict) -> list[RunResult]:
     spec_path = dirs[0] / "batch.json"
     atomic_write_text(spec_path, json.dumps(spec, indent=1) + "\n")
     cmd = [sys.executable, "-m", "cloth_warp.sweep", str(spec_path)]
-    t = time.perf_counter()
+    ids = ", ".join(x["id"] for x in runs)
     for d, r in zip(dirs[1:], runs[1:]):
         with open(d / "log.txt", "a") as log:
-            log.write(f"# attempt {r['attempt']}: batched with {', '.join(x['id'] for x in runs)} (log: ../{runs[0]['id']}/log.txt)\n")
-    with open(dirs[0] / "log.txt", "a") as log:
-        log.write(f"# attempt {runs[0]['attempt']} of the batch {', '.join(x['id'] for x in runs)}: {' '.join(cmd)}\n")
-        log.flush()
-        preexec = _die_with_parent if sys.platform.startswith("linux") else None
-        code = subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=log, preexec_fn=preexec).returncode
-    wall = time.perf_counter() - t
+            log.write(f"# attempt {r['attempt']}: batched with {ids} (log: ../{runs[0]['id']}/log.txt)\n")
+    code, wall = _run_logged(cmd, dirs[0] / "log.txt", f"# attempt {runs[0]['attempt']} of the batch {ids}: {' '.join(cmd)}")
     out = []
     for r, d in zip(runs, dirs):
         stats = d / "summary.json"
@@ -281,7 +276,7 @@ def run_batch(spec: dict) -> int:
     except KeyboardInterrupt:
         return EXIT_INTERRUPTED
     wall = time.perf_counter() - t
-    for r, scene, result in zip(runs, scenes, results):
+    for r, result in zip(runs, results):
         stepped = result.frames_written - 1
         summary = {"status": result.status, "frames": stepped, "ms_per_frame": 1e3 * wall / max(stepped, 1),
                    "max_strain": result.max_strain, "particles": result.particles, "wall_s": wall,
@@ -316,15 +311,21 @@ def execute_run(spec: dict) -> RunResult:
     stats = run_dir / "summary.json"
     if stats.exists():
         stats.unlink()
+    code, wall = _run_logged(cmd, run_dir / "log.txt", f"# attempt {spec['attempt']}: {' '.join(cmd)}")
+    summary = json.loads(stats.read_text()) if stats.exists() else None
+    return RunResult(spec["id"], code, wall, summary)
+
+
+def _run_logged(cmd: list[str], log_path: pathlib.Path, header: str) -> tuple[int, float]:
+    """Run `cmd` as a subprocess, its stderr appended to `log_path` after the line `header` (on Linux it gets SIGTERM
+    when its worker dies); returns its exit code and wall seconds."""
     t = time.perf_counter()
-    with open(run_dir / "log.txt", "a") as log:
-        log.write(f"# attempt {spec['attempt']}: {' '.join(cmd)}\n")
+    with open(log_path, "a") as log:
+        log.write(header + "\n")
         log.flush()
         preexec = _die_with_parent if sys.platform.startswith("linux") else None
         code = subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=log, preexec_fn=preexec).returncode
-    wall = time.perf_counter() - t
-    summary = json.loads(stats.read_text()) if stats.exists() else None
-    return RunResult(spec["id"], code, wall, summary)
+    return code, time.perf_counter() - t
 
 
 @dataclass
