@@ -3,18 +3,23 @@
 The format (GarmentCode and GarmentCodeData, ``*_specification.json``): ``pattern.panels`` maps a name to a panel
 with 2D ``vertices``, a closed loop of ``edges`` (``endpoints`` [i, j], an optional ``curvature`` and ``label``), a
 3D placement (``translation``, ``rotation`` as XYZ Euler angles in degrees, applied to the panel's plane z = 0) and a
-``label``; ``pattern.stitches`` lists pairs of ``{"panel", "edge"}`` to sew together; ``properties.units_in_meter``
-gives the length unit (100: centimetres) and ``properties.curvature_coords`` must be ``"relative"``. Curvature:
+``label``; ``pattern.stitches`` lists pairs of ``{"panel", "edge"}`` to sew together, a third entry
+``"right_wrong"`` where GarmentCode marks one (its collars); ``properties.units_in_meter`` gives the length unit (100:
+centimetres) and ``properties.curvature_coords`` says how control points are given. Curvature:
 
 * ``quadratic`` / ``cubic``: Bezier control points relative to the edge, (u, v) -> start + u e + v perp(e), with e the
-  edge vector and perp(e) = (-e_y, e_x) (the edge's left);
+  edge vector and perp(e) = (-e_y, e_x) (the edge's left); with ``curvature_coords = "absolute"`` (GarmentCode's older
+  templates) they are points of the panel's frame, in its units;
 * ``circle``: [radius, large_arc, right]: an SVG arc from start to end (``right`` is SVG's sweep flag: the arc runs
   counter-clockwise in the panel's y-up frame).
 
 :func:`mesh_pattern` meshes every panel with Shewchuk's Triangle (the ``triangle`` package: a constrained Delaunay
 mesher with quality bounds, not worth writing by hand) at a target edge length: each edge's outline is sampled
 uniformly in arc length with as many segments on both sides of a stitch, no point added on the outline, so each
-stitched pair of edges has matching vertices (paired from the two ends that meet when the panels are placed).
+stitched pair of edges has matching vertices, paired as GarmentCode's mesher pairs them: the start of one edge with
+the end of the other (two panels' outlines run opposite ways along a seam), and start with start in a
+``"right_wrong"`` stitch. Where a stitch's edges are placed is no guide: in GarmentCode's own hoody the ends of the
+hood's back seam lie 39 cm from the torso edge's ends one way round and 41 cm the other (summed), the nearer the wrong one.
 Texture coordinates are the panel's own 2D coordinates [m] (a woven panel's warp along its x axis).
 """
 
@@ -145,6 +150,8 @@ class Pattern:
     panels: dict
     stitches: tuple
     units_in_meter: float = 100.0
+    aligned: frozenset = frozenset()
+    """indices of the stitches whose two edges run the same way (GarmentCode's "right_wrong"): start sewn to start"""
 
 
 def _error(path: str, message: str) -> PatternError:
@@ -163,8 +170,9 @@ def _vector(value, size: int, path: str) -> np.ndarray:
     return np.array([_number(v, f"{path}[{k}]") for k, v in enumerate(value)])
 
 
-def _edge(spec, vertices: np.ndarray, path: str, scale: float = 1.0) -> PatternEdge:
-    """One edge of a panel (vertices already in metres; `scale`: the pattern's length unit in metres)."""
+def _edge(spec, vertices: np.ndarray, path: str, scale: float = 1.0, absolute: bool = False) -> PatternEdge:
+    """One edge of a panel (vertices already in metres; `scale`: the pattern's length unit in metres; `absolute`:
+    control points are points of the panel's frame, in the pattern's unit, not relative to the edge)."""
     if not isinstance(spec, dict):
         raise _error(path, "expected a table with 'endpoints'")
     ends = spec.get("endpoints")
@@ -188,7 +196,8 @@ def _edge(spec, vertices: np.ndarray, path: str, scale: float = 1.0) -> PatternE
         count = 1 if kind == "quadratic" else 2
         if not isinstance(params, list) or len(params) != count:
             raise _error(f"{cpath}.params", f"a {kind} edge needs {count} control point(s), got {params!r}")
-        controls = tuple(p0 + u * e + v * perp for u, v in (_vector(c, 2, f"{cpath}.params[{k}]") for k, c in enumerate(params)))
+        points = [_vector(c, 2, f"{cpath}.params[{k}]") for k, c in enumerate(params)]
+        controls = tuple(c * scale if absolute else p0 + c[0] * e + c[1] * perp for c in points)
         return PatternEdge(p0, p1, kind, controls=controls, label=label)
     if kind == "circle":
         if not isinstance(params, list) or len(params) != 3:
@@ -225,8 +234,8 @@ def read_garmentcode(source) -> Pattern:
     if unit <= 0.0:
         raise _error("properties.units_in_meter", f"must be > 0, got {unit}")
     coords = props.get("curvature_coords", "relative")
-    if coords != "relative":
-        raise _error("properties.curvature_coords", f"only 'relative' control points are read, got {coords!r}")
+    if coords not in ("relative", "absolute"):
+        raise _error("properties.curvature_coords", f"{coords!r} is not allowed; allowed: relative, absolute")
     scale = 1.0 / unit
     panels_spec = spec["pattern"].get("panels")
     if not isinstance(panels_spec, dict) or not panels_spec:
@@ -243,20 +252,24 @@ def read_garmentcode(source) -> Pattern:
         edges_spec = p.get("edges")
         if not isinstance(edges_spec, list) or len(edges_spec) < 2:
             raise _error(f"{path}.edges", "expected a loop of at least 2 edges")
-        edges = tuple(_edge(e, vertices, f"{path}.edges[{k}]", scale) for k, e in enumerate(edges_spec))
+        edges = tuple(_edge(e, vertices, f"{path}.edges[{k}]", scale, coords == "absolute") for k, e in enumerate(edges_spec))
         for k, (a, b) in enumerate(zip(edges, edges[1:] + edges[:1])):
             if not np.array_equal(a.end, b.start):
                 raise _error(f"{path}.edges[{(k + 1) % len(edges)}]", "the edges do not form a loop: an edge must start where "
                              "the one before it ends")
         panels[name] = Panel(name, edges, _vector(p.get("translation", [0, 0, 0]), 3, f"{path}.translation") * scale,
                              _vector(p.get("rotation", [0, 0, 0]), 3, f"{path}.rotation"), str(p.get("label", "")))
-    stitches = []
+    stitches, aligned = [], set()
     for k, st in enumerate(spec["pattern"].get("stitches", []) or []):
         path = f"pattern.stitches[{k}]"
-        if not isinstance(st, list) or len(st) != 2:
-            raise _error(path, "expected two {panel, edge} sides")
+        if not isinstance(st, list) or len(st) not in (2, 3):
+            raise _error(path, "expected two {panel, edge} sides (and optionally \"right_wrong\")")
+        if len(st) == 3:
+            if st[2] != "right_wrong":
+                raise _error(f"{path}[2]", f"{st[2]!r} is not allowed; allowed: right_wrong")
+            aligned.add(k)
         sides = []
-        for j, side in enumerate(st):
+        for j, side in enumerate(st[:2]):
             spath = f"{path}[{j}]"
             if not isinstance(side, dict) or side.get("panel") not in panels:
                 raise _error(f"{spath}.panel", f"{(side or {}).get('panel') if isinstance(side, dict) else side!r} is not a panel "
@@ -267,7 +280,65 @@ def read_garmentcode(source) -> Pattern:
                 raise _error(f"{spath}.edge", f"expected an edge index in [0, {n}), got {edge!r}")
             sides.append((side["panel"], edge))
         stitches.append(tuple(sides))
-    return Pattern(panels, tuple(stitches), unit)
+    return Pattern(panels, tuple(stitches), unit, frozenset(aligned))
+
+
+CURVE_KINDS = ("quadratic", "cubic", "circle")
+
+
+def pattern_from_tables(panels: list, stitches: list = (), where: str = "cloth") -> Pattern:
+    """A :class:`Pattern` from a scene's panel table, in metres: each panel a table with ``name``, ``vertices`` (its
+    outline's corners in its own 2D frame; edge k runs from corner k to corner k + 1, the last one back to the first),
+    ``translation`` and ``rotation`` (XYZ Euler angles [deg], as GarmentCode places a panel) and optional ``curves``
+    (tables of ``edge``, ``type`` and ``params``: GarmentCode's curvature of that edge, control points relative to the
+    edge); each stitch a table with ``panels`` (two names), ``edges`` (their two edge indices) and ``aligned`` (the two
+    edges run the same way: GarmentCode's "right_wrong"). It is read as :func:`read_garmentcode` reads GarmentCode's
+    specification; a bad value raises :class:`PatternError` naming the scene's key under `where`."""
+    spec_panels, rename = {}, {}
+    for i, table in enumerate(panels):
+        path = f"{where}.panels[{i}]"
+        name = table.get("name")
+        if not isinstance(name, str) or not name:
+            raise _error(f"{path}.name", "every panel needs a name")
+        if name in spec_panels:
+            raise _error(f"{path}.name", f"{name!r} is the name of another panel")
+        corners = table.get("vertices")
+        if not isinstance(corners, list) or len(corners) < 3:
+            raise _error(f"{path}.vertices", f"expected at least 3 corners [x, y], got {corners!r}")
+        n = len(corners)
+        edges = [{"endpoints": [k, (k + 1) % n]} for k in range(n)]
+        for j, curve in enumerate(table.get("curves", [])):
+            edge = curve.get("edge")
+            if not isinstance(edge, int) or isinstance(edge, bool) or not 0 <= edge < n:
+                raise _error(f"{path}.curves[{j}].edge", f"expected an edge index in [0, {n}), got {edge!r}")
+            if "curvature" in edges[edge]:
+                raise _error(f"{path}.curves[{j}].edge", f"edge {edge} is curved twice")
+            edges[edge]["curvature"] = {"type": curve.get("type"), "params": curve.get("params")}
+            rename[f"pattern.panels.{name}.edges[{edge}].curvature"] = f"{path}.curves[{j}]"
+        rename[f"pattern.panels.{name}"] = path
+        spec_panels[name] = {"vertices": corners, "edges": edges, "translation": table.get("translation", [0.0, 0.0, 0.0]),
+                             "rotation": table.get("rotation", [0.0, 0.0, 0.0])}
+    spec_stitches = []
+    for k, table in enumerate(stitches):
+        path = f"{where}.stitches[{k}]"
+        names, edges = table.get("panels"), table.get("edges")
+        if not isinstance(names, list) or len(names) != 2:
+            raise _error(f"{path}.panels", f"expected the two panels' names, got {names!r}")
+        if not isinstance(edges, list) or len(edges) != 2:
+            raise _error(f"{path}.edges", f"expected the two panels' edge indices, got {edges!r}")
+        spec_stitches.append([{"panel": a, "edge": e} for a, e in zip(names, edges)] + (["right_wrong"] if table.get("aligned") else []))
+        for j, key in ((0, "panel"), (1, "panel"), (0, "edge"), (1, "edge")):
+            rename[f"pattern.stitches[{k}][{j}].{key}"] = f"{path}.{key}s[{j}]"
+    try:
+        return read_garmentcode({"pattern": {"panels": spec_panels, "stitches": spec_stitches},
+                                 "properties": {"units_in_meter": 1.0, "curvature_coords": "relative"}})
+    except PatternError as exc:
+        message = str(exc)
+        for old in sorted(rename, key=len, reverse=True):  # the most specific key first
+            if message.startswith(old):
+                message = rename[old] + message[len(old):]
+                break
+        raise PatternError(message) from None
 
 
 @dataclass(frozen=True)
@@ -358,7 +429,7 @@ def mesh_pattern(pattern: Pattern, edge_length: float, min_angle: float = 25.0, 
     """Mesh every panel (Triangle: constrained Delaunay with quality, triangles of area at most that of an
     equilateral one of side `edge_length` [m], smallest angle `min_angle` [deg] away from the outline, no point added
     on the outline), place it in 3D (wrapped about an axis when one of `wraps` (:class:`Wrap`) names it) and pair the
-    vertices of stitched edges from where they are placed."""
+    vertices of stitched edges (one edge's start with the other's end; start with start where the stitch is aligned)."""
     import triangle
 
     if not (math.isfinite(edge_length) and edge_length > 0.0):
@@ -410,10 +481,8 @@ def mesh_pattern(pattern: Pattern, edge_length: float, min_angle: float = 25.0, 
         offset += len(pts2d)
     x = np.concatenate(vertices)
     seams = []
-    for a, b in pattern.stitches:
+    for k, (a, b) in enumerate(pattern.stitches):
         va, vb = edge_vertices[a], edge_vertices[b]
-        direct = np.linalg.norm(x[va[0]] - x[vb[0]]) + np.linalg.norm(x[va[-1]] - x[vb[-1]])
-        crossed = np.linalg.norm(x[va[0]] - x[vb[-1]]) + np.linalg.norm(x[va[-1]] - x[vb[0]])
-        seams.append(np.c_[va, vb if direct <= crossed else vb[::-1]])
+        seams.append(np.c_[va, vb if k in pattern.aligned else vb[::-1]])
     return PatternMesh(x, np.concatenate(uvs), np.concatenate(tris).astype(np.int32), np.concatenate(panel_of), names,
                        np.concatenate(seams).astype(np.int32) if seams else np.zeros((0, 2), np.int32), outline, edge_vertices)

@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from .materials import PRESETS as MATERIAL_PRESETS
+from .patterns import CURVE_KINDS
 from .topology import BendingModel, MembraneModel, SpringModel
 from .validation import (
     BUILD_BYTES_PER_PARTICLE,
@@ -46,7 +47,8 @@ class SceneError(ValueError):
 class Key:
     """One scene key: its type, default, a line of documentation, its allowed range (unit included) or values.
 
-    kind: "float", "int", "bool", "str", "path", "vec2", "vec3", "ivec2", "ints" (array of integers), "strs".
+    kind: "float", "int", "bool", "str", "path", "vec2", "vec3", "ivec2", "ints" (array of integers), "strs", "points2"
+    (array of [x, y]), "array" (any array, checked where it is read).
     limits: the :class:`~cloth_warp.validation.Range` its numbers must lie in (per component, or the length
     of a vector for a norm range): an entry of :data:`cloth_warp.validation.LIMITS`, shared with the Python API.
     """
@@ -111,6 +113,29 @@ WRAPS = Tables({"panels": Key("strs", None, "the pattern's panels wrapped about 
                "pattern: panels wrapped round a body part when placed, without stretching (onto a cylinder "
                "when placed parallel to the axis, a cone when tilted: cloth_warp.patterns.Wrap)")
 EDGE_LENGTH = Key("float", 0.02, "pattern: target edge length of the panels' meshes", L["edge_length"])
+PANELS = Tables({
+    "name": Key("str", None, "the panel's name (required; unique): stitches and wraps name it"),
+    "vertices": Key("points2", None, "its outline's corners [x, y] in its own plane, counter-clockwise (required, at least "
+                    "3): edge k runs from corner k to corner k + 1, the last back to the first; the panel's x axis is the "
+                    "fabric's warp", L["position"]),
+    "translation": Key("vec3", [0.0, 0.0, 0.0], "where the panel's origin is placed", L["position"]),
+    "rotation": Key("vec3", [0.0, 0.0, 0.0], "XYZ Euler angles turning the panel's plane (z = 0) into place, as GarmentCode "
+                    "places a panel: R = Rz Ry Rx", L["angle"]),
+    "curves": Tables({
+        "edge": Key("int", None, "the curved edge (required): its index k, from corner k to corner k + 1", L["index"]),
+        "type": Key("str", None, "GarmentCode's curvature (required)", allowed=CURVE_KINDS),
+        "params": Key("array", None, "GarmentCode's parameters (required): quadratic [[u, v]] and cubic [[u1, v1], [u2, v2]] "
+                      "control points relative to the edge (start + u e + v (-e_y, e_x): v > 0 bulges to the edge's left), "
+                      "circle [radius in m, large_arc, right]")},
+        "the panel's curved edges (the others are straight)")},
+    "pattern: a sewing pattern written in the scene instead of a file, in metres, read as GarmentCode's specification "
+    "(cloth_warp.patterns.pattern_from_tables)")
+STITCHES = Tables({
+    "panels": Key("strs", None, "the two panels sewn (required)"),
+    "edges": Key("ints", None, "the edge of each sewn (required)", L["index"]),
+    "aligned": Key("bool", False, "the two edges run the same way (GarmentCode's \"right_wrong\"): start sewn to start. By "
+                   "default one's start is sewn to the other's end, as where two panels' counter-clockwise outlines meet")},
+    "pattern: the seams of the panels table")
 
 SCHEMA_MATERIAL = {
     "file": Key("path", None, "a material file: TOML holding one [material] table of the keys below (what `cloth-warp "
@@ -157,6 +182,8 @@ SCHEMA: dict = {
         "mesh_prim": Key("str", None, "prim path of the mesh inside a USD file (default: the first Mesh)"),
         "pattern": Key("path", None, "a sewing pattern instead of a grid: GarmentCode's JSON specification, its panels "
                        "meshed and placed as it places them, its stitches sewn by seam springs (cloth_warp/patterns.py)"),
+        "panels": PANELS,
+        "stitches": STITCHES,
         "edge_length": EDGE_LENGTH,
         "wraps": WRAPS,
         "layer": Key("int", 0, "layer order of the cloth among the garments (0 innermost): dressing sews the layers one after "
@@ -183,7 +210,10 @@ SCHEMA: dict = {
     "material": SCHEMA_MATERIAL,
     "garments": Tables({
         "name": Key("str", None, "prim name of the garment in the cache (required; unique among the cloths)"),
-        "pattern": Key("path", None, "its sewing pattern (required): GarmentCode's JSON specification, as cloth.pattern"),
+        "pattern": Key("path", None, "its sewing pattern (this or panels required): GarmentCode's JSON specification, as "
+                       "cloth.pattern"),
+        "panels": PANELS,
+        "stitches": STITCHES,
         "edge_length": EDGE_LENGTH,
         "wraps": WRAPS,
         "position": Key("vec3", [0.0, 0.0, 0.0], "translation applied after the rotation", L["position"]),
@@ -331,6 +361,17 @@ SCHEMA: dict = {
 _SIZES = {"float": None, "int": None, "vec2": 2, "vec3": 3, "ivec2": 2}
 
 
+def _check_points(value, key: Key, path: str):
+    """An array of [x, y] points, each inside the key's limits."""
+    if not isinstance(value, list):
+        raise SceneError(f"{path}: expected an array of [x, y] points, got {value!r}")
+    try:
+        for i, v in enumerate(value):
+            check_vector(f"{path}[{i}]", v, key.limits, size=2)
+    except InvalidValue as exc:
+        raise SceneError(str(exc)) from None
+
+
 def _check_key(value, key: Key, path: str):
     kind = key.kind
     if kind in _SIZES:  # numbers: type, finiteness, float32 and range in one place (cloth_warp.validation)
@@ -358,6 +399,10 @@ def _check_key(value, key: Key, path: str):
     elif kind == "strs":
         if not isinstance(value, list) or not all(isinstance(c, str) for c in value):
             raise SceneError(f"{path}: expected an array of strings, got {value!r}")
+    elif kind == "points2":
+        _check_points(value, key, path)
+    elif kind == "array" and not isinstance(value, list):  # (its entries are checked where they are read)
+        raise SceneError(f"{path}: expected an array, got {value!r}")
     if key.allowed and value not in key.allowed:
         close = difflib.get_close_matches(str(value), [str(a) for a in key.allowed], n=1)
         hint = f" (did you mean {close[0]!r}?)" if close else ""
@@ -566,28 +611,28 @@ def _check_values(scene: Scene):
     disc = scene.data.get("cloth", {}).get("disc")
     if disc is not None and "radius" not in disc:
         raise SceneError("cloth.disc.radius: a disc cloth needs its radius [m]")
-    shapes = [k for k in ("grid", "disc", "mesh", "pattern") if scene.data.get("cloth", {}).get(k) is not None]
+    cloth = scene.data.get("cloth", {})
+    shapes = [k for k in ("grid", "disc", "mesh", "pattern", "panels") if cloth.get(k) is not None]
     if len(shapes) > 1:
-        raise SceneError(f"cloth: give one of cloth.grid, cloth.disc, cloth.mesh or cloth.pattern, not {' and '.join(shapes)}")
-    pattern = scene.data.get("cloth", {}).get("pattern")
-    if pattern is not None and not scene.resolve(pattern).is_file():
-        raise SceneError(f"cloth.pattern: file not found: {scene.resolve(pattern)} (paths are relative to the scene file)")
-    for i, w in enumerate(scene.data.get("cloth", {}).get("wraps", [])):
-        if pattern is None:
-            raise SceneError(f"cloth.wraps[{i}]: wraps place a pattern's panels; give cloth.pattern")
+        raise SceneError(f"cloth: give one of cloth.grid, cloth.disc, cloth.mesh, cloth.pattern or cloth.panels, not {' and '.join(shapes)}")
+    _check_pattern(scene, cloth, "cloth")
+    pattern = cloth.get("pattern")
+    for i, w in enumerate(cloth.get("wraps", [])):
+        if pattern is None and cloth.get("panels") is None:
+            raise SceneError(f"cloth.wraps[{i}]: wraps place a pattern's panels; give cloth.pattern or cloth.panels")
         if not w.get("panels"):
             raise SceneError(f"cloth.wraps[{i}].panels: name the panels to wrap (required)")
     names = {scene.get("cloth.name")}
     for i, g in enumerate(scene.data.get("garments", [])):
         where = f"garments[{i}]"
-        for key in ("name", "pattern"):
-            if g.get(key) is None:
-                raise SceneError(f"{where}.{key}: required ({SCHEMA['garments'].schema[key].doc})")
+        if g.get("name") is None:
+            raise SceneError(f"{where}.name: required ({SCHEMA['garments'].schema['name'].doc})")
+        if (g.get("pattern") is None) == (g.get("panels") is None):
+            raise SceneError(f"{where}: give one of pattern (a GarmentCode specification file) or panels (a panel table)")
         if g["name"] in names:
             raise SceneError(f"{where}.name: {g['name']!r} is the name of another cloth")
         names.add(g["name"])
-        if not scene.resolve(g["pattern"]).is_file():
-            raise SceneError(f"{where}.pattern: file not found: {scene.resolve(g['pattern'])} (paths are relative to the scene file)")
+        _check_pattern(scene, g, where)
         for k, w in enumerate(g.get("wraps", [])):
             if not w.get("panels"):
                 raise SceneError(f"{where}.wraps[{k}].panels: name the panels to wrap (required)")
@@ -859,6 +904,31 @@ def _scene_key(path: str):
         raise SceneError(f"{path}: {exc}") from exc
 
 
+def _check_pattern(scene: Scene, table: dict, where: str):
+    """A cloth's or garment's pattern: its file exists, or its panel table reads as a pattern; stitches need panels."""
+    from .patterns import PatternError, pattern_from_tables
+
+    pattern = table.get("pattern")
+    if pattern is not None and not scene.resolve(pattern).is_file():
+        raise SceneError(f"{where}.pattern: file not found: {scene.resolve(pattern)} (paths are relative to the scene file)")
+    if table.get("stitches") and table.get("panels") is None:
+        raise SceneError(f"{where}.stitches: stitches sew the panels of {where}.panels; give them")
+    if table.get("panels") is not None:
+        try:
+            pattern_from_tables(table["panels"], table.get("stitches", []), where)
+        except PatternError as exc:
+            raise SceneError(str(exc)) from None
+
+
+def _pattern_of(scene: Scene, table: dict, where: str):
+    """The pattern a cloth's or garment's table gives: its file's path, or the Pattern of its panel table."""
+    from .patterns import pattern_from_tables
+
+    if table.get("panels") is not None:
+        return pattern_from_tables(table["panels"], table.get("stitches", []), where)
+    return scene.resolve(table["pattern"])
+
+
 def _add_cloth(b, scene: Scene):
     """Add the scene's cloth (grid, disc, mesh or pattern) to builder `b`; returns its handle."""
     common = dict(position=tuple(scene.get("cloth.position")), rotation=_rotation_q(scene.data.get("cloth", {}).get("rotation")),
@@ -868,10 +938,11 @@ def _add_cloth(b, scene: Scene):
     warp_angle = scene.get("cloth.warp_angle")
     warp = None if warp_angle is None else (math.cos(math.radians(warp_angle)), math.sin(math.radians(warp_angle)), 0.0)
     mesh = scene.data.get("cloth", {}).get("mesh")
-    pattern = scene.data.get("cloth", {}).get("pattern")
+    table = scene.data.get("cloth", {})
+    pattern = table.get("pattern")
     with _scene_key("cloth.mesh" if mesh is not None else "cloth.pattern" if pattern is not None else "cloth"):
-        if pattern is not None:
-            cloth = b.add_cloth_pattern(scene.resolve(pattern), edge_length=float(scene.get("cloth.edge_length")),
+        if pattern is not None or table.get("panels") is not None:
+            cloth = b.add_cloth_pattern(_pattern_of(scene, table, "cloth"), edge_length=float(scene.get("cloth.edge_length")),
                                         wraps=_wraps(scene.data.get("cloth", {}).get("wraps", [])), **common)
         elif scene.data.get("cloth", {}).get("disc") is not None:
             cloth = b.add_cloth_disc(radius=float(scene.get("cloth.disc.radius")), rings=int(scene.get("cloth.disc.rings")),
@@ -889,7 +960,7 @@ def _add_garment(b, scene: Scene, g: dict, i: int):
     """Add garments[i] (a sewing pattern) to builder `b`; returns its handle."""
     keys = SCHEMA["garments"].schema
     with _scene_key(f"garments[{i}]"):
-        return b.add_cloth_pattern(scene.resolve(g["pattern"]), edge_length=float(g.get("edge_length", keys["edge_length"].default)),
+        return b.add_cloth_pattern(_pattern_of(scene, g, f"garments[{i}]"), edge_length=float(g.get("edge_length", keys["edge_length"].default)),
                                    wraps=_wraps(g.get("wraps", [])), position=tuple(g.get("position", keys["position"].default)),
                                    rotation=_rotation_q(g.get("rotation")),
                                    material=material_from_table(_garment_material_table(scene, g)),
@@ -1007,7 +1078,8 @@ def build_wind(scene: Scene):
 
 def _kind_text(key: Key) -> str:
     return {"float": "number", "int": "integer", "bool": "boolean", "str": "string", "path": "path", "vec2": "[x, y]",
-            "vec3": "[x, y, z]", "ivec2": "[nx, ny]", "ints": "[i, ...]", "strs": "[\"...\", ...]"}[key.kind]
+            "vec3": "[x, y, z]", "ivec2": "[nx, ny]", "ints": "[i, ...]", "strs": "[\"...\", ...]", "points2": "[[x, y], ...]",
+            "array": "array"}[key.kind]
 
 
 def _rows(schema, prefix):

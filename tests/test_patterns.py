@@ -195,3 +195,171 @@ def test_a_scene_sews_a_pattern_next_to_a_walking_mannequin(tmp_path):
     assert UsdGeom.PrimvarsAPI(skirt).GetPrimvar("st")
     body = UsdGeom.Mesh(stage.GetPrimAtPath("/World/colliders/mannequin0"))
     assert body and len(body.GetPointsAttr().GetTimeSamples()) == 7  # the walking body, frame by frame
+
+
+def _two_squares(stitch):
+    """Two 40 cm squares in metres; "b" turned 90 degrees about z and moved so that the ends of a's right edge lie
+    nearer the matching ends of b's left edge than the crossed ones (as in GarmentCode's hoody, whose hood seam's ends lie
+    39 cm from the torso edge's ends one way round and 41 cm the other, summed)."""
+    square = {"vertices": [[0, 0], [0.4, 0], [0.4, 0.4], [0, 0.4]], "edges": [{"endpoints": [k, (k + 1) % 4]} for k in range(4)]}
+    return {"pattern": {"panels": {"a": {**square}, "b": {**square, "translation": [0.5, 0.45, 0.0], "rotation": [0.0, 0.0, 90.0]}},
+                        "stitches": [stitch]}, "properties": {"units_in_meter": 1}}
+
+
+@pytest.mark.parametrize("right_wrong", [False, True])
+def test_stitches_are_sewn_as_garmentcode_sews_them_wherever_the_panels_lie(right_wrong):
+    """Check a stitch sews the start of its first edge to the end of its second (two panels' counter-clockwise outlines
+    run opposite ways along a seam), and start to start with GarmentCode's third entry "right_wrong", whatever the
+    placement: here pairing the ends that lie nearest would sew the seam the other way (it twisted the hood of
+    GarmentCode's own hoody pattern into a spike, and the waist seams of its pencil dress and jumpsuit)."""
+    stitch = [{"panel": "a", "edge": 1}, {"panel": "b", "edge": 3}] + (["right_wrong"] if right_wrong else [])
+    pattern = read_garmentcode(_two_squares(stitch))
+    assert pattern.aligned == (frozenset({0}) if right_wrong else frozenset())
+    m = mesh_pattern(pattern, 0.1)
+    va, vb = m.edge_vertices[("a", 1)], m.edge_vertices[("b", 3)]
+    x = m.vertices
+    nearest = np.linalg.norm(x[va] - x[vb], axis=1).sum() < np.linalg.norm(x[va] - x[vb[::-1]], axis=1).sum()
+    assert nearest  # (the placement would mislead a rule by distance)
+    np.testing.assert_array_equal(m.seams, np.c_[va, vb if right_wrong else vb[::-1]])
+
+
+def test_a_stitchs_third_entry_must_be_right_wrong():
+    """Check a stitch with a third entry other than GarmentCode's "right_wrong" names it."""
+    with pytest.raises(PatternError, match=re.escape("pattern.stitches[0][2]: 'inside_out' is not allowed; allowed: right_wrong")):
+        read_garmentcode(_two_squares([{"panel": "a", "edge": 1}, {"panel": "b", "edge": 3}, "inside_out"]))
+
+
+def test_absolute_control_points_are_read_in_the_panel_frame():
+    """Check curvature_coords = "absolute" (GarmentCode's older templates): control points are the panel frame's
+    points, in the pattern's unit, and give the curve their relative form gives; the old bare-list quadratic too."""
+    def spec(coords, quadratic, cubic):
+        return {"pattern": {"panels": {"p": {
+            "vertices": [[0, 0], [200, 0], [200, 200], [0, 200]],
+            "edges": [{"endpoints": [0, 1], "curvature": quadratic},
+                      {"endpoints": [1, 2], "curvature": {"type": "cubic", "params": cubic}},
+                      {"endpoints": [2, 3]}, {"endpoints": [3, 0]}]}}},
+            "properties": {"units_in_meter": 100, "curvature_coords": coords}}
+
+    relative = read_garmentcode(spec("relative", {"type": "quadratic", "params": [[0.5, 0.25]]}, [[0.25, -0.2], [0.75, -0.2]]))
+    absolute = read_garmentcode(spec("absolute", {"type": "quadratic", "params": [[100, 50]]}, [[240, 50], [240, 150]]))
+    bare = read_garmentcode(spec("absolute", [100, 50], [[240, 50], [240, 150]]))
+    t = np.linspace(0.0, 1.0, 9)
+    for k in range(2):
+        np.testing.assert_allclose(absolute.panels["p"].edges[k].points(t), relative.panels["p"].edges[k].points(t), atol=1e-12)
+    np.testing.assert_allclose(bare.panels["p"].edges[0].controls, [[1.0, 0.5]])
+    with pytest.raises(PatternError, match="properties.curvature_coords: 'polar' is not allowed; allowed: relative, absolute"):
+        read_garmentcode(spec("polar", [100, 50], [[240, 50], [240, 150]]))
+
+
+def _skirt_tables():
+    """skirt_spec() as a scene's panel table, in metres."""
+    spec = skirt_spec()
+    panels = []
+    for name, p in spec["pattern"]["panels"].items():
+        curves = [{"edge": k, **e["curvature"]} for k, e in enumerate(p["edges"]) if "curvature" in e]
+        for c in curves:
+            if c["type"] == "circle":
+                c["params"] = [c["params"][0] * 0.01, *c["params"][1:]]  # (as read_garmentcode scales: the same bits)
+        panels.append({"name": name, "vertices": (np.asarray(p["vertices"], float) * 0.01).tolist(),
+                       "translation": (np.asarray(p["translation"], float) * 0.01).tolist(), "rotation": p["rotation"], "curves": curves})
+    stitches = [{"panels": [a["panel"], b["panel"]], "edges": [a["edge"], b["edge"]]} for a, b in spec["pattern"]["stitches"]]
+    return panels, stitches
+
+
+def test_a_panel_table_reads_as_its_garmentcode_specification():
+    """Check a scene's panel table (edge k from corner k to k + 1, curves by edge, metres) gives the pattern the same
+    garment's GarmentCode specification gives: outlines, placement, stitches and their meshes."""
+    from cloth_warp.patterns import pattern_from_tables
+
+    panels, stitches = _skirt_tables()
+    table, spec = pattern_from_tables(panels, stitches), read_garmentcode(skirt_spec())
+    assert list(table.panels) == list(spec.panels) and table.stitches == spec.stitches and table.aligned == spec.aligned
+    t = np.linspace(0.0, 1.0, 17)
+    for name in spec.panels:
+        a, b = table.panels[name], spec.panels[name]
+        np.testing.assert_allclose(a.placement(), b.placement(), atol=1e-12)
+        np.testing.assert_allclose(a.translation, b.translation, atol=1e-12)
+        for ea, eb in zip(a.edges, b.edges, strict=True):
+            np.testing.assert_allclose(ea.points(t), eb.points(t), atol=1e-12)
+    ma, mb = mesh_pattern(table, 0.03), mesh_pattern(spec, 0.03)
+    np.testing.assert_allclose(ma.vertices, mb.vertices, atol=1e-12)
+    np.testing.assert_array_equal(ma.seams, mb.seams)
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (lambda p, s: p[1].update(name="front"), "cloth.panels[1].name: 'front' is the name of another panel"),
+        (lambda p, s: p[0]["curves"][0].update(edge=4), "cloth.panels[0].curves[0].edge: expected an edge index in [0, 4), got 4"),
+        (lambda p, s: p[0]["curves"][1].update(edge=1), "cloth.panels[0].curves[1].edge: edge 1 is curved twice"),
+        (lambda p, s: p[0]["curves"][0].update(params=[-1.0, 0, 1]), "cloth.panels[0].curves[0].params[0]: the radius must be > 0"),
+        (lambda p, s: p[1]["curves"][1].update(type="spline"), "cloth.panels[1].curves[1].type: 'spline' is not allowed"),
+        (lambda p, s: s[1].update(panels=["front", "sleeve"]), "cloth.stitches[1].panels[1]: 'sleeve' is not a panel of the pattern"),
+        (lambda p, s: s[0].update(edges=[0, 9]), "cloth.stitches[0].edges[1]: expected an edge index in [0, 4), got 9"),
+        (lambda p, s: s[0].update(edges=[0]), "cloth.stitches[0].edges: expected the two panels' edge indices"),
+    ],
+)
+def test_bad_panel_tables_name_the_scene_key(edit, message):
+    from cloth_warp.patterns import pattern_from_tables
+
+    panels, stitches = _skirt_tables()
+    edit(panels, stitches)
+    with pytest.raises(PatternError, match=re.escape(message)):
+        pattern_from_tables(panels, stitches, "cloth")
+
+
+PANEL_SCENE = """
+[cloth]
+name = "bag"
+edge_length = 0.05
+[[cloth.panels]]
+name = "front"
+vertices = [[0.0, 0.0], [0.4, 0.0], [0.4, 0.5], [0.0, 0.5]]
+translation = [-0.2, 0.5, 0.05]
+[[cloth.panels.curves]]
+edge = 2
+type = "quadratic"
+params = [[0.5, 0.2]]
+[[cloth.panels]]
+name = "back"
+vertices = [[0.0, 0.0], [0.4, 0.0], [0.4, 0.5], [0.0, 0.5]]
+translation = [0.2, 0.5, -0.05]
+rotation = [0.0, 180.0, 0.0]
+[[cloth.stitches]]
+panels = ["front", "back"]
+edges = [1, 3]
+[[cloth.stitches]]
+panels = ["front", "back"]
+edges = [3, 1]
+aligned = false
+"""
+
+
+def test_a_scene_sews_its_panel_table(tmp_path):
+    """Check a scene whose cloth is a panel table ([[cloth.panels]], [[cloth.stitches]]) loads, validates the table at
+    the gate with the scene's key paths, and builds the garment its GarmentCode specification builds."""
+    import cloth_warp as cw
+    from cloth_warp.scene import SceneError, build_model, parse_scene
+
+    model = build_model(parse_scene(PANEL_SCENE, tmp_path / "bag.toml"), "cpu")
+    square = [[0.0, 0.0], [0.4, 0.0], [0.4, 0.5], [0.0, 0.5]]
+    edges = [{"endpoints": [k, (k + 1) % 4]} for k in range(4)]
+    spec = {"pattern": {"panels": {
+        "front": {"vertices": square, "translation": [-0.2, 0.5, 0.05],
+                  "edges": [*edges[:2], {**edges[2], "curvature": {"type": "quadratic", "params": [[0.5, 0.2]]}}, edges[3]]},
+        "back": {"vertices": square, "translation": [0.2, 0.5, -0.05], "rotation": [0.0, 180.0, 0.0], "edges": edges}},
+        "stitches": [[{"panel": "front", "edge": 1}, {"panel": "back", "edge": 3}],
+                     [{"panel": "front", "edge": 3}, {"panel": "back", "edge": 1}]]},
+        "properties": {"units_in_meter": 1}}
+    b = cw.ModelBuilder()
+    ref = b.add_cloth_pattern(spec, edge_length=0.05, name="bag")
+    assert len(ref.seams) > 0
+    np.testing.assert_array_equal(model.particle_q.numpy(), b.finalize("cpu").particle_q.numpy())
+    with pytest.raises(SceneError, match=re.escape("cloth.stitches[1].edges[1]: expected an edge index in [0, 4), got 5")):
+        parse_scene(PANEL_SCENE.replace("edges = [3, 1]", "edges = [3, 5]"), tmp_path / "bad.toml")
+    with pytest.raises(SceneError, match=re.escape("cloth.panels[0].vertices[1]: expected 2 finite numbers")):
+        parse_scene(PANEL_SCENE.replace("[0.4, 0.0], [0.4, 0.5]", "[0.4], [0.4, 0.5]", 1), tmp_path / "bad.toml")
+    with pytest.raises(SceneError, match=re.escape("cloth.stitches: stitches sew the panels of cloth.panels; give them")):
+        parse_scene('[[cloth.stitches]]\npanels = ["a", "b"]\nedges = [0, 1]\n', tmp_path / "c.toml")
+    with pytest.raises(SceneError, match=re.escape("garments[0]: give one of pattern (a GarmentCode specification file) or panels")):
+        parse_scene('[[garments]]\nname = "coat"\n', tmp_path / "d.toml")

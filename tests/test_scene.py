@@ -77,7 +77,7 @@ def test_scene_reference_page_is_current():
         ({"forces.up_axis": "X"}, "forces.up_axis: 'X' is not allowed; allowed: Y, Z"),
         ({"output.path": "out/a.abc"}, "output.path: 'out/a.abc' has an unknown extension; allowed: .usdc, .usda, .usd, .npz"),
         # missing files and inconsistent keys
-        ({"cloth.mesh": "missing.obj"}, "give one of cloth.grid, cloth.disc, cloth.mesh or cloth.pattern, not grid and mesh"),
+        ({"cloth.mesh": "missing.obj"}, "give one of cloth.grid, cloth.disc, cloth.mesh, cloth.pattern or cloth.panels, not grid and mesh"),
         ({"pins[0].indices": [0]}, "pins[0]: give exactly one of select, indices, box (got select, indices)"),
         # colliders: required and misplaced geometry, friction order, shapes
         ({"colliders": [{"type": "sphere"}]}, "colliders[0].radius: a sphere collider needs it"),
@@ -92,7 +92,7 @@ def test_scene_reference_page_is_current():
         ({"colliders": [{"type": "plane"}, {"type": "plane", "name": "plane0"}]}, "colliders[1].name: 'plane0' is used"),
         ({"collision.friction": -0.1}, "collision.friction: must be >= 0"),
         ({"cloth.disc": {"rings": 4}}, "cloth.disc.radius: a disc cloth needs its radius"),
-        ({"cloth.disc": {"radius": 0.1}}, "cloth: give one of cloth.grid, cloth.disc, cloth.mesh or cloth.pattern, not grid and disc"),
+        ({"cloth.disc": {"radius": 0.1}}, "cloth: give one of cloth.grid, cloth.disc, cloth.mesh, cloth.pattern or cloth.panels, not grid and disc"),
         ({"colliders": [{"type": "mannequin", "radius": 0.2}]}, "colliders[0].radius: not used by a mannequin collider"),
         ({"attachments": [{"select": "edge:top", "collider": "body"}], "colliders": [{"type": "sphere", "radius": 0.1, "name": "body"}]},
          "attachments[0].collider: 'body' is not a mesh or mannequin collider of the scene; those: none"),
