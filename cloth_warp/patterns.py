@@ -5,7 +5,9 @@ with 2D ``vertices``, a closed loop of ``edges`` (``endpoints`` [i, j], an optio
 3D placement (``translation``, ``rotation`` as XYZ Euler angles in degrees, applied to the panel's plane z = 0) and a
 ``label``; ``pattern.stitches`` lists pairs of ``{"panel", "edge"}`` to sew together, a third entry
 ``"right_wrong"`` where GarmentCode marks one (its collars); ``properties.units_in_meter`` gives the length unit (100:
-centimetres) and ``properties.curvature_coords`` says how control points are given. Curvature:
+centimetres), ``properties.curvature_coords`` says how control points are given, and
+``properties.normalize_panel_translation`` (in GarmentCode's templates) moves each panel's origin to its vertices' mean
+as GarmentCode does. Curvature:
 
 * ``quadratic`` / ``cubic``: Bezier control points relative to the edge, (u, v) -> start + u e + v perp(e), with e the
   edge vector and perp(e) = (-e_y, e_x) (the edge's left); with ``curvature_coords = "absolute"`` (GarmentCode's older
@@ -170,9 +172,10 @@ def _vector(value, size: int, path: str) -> np.ndarray:
     return np.array([_number(v, f"{path}[{k}]") for k, v in enumerate(value)])
 
 
-def _edge(spec, vertices: np.ndarray, path: str, scale: float = 1.0, absolute: bool = False) -> PatternEdge:
+def _edge(spec, vertices: np.ndarray, path: str, scale: float = 1.0, absolute: bool = False, origin=0.0) -> PatternEdge:
     """One edge of a panel (vertices already in metres; `scale`: the pattern's length unit in metres; `absolute`:
-    control points are points of the panel's frame, in the pattern's unit, not relative to the edge)."""
+    control points are points of the panel's frame, in the pattern's unit, not relative to the edge, that frame's
+    origin moved to `origin` [m] as the vertices were)."""
     if not isinstance(spec, dict):
         raise _error(path, "expected a table with 'endpoints'")
     ends = spec.get("endpoints")
@@ -197,7 +200,7 @@ def _edge(spec, vertices: np.ndarray, path: str, scale: float = 1.0, absolute: b
         if not isinstance(params, list) or len(params) != count:
             raise _error(f"{cpath}.params", f"a {kind} edge needs {count} control point(s), got {params!r}")
         points = [_vector(c, 2, f"{cpath}.params[{k}]") for k, c in enumerate(params)]
-        controls = tuple(c * scale if absolute else p0 + c[0] * e + c[1] * perp for c in points)
+        controls = tuple(c * scale - origin if absolute else p0 + c[0] * e + c[1] * perp for c in points)
         return PatternEdge(p0, p1, kind, controls=controls, label=label)
     if kind == "circle":
         if not isinstance(params, list) or len(params) != 3:
@@ -249,15 +252,20 @@ def read_garmentcode(source) -> Pattern:
         if not isinstance(raw, list) or len(raw) < 3:
             raise _error(f"{path}.vertices", "expected at least 3 points")
         vertices = np.array([_vector(v, 2, f"{path}.vertices[{k}]") for k, v in enumerate(raw)]) * scale
+        # GarmentCode's "normalize_panel_translation": the panel's origin moved to its vertices' mean, and the
+        # translation's x and y shifted by it (unrotated, as GarmentCode does)
+        origin = vertices.mean(axis=0) if props.get("normalize_panel_translation") else np.zeros(2)
+        vertices = vertices - origin
         edges_spec = p.get("edges")
         if not isinstance(edges_spec, list) or len(edges_spec) < 2:
             raise _error(f"{path}.edges", "expected a loop of at least 2 edges")
-        edges = tuple(_edge(e, vertices, f"{path}.edges[{k}]", scale, coords == "absolute") for k, e in enumerate(edges_spec))
+        edges = tuple(_edge(e, vertices, f"{path}.edges[{k}]", scale, coords == "absolute", origin) for k, e in enumerate(edges_spec))
         for k, (a, b) in enumerate(zip(edges, edges[1:] + edges[:1])):
             if not np.array_equal(a.end, b.start):
                 raise _error(f"{path}.edges[{(k + 1) % len(edges)}]", "the edges do not form a loop: an edge must start where "
                              "the one before it ends")
-        panels[name] = Panel(name, edges, _vector(p.get("translation", [0, 0, 0]), 3, f"{path}.translation") * scale,
+        translation = _vector(p.get("translation", [0, 0, 0]), 3, f"{path}.translation") * scale + np.r_[origin, 0.0]
+        panels[name] = Panel(name, edges, translation,
                              _vector(p.get("rotation", [0, 0, 0]), 3, f"{path}.rotation"), str(p.get("label", "")))
     stitches, aligned = [], set()
     for k, st in enumerate(spec["pattern"].get("stitches", []) or []):

@@ -363,3 +363,25 @@ def test_a_scene_sews_its_panel_table(tmp_path):
         parse_scene('[[cloth.stitches]]\npanels = ["a", "b"]\nedges = [0, 1]\n', tmp_path / "c.toml")
     with pytest.raises(SceneError, match=re.escape("garments[0]: give one of pattern (a GarmentCode specification file) or panels")):
         parse_scene('[[garments]]\nname = "coat"\n', tmp_path / "d.toml")
+
+
+def test_normalized_panel_translation_places_panels_as_garmentcode_does():
+    """Check properties.normalize_panel_translation (GarmentCode's templates): each panel's vertices are moved to their
+    mean and the translation's x and y shifted by it, unrotated, as GarmentCode's loader does, absolute control points
+    moved with the vertices; false leaves the panel as written."""
+    def spec(normalize):
+        return {"pattern": {"panels": {"p": {
+            "vertices": [[0, 0], [60, 0], [60, 40], [0, 40]], "translation": [10.0, 100.0, 5.0], "rotation": [20.0, 30.0, 40.0],
+            "edges": [{"endpoints": [0, 1], "curvature": {"type": "quadratic", "params": [[30, -10]]}}, {"endpoints": [1, 2]},
+                      {"endpoints": [2, 3]}, {"endpoints": [3, 0]}]}}},
+            "properties": {"units_in_meter": 100, "curvature_coords": "absolute", "normalize_panel_translation": normalize}}
+
+    plain, moved = read_garmentcode(spec(False)).panels["p"], read_garmentcode(spec(True)).panels["p"]
+    mean = np.array([0.3, 0.2])
+    np.testing.assert_allclose(moved.edges[1].start, plain.edges[1].start - mean, atol=1e-12)
+    np.testing.assert_allclose(moved.edges[0].controls, [[0.0, -0.3]], atol=1e-12)
+    np.testing.assert_allclose(moved.translation, [0.1 + 0.3, 1.0 + 0.2, 0.05], atol=1e-12)
+    corner = np.array([0.6, 0.4])  # (60, 40) cm, as GarmentCode places it: R (v - mean) + t + (mean, 0)
+    np.testing.assert_allclose(moved.place((corner - mean)[None])[0],
+                               plain.placement() @ np.r_[corner - mean, 0.0] + [0.4, 1.2, 0.05], atol=1e-12)
+    assert np.linalg.norm(moved.place((corner - mean)[None]) - plain.place(corner[None])) > 0.05  # (rotated: not the same)
