@@ -267,7 +267,7 @@ def read_garmentcode(source) -> Pattern:
         translation = _vector(p.get("translation", [0, 0, 0]), 3, f"{path}.translation") * scale + np.r_[origin, 0.0]
         panels[name] = Panel(name, edges, translation,
                              _vector(p.get("rotation", [0, 0, 0]), 3, f"{path}.rotation"), str(p.get("label", "")))
-    stitches, aligned = [], set()
+    stitches, aligned, sewn = [], set(), {}
     for k, st in enumerate(spec["pattern"].get("stitches", []) or []):
         path = f"pattern.stitches[{k}]"
         if not isinstance(st, list) or len(st) not in (2, 3):
@@ -287,6 +287,11 @@ def read_garmentcode(source) -> Pattern:
             if not isinstance(edge, int) or isinstance(edge, bool) or not 0 <= edge < n:
                 raise _error(f"{spath}.edge", f"expected an edge index in [0, {n}), got {edge!r}")
             sides.append((side["panel"], edge))
+        for j, side in enumerate(sides):
+            if side in sewn:
+                raise _error(f"{path}[{j}]", f"edge {side[1]} of {side[0]!r} is already sewn by stitch {sewn[side]} (an edge takes "
+                             "one stitch, as in GarmentCode)")
+            sewn[side] = k
         stitches.append(tuple(sides))
     return Pattern(panels, tuple(stitches), unit, frozenset(aligned))
 

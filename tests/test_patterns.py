@@ -118,6 +118,8 @@ def test_panels_mesh_with_matching_vertices_along_stitches(edge_length):
         (lambda s: s["pattern"]["stitches"][0][1].update(edge=7), "pattern.stitches[0][1].edge: expected an edge index in [0, 4)"),
         (lambda s: s["pattern"]["panels"]["back"]["edges"][2].update(endpoints=[3, 2]), "the edges do not form a loop"),
         (lambda s: s["properties"].update(units_in_meter=0), "properties.units_in_meter: must be > 0"),
+        (lambda s: s["pattern"]["stitches"].append([{"panel": "back", "edge": 1}, {"panel": "front", "edge": 2}]),
+         "pattern.stitches[2][1]: edge 2 of 'front' is already sewn by stitch 1 (an edge takes one stitch"),
         (lambda s: s["pattern"]["panels"]["back"].update(translation=[0, "up", 0]), "pattern.panels.back.translation[1]"),
     ],
 )
