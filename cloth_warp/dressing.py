@@ -4,7 +4,10 @@ A garment's panels start where the pattern places them (wrapped round the body p
 :class:`~cloth_warp.patterns.Wrap`), open at their seams. :func:`dress` simulates them without gravity, with strong
 damping and without friction against the body held still in its first pose: the seam springs pull the panels together, the colliders
 (and self-collision, between garments too) push whatever starts inside the body or another garment out, and the
-settled positions become the builder's initial positions. Attachments (waistbands, straps) are bound afterwards, on
+settled positions become the builder's initial positions. A mesh body that cloth starts inside (panels placed into the
+hips) starts shrunk under it, its surface moved inward along its normals, and grows back to its shape over the first
+part of the sewing (:func:`growing_collider`): the cloth is pushed out as it grows, not in one step (which tore a
+tube placed 4.7 cm into the hips in its first frame). Attachments (waistbands, straps) are bound afterwards, on
 the dressed garment, and the animation then starts from rest.
 """
 
@@ -24,6 +27,8 @@ from .validation import LIMITS, InvalidValue, check_number
 
 SEAM_CLOSED = WELD_DISTANCE  # [m]: a dressing goes on (up to twice its time) until every seam is closed this far
 SEAM_FINISH = 3e-3  # [m]: sewn points within a stitch's length at the end are finished (their particles joined)
+GROWTH_SPEED = 0.05  # [m/s]: a body shrunk under cloth placed inside it grows back this fast (or over the sewing's closing)
+GROWTH_SHARE = 0.45  # a body shrinks at most this share of its inner thickness at a vertex (it must not turn inside out)
 
 
 @dataclass(frozen=True)
@@ -36,6 +41,8 @@ class DressingReport:
         finished_from: the largest gap the finish closed [m] (0: none finished, or no seams).
         max_speed: the largest particle speed at the end [m/s] (the velocities are then zeroed).
         max_strain: the largest spring strain at the end (seams excluded).
+        grown_from: how deep [m] cloth started inside a mesh collider (which then grew back under it; 0: none inside).
+        inside: particles inside a mesh collider at the end (should be 0).
     """
 
     seconds: float
@@ -44,6 +51,8 @@ class DressingReport:
     max_speed: float
     max_strain: float
     finished_from: float = 0.0
+    grown_from: float = 0.0
+    inside: int = 0
 
 
 def frozen_collider(collider, time: float = 0.0):
@@ -53,6 +62,65 @@ def frozen_collider(collider, time: float = 0.0):
     if collider.shape == "mesh":
         changes["vertices"] = np.asarray(collider.vertices_at(time), np.float64)
     return dataclasses.replace(collider, **changes)
+
+
+def mesh_depths(collider, points: np.ndarray, time: float = 0.0, device=None) -> np.ndarray:
+    """Signed distance [m] of world `points` to a mesh collider's surface in its pose and shape at `time` (negative
+    inside; the union of its closed parts)."""
+    import warp as wp
+
+    from .kernels import collide as kc
+    from .model import quat_to_matrix
+
+    position, rotation = collider.pose_at(time)
+    local = (np.asarray(points, np.float64) - np.asarray(position)) @ quat_to_matrix(rotation)
+    mesh = _warp_mesh(collider.vertices_at(time), collider.triangles, device)
+    out = wp.zeros(len(local), dtype=float, device=mesh.device)
+    wp.launch(kc.mesh_signed_distance, dim=len(local), inputs=[mesh.id, wp.array(local.astype(np.float32), dtype=wp.vec3, device=mesh.device),
+                                                                 1.0e3], outputs=[out], device=mesh.device)
+    return out.numpy().astype(np.float64)
+
+
+def _warp_mesh(vertices, triangles, device):
+    import warp as wp
+
+    return wp.Mesh(points=wp.array(np.asarray(vertices, np.float32), dtype=wp.vec3, device=device),
+                   indices=wp.array(np.asarray(triangles, np.int32).reshape(-1), dtype=wp.int32, device=device))
+
+
+def growing_collider(collider, depth: float, seconds: float, device=None):
+    """A still mesh `collider` (:func:`frozen_collider`) that starts shrunk `depth` [m] (plus twice its thickness)
+    inward along its vertex normals (at most :data:`GROWTH_SHARE` of its inner thickness at a vertex, so thin parts
+    stay the right way out) and grows back to its shape at :data:`GROWTH_SPEED`, within `seconds`, as a point cache
+    (the contacts then push cloth out with the surface's velocity)."""
+    import trimesh
+    import warp as wp
+
+    from .kernels import collide as kc
+
+    v = np.asarray(collider.vertices, np.float64)
+    tris = np.asarray(collider.triangles, np.int64)
+    body = trimesh.Trimesh(v, tris, process=False)
+    normals = np.asarray(body.vertex_normals, np.float64)
+    inner = np.full(len(v), 1.0e3)
+    part = trimesh.graph.connected_component_labels(body.edges, node_count=len(v))
+    for k in np.unique(part):  # each closed part's own thickness (overlapping parts would cut it short)
+        own = np.flatnonzero(part == k)
+        index = -np.ones(len(v), np.int64)
+        index[own] = np.arange(len(own))
+        faces = index[tris[part[tris[:, 0]] == k]]
+        if len(faces) == 0:
+            continue
+        mesh = _warp_mesh(v[own], faces, device)
+        out = wp.zeros(len(own), dtype=float, device=mesh.device)
+        wp.launch(kc.mesh_inner_thickness, dim=len(own), inputs=[mesh.id, wp.array(v[own].astype(np.float32), dtype=wp.vec3, device=mesh.device),
+                                                                   wp.array(normals[own].astype(np.float32), dtype=wp.vec3, device=mesh.device),
+                                                                   1.0e3], outputs=[out], device=mesh.device)
+        inner[own] = out.numpy()
+    shrink = np.minimum(depth + 2.0 * collider.thickness, GROWTH_SHARE * inner)
+    grow = min(max(seconds, 1e-3), float(shrink.max()) / GROWTH_SPEED)
+    return dataclasses.replace(collider, point_cache=np.stack([v - shrink[:, None] * normals, v]),
+                               point_cache_times=np.array([0.0, grow]))
 
 
 def seam_gap(builder, positions=None, particles=None) -> float:
@@ -146,8 +214,16 @@ def _still_run(builder, seconds, closing, gravity, fps, substeps, damping, devic
         trial.gravity = (0.0, 0.0, 0.0)
     trial.global_damping = damping
     trial.colliders = [frozen_collider(c) for c in trial.colliders]
+    cloth = np.ones(len(builder.particle_positions), bool) if moving is None else moving
+    grown_from = 0.0
     if closing > 0.0:  # sewing: panels slide into place (a sleeve cap over the shoulder) without friction
         trial.colliders = [dataclasses.replace(c, static_friction=0.0, kinetic_friction=0.0) for c in trial.colliders]
+        for k, c in enumerate(trial.colliders):  # a body cloth starts inside grows back under it
+            if c.shape == "mesh":
+                depth = -float(min(0.0, mesh_depths(c, builder.particle_positions[cloth], device=device).min(initial=0.0)))
+                if depth > 0.0:
+                    trial.colliders[k] = growing_collider(c, depth, 0.5 * closing * seconds, device)
+                    grown_from = max(grown_from, depth)
     trial.handles = []  # their particles stay pinned where they start
     if moving is not None:
         trial.particle_pinned[~moving] = 1
@@ -187,5 +263,7 @@ def _still_run(builder, seconds, closing, gravity, fps, substeps, damping, devic
     v = np.asarray(sim.state.particle_qd.numpy(), np.float64)
     builder.particle_positions[free] = x[free]
     builder.particle_velocities[:] = 0.0
+    inside = sum(int(np.count_nonzero(mesh_depths(c, builder.particle_positions[moving], device=device) < 0.0))
+                 for c in builder.colliders if c.shape == "mesh") if closing > 0.0 else 0
     return DressingReport(frames / fps, frames * substeps, seam_gap(builder, particles=moving),
-                          float(np.linalg.norm(v[moving], axis=1).max()), float(stats.max_strain), finished)
+                          float(np.linalg.norm(v[moving], axis=1).max()), float(stats.max_strain), finished, grown_from, inside)

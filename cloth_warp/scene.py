@@ -877,6 +877,10 @@ def _dressing(b, scene: Scene, stage: str, device):
                 report = dressing.dress(b, seconds, fps=fps, device=device, solver_options=options,
                                         garments=names if len(layers) > 1 else None)
                 log.info("dressing.seconds %s: %s", ", ".join(names), report)
+                if report.inside:
+                    log.warning("dressing.seconds: %d particles of %s are still inside the body after the dressing (it started "
+                                "%.1f cm inside): place the panels further out, or dress for longer", report.inside,
+                                ", ".join(names), 100.0 * report.grown_from)
         except SimulationDiverged as exc:  # a clear error before any frame is written, not a traceback
             doing = "settling under gravity" if stage == "settle" else "being sewn"
             raise SceneError(f"dressing.{stage}: the garment diverged while {doing}, before the run ({exc}). Nothing was "

@@ -323,3 +323,31 @@ def eval_collider_distance(
     d, n = shape_distance(collider_shape[collider], collider_size[collider], collider_mesh[collider], mesh_max_distance, p)
     distance_out[i] = d
     normal_out[i] = wp.transform_vector(xf, n)
+
+
+@wp.kernel(enable_backward=False)
+def mesh_signed_distance(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), max_distance: float,
+                         distance_out: wp.array(dtype=float)):
+    """Signed distance [m] of each point to a closed mesh (negative inside), inside by the generalised winding number:
+    a mesh of overlapping closed parts (a ball-jointed body) counts as their union. `max_distance` where none is near."""
+    i = wp.tid()
+    p = points[i]
+    query = wp.mesh_query_point_sign_winding_number(mesh, p, max_distance, 2.0, 0.5)
+    if not query.result:
+        distance_out[i] = max_distance
+        return
+    distance_out[i] = query.sign * wp.length(p - wp.mesh_eval_position(mesh, query.face, query.u, query.v))
+
+
+@wp.kernel(enable_backward=False)
+def mesh_inner_thickness(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), normals: wp.array(dtype=wp.vec3), max_distance: float,
+                         thickness_out: wp.array(dtype=float)):
+    """How far [m] a closed mesh extends inward from each of its vertices along the inward normal: the distance to the
+    surface met first from just inside (another part's surface where parts overlap); `max_distance` where none is."""
+    i = wp.tid()
+    n = normals[i]
+    start = points[i] - 1.0e-5 * n
+    query = wp.mesh_query_ray(mesh, start, -n, max_distance)
+    thickness_out[i] = max_distance
+    if query.result:
+        thickness_out[i] = query.t

@@ -305,3 +305,44 @@ def test_a_dressing_that_diverges_stops_with_the_key_and_no_cache(tmp_path, monk
     assert code == 2, err
     assert "dressing.settle: the garment diverged while settling" in err and "strain 1.15" in err and "Traceback" not in err
     assert not out.exists() and not list(tmp_path.iterdir())
+
+
+def _tube_into_the_hips(shift: float):
+    """A 1.19 m round cotton tube (two panels, sides open 4-6 cm) round the hips, moved `shift` [m] along x: its side
+    cuts into the pelvis."""
+    from cloth_warp.patterns import pattern_from_tables
+
+    half = math.pi * 0.19 / 2.0
+    square = [[-half, 0.0], [half, 0.0], [half, 0.4], [-half, 0.4]]
+    panels = [{"name": "front", "vertices": square, "translation": [0.0, 0.72, 0.19]},
+              {"name": "back", "vertices": square, "translation": [0.0, 0.72, -0.19], "rotation": [0.0, 180.0, 0.0]}]
+    stitches = [{"panels": ["front", "back"], "edges": [1, 3]}, {"panels": ["front", "back"], "edges": [3, 1]}]
+    body = Mannequin(1.75)
+    b = cw.ModelBuilder()
+    b.add_collider_mesh(body.rest_vertices, body.triangles, name="body", friction=0.5)
+    b.add_cloth_pattern(pattern_from_tables(panels, stitches), edge_length=0.04, wraps=[Wrap(("front", "back"), (0.0, 0.0, 0.0))],
+                        material="cotton", name="tube", position=(shift, 0.0, 0.0))
+    b.enable_self_collision(0.004, 0.3)
+    return body, b
+
+
+def test_a_garment_placed_into_the_body_is_dressed_out_of_it(monkeypatch):
+    """Check panels placed 4.7 cm into the hips are dressed out: the body starts shrunk under them and grows back,
+    pushing them out (the report says how deep they started); at the end nothing is inside the body or crossing it and
+    the seams are closed. Pushed out in one step instead (no growth), the tube tore in its first frames."""
+    from cloth_warp import dressing
+    from cloth_warp.solvers import SimulationDiverged
+
+    body, b = _tube_into_the_hips(0.08)
+    depth = -dressing.mesh_depths(b.colliders[0], b.particle_positions).min()
+    assert 0.04 < depth < 0.05
+    report = dress(b, 1.0)
+    assert report.grown_from == pytest.approx(depth) and report.inside == 0
+    assert report.seam_gap < 1e-3 and report.max_strain < 0.11
+    x = b.particle_positions
+    assert _penetration(body, x, body.rest_vertices).max() < 0.0
+    assert not crossing_pairs(x, b.triangles, body.rest_vertices, body.triangles)
+    _, b = _tube_into_the_hips(0.08)
+    monkeypatch.setattr(dressing, "growing_collider", lambda c, depth, seconds, device=None: c)
+    with pytest.raises(SimulationDiverged):
+        dress(b, 1.0)
