@@ -387,3 +387,25 @@ def test_normalized_panel_translation_places_panels_as_garmentcode_does():
     np.testing.assert_allclose(moved.place((corner - mean)[None])[0],
                                plain.placement() @ np.r_[corner - mean, 0.0] + [0.4, 1.2, 0.05], atol=1e-12)
     assert np.linalg.norm(moved.place((corner - mean)[None]) - plain.place(corner[None])) > 0.05  # (rotated: not the same)
+
+
+@pytest.mark.parametrize("radius, overlap", [(0.20, True), (0.21, True), (0.23, False), (0.25, False)])
+def test_panels_placed_into_each_other_are_refused(radius, overlap):
+    """Check two skirt panels (70 cm hems) wrapped round one axis `radius` out: below 0.223 m their hems overlap, which
+    no sewing or self-collision can undo, and the meshing says so naming both; further out they mesh (the refusal
+    looks at the panels' inner points only, so panels side by side, touching at a seam, pass)."""
+    from cloth_warp.patterns import Wrap, pattern_from_tables
+
+    trapezoid = [[-0.35, 0.0], [0.35, 0.0], [0.25, 0.5], [-0.25, 0.5]]
+    panels = [{"name": "front", "vertices": trapezoid, "translation": [0.0, 0.5, radius]},
+              {"name": "back", "vertices": trapezoid, "translation": [0.0, 0.5, -radius], "rotation": [0.0, 180.0, 0.0]}]
+    pattern = pattern_from_tables(panels, [{"panels": ["front", "back"], "edges": [1, 3]}])
+    wraps = [Wrap(("front", "back"), (0.0, 0.0, 0.0))]
+    if overlap:
+        with pytest.raises(PatternError, match="'front' and 'back' are placed into each other"):
+            mesh_pattern(pattern, 0.025, wraps=wraps)
+    else:
+        mesh_pattern(pattern, 0.025, wraps=wraps)
+    flat = mesh_pattern(pattern_from_tables([{"name": "a", "vertices": trapezoid}, {"name": "b", "vertices": trapezoid,
+                                                                                    "translation": [0.7, 0.0, 0.0]}]), 0.025)
+    assert len(flat.vertices) > 0  # side by side, their hems touching at one corner

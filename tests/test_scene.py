@@ -291,6 +291,31 @@ def test_skirt_walk_scene_dresses_the_mannequin_and_walks(tmp_path):
 
 
 @pytest.mark.slow
+def test_panel_skirt_scene_sews_its_inline_pattern_onto_the_walking_mannequin(tmp_path):
+    """Check the shipped skirt whose pattern is written in the scene ([[cloth.panels]], [[cloth.stitches]]; coarser
+    here) is sewn onto the walking mannequin: seams closed, nothing of it inside the body or crossing it in any frame,
+    its waistband riding with the body."""
+    from intersections import crossing_pairs
+    from pxr import Usd, UsdGeom
+
+    out = tmp_path / "panel_skirt.usdc"
+    scene = ROOT / "scenes" / "panel_skirt.toml"
+    summary = run_scene(scene, {"cloth.edge_length": 0.04}, output=out, frames=12)
+    assert summary["status"] == "complete" and summary["max_strain"] <= 0.101
+    assert summary["seam_gap"] < 1e-3
+    stage = Usd.Stage.Open(str(out))
+    body = UsdGeom.Mesh(stage.GetPrimAtPath("/World/colliders/body"))
+    body_tris = np.asarray(body.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3)
+    cloth_tris = np.asarray(UsdGeom.Mesh(stage.GetPrimAtPath("/World/skirt")).GetFaceVertexIndicesAttr().Get()).reshape(-1, 3)
+    r, x = _positions(out)
+    for f in range(len(x)):
+        b = np.asarray(body.GetPointsAttr().Get(r.start_frame + f), float)
+        assert not crossing_pairs(x[f], cloth_tris, b, body_tris), f"frame {f}"
+    waist = x[0, :, 1] > 0.99
+    assert waist.sum() > 10 and np.ptp(x[:, waist, 1].mean(axis=1)) > 1e-4  # the walk's bob carries the waistband
+
+
+@pytest.mark.slow
 def test_dress_hangs_from_its_shoulder_straps_while_walking(tmp_path):
     """Check the shipped strapped dress (coarser here), held by nothing but contact with the shoulders: the strap seams
     lie on top of the shoulders (between the neck and the arm) and stay within a centimetre of their first height while
