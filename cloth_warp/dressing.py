@@ -214,21 +214,18 @@ def _still_run(builder, seconds, closing, gravity, fps, substeps, damping, devic
         trial.gravity = (0.0, 0.0, 0.0)
     trial.global_damping = damping
     trial.colliders = [frozen_collider(c) for c in trial.colliders]
-    cloth = np.ones(len(builder.particle_positions), bool) if moving is None else moving
+    moving = np.ones(len(builder.particle_positions), bool) if moving is None else np.asarray(moving, bool)
     grown_from = 0.0
     if closing > 0.0:  # sewing: panels slide into place (a sleeve cap over the shoulder) without friction
         trial.colliders = [dataclasses.replace(c, static_friction=0.0, kinetic_friction=0.0) for c in trial.colliders]
         for k, c in enumerate(trial.colliders):  # a body cloth starts inside grows back under it
             if c.shape == "mesh":
-                depth = -float(min(0.0, mesh_depths(c, builder.particle_positions[cloth], device=device).min(initial=0.0)))
+                depth = -float(min(0.0, mesh_depths(c, builder.particle_positions[moving], device=device).min(initial=0.0)))
                 if depth > 0.0:
                     trial.colliders[k] = growing_collider(c, depth, 0.5 * closing * seconds, device)
                     grown_from = max(grown_from, depth)
     trial.handles = []  # their particles stay pinned where they start
-    if moving is not None:
-        trial.particle_pinned[~moving] = 1
-    else:
-        moving = np.ones(len(builder.particle_positions), bool)
+    trial.particle_pinned[~moving] = 1
     model = trial.finalize(device)
     options = dict(solver_options or {})
     options.setdefault("strain_limit", 0.1)

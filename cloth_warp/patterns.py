@@ -37,6 +37,7 @@ import numpy as np
 from .validation import InvalidValue
 
 CURVATURE_SAMPLES = 256  # points per edge on which a curve's arc length is measured
+CURVE_KINDS = ("quadratic", "cubic", "circle")  # GarmentCode's curvature types
 
 
 class PatternError(InvalidValue):
@@ -214,7 +215,7 @@ def _edge(spec, vertices: np.ndarray, path: str, scale: float = 1.0, absolute: b
                 raise _error(f"{cpath}.params[{k}]", f"expected 0 or 1, got {params[k]!r}")
             flags.append(bool(params[k]))
         return PatternEdge(p0, p1, "circle", radius=radius * scale, large_arc=flags[0], sweep=flags[1], label=label)
-    raise _error(f"{cpath}.type", f"{kind!r} is not allowed; allowed: quadratic, cubic, circle")
+    raise _error(f"{cpath}.type", f"{kind!r} is not allowed; allowed: {', '.join(CURVE_KINDS)}")
 
 
 def read_garmentcode(source) -> Pattern:
@@ -294,9 +295,6 @@ def read_garmentcode(source) -> Pattern:
             sewn[side] = k
         stitches.append(tuple(sides))
     return Pattern(panels, tuple(stitches), unit, frozenset(aligned))
-
-
-CURVE_KINDS = ("quadratic", "cubic", "circle")
 
 
 def pattern_from_tables(panels: list, stitches: list = (), where: str = "cloth") -> Pattern:

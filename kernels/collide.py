@@ -342,8 +342,8 @@ def mesh_signed_distance(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), max_d
 @wp.kernel(enable_backward=False)
 def mesh_inner_thickness(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), normals: wp.array(dtype=wp.vec3), max_distance: float,
                          thickness_out: wp.array(dtype=float)):
-    """How far [m] a closed mesh extends inward from each of its vertices along the inward normal: the distance to the
-    surface met first from just inside (another part's surface where parts overlap); `max_distance` where none is."""
+    """How far [m] a closed mesh (one closed part of a body) extends inward from each of its vertices along the inward
+    normal: the distance to the surface met first from just inside; `max_distance` where none is."""
     i = wp.tid()
     n = normals[i]
     start = points[i] - 1.0e-5 * n
