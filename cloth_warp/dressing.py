@@ -41,8 +41,8 @@ class DressingReport:
         finished_from: the largest gap the finish closed [m] (0: none finished, or no seams).
         max_speed: the largest particle speed at the end [m/s] (the velocities are then zeroed).
         max_strain: the largest spring strain at the end (seams excluded).
-        grown_from: how deep [m] cloth started inside a mesh collider (which then grew back under it; 0: none inside).
-        inside: particles inside a mesh collider at the end (should be 0).
+        grown_from: how deep [m] cloth started inside a closed mesh collider (which then grew back under it; 0: none).
+        inside: particles inside a closed mesh collider at the end (should be 0).
     """
 
     seconds: float
@@ -79,6 +79,14 @@ def mesh_depths(collider, points: np.ndarray, time: float = 0.0, device=None) ->
     wp.launch(kc.mesh_signed_distance, dim=len(local), inputs=[mesh.id, wp.array(local.astype(np.float32), dtype=wp.vec3, device=mesh.device),
                                                                  1.0e3], outputs=[out], device=mesh.device)
     return out.numpy().astype(np.float64)
+
+
+def _closed(collider) -> bool:
+    """Whether a collider is a closed mesh (every edge in two triangles; a union of closed parts, as the mannequin, is):
+    only such a body has an inside that cloth can start in (an open one is solid behind its triangles only near them)."""
+    import trimesh
+
+    return collider.shape == "mesh" and bool(trimesh.Trimesh(collider.vertices, collider.triangles, process=False).is_watertight)
 
 
 def _warp_mesh(vertices, triangles, device):
@@ -218,8 +226,8 @@ def _still_run(builder, seconds, closing, gravity, fps, substeps, damping, devic
     grown_from = 0.0
     if closing > 0.0:  # sewing: panels slide into place (a sleeve cap over the shoulder) without friction
         trial.colliders = [dataclasses.replace(c, static_friction=0.0, kinetic_friction=0.0) for c in trial.colliders]
-        for k, c in enumerate(trial.colliders):  # a body cloth starts inside grows back under it
-            if c.shape == "mesh":
+        for k, c in enumerate(trial.colliders):  # a closed body cloth starts inside grows back under it
+            if _closed(c):
                 depth = -float(min(0.0, mesh_depths(c, builder.particle_positions[moving], device=device).min(initial=0.0)))
                 if depth > 0.0:
                     trial.colliders[k] = growing_collider(c, depth, 0.5 * closing * seconds, device)
@@ -261,6 +269,6 @@ def _still_run(builder, seconds, closing, gravity, fps, substeps, damping, devic
     builder.particle_positions[free] = x[free]
     builder.particle_velocities[:] = 0.0
     inside = sum(int(np.count_nonzero(mesh_depths(c, builder.particle_positions[moving], device=device) < 0.0))
-                 for c in builder.colliders if c.shape == "mesh") if closing > 0.0 else 0
+                 for c in builder.colliders if _closed(c)) if closing > 0.0 else 0
     return DressingReport(frames / fps, frames * substeps, seam_gap(builder, particles=moving),
                           float(np.linalg.norm(v[moving], axis=1).max()), float(stats.max_strain), finished, grown_from, inside)

@@ -334,6 +334,9 @@ def test_a_garment_placed_into_the_body_is_dressed_out_of_it(monkeypatch):
     from cloth_warp.solvers import SimulationDiverged
 
     body, b = _tube_into_the_hips(0.08)
+    assert dressing._closed(b.colliders[0])  # (the mannequin: a union of closed parts; an open sheet has no inside)
+    sheet = cw.ModelBuilder().add_collider_mesh([[0, 0, 0], [1, 0, 0], [1, 0, 1], [0, 0, 1]], [[0, 2, 1], [0, 3, 2]])
+    assert not dressing._closed(sheet)
     depth = -dressing.mesh_depths(b.colliders[0], b.particle_positions).min()
     assert 0.04 < depth < 0.05
     report = dress(b, 1.0)
