@@ -81,6 +81,19 @@ def mesh_depths(collider, points: np.ndarray, time: float = 0.0, device=None) ->
     return out.numpy().astype(np.float64)
 
 
+def depth_inside(builder, particles=None, device=None) -> tuple[float, str]:
+    """How deep [m] the builder's cloth (`particles`, a boolean mask; default all) lies inside its closed mesh colliders
+    at t = 0, the deepest, and that collider's name (0 and "" when none is inside)."""
+    x = builder.particle_positions if particles is None else builder.particle_positions[np.asarray(particles, bool)]
+    deepest, name = 0.0, ""
+    for c in builder.colliders:
+        if _closed(c) and len(x):
+            depth = -float(mesh_depths(frozen_collider(c), x, device=device).min())
+            if depth > deepest:
+                deepest, name = depth, c.name
+    return deepest, name
+
+
 def _closed(collider) -> bool:
     """Whether a collider is a closed mesh (every edge in two triangles; a union of closed parts, as the mannequin, is):
     only such a body has an inside that cloth can start in (an open one is solid behind its triangles only near them)."""
@@ -228,7 +241,7 @@ def _still_run(builder, seconds, closing, gravity, fps, substeps, damping, devic
         trial.colliders = [dataclasses.replace(c, static_friction=0.0, kinetic_friction=0.0) for c in trial.colliders]
         for k, c in enumerate(trial.colliders):  # a closed body cloth starts inside grows back under it
             if _closed(c):
-                depth = -float(min(0.0, mesh_depths(c, builder.particle_positions[moving], device=device).min(initial=0.0)))
+                depth = -float(mesh_depths(c, builder.particle_positions[moving], device=device).min(initial=0.0))
                 if depth > 0.0:
                     trial.colliders[k] = growing_collider(c, depth, 0.5 * closing * seconds, device)
                     grown_from = max(grown_from, depth)

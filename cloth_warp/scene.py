@@ -883,9 +883,12 @@ def _dressing(b, scene: Scene, stage: str, device):
                                 ", ".join(names), 100.0 * report.grown_from)
         except SimulationDiverged as exc:  # a clear error before any frame is written, not a traceback
             doing = "settling under gravity" if stage == "settle" else "being sewn"
+            depth, body = dressing.depth_inside(b, device=device) if stage == "seconds" else (0.0, "")
+            inside = (f" The garment starts {100.0 * depth:.1f} cm inside the body {body!r}: the dressing grows a body back "
+                      f"from under cloth placed up to about 5 cm into it." if depth > 0.0 else "")
             raise SceneError(f"dressing.{stage}: the garment diverged while {doing}, before the run ({exc}). Nothing was "
-                             f"written. A garment caught in a crease of the body (the armpits) tears there: try a shorter or "
-                             f"longer dressing.{stage}, or the panels placed further from the body") from exc
+                             f"written.{inside} A garment caught in a crease of the body (the armpits) tears there: try a "
+                             f"shorter or longer dressing.{stage}, or the panels placed further from the body") from exc
 
 
 def layer_order(scene: Scene) -> list[list[str]]:

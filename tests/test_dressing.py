@@ -349,3 +349,21 @@ def test_a_garment_placed_into_the_body_is_dressed_out_of_it(monkeypatch):
     monkeypatch.setattr(dressing, "growing_collider", lambda c, depth, seconds, device=None: c)
     with pytest.raises(SimulationDiverged):
         dress(b, 1.0)
+
+
+def test_a_garment_placed_too_deep_into_the_body_says_how_deep(tmp_path):
+    """Check a tube placed 6.7 cm into the hips, deeper than the body can shrink under it, stops its dressing with a
+    SceneError that says how deep the garment starts inside which body (nothing written)."""
+    half = math.pi * 0.19 / 2.0
+    square = f"[[{-half}, 0.0], [{half}, 0.0], [{half}, 0.4], [{-half}, 0.4]]"
+    text = (f'[cloth]\nname = "tube"\nposition = [0.11, 0.0, 0.0]\nedge_length = 0.04\n'
+            f'[[cloth.panels]]\nname = "front"\nvertices = {square}\ntranslation = [0.0, 0.72, 0.19]\n'
+            f'[[cloth.panels]]\nname = "back"\nvertices = {square}\ntranslation = [0.0, 0.72, -0.19]\nrotation = [0.0, 180.0, 0.0]\n'
+            '[[cloth.stitches]]\npanels = ["front", "back"]\nedges = [1, 3]\n'
+            '[[cloth.stitches]]\npanels = ["front", "back"]\nedges = [3, 1]\n'
+            '[[cloth.wraps]]\npanels = ["front", "back"]\n'
+            '[dressing]\nseconds = 1.0\nsettle = 0.0\n'
+            '[[colliders]]\ntype = "mannequin"\nname = "body"\nmotion = "still"\n'
+            '[collision]\nself_collision = true\n[solver]\nintegrator = "implicit_euler"\nsubsteps = 2\n')
+    with pytest.raises(SceneError, match=r"dressing\.seconds: the garment diverged .* starts 6\.\d cm inside the body 'body'"):
+        build_model(parse_scene(text, tmp_path / "tube.toml"), "cpu")
