@@ -702,9 +702,27 @@ def main(argv=None) -> int:
         code = EXIT_INTERRUPTED
         _set_handlers(exiting)  # (before the message: a second Ctrl-C while it prints)
         print("cloth-warp: interrupted", file=sys.stderr)
+        if argv is None:  # the command, interrupted outside its commands' own handlers: nothing of it is open
+            _exit_now(code)
         return code
     finally:
         _set_handlers(exiting if code == EXIT_INTERRUPTED else previous)
+
+
+def _exit_now(code: int) -> None:
+    """Leave the process with `code` once its output is flushed, without the interpreter's shutdown. An interrupted
+    command that had said "cloth-warp: interrupted" and returned 130 still ended killed by SIGINT (exit -2) now and
+    then: test_ctrl_c_at_any_moment[0.3], in one of four full suite runs on 2026-11-28 and twice before, never alone
+    (16 runs, 10 of them beside two busy processes). Where in the shutdown is not known; leaving here skips it all."""
+    import os
+
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            pass
+    os._exit(code)
 
 
 def _set_handlers(handlers) -> None:
