@@ -436,20 +436,28 @@ def edge_segments(pattern: Pattern, edge_length: float) -> dict:
     return counts
 
 
-OVERLAP_DISTANCE = 0.5  # [edge lengths]: two panels with inner points this close are placed into each other
+OVERLAP_DISTANCE = 0.5  # [edge lengths]: two panels with inner points this close along their surfaces ...
+OVERLAP_GAP = 0.1  # [edge lengths]: ... and this close across them are placed into each other (a layer laid over
+# another panel, a pocket or a collar, keeps a gap of the cloth's thickness, a few millimetres, and is not refused)
 
 
-def _check_apart(x: np.ndarray, panel: np.ndarray, names: list, edge_length: float, outline: list):
-    """Refuse panels placed into each other: two panels' inner points (off their outlines) within
-    :data:`OVERLAP_DISTANCE` edge lengths (panels placed side by side, even touching, keep theirs a mesh row apart).
-    The sewing cannot pull such panels apart, and self-collision, which keeps cloth from passing through itself, cannot
-    undo a start that already has (a skirt wrapped too close round its axis, its hems overlapping, ended its run 101 %
-    stretched with its seams 7 cm open)."""
+def _check_apart(x: np.ndarray, triangles: np.ndarray, panel: np.ndarray, names: list, edge_length: float, outline: list):
+    """Refuse panels placed into each other: an inner point of one (off its outline) within :data:`OVERLAP_DISTANCE`
+    edge lengths of another's and within :data:`OVERLAP_GAP` of that one's tangent plane (panels side by side, even
+    touching, keep their inner points a mesh row apart; panels laid over each other keep a gap). The sewing cannot
+    pull such panels apart, and self-collision, which keeps cloth from passing through itself, cannot undo a start that
+    already has (a skirt wrapped too close round its axis, its hems overlapping, ended its run 101 % stretched with
+    its seams 7 cm open)."""
     inner = np.ones(len(x), bool)
     inner[np.concatenate(outline)] = False
     idx = np.flatnonzero(inner)
     if len(idx) < 2:
         return
+    face = np.cross(x[triangles[:, 1]] - x[triangles[:, 0]], x[triangles[:, 2]] - x[triangles[:, 0]])
+    normal = np.zeros_like(x)
+    for c in range(3):
+        np.add.at(normal, triangles[:, c], face)
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-30)
     reach = OVERLAP_DISTANCE * edge_length
     cell = np.floor((x[idx] - x[idx].min(0)) / reach).astype(np.int64) + 1
 
@@ -465,7 +473,9 @@ def _check_apart(x: np.ndarray, panel: np.ndarray, names: list, edge_length: flo
         a = np.repeat(np.arange(len(idx)), count)
         b = order[np.repeat(lo, count) + np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)]
         i, j = idx[a], idx[b]
-        close = np.flatnonzero((panel[i] != panel[j]) & (np.linalg.norm(x[i] - x[j], axis=1) < reach))
+        d = x[i] - x[j]
+        close = np.flatnonzero((panel[i] != panel[j]) & (np.linalg.norm(d, axis=1) < reach)
+                               & (np.abs(np.einsum("ij,ij->i", d, normal[j])) < OVERLAP_GAP * edge_length))
         if len(close):
             i, j = i[close[0]], j[close[0]]
             where = ", ".join(f"{c:.3f}" for c in x[i])
@@ -532,6 +542,7 @@ def mesh_pattern(pattern: Pattern, edge_length: float, min_angle: float = 25.0, 
     for k, (a, b) in enumerate(pattern.stitches):
         va, vb = edge_vertices[a], edge_vertices[b]
         seams.append(np.c_[va, vb if k in pattern.aligned else vb[::-1]])
-    _check_apart(x, np.concatenate(panel_of), names, edge_length, outline)
-    return PatternMesh(x, np.concatenate(uvs), np.concatenate(tris).astype(np.int32), np.concatenate(panel_of), names,
+    triangles = np.concatenate(tris).astype(np.int32)
+    _check_apart(x, triangles, np.concatenate(panel_of), names, edge_length, outline)
+    return PatternMesh(x, np.concatenate(uvs), triangles, np.concatenate(panel_of), names,
                        np.concatenate(seams).astype(np.int32) if seams else np.zeros((0, 2), np.int32), outline, edge_vertices)

@@ -409,3 +409,21 @@ def test_panels_placed_into_each_other_are_refused(radius, overlap):
     flat = mesh_pattern(pattern_from_tables([{"name": "a", "vertices": trapezoid}, {"name": "b", "vertices": trapezoid,
                                                                                     "translation": [0.7, 0.0, 0.0]}]), 0.025)
     assert len(flat.vertices) > 0  # side by side, their hems touching at one corner
+
+
+@pytest.mark.parametrize("gap, overlap", [(0.0, True), (0.001, True), (0.005, False), (0.02, False)])
+def test_a_panel_laid_over_another_is_refused_only_where_they_coincide(gap, overlap):
+    """Check a 20 cm pocket laid `gap` [m] in front of a 60 cm panel (2.5 cm edges): in its plane, or within a tenth
+    of an edge of it, it is placed into the panel and refused; a few millimetres in front (a pocket, a collar, a layer
+    over a cloth's thickness) it is not."""
+    from cloth_warp.patterns import pattern_from_tables
+
+    square = [[0.0, 0.0], [0.6, 0.0], [0.6, 0.6], [0.0, 0.6]]
+    pocket = [[0.0, 0.0], [0.2, 0.0], [0.2, 0.2], [0.0, 0.2]]
+    pattern = pattern_from_tables([{"name": "front", "vertices": square},
+                                   {"name": "pocket", "vertices": pocket, "translation": [0.2, 0.2, gap]}])
+    if overlap:
+        with pytest.raises(PatternError, match="'front' and 'pocket' are placed into each other|'pocket' and 'front' are placed"):
+            mesh_pattern(pattern, 0.025)
+    else:
+        mesh_pattern(pattern, 0.025)
