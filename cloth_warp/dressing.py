@@ -88,7 +88,7 @@ def depth_inside(builder, particles=None, device=None) -> tuple[float, str]:
     deepest, name = 0.0, ""
     for c in builder.colliders:
         if _closed(c) and len(x):
-            depth = -float(mesh_depths(frozen_collider(c), x, device=device).min())
+            depth = -float(mesh_depths(c, x, device=device).min())
             if depth > deepest:
                 deepest, name = depth, c.name
     return deepest, name

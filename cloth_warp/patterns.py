@@ -453,11 +453,9 @@ def _check_apart(x: np.ndarray, triangles: np.ndarray, panel: np.ndarray, names:
     idx = np.flatnonzero(inner)
     if len(idx) < 2:
         return
-    face = np.cross(x[triangles[:, 1]] - x[triangles[:, 0]], x[triangles[:, 2]] - x[triangles[:, 0]])
-    normal = np.zeros_like(x)
-    for c in range(3):
-        np.add.at(normal, triangles[:, c], face)
-    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-30)
+    from .cache import vertex_normals
+
+    normal = vertex_normals(x, triangles).astype(np.float64)
     reach = OVERLAP_DISTANCE * edge_length
     cell = np.floor((x[idx] - x[idx].min(0)) / reach).astype(np.int64) + 1
 
