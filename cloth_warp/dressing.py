@@ -29,6 +29,8 @@ SEAM_CLOSED = WELD_DISTANCE  # [m]: a dressing goes on (up to twice its time) un
 SEAM_FINISH = 3e-3  # [m]: sewn points within a stitch's length at the end are finished (their particles joined)
 GROWTH_SPEED = 0.05  # [m/s]: a body shrunk under cloth placed inside it grows back this fast (or over the sewing's closing)
 GROWTH_SHARE = 0.45  # a body shrinks at most this share of its inner thickness at a vertex (it must not turn inside out)
+LAYER_CLEARANCE = 2.0  # [cloth thicknesses]: a held layer moved out of a dressed one's way clears it by this much
+LAYER_REACH = 0.15  # [m]: cloth farther than this from a held layer is not judged against it (nor moved further)
 
 
 @dataclass(frozen=True)
@@ -43,6 +45,9 @@ class DressingReport:
         max_strain: the largest spring strain at the end (seams excluded).
         grown_from: how deep [m] cloth started inside a closed mesh collider (which then grew back under it; 0: none).
         inside: particles inside a closed mesh collider at the end (should be 0).
+        layered_from: how deep [m] the dressed cloth started on the wrong side of a held layer (under one that goes over
+            it, or over one that goes under it: that layer was then moved out of its way; 0: none).
+        crossing: particles of the dressed cloth on the wrong side of a layer under it at the end (should be 0).
     """
 
     seconds: float
@@ -53,6 +58,8 @@ class DressingReport:
     finished_from: float = 0.0
     grown_from: float = 0.0
     inside: int = 0
+    layered_from: float = 0.0
+    crossing: int = 0
 
 
 def frozen_collider(collider, time: float = 0.0):
@@ -144,6 +151,163 @@ def growing_collider(collider, depth: float, seconds: float, device=None):
                                point_cache_times=np.array([0.0, grow]))
 
 
+def body_distance(colliders, points: np.ndarray, time: float = 0.0, device=None) -> np.ndarray:
+    """Signed distance [m] of world `points` to the union of the closed mesh colliders (the body) in their shape at
+    `time` [s]: negative inside, inf without any."""
+    d = np.full(len(points), np.inf)
+    for c in colliders:
+        if _closed(c) and len(points):
+            d = np.minimum(d, mesh_depths(c, points, time, device))
+    return d
+
+
+def outward_normals(x: np.ndarray, triangles: np.ndarray, colliders, device=None) -> np.ndarray:
+    """Unit vertex normals of a cloth (positions `x` [m], its `triangles`) turned away from the body, a connected piece
+    (a panel) at a time: the way most of its normals go up the gradient of the closed mesh colliders' signed distance
+    (:func:`body_distance`), or without one away from the cloth's centroid. (A panel's winding says nothing of which side
+    the body is on; vertex by vertex, the gradient points the wrong way where a hand is nearer than the hips.)"""
+    import trimesh
+
+    from .cache import vertex_normals
+
+    n = vertex_normals(x, triangles).astype(np.float64)
+    if any(_closed(c) for c in colliders):
+        h = 5.0e-3  # [m]
+        away = np.stack([body_distance(colliders, x + h * e, device=device) - body_distance(colliders, x - h * e, device=device)
+                         for e in np.eye(3)], axis=1)
+    else:
+        away = x - x.mean(axis=0)
+    tris = np.asarray(triangles, np.int64)
+    piece = trimesh.graph.connected_component_labels(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]]]), node_count=len(x))
+    vote = np.bincount(piece, weights=np.sign(np.einsum("ij,ij->i", n, away)), minlength=piece.max() + 1)
+    n[vote[piece] < 0.0] *= -1.0
+    # a sewn point's particles (finished seams: one place) move as one: their pieces' normals averaged
+    _, point = np.unique(np.round(x / 1.0e-6).astype(np.int64), axis=0, return_inverse=True)
+    point = point.ravel()
+    joined = np.stack([np.bincount(point, weights=n[:, k]) for k in range(3)], axis=1)[point]
+    return joined / np.maximum(np.linalg.norm(joined, axis=1, keepdims=True), 1e-30)
+
+
+def layer_offsets(points: np.ndarray, x: np.ndarray, triangles: np.ndarray, normals: np.ndarray, device=None) -> np.ndarray:
+    """Signed distance [m] of `points` from a cloth's surface (positions `x`, `triangles`, `normals` from
+    :func:`outward_normals`) along the outward normal of the triangle closest to each: negative under the cloth (on the
+    body's side). NaN where that triangle is farther than :data:`LAYER_REACH` or the point lies beside the cloth rather
+    than over or under it (beyond its border: its offset mostly along the surface)."""
+    import warp as wp
+
+    from .kernels import collide as kc
+
+    points = np.asarray(points, np.float64)
+    tris = np.asarray(triangles, np.int64)
+    out = np.full(len(points), np.nan)
+    if not len(points) or not len(tris):
+        return out
+    mesh = _warp_mesh(x, tris, device)
+    face = wp.zeros(len(points), dtype=wp.int32, device=mesh.device)
+    weights = wp.zeros(len(points), dtype=wp.vec3, device=mesh.device)
+    wp.launch(kc.mesh_closest_points, dim=len(points), inputs=[mesh.id, wp.array(points.astype(np.float32), dtype=wp.vec3, device=mesh.device),
+                                                              LAYER_REACH], outputs=[face, weights], device=mesh.device)
+    face, weights = face.numpy(), weights.numpy().astype(np.float64)
+    near = face >= 0
+    corners = x[tris[face[near]]]
+    q = np.einsum("pk,pkj->pj", weights[near], corners)
+    fn = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-30)
+    fn[np.einsum("ij,ij->i", fn, normals[tris[face[near]]].sum(axis=1)) < 0.0] *= -1.0  # the way the cloth's normals face
+    d = points[near] - q
+    s = np.einsum("ij,ij->i", d, fn)
+    beside = np.linalg.norm(d - s[:, None] * fn, axis=1) > 0.5 * np.abs(s) + 1e-6
+    out[np.flatnonzero(near)[~beside]] = s[~beside]
+    return out
+
+
+@dataclass
+class _Layer:
+    """A held cloth that the dressed one starts on the wrong side of: under it (`under`) or over it, `depth` [m] deep;
+    its particles `indices`, positions `x` [m], `triangles` (local) and :func:`outward_normals`."""
+
+    name: str
+    under: bool
+    depth: float
+    indices: np.ndarray
+    x: np.ndarray
+    triangles: np.ndarray
+    normals: np.ndarray
+
+
+def _misplaced_layers(trial, moving: np.ndarray, under, device) -> list[_Layer]:
+    """The held cloths of `trial` that the dressed cloth (the `moving` particles) starts on the wrong side of: under a
+    layer that goes over it, or over one that goes under it (`under`: names; None: those it mostly lies over)."""
+    layers = []
+    for ref, _, _ in trial.cloths:
+        idx = ref.indices()
+        if moving[idx].any():
+            continue
+        x = trial.particle_positions[idx].astype(np.float64)
+        tris = np.asarray(ref.topology.triangles, np.int64)
+        normals = outward_normals(x, tris, trial.colliders, device)
+        offsets = layer_offsets(trial.particle_positions[moving], x, tris, normals, device)
+        offsets = offsets[~np.isnan(offsets)]
+        if not len(offsets):
+            continue
+        inner = ref.name in under if under is not None else float(np.median(offsets)) > 0.0
+        depth = float(np.max(-offsets if inner else offsets))
+        if depth > 0.0:
+            layers.append(_Layer(ref.name, inner, depth, idx, x, tris, normals))
+    return layers
+
+
+def _layer_room(trial, layer: _Layer, device) -> np.ndarray:
+    """How far [m] each particle of a layer under the dressed cloth may be pulled in: to 1.5 thicknesses from the body
+    (`trial`'s colliders as they start; inf without a body)."""
+    return np.clip(body_distance(trial.colliders, layer.x, device=device) - 1.5 * float(trial.cloth_thickness), 0.0, None)
+
+
+def _clearance(trial) -> float:
+    return LAYER_CLEARANCE * float(trial.cloth_thickness)
+
+
+def _move_layers(trial, moving: np.ndarray, layers: list[_Layer], seconds: float, device) -> float:
+    """Move `layers` (:func:`_misplaced_layers`) out of the dressed cloth's way in `trial`: a layer under it is pulled
+    in along its normals by the depth plus :data:`LAYER_CLEARANCE` thicknesses (as far as :func:`_layer_room` lets it)
+    and moved back out by one handle a particle over the first `seconds` [s] (at :data:`GROWTH_SPEED` if that is
+    sooner): its pinned particles push the dressed cloth out as a growing body does. A layer over it (dressed later,
+    from where the builder has it) is pushed out as far and left there. Returns the depth [m] (0: no layer)."""
+    from .model import Keyframe
+
+    names = [ref.name for ref, _, _ in trial.cloths if moving[ref.indices()].any()]
+    for layer in layers:
+        shift = np.full(len(layer.x), layer.depth + _clearance(trial))
+        if layer.under:
+            shift = np.minimum(shift, _layer_room(trial, layer, device))
+        placed = layer.x + (-shift if layer.under else shift)[:, None] * layer.normals
+        left = layer_offsets(trial.particle_positions[moving], placed, layer.triangles, layer.normals, device)
+        left = left[~np.isnan(left)]
+        if len(left) and float(np.max(-left if layer.under else left)) > 0.0:
+            raise InvalidValue(f"dress: {', '.join(map(repr, names))} starts {100.0 * layer.depth:.1f} cm on the wrong side of "
+                               f"{layer.name!r}, which goes {'under' if layer.under else 'over'} it, and {layer.name!r} cannot be "
+                               f"moved that far out of its way: place the panels further {'out' if layer.under else 'in'}")
+        trial.particle_positions[layer.indices] = placed
+        if layer.under:
+            grow = min(max(seconds, 1e-3), float(shift.max()) / GROWTH_SPEED)
+            for p, d, n in zip(layer.indices, shift, layer.normals):
+                if d > 0.0:
+                    trial.add_handle([int(p)], [Keyframe(0.0), Keyframe(grow, tuple(float(c) for c in d * n))], name=f"layer{p}")
+    return max((layer.depth for layer in layers), default=0.0)
+
+
+def crossing_layers(builder, moving: np.ndarray, under, device=None) -> int:
+    """How many of the `moving` particles lie under (on the body's side of) a cloth named in `under`."""
+    count = 0
+    for ref, _, _ in builder.cloths:
+        if ref.name in under and not moving[ref.indices()].any():
+            x = builder.particle_positions[ref.indices()].astype(np.float64)
+            tris = np.asarray(ref.topology.triangles, np.int64)
+            s = layer_offsets(builder.particle_positions[moving], x, tris, outward_normals(x, tris, builder.colliders, device), device)
+            count += int(np.count_nonzero(s < 0.0))
+    return count
+
+
 def seam_gap(builder, positions=None, particles=None) -> float:
     """The largest distance [m] between the two ends of the builder's seam springs (at `positions`, default its own;
     with `particles`, a boolean mask over the particles, only the seams of those)."""
@@ -155,7 +319,7 @@ def seam_gap(builder, positions=None, particles=None) -> float:
 
 
 def dress(builder, seconds: float = 1.0, *, closing: float = 0.6, fps: float = 60.0, substeps: int = 2, damping: float = 6.0,
-          device=None, solver_options: dict | None = None, garments=None) -> DressingReport:
+          device=None, solver_options: dict | None = None, garments=None, under=None) -> DressingReport:
     """Sew the builder's garments onto its colliders: simulate `seconds` [s] without gravity, with mass-proportional
     `damping` [1/s], the colliders still in their pose at t = 0 and frictionless (a T-shirt's sleeve caps must slide over
     the shoulders: with friction its dressing diverged; handles held where they start), the seams closing
@@ -167,14 +331,17 @@ def dress(builder, seconds: float = 1.0, *, closing: float = 0.6, fps: float = 6
     `solver_options`: keyword arguments of the implicit Euler solver (the scene's; its collider contacts are resolved
     after each step while dressing). `garments`: the names of
     the cloths to dress (default all); the others are held still where they are, as obstacles (a layered outfit is
-    dressed a layer at a time from the inside out, each over the layers already dressed)."""
+    dressed a layer at a time from the inside out, each over the layers already dressed). `under`: the names of the
+    held cloths that go under the dressed ones (default: those they mostly lie over); a held layer they start on the
+    wrong side of is moved out of their way first (:func:`_move_layers`: one under them grows back under them)."""
     if builder.attachments:
         raise InvalidValue("dress: bind attachments after dressing (the builder already has some)")
     # Contacts after the step: held inside the solve, a seam's two particles touching the body on differently
     # inclined facets were measured to chatter 2-5 mm apart instead of closing.
     # (and their friction, which the sewing turns off anyway: in the solve it needs the contacts there)
     options = {**(solver_options or {}), "collider_contacts": "pass", "contact_friction": "after"}
-    return _still_run(builder, seconds, closing, False, fps, substeps, damping, device, options, _cloth_particles(builder, garments))
+    return _still_run(builder, seconds, closing, False, fps, substeps, damping, device, options, _cloth_particles(builder, garments),
+                      under)
 
 
 def finish_seams(x: np.ndarray, pairs: np.ndarray) -> tuple[np.ndarray, float]:
@@ -220,9 +387,11 @@ def settle(builder, seconds: float = 1.0, *, fps: float = 60.0, substeps: int = 
     return _still_run(builder, seconds, 0.0, True, fps, substeps, damping, device, solver_options)
 
 
-def _still_run(builder, seconds, closing, gravity, fps, substeps, damping, device, solver_options, moving=None) -> DressingReport:
+def _still_run(builder, seconds, closing, gravity, fps, substeps, damping, device, solver_options, moving=None,
+               under=None) -> DressingReport:
     """Simulate a copy of `builder` against its colliders held still at t = 0 and write the end positions back
-    (`moving`: a mask of the particles that may move, the others pinned where they are; default all)."""
+    (`moving`: a mask of the particles that may move, the others pinned where they are, those of layers the moving ones
+    start on the wrong side of moved out of their way (`under`, see :func:`dress`); default all)."""
     from .simulator import Simulator
     from .solvers import make_solver
 
@@ -236,17 +405,24 @@ def _still_run(builder, seconds, closing, gravity, fps, substeps, damping, devic
     trial.global_damping = damping
     trial.colliders = [frozen_collider(c) for c in trial.colliders]
     moving = np.ones(len(builder.particle_positions), bool) if moving is None else np.asarray(moving, bool)
-    grown_from = 0.0
+    grown_from, layers = 0.0, []
     if closing > 0.0:  # sewing: panels slide into place (a sleeve cap over the shoulder) without friction
         trial.colliders = [dataclasses.replace(c, static_friction=0.0, kinetic_friction=0.0) for c in trial.colliders]
+        if trial.self_collision and not moving.all():  # held layers it starts on the wrong side of (moved aside below)
+            layers = _misplaced_layers(trial, moving, under, device)
+        # room the layers under it need beyond the body's: the body starts that much shrunk too
+        room = max((float(np.max(layer.depth + _clearance(trial) - _layer_room(trial, layer, device)))
+                    for layer in layers if layer.under), default=0.0)
         for k, c in enumerate(trial.colliders):  # a closed body cloth starts inside grows back under it
             if _closed(c):
                 depth = -float(mesh_depths(c, builder.particle_positions[moving], device=device).min(initial=0.0))
-                if depth > 0.0:
-                    trial.colliders[k] = growing_collider(c, depth, 0.5 * closing * seconds, device)
+                if max(depth, room) > 0.0:
+                    trial.colliders[k] = growing_collider(c, max(depth, room), 0.5 * closing * seconds, device)
                     grown_from = max(grown_from, depth)
     trial.handles = []  # their particles stay pinned where they start
     trial.particle_pinned[~moving] = 1
+    layered_from = _move_layers(trial, moving, layers, 0.5 * closing * seconds, device)
+    below = list(under) if under is not None else [layer.name for layer in layers if layer.under]
     model = trial.finalize(device)
     options = dict(solver_options or {})
     options.setdefault("strain_limit", 0.1)
@@ -283,5 +459,20 @@ def _still_run(builder, seconds, closing, gravity, fps, substeps, damping, devic
     builder.particle_velocities[:] = 0.0
     inside = sum(int(np.count_nonzero(mesh_depths(c, builder.particle_positions[moving], device=device) < 0.0))
                  for c in builder.colliders if _closed(c)) if closing > 0.0 else 0
+    crossing = crossing_layers(builder, moving, below, device) if below else 0
+    strain = float(stats.max_strain) if moving.all() else _max_strain(builder, x, moving)  # (not the held layers moved aside)
     return DressingReport(frames / fps, frames * substeps, seam_gap(builder, particles=moving),
-                          float(np.linalg.norm(v[moving], axis=1).max()), float(stats.max_strain), finished, grown_from, inside)
+                          float(np.linalg.norm(v[moving], axis=1).max()), strain, finished, grown_from, inside, layered_from, crossing)
+
+
+def _max_strain(builder, x: np.ndarray, particles: np.ndarray) -> float:
+    """The largest strain l / L - 1 of the builder's structural and shear springs between `particles` (a mask) at `x`
+    (0 if none is stretched)."""
+    kind = builder.spring_kind
+    ends = builder.springs
+    pick = (((kind == int(SpringKind.STRUCTURAL)) | (kind == int(SpringKind.SHEAR))) & particles[ends[:, 0]]
+            & particles[ends[:, 1]])
+    ends, rest = ends[pick], builder.spring_rest_length[pick]
+    if not len(ends):
+        return 0.0
+    return max(0.0, float((np.linalg.norm(x[ends[:, 0]] - x[ends[:, 1]], axis=1) / rest - 1.0).max()))

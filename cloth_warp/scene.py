@@ -873,14 +873,19 @@ def _dressing(b, scene: Scene, stage: str, device):
                 log.info("dressing.settle: %s", dressing.settle(b, seconds, fps=fps, device=device, solver_options=options))
                 return
             layers = layer_order(scene)
-            for names in layers:  # from the inside out, the other layers held still (one layer: all at once)
+            for k, names in enumerate(layers):  # from the inside out, the other layers held still (one layer: all at once)
+                under = [n for inner in layers[:k] for n in inner]
                 report = dressing.dress(b, seconds, fps=fps, device=device, solver_options=options,
-                                        garments=names if len(layers) > 1 else None)
+                                        garments=names if len(layers) > 1 else None, under=under)
                 log.info("dressing.seconds %s: %s", ", ".join(names), report)
                 if report.inside:
                     log.warning("dressing.seconds: %d particles of %s are still inside the body after the dressing (it started "
                                 "%.1f cm inside): place the panels further out, or dress for longer", report.inside,
                                 ", ".join(names), 100.0 * report.grown_from)
+                if report.crossing:
+                    log.warning("dressing.seconds: %d particles of %s are still under %s after the dressing (it started %.1f cm "
+                                "under): place the panels further out, or dress for longer", report.crossing, ", ".join(names),
+                                ", ".join(under), 100.0 * report.layered_from)
         except SimulationDiverged as exc:  # a clear error before any frame is written, not a traceback
             doing = "settling under gravity" if stage == "settle" else "being sewn"
             depth, body = dressing.depth_inside(b, device=device) if stage == "seconds" else (0.0, "")

@@ -351,3 +351,16 @@ def mesh_inner_thickness(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), norma
     thickness_out[i] = max_distance
     if query.result:
         thickness_out[i] = query.t
+
+
+@wp.kernel(enable_backward=False)
+def mesh_closest_points(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), max_distance: float,
+                        face_out: wp.array(dtype=wp.int32), weights_out: wp.array(dtype=wp.vec3)):
+    """Per point, the closest point of a mesh (open or closed) within `max_distance` [m]: its triangle (-1: none that
+    near) and the barycentric weights of the triangle's three corners."""
+    i = wp.tid()
+    query = wp.mesh_query_point_no_sign(mesh, points[i], max_distance)
+    face_out[i] = -1
+    if query.result:
+        face_out[i] = query.face
+        weights_out[i] = wp.vec3(query.u, query.v, 1.0 - query.u - query.v)

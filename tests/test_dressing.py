@@ -2,6 +2,7 @@
 (patterns.Wrap), seams closed in a dressing phase, a sewn garment one vertex per seam point to self-collision and in
 the cache, nothing inside the body or crossing it."""
 
+import json
 import math
 import pathlib
 
@@ -15,7 +16,7 @@ from cloth_warp.mannequin import Mannequin
 from cloth_warp.patterns import Wrap, mesh_pattern, read_garmentcode, wrap_points
 from cloth_warp.scene import SceneError, build_model, parse_scene
 from cloth_warp.topology import seam_roots
-from intersections import crossing_pairs, intersecting_pairs
+from intersections import crossing_pairs, intersecting_pairs, segment_crosses_triangle
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SKIRT = ROOT / "scenes" / "patterns" / "skirt_specification.json"
@@ -367,3 +368,109 @@ def test_a_garment_placed_too_deep_into_the_body_says_how_deep(tmp_path):
             '[collision]\nself_collision = true\n[solver]\nintegrator = "implicit_euler"\nsubsteps = 2\n')
     with pytest.raises(SceneError, match=r"dressing\.seconds: the garment diverged .* starts 6\.\d cm inside the body 'body'"):
         build_model(parse_scene(text, tmp_path / "tube.toml"), "cpu")
+
+
+def _overskirt_at(tmp_path, z: float) -> pathlib.Path:
+    """The shipped overskirt pattern with its panels placed `z` [m x 100] from the body's axis (21.5 shipped; the
+    skirt's are 19): nearer than the skirt's at the waist, it starts crossing the skirt."""
+    spec = json.loads(OVERSKIRT.read_text())
+    for name, sign in (("front", 1.0), ("back", -1.0)):
+        spec["pattern"]["panels"][name]["translation"][2] = sign * z
+    path = tmp_path / f"overskirt_{z:g}.json"
+    path.write_text(json.dumps(spec))
+    return path
+
+
+def _crossed_layers(tmp_path, z: float):
+    body = Mannequin(1.75)
+    b = cw.ModelBuilder()
+    b.add_collider_mesh(body.rest_vertices, body.triangles, name="body", friction=0.5)
+    wrap = [Wrap(("front", "back"), (0.0, 0.0, 0.0))]
+    skirt = b.add_cloth_pattern(SKIRT, edge_length=0.06, wraps=wrap, material="cotton", name="skirt")
+    over = b.add_cloth_pattern(_overskirt_at(tmp_path, z), edge_length=0.06, wraps=wrap, material="silk", name="overskirt")
+    b.enable_self_collision(0.004, 0.3)
+    return body, b, skirt, over
+
+
+def _layer_crossings(b, skirt, over) -> list:
+    x = b.particle_positions
+    return crossing_pairs(x, skirt.topology.triangles + skirt.particle_start, x, over.topology.triangles + over.particle_start)
+
+
+@pytest.mark.parametrize("z", [17.0, 15.0])
+def test_layers_placed_into_each_other_are_dressed_apart_in_their_order(tmp_path, monkeypatch, z):
+    """Check an overskirt placed crossing the skirt under it (at the waist 2 or 4 cm nearer the body than the skirt, its
+    flare outside it lower down) is dressed over it: while the skirt is sewn, the held overskirt is moved out of its
+    way (and kept where it was placed); while the overskirt is sewn, the dressed skirt starts pulled in under it (the
+    body shrunk too where the skirt lies on it) and grows back, pushing it out. At the end the two cross nowhere,
+    neither crosses the body, both seams are closed, the held garment of each stage keeps its place bit for bit, and
+    every overskirt particle lies outside the skirt (on a horizontal ray from the body's axis). Without the layers moved aside the same
+    dressing diverges or ends crossing."""
+    from cloth_warp import dressing
+    from cloth_warp.solvers import SimulationDiverged
+
+    body, b, skirt, over = _crossed_layers(tmp_path, z)
+    assert len(_layer_crossings(b, skirt, over)) > 50
+    placed = b.particle_positions[over.indices()].copy()
+    first = dress(b, 1.0, garments=["skirt"])
+    assert first.layered_from > 0.01 and first.seam_gap < 1e-3 and first.max_strain < 0.11
+    np.testing.assert_array_equal(b.particle_positions[over.indices()], placed)
+    dressed = b.particle_positions[skirt.indices()].copy()
+    second = dress(b, 1.0, garments=["overskirt"], under=["skirt"])
+    assert second.layered_from > 0.005 and second.crossing == 0 and second.inside == 0
+    assert second.seam_gap < 1e-3 and second.max_strain < 0.11
+    np.testing.assert_array_equal(b.particle_positions[skirt.indices()], dressed)
+    assert not _layer_crossings(b, skirt, over)
+    x = b.particle_positions
+    assert not crossing_pairs(x, b.triangles, body.rest_vertices, body.triangles)
+    # the order, independently: on the horizontal ray from the body's axis through each overskirt particle, the skirt
+    # is met before it, never after it
+    p = x[over.indices()]
+    axis = p * [0.0, 1.0, 0.0]
+    out = p + 0.5 * (p - axis) / np.linalg.norm(p - axis, axis=1, keepdims=True)
+    corners = x[skirt.topology.triangles + skirt.particle_start]
+    r, t = np.repeat(np.arange(len(p)), len(corners)), np.tile(np.arange(len(corners)), len(p))
+    before = segment_crosses_triangle(axis[r], p[r], *(corners[t, k] for k in range(3)))
+    after = segment_crosses_triangle(p[r], out[r], *(corners[t, k] for k in range(3)))
+    assert not after.any()
+    assert len(np.unique(r[before])) > 0.5 * len(p)  # (all but the rows above the skirt's waistband)
+
+    _, b, skirt, over = _crossed_layers(tmp_path, z)
+    monkeypatch.setattr(dressing, "_misplaced_layers", lambda *args: [])
+    try:
+        dress(b, 1.0, garments=["skirt"])
+        dress(b, 1.0, garments=["overskirt"], under=["skirt"])
+    except SimulationDiverged:
+        return
+    assert _layer_crossings(b, skirt, over)
+
+
+def test_a_layer_that_cannot_be_moved_aside_far_enough_is_named(tmp_path, monkeypatch):
+    """Check a layer under the garment being dressed that has no room to be pulled in under it (here: none) stops the
+    dressing with an InvalidValue naming both garments, how deep and which way to place the panels."""
+    from cloth_warp import dressing
+
+    _, b, _, _ = _crossed_layers(tmp_path, 17.0)
+    dress(b, 1.0, garments=["skirt"])
+    monkeypatch.setattr(dressing, "_layer_room", lambda trial, layer, device: np.zeros(len(layer.x)))
+    monkeypatch.setattr(dressing, "growing_collider", lambda c, depth, seconds, device=None: c)
+    with pytest.raises(cw.InvalidValue, match=r"'overskirt' starts 0\.\d cm on the wrong side of 'skirt', which goes under it, "
+                                              r"and 'skirt' cannot be moved that far out of its way: place the panels further out"):
+        dress(b, 1.0, garments=["overskirt"], under=["skirt"])
+
+
+def test_a_layered_scene_placed_crossing_dresses_in_its_layer_order(tmp_path):
+    """Check a scene whose outer garment (layer 1) is placed crossing the inner one builds (the dressing passes the
+    layers under each garment) and ends with the two crossing nowhere."""
+    text = (f'[cloth]\npattern = "{SKIRT.as_posix()}"\nedge_length = 0.06\nname = "skirt"\nlayer = 0\n'
+            '[[cloth.wraps]]\npanels = ["front", "back"]\n'
+            f'[[garments]]\nname = "overskirt"\npattern = "{_overskirt_at(tmp_path, 17.0).as_posix()}"\nedge_length = 0.06\n'
+            'layer = 1\n[[garments.wraps]]\npanels = ["front", "back"]\n'
+            '[dressing]\nseconds = 1.0\nsettle = 0.0\n'
+            '[[colliders]]\ntype = "mannequin"\nname = "body"\nmotion = "still"\n'
+            '[collision]\nself_collision = true\n[solver]\nintegrator = "implicit_euler"\nsubsteps = 2\n')
+    from cloth_warp.scene import scene_builder
+
+    b = scene_builder(parse_scene(text, tmp_path / "layers.toml"), "cpu")
+    refs = {ref.name: ref for ref, _, _ in b.cloths}
+    assert not _layer_crossings(b, refs["skirt"], refs["overskirt"])
