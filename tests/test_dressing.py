@@ -474,3 +474,31 @@ def test_a_layered_scene_placed_crossing_dresses_in_its_layer_order(tmp_path):
     b = scene_builder(parse_scene(text, tmp_path / "layers.toml"), "cpu")
     refs = {ref.name: ref for ref, _, _ in b.cloths}
     assert not _layer_crossings(b, refs["skirt"], refs["overskirt"])
+
+
+def test_layer_offsets_are_signed_along_the_cloths_outward_normal_and_none_beside_it():
+    """Check dressing.layer_offsets on a 1 m square sheet at z = 0 facing +z: a point over it is as far above as it is,
+    one under it negative, one beside its border (mostly along the sheet) or beyond LAYER_REACH has none (NaN); and
+    outward_normals turns a panel's normals away from a body (a ball under the sheet) whatever its winding."""
+    from cloth_warp import dressing
+
+    x = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0]])
+    tris = np.array([[0, 1, 2], [0, 2, 3]])
+    up = np.tile([0.0, 0.0, 1.0], (4, 1))
+    points = [[0.5, 0.5, 0.1], [0.3, 0.6, -0.05], [1.2, 0.5, 0.01], [0.5, 0.5, dressing.LAYER_REACH + 0.01]]
+    s = dressing.layer_offsets(points, x, tris, up)
+    np.testing.assert_allclose(s[:2], [0.1, -0.05], atol=1e-6)
+    assert np.isnan(s[2:]).all()
+    np.testing.assert_allclose(dressing.layer_offsets(points[:2], x, tris, -up), [-0.1, 0.05], atol=1e-6)
+    ball = cw.ModelBuilder()
+    body = ball.add_collider_mesh(*_ball(0.3, (0.5, 0.5, -0.5)), name="ball")
+    for winding in (tris, tris[:, ::-1]):
+        np.testing.assert_allclose(dressing.outward_normals(x, winding, [body]), up, atol=1e-6)
+        np.testing.assert_allclose(dressing.outward_normals(x - [0.0, 0.0, 1.0], winding, [body]), -up, atol=1e-6)
+
+
+def _ball(radius: float, centre) -> tuple[np.ndarray, np.ndarray]:
+    import trimesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=radius)
+    return np.asarray(sphere.vertices) + centre, np.asarray(sphere.faces)
