@@ -390,8 +390,10 @@ class Simulator:
           a control set by hand survives too);
         * ``last_stats``: the last frame's statistics (5 numbers, when there is one);
         * ``solver.*``: the solver's (:meth:`SolverBase.checkpoint_state`): its name; implicit Euler's warm
-          start (``solver.dv_previous``, ``solver.has_previous``); with self-collision the broad phase's
-          buffer capacities and counters (``solver.collisions.self.*``: each pass's state under its ``checkpoint_key``);
+          start (``solver.dv_previous``, ``solver.has_previous``) and contacts' last normal impulses; with
+          self-collision the broad phase's buffer capacities and counters and the last step's close pairs (the
+          next step's self-contact candidates in the solve) (``solver.collisions.self.*``: each pass's state under
+          its ``checkpoint_key``);
         * ``stepper.*`` (adaptive only): the current dt, the good steps since the last change, the statistics of
           the last accepted step, the run's report;
         * ``bounds.wind_speed``: the strongest wind the divergence bounds have seen;
