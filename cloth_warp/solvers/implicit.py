@@ -750,8 +750,8 @@ class SolverImplicitEuler(SolverBase):
                 and (not state_in.requires_grad or self.differentiation == "adjoint"))
 
     def _filtered_inverse(self) -> int:
-        """Whether a contact's preconditioner block is the filtered block's inverse: not yet where the contacts'
-        friction is in the solve (kernels/implicit.py filter_contact_preconditioner)."""
+        """Whether a contact's preconditioner block starts as the filtered block's inverse: not where the contacts'
+        friction is in the solve, whose damper or slide gives it that (kernels/implicit.py filter_contact_preconditioner)."""
         return int(self.contact_friction != "solve")
 
     def _iterate(self, dt: float, warm: bool = False) -> wp.array:
