@@ -172,9 +172,10 @@ def outward_normals(x: np.ndarray, triangles: np.ndarray, colliders, device=None
 
     n = vertex_normals(x, triangles).astype(np.float64)
     if any(_closed(c) for c in colliders):
-        h = 5.0e-3  # [m]
-        away = np.stack([body_distance(colliders, x + h * e, device=device) - body_distance(colliders, x - h * e, device=device)
-                         for e in np.eye(3)], axis=1)
+        h = 5.0e-3  # [m]: central differences, the six probes of every vertex in one query
+        steps = h * np.concatenate([np.eye(3), -np.eye(3)])
+        d = body_distance(colliders, (x[None] + steps[:, None]).reshape(-1, 3), device=device).reshape(6, len(x))
+        away = (d[:3] - d[3:]).T
     else:
         away = x - x.mean(axis=0)
     tris = np.asarray(triangles, np.int64)
