@@ -127,6 +127,9 @@ class SelfCollisionPass(StepPass):
     def needs_rerun(self, report: SelfCollisionReport) -> bool:
         return bool(report.overflowed)
 
+    def begin_rerun(self) -> None:
+        self.self_collision.restore_frame_start()
+
     def prepare_rerun(self, report: SelfCollisionReport) -> bool:
         grown = self.self_collision.grow(self._status)
         self.self_collision.capturable = False
@@ -134,6 +137,8 @@ class SelfCollisionPass(StepPass):
 
     def end_rerun(self) -> None:
         self.self_collision.capturable = self._recordable
+        if self._recordable:  # grown buffers now, not first inside the next recorded frame (see set_recordable)
+            self.self_collision.prepare_capturable()
 
     def notify_model_changed(self, flags: int) -> None:
         self.self_collision.notify_model_changed(flags)
@@ -143,7 +148,9 @@ class SelfCollisionPass(StepPass):
         self.self_collision.begin_step()
 
     def reset_report(self):
+        """A frame starts: its counters from zero, and what the broad phase carries saved (see :meth:`begin_rerun`)."""
         self.self_collision.reset_counts()
+        self.self_collision.save_frame_start()
 
     def record_arrays(self) -> list:
         return [(self.self_collision, "counts")]
@@ -193,7 +200,6 @@ class WorldSelfCollisionPass(StepPass):
         self.worlds = [SelfCollisionPass(m) for m in model.world_models]
         self._reports: list[SelfCollisionReport] = []
         self._views: dict = {}  # (array pointer, world) -> the world's view, one object per array (see _view)
-        self._kept: list | None = None  # each world's close pairs at the end of the last frame not run again (see read_report)
 
     def _view(self, a: wp.array, k: int) -> wp.array:
         """World k's slice of particle array `a`, the same view object each time (a self-collision pass knows a later
@@ -219,15 +225,15 @@ class WorldSelfCollisionPass(StepPass):
     def needs_rerun(self, report: SelfCollisionReport) -> bool:
         return bool(report.overflowed)
 
+    def begin_rerun(self) -> None:
+        for p in self.worlds:  # each world runs the frame again from where it started it (then as alone)
+            p.begin_rerun()
+
     def prepare_rerun(self, report: SelfCollisionReport) -> bool:
         grown = False
-        for k, (p, r) in enumerate(zip(self.worlds, self._reports)):  # (the others run the frame again as they ran it: as alone)
+        for p, r in zip(self.worlds, self._reports):
             if p.needs_rerun(r):
                 grown = p.prepare_rerun(r) or grown
-            elif self._kept is not None:  # and start it from the close pairs they started it from
-                for (pairs, count), (kept, kept_count) in zip(p.self_collision.contact_candidates(), self._kept[k]):
-                    wp.copy(pairs, kept)
-                    wp.copy(count, kept_count)
         return grown
 
     def end_rerun(self) -> None:
@@ -256,17 +262,6 @@ class WorldSelfCollisionPass(StepPass):
         self._reports = [p.read_report() for p in self.worlds]
         counts = {name: sum(getattr(r, name) for r in self._reports) for name in self._reports[0].counters()}
         overflowed = sorted({kind for r in self._reports for kind in r.overflowed})
-        if not overflowed and self.worlds[0].self_collision.share_close_pairs:
-            # a frame that stands: its close pairs (the self-contacts' candidates of the next step, in the solve) are
-            # where a frame run again because another world overflowed starts from in the worlds that did not
-            lists = [p.self_collision.contact_candidates() for p in self.worlds]
-            if self._kept is None or any(k.shape != a.shape for w, kw in zip(lists, self._kept) for (a, _), (k, _) in zip(w, kw)):
-                self._kept = [[(wp.clone(pairs), wp.clone(count)) for pairs, count in w] for w in lists]  # (grown: again)
-            else:
-                for w, kw in zip(lists, self._kept):
-                    for (pairs, count), (kept, kept_count) in zip(w, kw):
-                        wp.copy(kept, pairs)
-                        wp.copy(kept_count, count)
         return SelfCollisionReport.from_counts(counts, tuple(overflowed))
 
     @property

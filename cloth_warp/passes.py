@@ -14,9 +14,10 @@ the last word is the contacts'. Every pass:
   recorded in a graph (``capturable``: no host reads, no host-sized buffers inside a step; a pass with a
   separate recordable path takes it after ``set_recordable(True)``);
 * may ask for its frame again (``needs_rerun(report)``: a capturable path whose fixed buffers overflowed, or
-  a step only its host path resolves): the Simulator then restores the frame's start, calls
-  ``prepare_rerun(report)`` (grow buffers, switch to the host path; True when arrays were replaced, so a
-  recorded frame is recorded again), runs the frame eagerly and calls ``end_rerun()``;
+  a step only its host path resolves): the Simulator then restores the frame's start, calls every pass's
+  ``begin_rerun()`` (what it carries from step to step back to the frame's start, as ``reset_report()`` saved
+  it) and the asking ones' ``prepare_rerun(report)`` (grow buffers, switch to the host path; True when arrays
+  were replaced, so a recorded frame is recorded again), runs the frame eagerly and calls ``end_rerun()``;
 * refreshes what it derived from the model on ``notify_model_changed(flags)`` and carries state from step to
   step only through ``checkpoint_state()`` / ``restore_state()`` (under its ``checkpoint_key``).
 """
@@ -75,6 +76,10 @@ class StepPass:
 
     def needs_rerun(self, report) -> bool:
         return False
+
+    def begin_rerun(self) -> None:
+        """The frame runs again (every pass, before the asking ones' :meth:`prepare_rerun`): restore what it carries
+        from step to step to where the frame started it."""
 
     def prepare_rerun(self, report) -> bool:
         return False

@@ -26,9 +26,10 @@ The capturable path (``SelfCollision(model, capturable=True)``, forward only) ru
 reading the device on the host, so a frame can be recorded once as a graph (``wp.ScopedCapture``) and
 replayed: buffers have fixed capacities (what does not fit is dropped and the need recorded), counts stay
 on the device, the CCD sweeps are a ``wp.capture_while`` loop, the broad phase is built in full on the
-device when the step's start positions are new; when end points left the margin it is patched on the device
-(``wp.capture_if``: the elements touching at most ``patch_limit`` escaped particles tested against every element)
-or, past that, built again; impacts left after the sweeps form rigid impact zones on the device (a
+device and registered with the trajectories it was built on, and kept, from step to step, while every particle's
+start and end points stay within the margin of its registered ones (a pile at rest keeps it for hundreds of
+steps); when some left the margin it is patched on the device (``wp.capture_if``: the elements touching at most
+``patch_limit`` escaped particles tested against every element) or, past that, built again; impacts left after the sweeps form rigid impact zones on the device (a
 ``capture_while`` loop of detection and merge rounds; zones join as trees whose roots hook under the smaller
 (atomic minima) with pointer jumping, to each zone's smallest particle; their motion from float64 sums per zone:
 the same kernels as the host path's, whose zones come from :func:`connected_labels`). After the frame, :meth:`SelfCollision.status` (one read) says whether a buffer
@@ -119,6 +120,10 @@ class SelfCollision:
         self.patch_limit = 32
         """The capturable path patches its broad phase when at most this many particles left the margin (testing the
         elements touching them against every element), else builds it again."""
+        self.keep_broad_phase = True
+        """The capturable path keeps its broad phase from step to step while the trajectories stay within the margin
+        of the registered ones (:meth:`_refresh_fixed`); off, it builds it at every step's first round, its boxes grown
+        by half the thickness (the dressing's: see cloth_warp/dressing.py)."""
         self.counts = wp.zeros(ksc.COUNT_SIZE, dtype=wp.int32, device=dev)
         """Counters and status, int32 [ksc.COUNT_SIZE] (indices ksc.COUNT_* / ksc.NEED_*)."""
         self.grid.clamped = self.counts[ksc.COUNT_OVERSIZED:ksc.COUNT_OVERSIZED + 1]  # the broad phase counts into the block
@@ -134,8 +139,8 @@ class SelfCollision:
         implicit solve's self-contacts read their candidates (:meth:`contact_candidates`; set by that solver)."""
         self._flip = False
         self._fixed = None  # the capturable path's buffers (see _fixed_buffers)
+        self._step_start = None  # without keep_broad_phase: the start positions of the step whose first round built it
         self._sums = None  # impact zones' sums (see _zone_sums)
-        self._fixed_step = None  # (x_start, dt) the capturable path's broad phase was built for
         weld = Weld(model)
         self.weld = weld if weld.points else None
         """The model's welded sewn points (cloth_warp.sewing), each of whose particles takes the point's mean velocity
@@ -252,16 +257,23 @@ class SelfCollision:
         out = {f"grid.{k}": v for k, v in self.grid.checkpoint_state().items()}
         out["flip"] = bool(self._flip)
         if self._fixed is not None:  # the last step's close pairs: the next step's self-contact candidates in the solve
+            f = self._fixed
             for kind in KINDS:
-                count = min(int(self._fixed.close_count[kind].numpy()[0]), self._fixed.close[kind].shape[0])
-                out[f"close{kind}"] = self._fixed.close[kind].numpy()[:count].astype(np.int32).reshape(count, 2)
+                count = min(int(f.close_count[kind].numpy()[0]), f.close[kind].shape[0])
+                out[f"close{kind}"] = f.close[kind].numpy()[:count].astype(np.int32).reshape(count, 2)
+            # and the trajectories they were registered for, with the elements' boxes a patch tests against: the next
+            # step keeps them as the run it continues does
+            out["registration"] = f.registration.numpy().copy()
+            out["start_reference"] = f.start_reference.numpy().copy()
+            out["velocity_reference"] = self.grid.fixed_reference.numpy().copy()
+            for name, elements in self.grid.element_sets():
+                out[f"{name}_lo"], out[f"{name}_hi"] = elements.lo.numpy().copy(), elements.hi.numpy().copy()
         return out
 
     def restore_state(self, state: dict) -> None:
         self.grid.restore_state({k[len("grid."):]: v for k, v in state.items() if k.startswith("grid.")})
         self._flip = bool(state["flip"])
         self._resolved = None
-        self._fixed_step = None
         self._fixed = None  # capacities may have changed
         self.reset_counts()
         if any(f"close{kind}" in state for kind in KINDS):  # (checkpoints from before they were kept: none)
@@ -272,6 +284,13 @@ class SelfCollision:
                 if count:
                     wp.copy(f.close[kind], wp.array(pairs[:count], dtype=wp.vec2i, device=self.model.device), count=count)
                 f.close_count[kind].fill_(count)
+            if "registration" in state:  # (checkpoints from before the broad phase was kept across steps: built again)
+                f.registration.assign(np.asarray(state["registration"], np.float32))
+                f.start_reference.assign(np.asarray(state["start_reference"], np.float32).reshape(-1, 3))
+                self.grid.fixed_reference.assign(np.asarray(state["velocity_reference"], np.float32).reshape(-1, 3))
+                for name, elements in self.grid.element_sets():
+                    elements.lo.assign(np.asarray(state[f"{name}_lo"], np.float32).reshape(-1, 3))
+                    elements.hi.assign(np.asarray(state[f"{name}_hi"], np.float32).reshape(-1, 3))
 
     # -- buffers ---------------------------------------------------------------------------------
     def _buffer(self, key: str, dtype, fresh: bool, shape=None) -> wp.array:
@@ -326,7 +345,7 @@ class SelfCollision:
         ("vertex_face": (triangle, particle), "edge_edge": (edge, edge) as rows of :attr:`edges`) and its first
         contact time [s] (-1 when none)."""
         dev = self.model.device
-        self._fixed_step = None
+        self._forget_registration()
         self.grid.update(x_start, vbar, dt, 0.5 * self.thickness)
         out = {}
         for kind, name in zip(KINDS, ("vertex_face", "edge_edge")):
@@ -400,11 +419,32 @@ class SelfCollision:
         if not rg and self.share_close_pairs:
             self._keep_close_pairs()
 
+    def save_frame_start(self):
+        """Copy what the capturable path carries from step to step (the registered broad phase and its close pairs) as a
+        frame starts (recorded in a frame's graph): a frame run again because another pass or world asked starts from
+        it (:meth:`restore_frame_start`), so it repeats what the frame did, as a run without the re-run does."""
+        if self._fixed is not None:
+            for live, saved in self._fixed.carried:
+                wp.copy(saved, live)
+
+    def restore_frame_start(self):
+        """Back to what :meth:`save_frame_start` copied (before a frame runs again)."""
+        if self._fixed is not None:
+            for live, saved in self._fixed.carried:
+                wp.copy(live, saved)
+
+    def _forget_registration(self):
+        """The capturable path's broad phase no longer holds (the host path rebuilt the buffers it shares): its next
+        step builds it again."""
+        if self._fixed is not None:
+            self._fixed.registration.zero_()
+
     def begin_step(self):
-        """A new step starts: the start positions changed, so the broad phase and the last round's result are stale."""
+        """A new step starts: the start positions changed, so the host path's broad phase and the last round's result are
+        stale (the capturable path's broad phase tests its registered trajectories itself: :meth:`_refresh_fixed`)."""
         self.grid.invalidate()
         self._resolved = None
-        self._fixed_step = None
+        self._step_start = None
 
     # -- the capturable path ----------------------------------------------------------------------
     # The same passes as the host path, launched over fixed capacities with the counts on the device. Its
@@ -432,13 +472,21 @@ class SelfCollision:
         n = m.particle_count
         f = self._fixed_buffers()
         h_c = self.thickness
-        pad = 0.5 * h_c
         wp.launch(ksc.average_velocity, dim=n, inputs=[x_start, x_end, dt], outputs=[f.vbar0], device=dev)
-        if self._fixed_step is not None and self._fixed_step[0] is x_start and self._fixed_step[1] == float(dt):
-            self._refresh_fixed(x_start, f.vbar0, dt, pad)  # a later round of the step
+        if self.keep_broad_phase:
+            # boxes grown by half the close reach (plus the margin): two elements that come within that reach of each other
+            # in a step whose trajectories are within the margin of the registered ones have overlapping registered boxes
+            pad = 0.5 * max(h_c, self.close_reach())
+            # kept while every trajectory stays within the margin of its registered one, across the steps too
+            self._refresh_fixed(x_start, f.vbar0, dt, pad)
         else:
-            self._build_fixed(x_start, f.vbar0, dt, pad)
-            self._fixed_step = (x_start, float(dt))
+            pad = 0.5 * h_c
+            first = self._step_start is not x_start  # (begin_step forgets it)
+            self._step_start = x_start
+            if first:
+                self._build_fixed(x_start, f.vbar0, dt, pad)
+            else:
+                self._refresh_fixed(x_start, f.vbar0, dt, pad)
         # 2. proximity pass
         f.dv.zero_()
         f.weight.zero_()
@@ -581,21 +629,24 @@ class SelfCollision:
         return out
 
     def _refresh_fixed(self, x_start, vbar, dt, pad):
-        """Keep the broad phase while no end point left the margin around the one it was built with; when at most
-        :attr:`patch_limit` particles did, patch it (:meth:`_patch_fixed`), else build it again (device-side branches)."""
+        """Keep the broad phase and its close pairs while no particle's start or end point left the margin around its
+        registered trajectory's, from step to step (at rest a pile keeps them for hundreds of steps); when at most
+        :attr:`patch_limit` particles did, patch it (:meth:`_patch_fixed`), else build it again (device-side branches;
+        also when nothing is registered, or with another step or thickness)."""
         f = self._fixed
         dev = self.model.device
         f.escaped.zero_()
-        wp.launch(kbp.take_escaped, dim=self.model.particle_count, inputs=[vbar, dt, self.margin],
-                  outputs=[self.grid.fixed_reference, f.escaped_particles, f.escaped], device=dev, record_tape=False)
-        wp.launch(kbp.patch_or_build, dim=1, inputs=[f.escaped, int(self.patch_limit)], outputs=[f.rebuild, f.patch], device=dev,
-                  record_tape=False)
+        wp.launch(kbp.take_moved, dim=self.model.particle_count, inputs=[x_start, vbar, dt, self.margin],
+                  outputs=[f.start_reference, self.grid.fixed_reference, f.escaped_particles, f.escaped], device=dev, record_tape=False)
+        wp.launch(kbp.patch_or_build, dim=1, inputs=[f.escaped, int(self.patch_limit), f.registration, dt, pad, self.margin,
+                                                     self.close_reach()],
+                  outputs=[f.rebuild, f.patch], device=dev, record_tape=False)
         wp.capture_if(f.rebuild, on_true=self._build_fixed, x_start=x_start, velocity=vbar, dt=dt, pad=pad)
         wp.capture_if(f.patch, on_true=self._patch_fixed, x_start=x_start, dt=dt, pad=pad)
 
     def _patch_fixed(self, x_start, dt, pad):
         """The capturable path's patch (the host path's :meth:`SelfCollisionGrid.refresh` "patched", on the device):
-        the escaped particles took their current velocity as reference (:func:`take_escaped`); the elements touching
+        the escaped particles took their current trajectory as reference (:func:`take_moved`); the elements touching
         them get their new boxes, the close pairs with such an element are dropped and those pairs found again by
         testing the few fresh elements against every element (no hash grid: the grid keeps its entries, unused until
         the next build). The close lists stay within their capacity; a larger need is recorded as an overflow."""
@@ -607,7 +658,7 @@ class SelfCollision:
             f.fresh_count[name].zero_()
             wp.launch(kbp.mark_fresh, dim=s.count, inputs=[s.elements, f.escaped_particles],
                       outputs=[f.flags[name], f.fresh[name], f.fresh_count[name]], device=dev, record_tape=False)
-            wp.launch(kbp.fresh_bounds, dim=s.count, inputs=[f.flags[name], s.elements, x_start, g.fixed_reference, dt, grow],
+            wp.launch(kbp.fresh_bounds, dim=s.count, inputs=[f.flags[name], s.elements, f.start_reference, g.fixed_reference, dt, grow],
                       outputs=[s.lo, s.hi], device=dev, record_tape=False)
         for kind in KINDS:  # the close pairs without a fresh element
             first, second = (f.flags["triangles"], f.flags["points"]) if kind == 0 else (f.flags["edges"], f.flags["edges"])
@@ -616,7 +667,7 @@ class SelfCollision:
                       outputs=[f.active[kind], f.active_count[kind]], device=dev, record_tape=False)
             wp.launch(kbp.copy_pairs_listed, dim=f.close[kind].shape[0], inputs=[f.active_count[kind], f.active[kind]],
                       outputs=[f.close[kind], f.close_count[kind]], device=dev, record_tape=False)
-        close = [x_start, g.fixed_reference, dt, self.margin, self.close_reach()]
+        close = [f.start_reference, g.fixed_reference, dt, self.margin, self.close_reach()]  # on the registered trajectories
         pts, tri, edg = g.points, g.triangles, g.edges
         wp.launch(ksc.patch_vertex_face_points, dim=pts.count,
                   inputs=[f.fresh_count["triangles"], f.fresh["triangles"], tri.lo, tri.hi, pts.lo, pts.hi, self.tri_indices, self.edge_indices,
@@ -636,13 +687,17 @@ class SelfCollision:
         wp.launch(ksc.increment_count, dim=1, inputs=[ksc.COUNT_PATCHES], outputs=[self.counts], device=dev, record_tape=False)
 
     def _build_fixed(self, x_start, velocity, dt, pad):
-        """A full broad phase on the device (boxes grown by the margin) and its close pairs."""
+        """A full broad phase on the device (boxes grown by the margin) and its close pairs, registered for the
+        trajectories x_start + t velocity (:meth:`_refresh_fixed` keeps them while the particles stay near those)."""
         f = self._fixed
         dev = self.model.device
         g = self.grid
+        wp.copy(f.start_reference, x_start)
         g.build_fixed(x_start, velocity, dt, pad, self.margin, self.counts, BUFFERS)
         wp.launch(ksc.increment_count, dim=1, inputs=[ksc.COUNT_BUILDS], outputs=[self.counts], device=dev, record_tape=False)
         reach = self.close_reach()
+        wp.launch(kbp.register_broad_phase, dim=1, inputs=[dt, pad, self.margin, reach], outputs=[f.registration], device=dev,
+                  record_tape=False)
         for kind in KINDS:
             buf = g.vertex_face if kind == 0 else g.edge_edge
             f.close_count[kind].zero_()
@@ -658,7 +713,7 @@ class SelfCollision:
         start positions, then only a patch for the particles whose end points left the margin (see
         :meth:`SelfCollisionGrid.refresh`); of the pairs, those close enough to touch are kept (within the
         thickness, given how far their vertices can move)."""
-        self._fixed_step = None  # the host path rebuilds the grid's buffers the capturable path also uses
+        self._forget_registration()  # the host path rebuilds the grid's buffers the capturable path also uses
         done = self.grid.refresh(x_start, vbar, dt, pad, self.margin)
         self.host_counts[f"broad_phase_{'patches' if done == 'patched' else 'builds'}"] += done != "kept"
         if done == "kept":
@@ -861,8 +916,15 @@ class _FixedBuffers:
         self.fresh_count = {name: wp.zeros(1, dtype=wp.int32, device=dev) for name, _ in grid.element_sets()}
         self.rebuild = wp.zeros(1, dtype=wp.int32, device=dev)
         self.patch = wp.zeros(1, dtype=wp.int32, device=dev)
+        self.start_reference = wp.zeros(n, dtype=wp.vec3, device=dev)  # [m] registered trajectories' starts (velocities: the grid's)
+        self.registration = wp.zeros(kbp.REGISTRATION_SIZE, dtype=float, device=dev)  # none yet (kernels/broadphase.py REGISTRATION_*)
         if grid.fixed_reference is None:
             grid.fixed_reference = wp.zeros(n, dtype=wp.vec3, device=dev)
+        # what a step carries to the next (the registered broad phase: its trajectories, the elements' boxes a patch tests
+        # against, its close pairs), each with its copy as the frame started (SelfCollision.save_frame_start)
+        carried = [self.registration, self.start_reference, grid.fixed_reference, *self.close, *self.close_count]
+        carried += [getattr(s, bound) for _, s in grid.element_sets() for bound in ("lo", "hi")]
+        self.carried = [(a, wp.empty_like(a)) for a in carried]
 
 
 class _ZoneSums:

@@ -225,6 +225,8 @@ class Simulator:
     def _rerun(self, asking: list) -> None:
         """Run the frame again from its start, eagerly, with the passes that asked on their host paths (and their
         buffers grown); the frame is recorded again at the next frame (its arrays may have been replaced)."""
+        for p in self.solver.passes:
+            p.begin_rerun()
         for p in asking:
             p.prepare_rerun(self.pass_reports[p.name])
         for live, saved in self._carried:

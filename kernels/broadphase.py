@@ -391,12 +391,58 @@ def select_flagged_pairs_listed(count: wp.array(dtype=wp.int32), pairs: wp.array
 
 
 @wp.kernel(enable_backward=False)
-def patch_or_build(escaped: wp.array(dtype=wp.int32), limit: int, build_out: wp.array(dtype=wp.int32), patch_out: wp.array(dtype=wp.int32)):
-    """One thread: after :func:`take_escaped`, build the broad phase again when more than `limit` particles left the
-    margin, patch it when some (at most `limit`) did, else keep it."""
+def take_moved(x_start: wp.array(dtype=wp.vec3), velocity: wp.array(dtype=wp.vec3), dt: float, margin: float,
+               start_ref_out: wp.array(dtype=wp.vec3), velocity_ref_out: wp.array(dtype=wp.vec3), escaped_out: wp.array(dtype=wp.int32),
+               count_out: wp.array(dtype=wp.int32)):
+    """:func:`take_escaped` for a registration kept from step to step (the capturable path): particles whose start
+    point x_start or end point x_start + dt velocity is farther than the margin from their registered trajectory's
+    (start_ref, start_ref + dt velocity_ref); flag them, count them and register their current trajectory (updated in
+    place: forward-only broad phase). While no particle escapes, every point of every trajectory is within the margin
+    of its registered one (a convex combination of the two ends), so the pairs found on the registered trajectories
+    with boxes grown by the margin hold every pair of the current ones."""
+    i = wp.tid()
+    escaped_out[i] = 0
+    x0 = x_start[i]
+    s = start_ref_out[i]
+    moved_end = x0 + dt * velocity[i] - (s + dt * velocity_ref_out[i])
+    if wp.length(x0 - s) > margin or wp.length(moved_end) > margin:
+        escaped_out[i] = 1
+        start_ref_out[i] = x0
+        velocity_ref_out[i] = velocity[i]
+        wp.atomic_add(count_out, 0, 1)
+
+
+REGISTRATION_VALID = wp.constant(0)  # 1 while the registration below holds (a build sets it)
+REGISTRATION_DT = wp.constant(1)  # the step [s], pad, margin and reach [m] the broad phase was registered with
+REGISTRATION_PAD = wp.constant(2)
+REGISTRATION_MARGIN = wp.constant(3)
+REGISTRATION_REACH = wp.constant(4)
+REGISTRATION_SIZE = 5
+
+
+@wp.kernel(enable_backward=False)
+def register_broad_phase(dt: float, pad: float, margin: float, reach: float, registration_out: wp.array(dtype=float)):
+    """One thread, after a full build: the broad phase holds for trajectories within the margin of the registered ones
+    while the step, pad, margin and reach stay these."""
+    registration_out[REGISTRATION_VALID] = 1.0
+    registration_out[REGISTRATION_DT] = dt
+    registration_out[REGISTRATION_PAD] = pad
+    registration_out[REGISTRATION_MARGIN] = margin
+    registration_out[REGISTRATION_REACH] = reach
+
+
+@wp.kernel(enable_backward=False)
+def patch_or_build(escaped: wp.array(dtype=wp.int32), limit: int, registration: wp.array(dtype=float), dt: float, pad: float,
+                   margin: float, reach: float, build_out: wp.array(dtype=wp.int32), patch_out: wp.array(dtype=wp.int32)):
+    """One thread: after :func:`take_moved`, build the broad phase again when it was never registered (or with another
+    step, pad, margin or reach: the thickness changed) or when more than `limit` particles left the margin, patch it
+    when some (at most `limit`) did, else keep it."""
     n = escaped[0]
-    build_out[0] = wp.where(n > limit, 1, 0)
-    patch_out[0] = wp.where(n > 0 and n <= limit, 1, 0)
+    same = (registration[REGISTRATION_VALID] == 1.0 and registration[REGISTRATION_DT] == dt and registration[REGISTRATION_PAD] == pad
+            and registration[REGISTRATION_MARGIN] == margin and registration[REGISTRATION_REACH] == reach)
+    build = n > limit or not same
+    build_out[0] = wp.where(build, 1, 0)
+    patch_out[0] = wp.where(n > 0 and not build, 1, 0)
 
 
 @wp.kernel(enable_backward=False)

@@ -52,9 +52,11 @@ class Driver:
             self.sc.apply(self.x_start, self.x_end, self.v_end, DT, self.x_out, self.v_out)
 
     def capture(self):
-        """Record the pass (after an eager call has allocated its buffers; its counts are dropped)."""
+        """Record the pass (after an eager call has allocated its buffers; its counts and the broad phase it registered
+        are dropped, so the replay builds where the eager run does)."""
         self.collide()
         self.sc.reset_counts()
+        self.sc._forget_registration()
         with wp.ScopedCapture(device=self.model.device) as cap:
             self.collide()
         self.graph = cap.graph
@@ -275,6 +277,88 @@ def test_broad_phase_patch_finds_the_close_pairs_of_a_full_build():
         sc._build_fixed(x, registered, DT, pad)
         assert close_sets() == patched
         assert not sc.status().needs_rerun
+
+
+def test_broad_phase_is_kept_across_steps_while_the_trajectories_stay_within_the_margin():
+    """Check the capturable path keeps its broad phase from step to step, on two flat sheets at rest registered 1.95
+    margins farther apart than the close reach: later steps whose start and end points all moved less than the margin
+    keep it (no build, no patch): both sheets 0.99 margins toward each other (now within the reach), also with random
+    drifts sideways, and its close pairs then hold every pair that comes within the close reach in the step (none is lost);
+    a particle moved past the margin while the others drift away is patched, and when they then drift toward each
+    other the close pairs again hold every pair within reach; another step size builds it again."""
+
+    model = two_sheets()
+    sc = SelfCollision(model, capturable=True, pair_capacity=1 << 14)
+    tris = model.tri_indices.numpy().reshape(-1, 3)
+    edges = sc.edges
+    bary = np.array([(a, b, 1.0 - a - b) for a in np.linspace(0, 1, 13) for b in np.linspace(0, 1, 13) if a + b <= 1.0 + 1e-9])
+    along = np.linspace(0.0, 1.0, 13)
+    reach, margin = sc.close_reach(), sc.margin
+
+    def within_reach(x):
+        """Every pair of each kind (no shared vertex) whose elements are within the close reach at rest at x (distances
+        between points sampled on the elements: never below the true distance, so each pair found is truly within;
+        boxes farther apart than the reach skipped)."""
+        out = [set(), set()]
+        corners = [x[tris], x[edges]]
+        for kind, first in enumerate(corners):
+            second = x[:, None] if kind == 0 else corners[1]
+            lo, hi = second.min(axis=1), second.max(axis=1)
+            for a, rows in enumerate(first):
+                gap = np.maximum(np.maximum(rows.min(axis=0) - hi, lo - rows.max(axis=0)), 0.0)
+                near = np.flatnonzero(np.linalg.norm(gap, axis=1) <= reach)
+                own = tris[a] if kind == 0 else edges[a]
+                points = bary @ rows if kind == 0 else rows[0] + along[:, None] * (rows[1] - rows[0])
+                for b in near:
+                    other = [b] if kind == 0 else edges[b]
+                    if (kind == 1 and b <= a) or set(other) & set(own):
+                        continue
+                    samples = x[b][None] if kind == 0 else second[b][0] + along[:, None] * (second[b][1] - second[b][0])
+                    if np.min(np.linalg.norm(points[:, None] - samples[None], axis=2)) <= reach:
+                        out[kind].add((a, int(b)))
+        return out
+
+    def close_set():
+        f = sc._fixed
+        return [{tuple(int(v) for v in p) for p in f.close[kind].numpy()[: int(f.close_count[kind].numpy()[0])]} for kind in (0, 1)]
+
+    def refresh(x, dt=DT):
+        sc.reset_counts()
+        sc._refresh_fixed(wp.array(x, dtype=wp.vec3), wp.zeros(model.particle_count, dtype=wp.vec3), dt, pad)
+        counts = sc.read_counts()
+        return counts["broad_phase_builds"], counts["broad_phase_patches"]
+
+    lower = np.arange(model.particle_count) < 17 * 17
+    x0 = model.particle_q.numpy().astype(np.float64)
+    # the upper sheet flat above the lower one (at y = 0), farther than the reach plus twice the margin less the reach's
+    # excess over the thickness: boxes grown by half the thickness (and the margin) would not overlap
+    x0[~lower, 1] = reach + 1.95 * margin
+    toward = np.where(lower[:, None], 1.0, -1.0) * np.array([0.0, 0.99 * margin, 0.0])
+    pad = 0.5 * max(sc.thickness, reach)  # as the pass grows its boxes
+    sc._fixed_buffers()
+    sc._build_fixed(wp.array(x0, dtype=wp.vec3), wp.zeros(model.particle_count, dtype=wp.vec3), DT, pad)
+    assert within_reach(x0) == [set(), set()]
+    registered = close_set()
+    rng = np.random.default_rng(7)
+    sideways = 0.07 * margin * rng.uniform(-1.0, 1.0, size=x0.shape) * np.array([1.0, 0.0, 1.0])
+    for x in (x0 + toward, x0 + toward + sideways):
+        assert refresh(x) == (0, 0)
+        assert close_set() == registered
+        needed = within_reach(x)
+        assert needed[0] and needed[1]
+        for held, kind_needed in zip(registered, needed):
+            assert kind_needed <= held, len(kind_needed - held)
+    # a particle of the upper sheet past the margin, the others drifting apart: patched
+    escaped = 17 * 17 + 8 * 17 + 8
+    apart = x0 - toward
+    apart[escaped, 0] += 3.0 * margin
+    assert refresh(apart) == (0, 1)
+    closer = x0 + toward  # then toward each other again (the patched particle where it was patched)
+    closer[escaped] = apart[escaped]
+    assert refresh(closer) == (0, 0)
+    for held, kind_needed in zip(close_set(), within_reach(closer)):
+        assert kind_needed <= held, len(kind_needed - held)
+    assert refresh(closer, 0.5 * DT) == (1, 0)  # registered for DT only
 
 
 def reference_rigid_motion(x0, v, mass, free, dt):
