@@ -1455,6 +1455,25 @@ def eval_contact_release(
 
 
 @wp.kernel(enable_backward=False)
+def begin_contact_polish(
+    worlds: int,
+    # outputs
+    release_out: wp.array(dtype=wp.int32),
+    loop_out: wp.array(dtype=wp.int32),
+):
+    """The step's contacts settled at the check tolerance: every world solves again to the step's tolerance (1 thread per
+    world; RELEASE_RESOLVING, its last solve's iterations carried), without spending a release round."""
+    w = wp.tid()
+    rb = world_slot(w, worlds, RELEASE_SIZE)
+    base = world_loop(w, worlds)
+    if worlds > 1 and w == 0:
+        release_out[RELEASE_FLAG] = 0
+    release_out[rb + RELEASE_RESOLVING] = 1
+    release_out[rb + RELEASE_FLAG] = 0
+    loop_out[base + LOOP_CARRIED] = loop_out[base + LOOP_CARRIED] + loop_out[base + LOOP_ITERATION]
+
+
+@wp.kernel(enable_backward=False)
 def begin_contact_resolve(
     worlds: int,
     # outputs

@@ -779,9 +779,9 @@ def test_a_slide_its_kinetic_impulse_reverses_sticks_again(scene, resolution, se
     check = solver._check_release
     reversed_left, rounds_left = [0], [0]
 
-    def counted(dt, v0):
-        check(dt, v0)
-        if int(solver.release.numpy()[1]) < solver.contact_release_rounds:  # (RELEASE_ROUNDS: a round was left)
+    def counted(dt, v0, rounds=None):
+        check(dt, v0, rounds)
+        if int(solver.release.numpy()[1]) < (solver.contact_release_rounds if rounds is None else rounds):  # (RELEASE_ROUNDS)
             rounds_left[0] += 1
             reversed_left[0] += reversed_slides(solver, v0) > 0
 
@@ -790,6 +790,24 @@ def test_a_slide_its_kinetic_impulse_reverses_sticks_again(scene, resolution, se
         sim.step_frame()
     assert rounds_left[0] > 100
     assert reversed_left[0] == 0
+
+
+def test_contacts_checked_short_of_the_tolerance_end_every_step_at_it():
+    """Check the contacts decided on solves stopped at `contact_check_factor` x the tolerance (the default with the
+    friction in the solve): every step's last solve still meets the tolerance (no unconverged solve, the last residual
+    within it), over the drape onto the ball; the rest come to rest tests run with it. A factor below 1 is refused."""
+    m, solver = drape_over_ball(16, 0.4, 0, "solve")
+    assert solver.contact_check_factor == 10.0
+    sim = cw.Simulator(m, solver, fps=60, substeps=2)
+    checked = 0
+    for _ in range(60):
+        sim.step_frame()
+        report = sim.frame_report.solves
+        assert report.unconverged == 0 and report.last_residual <= solver.tolerance, report
+        checked += report.contact_resolves
+    assert checked > 0
+    with pytest.raises(ValueError, match="contact_check_factor"):
+        cw.SolverImplicitEuler(m, collider_contacts="solve", contact_friction="solve", contact_check_factor=0.5)
 
 
 @pytest.mark.parametrize("resolution,mu,seed", [(16, 0.4, 0), (24, 0.4, 1), (24, 0.8, 2),
