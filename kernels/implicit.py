@@ -1455,45 +1455,29 @@ def eval_contact_release(
 
 
 @wp.kernel(enable_backward=False)
-def begin_contact_polish(
-    worlds: int,
-    # outputs
-    release_out: wp.array(dtype=wp.int32),
-    loop_out: wp.array(dtype=wp.int32),
-):
-    """The step's contacts settled at the check tolerance: every world solves again to the step's tolerance (1 thread per
-    world; RELEASE_RESOLVING, its last solve's iterations carried), without spending a release round."""
-    w = wp.tid()
-    rb = world_slot(w, worlds, RELEASE_SIZE)
-    base = world_loop(w, worlds)
-    if worlds > 1 and w == 0:
-        release_out[RELEASE_FLAG] = 0
-    release_out[rb + RELEASE_RESOLVING] = 1
-    release_out[rb + RELEASE_FLAG] = 0
-    loop_out[base + LOOP_CARRIED] = loop_out[base + LOOP_CARRIED] + loop_out[base + LOOP_ITERATION]
-
-
-@wp.kernel(enable_backward=False)
 def begin_contact_resolve(
     worlds: int,
+    polish: int,
     # outputs
     release_out: wp.array(dtype=wp.int32),
     loop_out: wp.array(dtype=wp.int32),
 ):
     """A re-solve starts (1 thread per world): a world with a contact released takes part (RELEASE_RESOLVING): one
     more round, its flag cleared, its last solve's iterations carried; batched, a world without sits it out, its
-    solve as it was (and the batch's flag is cleared)."""
+    solve as it was (and the batch's flag is cleared). With `polish` (the contacts settled on solves short of the
+    tolerance: the step's last solve, to it) every world takes part, without spending a round."""
     w = wp.tid()
     rb = world_slot(w, worlds, RELEASE_SIZE)
     base = world_loop(w, worlds)
     if worlds > 1 and w == 0:
         release_out[RELEASE_FLAG] = 0
     release_out[rb + RELEASE_RESOLVING] = 0
-    if release_out[rb + RELEASE_FLAG] == 0:
+    if release_out[rb + RELEASE_FLAG] == 0 and polish == 0:
         return
     release_out[rb + RELEASE_RESOLVING] = 1
     release_out[rb + RELEASE_FLAG] = 0
-    release_out[rb + RELEASE_ROUNDS] = release_out[rb + RELEASE_ROUNDS] + 1
+    if polish == 0:
+        release_out[rb + RELEASE_ROUNDS] = release_out[rb + RELEASE_ROUNDS] + 1
     loop_out[base + LOOP_CARRIED] = loop_out[base + LOOP_CARRIED] + loop_out[base + LOOP_ITERATION]
 
 

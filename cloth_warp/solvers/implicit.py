@@ -826,7 +826,7 @@ class SolverImplicitEuler(SolverBase):
         self._check_release(dt, state_in.particle_qd, rounds)
         device_while(self.release, self._resolve, dt=dt, v0=state_in.particle_qd, tolerance=loose, rounds=rounds)
         if loose > self.tolerance:
-            wp.launch(ki.begin_contact_polish, dim=self.worlds, inputs=[self.worlds], outputs=[self.release, self.loop], device=dev)
+            wp.launch(ki.begin_contact_resolve, dim=self.worlds, inputs=[self.worlds, 1], outputs=[self.release, self.loop], device=dev)
             self._restart(dt)
             self._check_release(dt, state_in.particle_qd)
             device_while(self.release, self._resolve, dt=dt, v0=state_in.particle_qd)
@@ -878,13 +878,13 @@ class SolverImplicitEuler(SolverBase):
     def _resolve(self, dt: float, v0: wp.array, tolerance: float | None = None, rounds: int | None = None):
         """Solve the step again from its last dv with the released contacts free (to `tolerance`, default the solver's),
         then check again (allowing `rounds` re-solves in the step, default `contact_release_rounds`)."""
-        wp.launch(ki.begin_contact_resolve, dim=self.worlds, inputs=[self.worlds], outputs=[self.release, self.loop],
+        wp.launch(ki.begin_contact_resolve, dim=self.worlds, inputs=[self.worlds, 0], outputs=[self.release, self.loop],
                   device=self.model.device)
         self._restart(dt, tolerance)
         self._check_release(dt, v0, rounds)
 
     def _restart(self, dt: float, tolerance: float | None = None):
-        """Solve the step again from its last dv (the worlds begin_contact_resolve / begin_contact_polish marked)."""
+        """Solve the step again from its last dv (the worlds begin_contact_resolve marked)."""
         wp.copy(self.dv_alt, self.dv)
         self._start_from_guess(dt, self._enabled, self.warm_scalars)
         self.cg_scalars.zero_()  # the first solve's rows (the iterations accumulate into them)
