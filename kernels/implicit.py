@@ -1324,6 +1324,26 @@ def filter_contact_preconditioner(
         precond_out[i] = s * p * s
 
 
+@wp.func
+def hold_contact(i: int, n: wp.vec3, tangential: wp.vec3, bound: float, stick_speed: float, precond_free: wp.array(dtype=wp.mat33),
+                 rhs_out: wp.array(dtype=wp.vec3), effective_mass_out: wp.array(dtype=float), friction_mass_out: wp.array(dtype=float),
+                 friction_impulse_out: wp.array(dtype=wp.vec3), precond_out: wp.array(dtype=wp.mat33)):
+    """Contact i held by a tangential damper of mass d = `bound` / max(eps, |v_T|) [kg] (`bound` = mu_s lambda [kg m/s],
+    v_T = `tangential` its tangential velocity relative to the surface at the step's start, eps = `stick_speed`): A += d T,
+    b -= d v_T, its preconditioner block the filtered damped block's inverse (`eval_contact_friction_terms`). False, and
+    nothing added, when d is 0."""
+    d = bound / wp.max(stick_speed, wp.length(tangential))
+    if d <= 0.0:
+        return False
+    stick = -d * tangential
+    friction_mass_out[i] = d
+    friction_impulse_out[i] = stick
+    rhs_out[i] = rhs_out[i] + stick
+    effective_mass_out[i] = effective_mass_out[i] + d
+    precond_out[i] = filtered_block_inverse(wp.inverse(precond_free[i]) + d * (wp.identity(n=3, dtype=float) - wp.outer(n, n)), n)
+    return True
+
+
 @wp.kernel(enable_backward=False)
 def eval_contact_release(
     # Model
@@ -1430,13 +1450,10 @@ def eval_contact_release(
         if wp.dot(slip, fi) > 0.0:
             # the kinetic impulse reversed the contact's slip: friction held it, so it sticks (a damper from this
             # solve's normal impulse, as eval_contact_friction_terms makes one), solved again
-            ds = collider_static_friction[c] * impulse / wp.max(stick_speed, wp.length(contact_filter(n, rel)))
-            stick = -ds * contact_filter(n, rel)
-            rhs_out[i] = rhs_out[i] - fi + stick
-            effective_mass_out[i] = effective_mass_out[i] + ds
-            friction_mass_out[i] = ds
-            friction_impulse_out[i] = stick
-            precond_out[i] = filtered_block_inverse(wp.inverse(precond_free[i]) + ds * (wp.identity(n=3, dtype=float) - wp.outer(n, n)), n)
+            # (a kinetic impulse means mu_s >= mu_k > 0 and lambda > 0: the damper's mass is positive)
+            rhs_out[i] = rhs_out[i] - fi
+            hold_contact(i, n, contact_filter(n, rel), collider_static_friction[c] * impulse, stick_speed, precond_free, rhs_out,
+                         effective_mass_out, friction_mass_out, friction_impulse_out, precond_out)
             release_out[rb + RELEASE_FLAG] = 1
             release_out[RELEASE_FLAG] = 1
             return
@@ -1531,16 +1548,8 @@ def eval_contact_friction_terms(
         friction_impulse_out[i] = slide
         rhs_out[i] = rhs_out[i] + slide
         return
-    d = collider_static_friction[c] * impulse / wp.max(stick_speed, speed)
-    if d <= 0.0:
-        return
-    s = wp.identity(n=3, dtype=float) - wp.outer(n, n)
-    stick = -d * tangential
-    friction_mass_out[i] = d
-    friction_impulse_out[i] = stick
-    rhs_out[i] = rhs_out[i] + stick
-    effective_mass_out[i] = effective_mass_out[i] + d
-    precond_out[i] = filtered_block_inverse(wp.inverse(precond_free[i]) + d * s, n)
+    hold_contact(i, n, tangential, collider_static_friction[c] * impulse, stick_speed, precond_free, rhs_out, effective_mass_out,
+                 friction_mass_out, friction_impulse_out, precond_out)
 
 
 @wp.func
