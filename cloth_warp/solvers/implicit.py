@@ -442,10 +442,12 @@ class SolverImplicitEuler(SolverBase):
             wp.copy(self._gathered_inv_mass, sc.inv_mass, dest_offset=first, count=sc.inv_mass.shape[0])
         return self._gathered_inv_mass
 
-    def _self_contact_product(self, p: wp.array, dt: float, out: wp.array):
-        """Add the self-contact elements' part of A p to `out`."""
+    def _self_contact_product(self, p: wp.array, dt: float, out: wp.array, walk: bool = False):
+        """Add the self-contact elements' part of A p to `out` (`walk`: by one thread, as the CPU CG's one-thread-per-world
+        iterations take it; else a thread per element of the capacity)."""
         m = self.model
-        wp.launch(kct.scatter_self_contact_product, dim=self._self_contact_elements[0].shape[0],
+        kernel = kct.walk_self_contact_product if walk else kct.scatter_self_contact_product
+        wp.launch(kernel, dim=1 if walk else self._self_contact_elements[0].shape[0],
                   inputs=[self.self_contact_count, *self._self_contact_elements[:3], self._self_contact_elements[4],
                           self._self_contact_elements[7], p],
                   outputs=[out], device=m.device)
@@ -569,7 +571,7 @@ class SolverImplicitEuler(SolverBase):
                    self.effective_mass, m.particle_pinned, c, self.contact_normal, int(self._contacts_on)]
         if self._self_contacts_on:  # their part between the elements' and the rows (the one-item kernels' order)
             wp.launch(ki.cg_product_worlds, dim=worlds, inputs=[*product, 1, 0], outputs=[q, self.cg_sums], device=dev)
-            self._self_contact_product(c, dt, q)
+            self._self_contact_product(c, dt, q, walk=True)
             wp.launch(ki.cg_product_worlds, dim=worlds, inputs=[*product, 0, 1], outputs=[q, self.cg_sums], device=dev)
         else:
             wp.launch(ki.cg_product_worlds, dim=worlds, inputs=[*product, 1, 1], outputs=[q, self.cg_sums], device=dev)
