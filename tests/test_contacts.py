@@ -797,21 +797,32 @@ def test_a_slide_its_kinetic_impulse_reverses_sticks_again(scene, resolution, se
 
 
 def test_contacts_checked_short_of_the_tolerance_end_every_step_at_it():
-    """Check the contacts decided on solves stopped at `contact_check_factor` x the tolerance (the default with the
-    friction in the solve): every step's last solve still meets the tolerance (no unconverged solve, the last residual
-    within it), over the drape onto the ball; the rest come to rest tests run with it. A factor below 1 is refused."""
+    """Check the contacts decided on solves stopped at `contact_check_tolerance` where the tolerance is tighter (the
+    default with the friction in the solve): every step's last solve still meets the tolerance (no unconverged solve,
+    the last residual within it), over the drape onto the ball; the rest come to rest tests run with it. At a
+    tolerance as loose as the check's, every solve is checked and none goes on after. A check tolerance out of range
+    is refused."""
     m, solver = drape_over_ball(16, 0.4, 0, "solve")
-    assert solver.contact_check_factor == 10.0
-    sim = cw.Simulator(m, solver, fps=60, substeps=2)
-    checked = 0
-    for _ in range(60):
-        sim.step_frame()
-        report = sim.frame_report.solves
-        assert report.unconverged == 0 and report.last_residual <= solver.tolerance, report
-        checked += report.contact_resolves
-    assert checked > 0
-    with pytest.raises(ValueError, match="contact_check_factor"):
-        cw.SolverImplicitEuler(m, collider_contacts="solve", contact_friction="solve", contact_check_factor=0.5)
+    assert solver.tolerance == 1e-4 and solver.contact_check_tolerance == 1e-3
+    loose = cw.SolverImplicitEuler(m, collider_contacts="solve", contact_friction="solve", tolerance=1e-3)
+    assert loose.contact_check_tolerance == 1e-3
+    for s, polish in ((solver, 1), (loose, 0)):
+        calls = []
+        solve_cg = s.solve_cg
+        s.solve_cg = lambda *a, **k: calls.append(k.get("tolerance")) or solve_cg(*a, **k)
+        sim = cw.Simulator(m, s, fps=60, substeps=2, capture=False)  # (eager: every solve passes through the spy)
+        checked = 0
+        for _ in range(60 if polish else 20):
+            calls.clear()
+            sim.step_frame()
+            report = sim.frame_report.solves
+            assert report.unconverged == 0 and report.last_residual <= s.tolerance, report
+            # a step's solves: the first, one per release round, and (tighter than the check) the one to the tolerance
+            assert len(calls) == report.solves * (1 + polish) + report.contact_resolves
+            checked += report.contact_resolves
+        assert checked > 0
+    with pytest.raises(ValueError, match="contact_check_tolerance"):
+        cw.SolverImplicitEuler(m, collider_contacts="solve", contact_friction="solve", contact_check_tolerance=0.0)
 
 
 @pytest.mark.parametrize("resolution,mu,seed", [(16, 0.4, 0), (24, 0.4, 1), (24, 0.8, 2),
