@@ -81,7 +81,7 @@ def mesh_depths(collider, points: np.ndarray, time: float = 0.0, device=None) ->
 
     position, rotation = collider.pose_at(time)
     local = (np.asarray(points, np.float64) - np.asarray(position)) @ quat_to_matrix(rotation)
-    mesh = _warp_mesh(collider.vertices_at(time), collider.triangles, device)
+    mesh = _warp_mesh(collider.vertices_at(time), collider.triangles, device, winding=True)
     out = wp.zeros(len(local), dtype=float, device=mesh.device)
     wp.launch(kc.mesh_signed_distance, dim=len(local), inputs=[mesh.id, wp.array(local.astype(np.float32), dtype=wp.vec3, device=mesh.device),
                                                                  1.0e3], outputs=[out], device=mesh.device)
@@ -109,11 +109,15 @@ def _closed(collider) -> bool:
     return collider.shape == "mesh" and bool(trimesh.Trimesh(collider.vertices, collider.triangles, process=False).is_watertight)
 
 
-def _warp_mesh(vertices, triangles, device):
+def _warp_mesh(vertices, triangles, device, winding: bool = False):
+    """A Warp mesh of `triangles`; `winding`: built for winding-number sign queries (without it Warp's
+    mesh_query_point_sign_winding_number silently signs by three rays' nearest hits, which a point inside two overlapping
+    parts of a body can fool: 49 of 2000 points in the mannequin's box, 15 % of those inside, up to 2.8 cm deep)."""
     import warp as wp
 
     return wp.Mesh(points=wp.array(np.asarray(vertices, np.float32), dtype=wp.vec3, device=device),
-                   indices=wp.array(np.asarray(triangles, np.int32).reshape(-1), dtype=wp.int32, device=device))
+                   indices=wp.array(np.asarray(triangles, np.int32).reshape(-1), dtype=wp.int32, device=device),
+                   support_winding_number=winding)
 
 
 def growing_collider(collider, depth: float, seconds: float, device=None):

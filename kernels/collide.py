@@ -329,7 +329,8 @@ def eval_collider_distance(
 def mesh_signed_distance(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), max_distance: float,
                          distance_out: wp.array(dtype=float)):
     """Signed distance [m] of each point to a closed mesh (negative inside), inside by the generalised winding number:
-    a mesh of overlapping closed parts (a ball-jointed body) counts as their union. `max_distance` where none is near."""
+    a mesh of overlapping closed parts (a ball-jointed body) counts as their union (the mesh built with
+    ``support_winding_number``, else Warp signs by rays). `max_distance` where none is near."""
     i = wp.tid()
     p = points[i]
     query = wp.mesh_query_point_sign_winding_number(mesh, p, max_distance, 2.0, 0.5)

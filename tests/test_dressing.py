@@ -502,3 +502,23 @@ def _ball(radius: float, centre) -> tuple[np.ndarray, np.ndarray]:
 
     sphere = trimesh.creation.icosphere(subdivisions=3, radius=radius)
     return np.asarray(sphere.vertices) + centre, np.asarray(sphere.faces)
+
+
+def test_depths_in_a_body_of_overlapping_parts_are_signed_by_their_union():
+    """Check `mesh_depths` (the dressing's inside test) signs points in the mannequin's box as the union of its
+    overlapping closed parts does (numpy's generalised winding number, `cloth_warp.colliders.mesh_signed_distance`),
+    the overlaps at the joints and the armpits included, with the distance to the nearest face. Built without Warp's
+    winding-number support, the query signed 49 of these 2000 points wrongly (up to 2.8 cm deep)."""
+    from cloth_warp import dressing
+    from cloth_warp.colliders import mesh_signed_distance
+
+    body = Mannequin(1.75)
+    b = cw.ModelBuilder()
+    b.add_collider_mesh(body.rest_vertices, body.triangles, name="body")
+    v = np.asarray(body.rest_vertices, np.float64)
+    points = np.random.default_rng(0).uniform(v.min(0), v.max(0), size=(2000, 3))
+    reference = mesh_signed_distance(v, np.asarray(body.triangles), points)
+    assert (reference < 0.0).sum() > 200
+    depths = dressing.mesh_depths(b.colliders[0], points)
+    np.testing.assert_array_equal(np.sign(depths), np.sign(reference))
+    np.testing.assert_allclose(np.abs(depths), np.abs(reference), atol=1e-5)
