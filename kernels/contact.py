@@ -342,36 +342,24 @@ def scatter_self_contact_product(
     element_friction_mass: wp.array(dtype=float),
     element_coefficient: wp.array(dtype=float),
     p: wp.array(dtype=wp.vec3),
+    walk: int,
     # outputs (accumulated)
     product_out: wp.array(dtype=wp.vec3),
 ):
-    """The self-contact elements' part of A p (`add_self_contact_product`; launched over the elements' capacity, the
-    first element_count[0])."""
+    """The self-contact elements' part of A p (`add_self_contact_product`), the first element_count[0]: launched over the
+    elements' capacity, a thread each; or with `walk`, by one thread element after element (the CPU's one-thread-per-world
+    CG, every iteration: the same sums in the same order, without a thread for each element of the capacity, which is
+    the candidates': 24576 for 18 elements on the 32^2 pile at rest)."""
     e = wp.tid()
+    if walk != 0:
+        for k in range(element_count[0]):
+            add_self_contact_product(k, element_indices, element_weights, element_normal, element_friction_mass, element_coefficient,
+                                     p, product_out)
+        return
     if e >= element_count[0]:
         return
     add_self_contact_product(e, element_indices, element_weights, element_normal, element_friction_mass, element_coefficient, p,
                              product_out)
-
-
-@wp.kernel(enable_backward=False)
-def walk_self_contact_product(
-    element_count: wp.array(dtype=wp.int32),
-    element_indices: wp.array(dtype=wp.vec4i),
-    element_weights: wp.array(dtype=wp.vec4),
-    element_normal: wp.array(dtype=wp.vec3),
-    element_friction_mass: wp.array(dtype=float),
-    element_coefficient: wp.array(dtype=float),
-    p: wp.array(dtype=wp.vec3),
-    # outputs (accumulated)
-    product_out: wp.array(dtype=wp.vec3),
-):
-    """`scatter_self_contact_product` walked by one thread, element after element (the CPU's one-thread-per-world CG,
-    once per iteration: the same sums in the same order, without a thread for each element of the capacity, which is
-    the candidates': 24576 for 18 elements on the 32^2 pile at rest)."""
-    for e in range(element_count[0]):
-        add_self_contact_product(e, element_indices, element_weights, element_normal, element_friction_mass, element_coefficient, p,
-                                 product_out)
 
 
 @wp.func

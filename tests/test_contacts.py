@@ -667,15 +667,15 @@ def test_self_contact_friction_in_the_solve_is_a_damper_or_the_kinetic_impulse(r
             p = rng.normal(size=(4, 3))
             product = wp.zeros(4, dtype=wp.vec3)
             wp.launch(kct.scatter_self_contact_product, dim=1,
-                      inputs=[out[6], out[0], out[1], out[2], out[4], out[12], wp.array(p, dtype=wp.vec3)], outputs=[product])
+                      inputs=[out[6], out[0], out[1], out[2], out[4], out[12], wp.array(p, dtype=wp.vec3), 0], outputs=[product])
             full = np.zeros((12, 12))
             for a in range(4):
                 for b_ in range(4):
                     full[3 * idx[a]:3 * idx[a] + 3, 3 * idx[b_]:3 * idx[b_] + 3] = dense[3 * a:3 * a + 3, 3 * b_:3 * b_ + 3]
             np.testing.assert_allclose(product.numpy().ravel(), full @ p.ravel(), rtol=1e-4, atol=1e-9 * (1 + d))
             walked = wp.zeros(4, dtype=wp.vec3)  # the CPU CG's one-thread walk over the elements: the same sums
-            wp.launch(kct.walk_self_contact_product, dim=1,
-                      inputs=[out[6], out[0], out[1], out[2], out[4], out[12], wp.array(p, dtype=wp.vec3)], outputs=[walked])
+            wp.launch(kct.scatter_self_contact_product, dim=1,
+                      inputs=[out[6], out[0], out[1], out[2], out[4], out[12], wp.array(p, dtype=wp.vec3), 1], outputs=[walked])
             np.testing.assert_array_equal(walked.numpy(), product.numpy())
             assert np.linalg.eigvalsh(full).min() >= -1e-6 * (1 + np.abs(full).max())
     assert {(kind, damped, creeping) for kind in (0, 1) for damped, creeping in ((True, False), (True, True), (False, True))} <= branches

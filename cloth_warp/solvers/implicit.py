@@ -446,10 +446,9 @@ class SolverImplicitEuler(SolverBase):
         """Add the self-contact elements' part of A p to `out` (`walk`: by one thread, as the CPU CG's one-thread-per-world
         iterations take it; else a thread per element of the capacity)."""
         m = self.model
-        kernel = kct.walk_self_contact_product if walk else kct.scatter_self_contact_product
-        wp.launch(kernel, dim=1 if walk else self._self_contact_elements[0].shape[0],
+        wp.launch(kct.scatter_self_contact_product, dim=1 if walk else self._self_contact_elements[0].shape[0],
                   inputs=[self.self_contact_count, *self._self_contact_elements[:3], self._self_contact_elements[4],
-                          self._self_contact_elements[7], p],
+                          self._self_contact_elements[7], p, int(walk)],
                   outputs=[out], device=m.device)
 
     def _apply_self_contact_friction(self, state_in: State, dt: float):
