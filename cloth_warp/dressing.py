@@ -432,11 +432,11 @@ def _still_run(builder, seconds, closing, gravity, fps, substeps, damping, devic
     options = dict(solver_options or {})
     options.setdefault("strain_limit", 0.1)
     solver = make_solver("implicit_euler", model, **options)
-    for p in solver.passes:
+    collisions = solver.pass_named("self_collision")
+    if collisions is not None:
         # the broad phase built at every step, as the dressing was tuned: the shipped T-shirt's armpit seams close to a
         # stitch at its 2.5 cm edges by round-off luck (README "Known limits"), which other candidate orders lose
-        if p.name == "self_collision":
-            p.self_collision.keep_broad_phase = False
+        collisions.self_collision.keep_broad_phase = False
     sim = Simulator(model, solver, fps=fps, substeps=substeps)
     frames = max(1, math.ceil(seconds * fps))
     # The seams close at a walking pace: their rest lengths shrink from the gaps they start at to zero over the first

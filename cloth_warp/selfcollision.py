@@ -263,11 +263,7 @@ class SelfCollision:
                 out[f"close{kind}"] = f.close[kind].numpy()[:count].astype(np.int32).reshape(count, 2)
             # and the trajectories they were registered for, with the elements' boxes a patch tests against: the next
             # step keeps them as the run it continues does
-            out["registration"] = f.registration.numpy().copy()
-            out["start_reference"] = f.start_reference.numpy().copy()
-            out["velocity_reference"] = self.grid.fixed_reference.numpy().copy()
-            for name, elements in self.grid.element_sets():
-                out[f"{name}_lo"], out[f"{name}_hi"] = elements.lo.numpy().copy(), elements.hi.numpy().copy()
+            out.update({key: a.numpy().copy() for key, a in f.registered(self.grid).items()})
         return out
 
     def restore_state(self, state: dict) -> None:
@@ -285,12 +281,8 @@ class SelfCollision:
                     wp.copy(f.close[kind], wp.array(pairs[:count], dtype=wp.vec2i, device=self.model.device), count=count)
                 f.close_count[kind].fill_(count)
             if "registration" in state:  # (checkpoints from before the broad phase was kept across steps: built again)
-                f.registration.assign(np.asarray(state["registration"], np.float32))
-                f.start_reference.assign(np.asarray(state["start_reference"], np.float32).reshape(-1, 3))
-                self.grid.fixed_reference.assign(np.asarray(state["velocity_reference"], np.float32).reshape(-1, 3))
-                for name, elements in self.grid.element_sets():
-                    elements.lo.assign(np.asarray(state[f"{name}_lo"], np.float32).reshape(-1, 3))
-                    elements.hi.assign(np.asarray(state[f"{name}_hi"], np.float32).reshape(-1, 3))
+                for key, a in f.registered(self.grid).items():
+                    a.assign(np.asarray(state[key], np.float32).reshape(a.numpy().shape))
 
     # -- buffers ---------------------------------------------------------------------------------
     def _buffer(self, key: str, dtype, fresh: bool, shape=None) -> wp.array:
@@ -922,9 +914,16 @@ class _FixedBuffers:
             grid.fixed_reference = wp.zeros(n, dtype=wp.vec3, device=dev)
         # what a step carries to the next (the registered broad phase: its trajectories, the elements' boxes a patch tests
         # against, its close pairs), each with its copy as the frame started (SelfCollision.save_frame_start)
-        carried = [self.registration, self.start_reference, grid.fixed_reference, *self.close, *self.close_count]
-        carried += [getattr(s, bound) for _, s in grid.element_sets() for bound in ("lo", "hi")]
+        carried = [*self.registered(grid).values(), *self.close, *self.close_count]
         self.carried = [(a, wp.empty_like(a)) for a in carried]
+
+    def registered(self, grid: SelfCollisionGrid) -> dict:
+        """The registered broad phase, by checkpoint key: the registration, the trajectories (starts [m], velocities
+        [m/s]: the grid's) and the elements' boxes [m] a patch tests against."""
+        out = {"registration": self.registration, "start_reference": self.start_reference, "velocity_reference": grid.fixed_reference}
+        for name, elements in grid.element_sets():
+            out[f"{name}_lo"], out[f"{name}_hi"] = elements.lo, elements.hi
+        return out
 
 
 class _ZoneSums:

@@ -1330,18 +1330,17 @@ def hold_contact(i: int, n: wp.vec3, tangential: wp.vec3, bound: float, stick_sp
                  friction_impulse_out: wp.array(dtype=wp.vec3), precond_out: wp.array(dtype=wp.mat33)):
     """Contact i held by a tangential damper of mass d = `bound` / max(eps, |v_T|) [kg] (`bound` = mu_s lambda [kg m/s],
     v_T = `tangential` its tangential velocity relative to the surface at the step's start, eps = `stick_speed`): A += d T,
-    b -= d v_T, its preconditioner block the filtered damped block's inverse (`eval_contact_friction_terms`). False, and
-    nothing added, when d is 0."""
+    b -= d v_T, its preconditioner block the filtered damped block's inverse (`eval_contact_friction_terms`); nothing
+    added when d is 0."""
     d = bound / wp.max(stick_speed, wp.length(tangential))
     if d <= 0.0:
-        return False
+        return
     stick = -d * tangential
     friction_mass_out[i] = d
     friction_impulse_out[i] = stick
     rhs_out[i] = rhs_out[i] + stick
     effective_mass_out[i] = effective_mass_out[i] + d
     precond_out[i] = filtered_block_inverse(wp.inverse(precond_free[i]) + d * (wp.identity(n=3, dtype=float) - wp.outer(n, n)), n)
-    return True
 
 
 @wp.kernel(enable_backward=False)

@@ -856,12 +856,13 @@ class SolverImplicitEuler(SolverBase):
         """Each contact's solved impulse; release those that pull (:func:`~cloth_warp.kernels.implicit.eval_contact_release`);
         friction dampers the solve pushed past the static bound slide (the slip from the step's start velocities `v0`)."""
         m = self.model
+        rounds = self.contact_release_rounds if rounds is None else rounds
         self._plate_product(self.dv, dt)
         wp.launch(ki.eval_contact_release, dim=m.particle_count,
                   inputs=[*self._product_args(), m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, self.system_block,
                           self.bend_vector, self.drag_vector, self.membrane_block, self.plate_product, self.dv,
                           self.precond_free, m.global_damping, dt, self.contact_release_fraction * self._gravity_norm * dt,
-                          self.contact_release_rounds if rounds is None else rounds, v0, self.contact_velocity,
+                          rounds, v0, self.contact_velocity,
                           m.collider_static_friction,
                           m.collider_kinetic_friction, self.contact_stick_speed, m.particle_world, self.worlds],
                   outputs=[self.rhs, self.effective_mass, self.contact_friction_mass, self.contact_friction_impulse, self.precond,
@@ -872,7 +873,7 @@ class SolverImplicitEuler(SolverBase):
             wp.launch(kct.slide_self_contacts, dim=el[0].shape[0],
                       inputs=[self.self_contact_count, *el[:4], v0, self.dv, el[6],
                               float(m.cloth_friction), dt, self.contact_stick_speed,
-                              self.contact_release_rounds if rounds is None else rounds,
+                              rounds,
                               m.particle_world, self.worlds],
                       outputs=[el[4], el[5], self.rhs, self.release], device=m.device)
 
