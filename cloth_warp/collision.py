@@ -51,6 +51,11 @@ class ColliderPass(StepPass):
     def __init__(self, model: Model):
         self.model = model
         self.counts = wp.zeros(len(COUNTERS), dtype=wp.int32, device=model.device)
+        self.pinch = False
+        """Whether a particle pinched between two facing surfaces is pushed out only to where it is as far from both
+        (kernels/collide.py `pinch_height`), where the implicit solve lands it: set by a solver with the collider
+        contacts in its solve. Without them the pass resolves each surface as it meets it, as the garments' dressing
+        was tuned (dressed with the pinch, the shipped T-shirt started its run with an armpit seam 11 mm open)."""
 
     @property
     def kernel_modules(self) -> tuple:
@@ -74,7 +79,7 @@ class ColliderPass(StepPass):
             inputs=[m.particle_pinned, m.collider_count, m.collider_shape, m.collider_size, m.collider_mesh, m.collider_deforming,
                     m.collider_thickness,
                     m.collider_static_friction, m.collider_kinetic_friction, m.collider_mesh_max_distance,
-                    control.collider_transform_start, control.collider_transform_end, x_start, x_end, v_end, dt],
+                    control.collider_transform_start, control.collider_transform_end, x_start, x_end, v_end, dt, int(self.pinch)],
             outputs=[x_out, v_out, self.counts],
             device=m.device,
         )

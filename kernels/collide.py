@@ -8,8 +8,8 @@ Every shape is described in its own frame (``wp.transform`` world <- local):
 * capsule: radius ``size[0]`` around the segment z in [-size[1], size[1]];
 * box: half extents ``size``;
 * cylinder: radius ``size[0]``, z in [-size[1], size[1]] (flat caps);
-* mesh: a ``wp.Mesh`` in local coordinates (signed by the angle-weighted pseudo normal: watertight
-  meshes are solid; an open mesh is solid behind its triangles' winding).
+* mesh: a ``wp.Mesh`` in local coordinates (signed by the nearest face's normal, or at an edge or a corner by the
+  angle-weighted pseudo normal: watertight meshes are solid; an open mesh is solid behind its triangles' winding).
 
 A particle is in contact with a collider when its distance to the surface is below the collider's
 `thickness`. The response acts on the step's average velocity vbar = (x_end - x_start) / h and on the
@@ -30,7 +30,15 @@ SHAPE_CYLINDER = wp.constant(4)
 SHAPE_MESH = wp.constant(5)
 
 TRACE_STEPS = wp.constant(48)
+# Two surfaces pinch a particle between them when they face each other within this angle's cosine (45 degrees): an
+# armpit's or a fold's two sides, not an open corner (the particle leaves that along the bisector).
+PINCH_COSINE = wp.constant(0.7)
+# How far [x the thickness] along the normal a facing surface is sought: one farther cannot pinch (pinched needs
+# c g / (1 + c) < thickness, so a gap g < thickness (1 + c) / c <= 2.43 thickness).
+PINCH_REACH = wp.constant(2.5)
 DISTANCE_EPS = wp.constant(1.0e-9)
+# A mesh's nearest point is inside a face (not on an edge or a corner) when its barycentric weights all pass this.
+FACE_INTERIOR = wp.constant(1.0e-6)
 
 # Indices into the counters array of a collision pass.
 COUNT_COLLIDER_CONTACTS = wp.constant(0)
@@ -93,7 +101,56 @@ def shape_distance(shape: int, size: wp.vec3, mesh: wp.uint64, max_distance: flo
     r = wp.length(d)
     if r < 1.0e-7:
         return 0.0, wp.mesh_eval_face_normal(mesh, query.face)
-    return query.sign * r, query.sign * d / r
+    # The query's pseudo-normal sums the normals of every face within a tie band (1e-3 of the mesh's mean edge) of the
+    # nearest, and halfway between two facing surfaces (a particle pinched in an armpit, a slot) those cancel: the
+    # sign came out at random. Nearest to a face's interior, that face's own normal signs it exactly; nearest to an
+    # edge or a corner, the point halfway to it has the same sign (every point between a point and its nearest has
+    # that nearest) and no tie with the facing surface (at least twice as far).
+    sign = float(0.0)
+    if wp.min(wp.min(query.u, query.v), 1.0 - query.u - query.v) > FACE_INTERIOR:
+        sign = wp.sign(wp.dot(d, wp.mesh_eval_face_normal(mesh, query.face)))
+    else:
+        sign = wp.mesh_query_point_sign_normal(mesh, closest + 0.5 * d, max_distance, 1.0e-3).sign
+    return sign * r, sign * d / r
+
+
+@wp.func
+def pinch_height(collider_count: int, collider_shape: wp.array(dtype=wp.int32), collider_size: wp.array(dtype=wp.vec3),
+                 collider_mesh: wp.array(dtype=wp.uint64), collider_deforming: wp.array(dtype=wp.int32), max_distance: float,
+                 collider_transform: wp.array(dtype=wp.transform), x: wp.vec3, n: wp.vec3, d: float, reach: float, dt: float):
+    """Where a particle at x, distance d [m] above a contact's surface along its outward unit normal n (world), is
+    pinched: a surface faces that one across a crease (the other side of a body's armpit, another collider), within
+    `reach` [m] along n and turned towards it (cosine c = -n . n2 > PINCH_COSINE). Returns the height s [m] above the
+    contact's surface at which the particle is as far from both, s = c g / (1 + c) with g = d + t the gap along n (t:
+    the distance along n to the other surface, a mesh's by a ray, an analytic shape's by its tangent plane), the
+    least over the colliders; `reach` where none faces it. A mesh deforming over the step (`dt` > 0, its surface in
+    the end shape) is queried at x carried along by its motion, as `collide_colliders` does."""
+    height = reach
+    for c in range(collider_count):
+        shape = collider_shape[c]
+        mesh = collider_mesh[c]
+        to_local = wp.transform_inverse(collider_transform[c])
+        p = wp.transform_point(to_local, x)
+        direction = wp.transform_vector(to_local, n)
+        if shape == SHAPE_MESH and collider_deforming[c] != 0 and dt > 0.0:
+            p = p + dt * mesh_surface_velocity(mesh, max_distance, p)
+        cosine = float(0.0)
+        gap = float(0.0)
+        if shape == SHAPE_MESH:
+            query = wp.mesh_query_ray(mesh, p, direction, reach)
+            if query.result and query.t > 0.0:
+                cosine = -wp.dot(direction, query.normal)
+                gap = d + query.t
+        else:
+            d_other, n_other = shape_distance(shape, collider_size[c], mesh, max_distance, p)
+            cosine = -wp.dot(direction, n_other)
+            if cosine > PINCH_COSINE and d_other >= 0.0:
+                gap = d + d_other / cosine
+            else:
+                cosine = 0.0
+        if cosine > PINCH_COSINE:
+            height = wp.min(height, cosine * gap / (1.0 + cosine))
+    return height
 
 
 @wp.func
@@ -200,6 +257,7 @@ def collide_colliders(
     x_end: wp.array(dtype=wp.vec3),
     v_end: wp.array(dtype=wp.vec3),
     dt: float,
+    pinch: int,
     # outputs
     x_out: wp.array(dtype=wp.vec3),
     v_out: wp.array(dtype=wp.vec3),
@@ -213,6 +271,10 @@ def collide_colliders(
     onto it (offset by the thickness) with friction. Then, if the end point is within the thickness
     (resting and sliding contact, curved or concave surfaces), push it out along the surface normal
     there. A particle that slides off an edge is therefore let go, not held up on the face's plane.
+    With `pinch` (the implicit solve's contacts in it), a particle pinched between two surfaces facing each other
+    closer than twice the thickness (an armpit's crease, `pinch_height`) is pushed out only to where it is as far from
+    both, where the solve lands it: pushed to the thickness, it would be pushed into the other, and back out of it by
+    the next step.
     A deforming mesh is tested in its end-of-step shape: the start point is first carried along by the
     surface's motion there (its vertex velocities x dt), and contacts take the surface's velocity.
     """
@@ -275,7 +337,14 @@ def collide_colliders(
                         if mid_dist < thickness - wp.max(0.25 * thickness, tolerance):
                             plane = 1
                 elif wp.dot(end_n0, start_n) < 0.0:
-                    plane = 1
+                    # (not when pinched: between two facing surfaces, the nearest changes sides without crossing anything)
+                    across = thickness
+                    if pinch != 0:
+                        across = pinch_height(collider_count, collider_shape, collider_size, collider_mesh, collider_deforming,
+                                              mesh_max_distance, collider_transform_end, xe, wp.transform_vector(t_end, end_n0),
+                                              end_dist0, PINCH_REACH * thickness, 0.0)
+                    if across >= thickness:
+                        plane = 1
         if plane != 0:
             pc = ps + t * (pe - ps)
             dist, nl = shape_distance(shape, size, mesh, mesh_max_distance, pc)
@@ -291,10 +360,17 @@ def collide_colliders(
                     # the end point alone would not have seen this contact: a continuous (CCD) catch
                     wp.atomic_add(counts_out, COUNT_COLLIDER_CCD, 1)
         dist_end, n_end = shape_distance(shape, size, mesh, mesh_max_distance, pe)
-        if dist_end < thickness:
-            n = wp.transform_vector(t_end, n_end)
+        height = thickness
+        n = wp.transform_vector(t_end, n_end)
+        if dist_end < thickness and pinch != 0:
+            # pinched (a surface faces this one within twice the thickness): out only to where it is as far from both
+            # (less the tolerance: the solve lands it there, to rounding)
+            midway = pinch_height(collider_count, collider_shape, collider_size, collider_mesh, collider_deforming, mesh_max_distance,
+                                  collider_transform_end, xe, n, dist_end, PINCH_REACH * thickness, 0.0)
+            height = wp.min(thickness, midway - tolerance)
+        if dist_end < height:
             u = surface_velocity(deforming, mesh, mesh_max_distance, t_start, t_end, pe, inv_dt)
-            vbar, ve = contact_response((xe - xs) * inv_dt, ve, u, n, (thickness - dist_end) * inv_dt, mu_s, mu_k)
+            vbar, ve = contact_response((xe - xs) * inv_dt, ve, u, n, (height - dist_end) * inv_dt, mu_s, mu_k)
             xe = xs + dt * vbar
             touched = 1
         if touched != 0:

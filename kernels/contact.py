@@ -21,7 +21,7 @@ the filter itself belong to the solver; this module only finds the contacts.
 
 import warp as wp
 
-from .collide import shape_distance, surface_velocity, mesh_surface_velocity
+from .collide import PINCH_REACH, mesh_surface_velocity, pinch_height, shape_distance, surface_velocity
 from .implicit import COUNT_CONTACTS, COUNT_SELF_CONTACTS, COUNT_SIZE, RELEASE_FLAG, RELEASE_ROUNDS, RELEASE_SIZE, SLIP_ALLOWANCE
 from .worlds import particle_world_of, world_slot
 from .selfcollide import NORMAL_EPS, add_impulse, inverse_mass_weight, pair_indices, start_weights, weighted_sum
@@ -54,11 +54,18 @@ def surface_contact(shape: int, size: wp.vec3, mesh: wp.uint64, mesh_max_distanc
 
 
 @wp.func
-def prescribed_velocity_change(n: wp.vec3, u: wp.vec3, v0: wp.vec3, d0: float, thickness: float, dt: float, descent: float):
-    """z = ((u . n + push) - v0 . n) n [m/s], push = (thickness (1 + clearance) - d0) / h: the normal velocity change
-    that ends the step at the thickness; with `descent` >= 0, a particle above that height moves down towards it at
-    most that fast [m/s] (0: keeps its height)."""
-    push = (thickness * (1.0 + CLEARANCE) - d0) * (1.0 / dt)
+def landing_height(thickness: float):
+    """The height [m] above a collider's surface at which a contact in the solve ends its step: the thickness plus the
+    clearance."""
+    return thickness * (1.0 + CLEARANCE)
+
+
+@wp.func
+def prescribed_velocity_change(n: wp.vec3, u: wp.vec3, v0: wp.vec3, d0: float, height: float, dt: float, descent: float):
+    """z = ((u . n + push) - v0 . n) n [m/s], push = (height - d0) / h: the normal velocity change that ends the step
+    at `height` [m] above the surface (`landing_height`, or a pinched particle's); with `descent` >= 0, a particle
+    above that height moves down towards it at most that fast [m/s] (0: keeps its height)."""
+    push = (height - d0) * (1.0 / dt)
     if descent >= 0.0:
         push = wp.max(push, -descent)
     return (wp.dot(u, n) + push - wp.dot(v0, n)) * n
@@ -98,6 +105,7 @@ def eval_collider_contacts(
     contact_normal_out: wp.array(dtype=wp.vec3),
     contact_velocity_out: wp.array(dtype=wp.vec3),
     contact_dv_out: wp.array(dtype=wp.vec3),
+    contact_height_out: wp.array(dtype=float),
     counts_out: wp.array(dtype=wp.int32),
 ):
     """Per particle: the collider it touches (-1: none), the outward unit normal n (world, end pose; zero without a
@@ -108,13 +116,20 @@ def eval_collider_contacts(
     its world has one, else by gravity) is not pulled down onto it in one step: it keeps its height when its contact
     bore no load in the last step (`contact_impulse`), and settles at SETTLE_SPEED when it did. The cloth often holds
     such a particle up: pulled down every step, it was found pulling, released and the step solved again (and the warm
-    start around it was off); held at its height while loaded, the lower of two layers stayed bumpy."""
+    start around it was off); held at its height while loaded, the lower of two layers stayed bumpy.
+    `contact_height_out`: the height [m] above the surface the contact ends the step at, `landing_height`, or, for a
+    particle pinched between that surface and one facing it closer than twice the thickness (`pinch_height`: an
+    armpit's crease), the height at which it is as far from both, below the thickness. A pinched contact is two-sided:
+    the solve does not release it (`eval_contact_release`), for it cannot leave one surface but towards the other; with
+    one side held and released, the cloth pulled it off the first and the colliders pass pushed it out of the other,
+    every step (a T-shirt's armpit: 3.6 mm in a step)."""
     i = wp.tid()
     pressed = contact_impulse[i] > 0.0  # (the last step's, read before this step's contacts replace it)
     contact_collider_out[i] = -1
     contact_normal_out[i] = wp.vec3(0.0)
     contact_velocity_out[i] = wp.vec3(0.0)
     contact_dv_out[i] = wp.vec3(0.0)
+    contact_height_out[i] = 0.0
     if particle_pinned[i] != 0:
         return
     xs = x0[i]
@@ -124,6 +139,8 @@ def eval_collider_contacts(
         xh = xs + dt * (v0[i] + dv_previous[i])
     best = float(0.0)
     found = int(-1)
+    found_d0 = float(0.0)
+    found_descent = float(-1.0)
     for c in range(collider_count):
         shape = collider_shape[c]
         size = collider_size[c]
@@ -143,18 +160,28 @@ def eval_collider_contacts(
             if not leaving and (found < 0 or depth < best):
                 found = c
                 best = depth
+                found_d0 = d0
                 contact_normal_out[i] = n
                 contact_velocity_out[i] = u
-                descent = float(-1.0)  # (lands in one step)
+                found_descent = -1.0  # (lands in one step)
                 if hold_band != 0 and d0 < thickness * (1.0 + margin):
                     d_held, n_held = shape_distance(shape, size, mesh, mesh_max_distance, wp.transform_point(wp.transform_inverse(t_end), xh))
                     if d_held >= thickness:
-                        descent = 0.0
+                        found_descent = 0.0
                         if pressed:
-                            descent = SETTLE_SPEED
-                contact_dv_out[i] = prescribed_velocity_change(n, u, v0[i], d0, thickness, dt, descent)
+                            found_descent = SETTLE_SPEED
     contact_collider_out[i] = found
     if found >= 0:
+        thickness = collider_thickness[found]
+        n = contact_normal_out[i]
+        height = landing_height(thickness)
+        pinch = pinch_height(collider_count, collider_shape, collider_size, collider_mesh, collider_deforming, mesh_max_distance,
+                             collider_transform_start, xs, n, found_d0, PINCH_REACH * thickness, dt)
+        if pinch < thickness:
+            height = pinch
+            found_descent = -1.0
+        contact_height_out[i] = height
+        contact_dv_out[i] = prescribed_velocity_change(n, contact_velocity_out[i], v0[i], found_d0, height, dt, found_descent)
         wp.atomic_add(counts_out, world_slot(particle_world_of(i, particle_world, worlds), worlds, COUNT_SIZE) + COUNT_CONTACTS, 1)
 
 
@@ -165,13 +192,14 @@ def eval_contact_constraints(
     collider_size: wp.array(dtype=wp.vec3),
     collider_mesh: wp.array(dtype=wp.uint64),
     collider_deforming: wp.array(dtype=wp.int32),
-    collider_thickness: wp.array(dtype=float),
     mesh_max_distance: float,
     # Control
     collider_transform_start: wp.array(dtype=wp.transform),
     collider_transform_end: wp.array(dtype=wp.transform),
-    # the contact set, held fixed (a solved step's: `eval_collider_contacts`, less the released)
+    # the contact set, held fixed (a solved step's: `eval_collider_contacts`, less the released), and the heights
+    # its contacts end the step at
     contact_collider: wp.array(dtype=wp.int32),
+    contact_height: wp.array(dtype=float),
     # State in
     x0: wp.array(dtype=wp.vec3),
     v0: wp.array(dtype=wp.vec3),
@@ -183,7 +211,7 @@ def eval_contact_constraints(
 ):
     """The normal, surface velocity and prescribed velocity change of each contact of a given set, as
     `eval_collider_contacts` finds them, as differentiable functions of x0, v0 and the colliders' poses (a taped
-    step's contacts: the set itself, a discrete choice, is held fixed)."""
+    step's contacts: the set itself, a discrete choice, is held fixed, and so is a pinched contact's height)."""
     i = wp.tid()
     c = contact_collider[i]
     if c < 0:
@@ -192,7 +220,7 @@ def eval_contact_constraints(
                                collider_transform_start[c], collider_transform_end[c], x0[i], dt)
     contact_normal_out[i] = n
     contact_velocity_out[i] = u
-    contact_dv_out[i] = prescribed_velocity_change(n, u, v0[i], d0, collider_thickness[c], dt, -1.0)
+    contact_dv_out[i] = prescribed_velocity_change(n, u, v0[i], d0, contact_height[i], dt, -1.0)
 
 
 # -- self-contacts in the solve ----------------------------------------------------------------------------------

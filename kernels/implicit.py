@@ -1374,6 +1374,8 @@ def eval_contact_release(
     max_rounds: int,
     v0: wp.array(dtype=wp.vec3),
     contact_velocity: wp.array(dtype=wp.vec3),
+    contact_height: wp.array(dtype=float),
+    collider_thickness: wp.array(dtype=float),
     collider_static_friction: wp.array(dtype=float),
     collider_kinetic_friction: wp.array(dtype=float),
     stick_speed: float,
@@ -1406,8 +1408,12 @@ def eval_contact_release(
     with a damper from this solve's lambda, and the step is solved again: left sliding, the cloth round it took the
     kinetic impulse the contact did not need (`apply_contact_friction` then stops the contact alone), and the contact
     went from stick to slide and back every step, its neighbours thrown back and forth (a dress held still: 60
-    particles at 5-7 mm/s in a period-two cycle that did not move them). (Batched worlds: the flag and the rounds are the particle's
-    world's, and the batch's flag is set with a world's.)"""
+    particles at 5-7 mm/s in a period-two cycle that did not move them). A pinched contact (its `contact_height` below
+    the collider's thickness, `kernels/contact.py` eval_collider_contacts) is two-sided: its impulse either way presses
+    one of its surfaces, so it is never released; and frictionless, its impulse 0 (what holds it between two surfaces
+    is no squeeze on one: with friction from |lambda| the shipped T-shirt's settling held an armpit seam 7 mm open, which
+    closed without). (Batched worlds: the flag and the rounds are the particle's world's, and the batch's flag is set
+    with a world's.)"""
     i = wp.tid()
     rb = world_slot(particle_world_of(i, particle_world, worlds), worlds, RELEASE_SIZE)
     n = contact_normal_out[i]
@@ -1419,6 +1425,9 @@ def eval_contact_release(
                           tri_corner_weights, membrane_offsets, membrane_ids, membrane_vertices, system_block, bend_vector, drag_vector,
                           membrane_block, plate_product, m_eff, dv, dt)
     impulse = wp.dot(n, a_dv - rhs_out[i])  # (the friction terms are tangential: no part of it)
+    if contact_height[i] < collider_thickness[contact_collider_out[i]]:
+        contact_impulse_out[i] = 0.0  # pinched: held, frictionless
+        return
     contact_impulse_out[i] = impulse
     d = friction_mass_out[i]
     if d > 0.0 and release_out[rb + RELEASE_ROUNDS] < max_rounds:
@@ -1677,6 +1686,8 @@ def apply_contact_friction(
 def eval_contact_friction(
     particle_mass: wp.array(dtype=float),
     contact_collider: wp.array(dtype=wp.int32),
+    contact_height: wp.array(dtype=float),
+    collider_thickness: wp.array(dtype=float),
     contact_normal: wp.array(dtype=wp.vec3),
     contact_velocity: wp.array(dtype=wp.vec3),
     collider_static_friction: wp.array(dtype=float),
@@ -1688,14 +1699,18 @@ def eval_contact_friction(
     dv_out: wp.array(dtype=wp.vec3),
 ):
     """A taped step's friction: `coulomb_friction` with lambda = -n . (b - A dv)_i from the unfiltered residual, into a
-    fresh array (differentiable; whether a contact sticks or slides is held fixed, as the contact set is)."""
+    fresh array (differentiable; whether a contact sticks or slides is held fixed, as the contact set is; a pinched
+    contact, `contact_height` below the thickness, is frictionless, as `eval_contact_release` takes it)."""
     i = wp.tid()
     c = contact_collider[i]
     if c < 0:
         dv_out[i] = dv[i]
         return
     n = contact_normal[i]
-    dv_out[i] = coulomb_friction(dv[i], v0[i], contact_velocity[i], n, -wp.dot(n, unfiltered_residual[i]), particle_mass[i],
+    impulse = -wp.dot(n, unfiltered_residual[i])
+    if contact_height[i] < collider_thickness[c]:
+        impulse = 0.0
+    dv_out[i] = coulomb_friction(dv[i], v0[i], contact_velocity[i], n, impulse, particle_mass[i],
                                  collider_static_friction[c], collider_kinetic_friction[c])
 
 

@@ -48,6 +48,42 @@ def test_shape_distances_match_numpy():
         assert np.allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-4)
 
 
+def box_distance(points, centre, extents):
+    """Signed distance [m] of points to an axis-aligned box (numpy)."""
+    q = np.abs(points - centre) - np.asarray(extents) / 2
+    return np.linalg.norm(np.maximum(q, 0.0), axis=1) + np.minimum(q.max(axis=1), 0.0)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_mesh_distance_is_signed_right_halfway_between_facing_surfaces(seed):
+    """Check a mesh of two parts facing each other across a narrow gap (a body's arm and chest) signs the points in the
+    gap outside, halfway across it too (over faces, over the triangles' diagonals, at the corners), and those in the
+    parts inside, with the distance of the nearest part: Warp's pseudo-normal sums the normals of every face within a
+    tie band of the nearest (1e-3 of the mean edge, here 0.7 mm), and halfway across the gap those cancel."""
+    rng = np.random.default_rng(seed)
+    gap = rng.uniform(0.002, 0.02)
+    extents = (0.6, 0.1, 0.6)
+    centres = [np.array([0.0, -0.05, 0.0]), np.array([0.0, gap + 0.05, 0.0])]
+    rot = trimesh.transformations.random_rotation_matrix(rng.random(3))[:3, :3]
+    both = trimesh.util.concatenate([trimesh.creation.box(extents=extents).apply_translation(c) for c in centres])
+    b = cw.ModelBuilder()
+    b.add_collider_mesh(both.vertices @ rot.T, both.faces)
+    b.add_particle((0.0, 1.0, 0.0))
+    m = b.finalize("cpu")
+    u = rng.uniform(-0.3, 0.3, 300)
+    w = np.concatenate([rng.uniform(-0.3, 0.3, 100), u[100:200], -u[200:]])  # anywhere, over either diagonal
+    corners = np.array([(x, z) for x in (-0.3, 0.3) for z in (-0.3, 0.3)])
+    u, w = np.concatenate([u, corners[:, 0]]), np.concatenate([w, corners[:, 1]])
+    off = np.concatenate([np.zeros(len(u) // 2), rng.uniform(-gap / 4, gap / 4, len(u) - len(u) // 2)])
+    gap_points = np.stack([u, gap / 2 + off, w], axis=1)
+    inside = np.concatenate([rng.uniform((-0.28, -0.09, -0.28), (0.28, -0.002, 0.28), (50, 3)),
+                             rng.uniform((-0.28, gap + 0.002, -0.28), (0.28, gap + 0.09, 0.28), (50, 3))])
+    local = np.concatenate([gap_points, inside])
+    d, _ = collider_distance(m, 0, local @ rot.T)
+    exact = np.minimum(*(box_distance(local, c, extents) for c in centres))
+    np.testing.assert_allclose(d, exact, atol=2e-6)
+
+
 def incline_model(theta_deg, mu_s, mu_k, *, mesh=False, cloth=False, thickness=0.004):
     """A plane (or a two-triangle mesh) through the origin tilted by theta about z; a particle (or a flat
     8x8 cloth) resting on it at the contact thickness."""

@@ -11,6 +11,7 @@ import warp as wp
 
 import cloth_warp as cw
 from cloth_warp.collision import collider_distance
+from cloth_warp.kernels import collide as kcol
 from cloth_warp.kernels import contact as kct
 
 DT = 1.0 / 120.0
@@ -23,7 +24,7 @@ def find_contacts(model, x, v, time=0.0, dt=DT, last_step=None, gravity=(0.0, 0.
     model.update_control(control, time + dt, dt, force=True)
     n = len(x)
     out = [wp.zeros(n, dtype=wp.int32), wp.zeros(n, dtype=wp.vec3), wp.zeros(n, dtype=wp.vec3), wp.zeros(n, dtype=wp.vec3),
-           wp.zeros(1, dtype=wp.int32)]
+           wp.zeros(n, dtype=float), wp.zeros(1, dtype=wp.int32)]
     wp.launch(kct.eval_collider_contacts, dim=n,
               inputs=[model.particle_pinned, model.collider_count, model.collider_shape, model.collider_size, model.collider_mesh,
                       model.collider_deforming, model.collider_thickness, model.collider_static_friction,
@@ -31,7 +32,7 @@ def find_contacts(model, x, v, time=0.0, dt=DT, last_step=None, gravity=(0.0, 0.
                       control.collider_transform_end, wp.array(x, dtype=wp.vec3), wp.array(v, dtype=wp.vec3), wp.vec3(*gravity), dt,
                       MARGIN, *(landing_always(n) if last_step is None else last_step)],
               outputs=out)
-    return [a.numpy() for a in out]  # collider, normal, surface velocity, prescribed dv, count
+    return [a.numpy() for a in out]  # collider, normal, surface velocity, prescribed dv, height, count
 
 
 def landing_always(n):
@@ -57,7 +58,7 @@ def test_contacts_on_a_ground_plane():
     m = b.finalize("cpu")
     x = np.array([(0.1 * k, y, 0.0) for k, y in enumerate(heights)], np.float32)
     v = np.array([(0.0, s, 0.0) for s in speeds], np.float32)
-    col, normal, vel, dv, count = find_contacts(m, x, v)
+    col, normal, vel, dv, _, count = find_contacts(m, x, v)
     np.testing.assert_array_equal(col, [0, 0, 0, 0, -1, -1])
     assert count[0] == 4
     np.testing.assert_allclose(normal[:4], [[0, 1, 0]] * 4, atol=1e-6)
@@ -66,6 +67,29 @@ def test_contacts_on_a_ground_plane():
     np.testing.assert_allclose(landing, THICKNESS * (1 + kct.CLEARANCE), atol=1e-6)
     assert dv[2, 1] > 0.0 and v[3, 1] + dv[3, 1] < 0.0  # out from inside, down onto the surface from above
     np.testing.assert_array_equal(dv[4:], 0.0)
+
+
+@pytest.mark.parametrize("angle,gap", [(0.0, 0.012), (30.0, 0.015), (30.0, 0.03), (50.0, 0.016)])
+def test_a_contact_pinched_between_facing_surfaces_lands_where_it_is_as_far_from_both(angle, gap):
+    """Check a particle above the ground under a plane tilted by `angle` towards it (a crease, its apex `gap` above the
+    particle's foot) lands at the height s where it is as far from both, s = c g / (1 + c) (c: the cosine between the
+    two normals, reversed), when that is below the thickness and the planes face each other within 45 degrees; else at
+    the thickness (an open corner: the particle leaves it along the bisector)."""
+    a = math.radians(angle)
+    n2 = np.array([-math.sin(a), -math.cos(a), 0.0])
+    b = cw.ModelBuilder()
+    b.add_particle((0.0, 0.005, 0.0))
+    b.add_ground(thickness=THICKNESS)
+    b.add_plane(normal=tuple(n2), point=(0.0, gap, 0.0), thickness=THICKNESS)
+    m = b.finalize("cpu")
+    x = np.array([[0.0, 0.005, 0.0]], np.float32)
+    col, normal, _, dv, height, _ = find_contacts(m, x, np.zeros_like(x))
+    c = math.cos(a)
+    pinched = c > kcol.PINCH_COSINE and c * gap / (1 + c) < THICKNESS
+    expected = c * gap / (1 + c) if pinched else THICKNESS * (1 + kct.CLEARANCE)
+    assert col[0] == 0 and normal[0] == pytest.approx([0.0, 1.0, 0.0], abs=1e-6)  # the nearer: the ground
+    assert height[0] == pytest.approx(expected, abs=1e-6)
+    assert 0.005 + DT * dv[0][1] == pytest.approx(expected, abs=1e-6)  # the prescribed step lands it there
 
 
 def test_a_band_contact_the_cloth_holds_up_keeps_its_height():
@@ -92,7 +116,7 @@ def test_a_band_contact_the_cloth_holds_up_keeps_its_height():
             wp.array(impulse, dtype=float)]
 
     def contacts(last_step):
-        col, _, _, dv, _ = find_contacts(m, x, v, last_step=last_step, gravity=(0.0, -9.81, 0.0))
+        col, _, _, dv, _, _ = find_contacts(m, x, v, last_step=last_step, gravity=(0.0, -9.81, 0.0))
         return col, v[:, 1] + dv[:, 1]  # collider, end normal velocity
 
     col, v_end = contacts(hold)
@@ -201,7 +225,7 @@ def test_contact_normals_match_the_collider_distance(shape, rng):
     pts = (pts + heights[:, None] * n).astype(np.float32)
     d, n = collider_distance(model0, 0, pts)
     m = with_collider(pts)
-    col, normal, vel, dv, _ = find_contacts(m, pts, np.zeros_like(pts))
+    col, normal, vel, dv, _, _ = find_contacts(m, pts, np.zeros_like(pts))
     touching = d < THICKNESS * (1.0 + MARGIN)
     clear = np.abs(d - THICKNESS * (1.0 + MARGIN)) > 1e-5  # away from the threshold's float32 rounding
     np.testing.assert_array_equal((col == 0)[clear], touching[clear])
@@ -216,7 +240,7 @@ def test_contact_takes_a_moving_collider_surface_velocity():
     b.add_particle((0.0, 0.11, 0.0))
     b.add_box((0.0, 0.0, 0.0), (1.0, 0.2, 1.0), thickness=THICKNESS, keyframes=[(0.0, (0, 0, 0)), (2.0, (0, 2.0, 0))])
     m = b.finalize("cpu")
-    col, normal, vel, _, _ = find_contacts(m, np.array([[0.0, 0.11, 0.0]], np.float32), np.zeros((1, 3), np.float32))
+    col, normal, vel, _, _, _ = find_contacts(m, np.array([[0.0, 0.11, 0.0]], np.float32), np.zeros((1, 3), np.float32))
     assert col[0] == 0
     np.testing.assert_allclose(normal[0], [0, 1, 0], atol=1e-6)
     np.testing.assert_allclose(vel[0], [0.0, 1.0, 0.0], atol=1e-4)
@@ -234,7 +258,7 @@ def test_contact_prescribes_landing_at_the_thickness():
     x = wp.array([[0.0, 0.013, 0.0]], dtype=wp.vec3)
     v0 = np.array([[0.5, -0.2, 0.0]], np.float32)
     out = [wp.zeros(1, dtype=wp.int32), wp.zeros(1, dtype=wp.vec3), wp.zeros(1, dtype=wp.vec3), wp.zeros(1, dtype=wp.vec3),
-           wp.zeros(1, dtype=wp.int32)]
+           wp.zeros(1, dtype=float), wp.zeros(1, dtype=wp.int32)]
     wp.launch(kct.eval_collider_contacts, dim=1,
               inputs=[m.particle_pinned, m.collider_count, m.collider_shape, m.collider_size, m.collider_mesh, m.collider_deforming,
                       m.collider_thickness, m.collider_static_friction, m.collider_kinetic_friction, m.collider_mesh_max_distance,
@@ -267,6 +291,49 @@ def test_dropped_cloth_rests_exactly_on_the_ground():
     assert sim.frame_report.passes["colliders"].contacts == 0
     assert sim.frame_report.solves.contacts == 2 * m.particle_count == sim.frame_info["solve_contacts"]  # every particle, 2 steps
 
+
+def slot_scene(kind, gap, tilt, friction=0.5):
+    """A 6 x 6 cloth (no air drag) in a slot: a floor and a ceiling `gap` [m] apart, the cloth halfway, all turned by
+    `tilt` [deg] about z (gravity stays -y): two boxes, or one mesh of two boxes (the other side found by a ray, as
+    across a body's armpit). Returns the model and the slot's up direction."""
+    q = cw.quat_from_axis_angle((0, 0, 1), tilt)
+    rot = trimesh.transformations.quaternion_matrix([q[3], q[0], q[1], q[2]])[:3, :3]
+    b = cw.ModelBuilder()
+    u, w = np.meshgrid(np.linspace(-0.1, 0.1, 7), np.linspace(-0.1, 0.1, 7), indexing="ij")
+    vertices = np.stack([u.ravel(), np.full(u.size, gap / 2), w.ravel()], axis=1)
+    cells = [(7 * i + j, 7 * (i + 1) + j, 7 * (i + 1) + j + 1, 7 * i + j + 1) for i in range(6) for j in range(6)]
+    triangles = [t for a, c, d, e in cells for t in ((a, e, d), (a, d, c))]
+    b.add_cloth_mesh(vertices @ rot.T, triangles, material=cw.materials.COTTON.replace(drag_coefficient=0.0))
+    extents = (0.6, 0.1, 0.6)
+    centres = [np.array([0.0, -0.05, 0.0]), np.array([0.0, gap + 0.05, 0.0])]
+    if kind == "boxes":
+        for c in centres:
+            b.add_box(tuple(rot @ c), extents, rotation=q, thickness=THICKNESS, friction=friction)
+    else:
+        both = trimesh.util.concatenate([trimesh.creation.box(extents=extents).apply_translation(c) for c in centres])
+        b.add_collider_mesh(both.vertices @ rot.T, both.faces, thickness=THICKNESS, friction=friction)
+    return b.finalize("cpu"), rot @ np.array([0.0, 1.0, 0.0])
+
+
+@pytest.mark.parametrize("kind", ["boxes", "mesh"])
+@pytest.mark.parametrize("gap,tilt", [(0.012, 0.0), (0.016, 15.0), (0.019, -15.0)])
+def test_cloth_pinched_in_a_slot_stays_halfway_between_its_sides(kind, gap, tilt):
+    """Check cloth in a slot narrower than twice the thickness (a crease, as an armpit's two sides) stays halfway
+    between its sides, with nothing left for the colliders pass, and, the pinch frictionless, rests in a level slot and
+    slides down a tilted one at the analytic g sin(tilt): the solve's contact is two-sided (never released) and lands it
+    where the other side's would, and the colliders pass pushes it out no further. With one side per particle, each
+    step's solve pushed the cloth out of one side into the other's band, and the pass back out of it."""
+    m, up = slot_scene(kind, gap, tilt)
+    sim = cw.Simulator(m, cw.SolverImplicitEuler(m, collider_contacts="solve", contact_friction="solve"), fps=60, substeps=2)
+    frames = 12
+    for _ in range(frames):
+        sim.step_frame()
+    heights = sim.positions() @ up
+    np.testing.assert_allclose(heights, gap / 2, atol=2e-5)
+    g = np.array([0.0, -9.81, 0.0])
+    slide = (g - (g @ up) * up) * frames / 60.0  # g sin(tilt) t along the slot
+    np.testing.assert_allclose(sim.state.particle_qd.numpy(), np.tile(slide, (m.particle_count, 1)), atol=1e-3 * 9.81 * frames / 60.0 + 1e-5)
+    assert sim.frame_report.passes["colliders"].contacts == 0
 
 def test_a_contact_that_pulls_is_released():
     """Check a particle resting on the ground under a gravity pointing away from it (the contact would have to

@@ -288,6 +288,33 @@ def test_finishing_joins_every_sewn_point_within_a_stitch_and_leaves_wider_ones(
     assert finish_seams(x, np.array(wide))[1] == 0.0
 
 
+def test_settling_ends_with_the_points_the_run_welds_joined():
+    """Check a settling ends with every sewn point closed within the run's weld distance (WELD_DISTANCE) joined at its
+    middle, so the run starts with it one point (its first frame's seam gap 0: a settling left the shipped T-shirt's
+    0.34 mm open), and leaves a wider one to its springs."""
+    from cloth_warp.sewing import WELD_DISTANCE
+    from cloth_warp.topology import SpringKind
+
+    b = cw.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    left = b.add_cloth_grid(resolution=(2, 2), size=(0.1, 0.1), position=(0.0, 0.5, 0.0))
+    right = b.add_cloth_grid(resolution=(2, 2), size=(0.1, 0.1), position=(0.1 + 1.5 * WELD_DISTANCE, 0.5, 0.0))
+    far = b.add_cloth_grid(resolution=(2, 2), size=(0.1, 0.1), position=(0.2 + 1.5 * WELD_DISTANCE + 5.0 * WELD_DISTANCE, 0.5, 0.0))
+    x = b.particle_positions
+    edge = lambda ref, side: [i for i in ref.indices() if abs(x[i, 0] - (x[ref.indices(), 0].max() if side else x[ref.indices(), 0].min())) < 1e-9]
+    near_pairs = list(zip(edge(left, 1), edge(right, 0)))
+    wide_pairs = list(zip(edge(right, 1), edge(far, 0)))
+    for i, j in near_pairs:  # open beyond the weld at the start (not welded while settling), pulled to within it
+        b.add_spring(i, j, stiffness=0.05, rest_length=1e-6, kind=SpringKind.SEAM)
+    for i, j in wide_pairs:
+        b.add_spring(i, j, stiffness=1e-4, rest_length=1e-6, kind=SpringKind.SEAM)
+    report = settle(b, 0.1, solver_options={"strain_limit": None})
+    y = b.particle_positions
+    for i, j in near_pairs:
+        np.testing.assert_array_equal(y[i], y[j])
+    assert min(np.linalg.norm(y[i] - y[j]) for i, j in wide_pairs) > WELD_DISTANCE
+    assert 0.0 < report.finished_from < WELD_DISTANCE
+
+
 def test_a_dressing_that_diverges_stops_with_the_key_and_no_cache(tmp_path, monkeypatch, capsys):
     """A garment that diverges while it settles (the shipped T-shirt did, caught in an armpit crease) stops the command
     before the run with an error naming dressing.settle and the diagnosis (exit 2), not a traceback, and writes nothing."""

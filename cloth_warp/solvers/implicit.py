@@ -43,10 +43,12 @@ CONTACT_FRICTION = ("after", "solve")
 
 @dataclasses.dataclass(frozen=True)
 class TapedContacts:
-    """A taped step's collider contacts (per particle): the collider (-1: none; the set held fixed), and on the tape
-    the unit normal, the surface velocity [m/s] and the prescribed velocity change z [m/s]."""
+    """A taped step's collider contacts (per particle): the collider (-1: none; the set held fixed) and the height [m]
+    it ends the step at (held fixed; below the collider's thickness: pinched), and on the tape the unit normal, the
+    surface velocity [m/s] and the prescribed velocity change z [m/s]."""
 
     collider: wp.array
+    height: wp.array
     normal: wp.array
     velocity: wp.array
     dv: wp.array
@@ -212,6 +214,9 @@ class SolverImplicitEuler(SolverBase):
         if self_contacts == "solve" and self.linear_solver != LinearSolver.CG:
             raise ValueError("self_contacts='solve' needs linear_solver='cg' (the contact elements are in the CG's product)")
         self.self_contacts = self_contacts
+        colliders = self.pass_named("colliders")
+        if colliders is not None:  # the colliders pass keeps pinched particles where this solve lands them
+            colliders.pinch = collider_contacts == "solve"
         # the self-collision passes' SelfCollisions, whose close pairs the self-contacts read: per world (batched worlds:
         # one each), with its model's triangles and self-collision stiffness [N/m] and its first particle
         self._self_collisions: list[tuple] = []
@@ -308,6 +313,8 @@ class SolverImplicitEuler(SolverBase):
         self.contact_velocity = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.contact_dv = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.contact_impulse = wp.zeros(n, dtype=float, device=dev)
+        # the height [m] above its surface each contact ends the step at; below the collider's thickness: pinched
+        self.contact_height = wp.zeros(n, dtype=float, device=dev)
         self.precond_free = wp.zeros(n, dtype=wp.mat33, device=dev)  # contacts' unfiltered preconditioner blocks
         # their friction in the solve (kernels/implicit.py eval_contact_friction_terms): a sticking contact's damper
         # mass [kg], and the friction impulse [kg m/s] in the right-hand side (sticking or sliding)
@@ -797,7 +804,7 @@ class SolverImplicitEuler(SolverBase):
                           wp.vec3(*m.gravity), dt, self.contact_margin, int(not state_in.requires_grad), self.dv_previous,
                           self.previous_ready if self.warm_start else self._disabled, m.particle_world, self.worlds, self.contact_impulse],
                   outputs=[self.contact_collider, self.contact_normal, self.contact_velocity, self.contact_dv,
-                           self.contact_counts], device=dev)
+                           self.contact_height, self.contact_counts], device=dev)
         wp.launch(ki.filter_contact_preconditioner, dim=m.particle_count, inputs=[self.contact_normal, self._filtered_inverse()],
                   outputs=[self.precond, self.precond_free], device=dev)
         if self.contact_friction == "solve" and state_in.requires_grad:  # a taped step's friction is on the tape
@@ -862,7 +869,7 @@ class SolverImplicitEuler(SolverBase):
                   inputs=[*self._product_args(), m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, self.system_block,
                           self.bend_vector, self.drag_vector, self.membrane_block, self.plate_product, self.dv,
                           self.precond_free, m.global_damping, dt, self.contact_release_fraction * self._gravity_norm * dt,
-                          rounds, v0, self.contact_velocity,
+                          rounds, v0, self.contact_velocity, self.contact_height, m.collider_thickness,
                           m.collider_static_friction,
                           m.collider_kinetic_friction, self.contact_stick_speed, m.particle_world, self.worlds],
                   outputs=[self.rhs, self.effective_mass, self.contact_friction_mass, self.contact_friction_impulse, self.precond,
@@ -987,7 +994,8 @@ class SolverImplicitEuler(SolverBase):
             tape.record_func(lambda dv=dv, r=r: self._adjoint_solve(state_in, control, dt, dv, r, normal), [dv, r])
         if contacts is not None:  # friction from the contacts' impulses n . (A dv - b), evaluated after the adjoint's input
             unfiltered = self.system_residual(state_in, control, dt, dv)
-            dv = self._taped_launch(ki.eval_contact_friction, [m.particle_mass, contacts.collider, contacts.normal, contacts.velocity,
+            dv = self._taped_launch(ki.eval_contact_friction, [m.particle_mass, contacts.collider, contacts.height, m.collider_thickness,
+                                                               contacts.normal, contacts.velocity,
                                                                m.collider_static_friction, m.collider_kinetic_friction, state_in.particle_qd,
                                                                dv, unfiltered])
         return dv
@@ -1005,13 +1013,14 @@ class SolverImplicitEuler(SolverBase):
         m = self.model
         dev = m.device
         collider = wp.clone(self.contact_collider, requires_grad=False)
+        height = wp.clone(self.contact_height, requires_grad=False)
         normal, velocity, dv = (wp.zeros(m.particle_count, dtype=wp.vec3, device=dev, requires_grad=True) for _ in range(3))
         wp.launch(kct.eval_contact_constraints, dim=m.particle_count,
-                  inputs=[m.collider_shape, m.collider_size, m.collider_mesh, m.collider_deforming, m.collider_thickness,
+                  inputs=[m.collider_shape, m.collider_size, m.collider_mesh, m.collider_deforming,
                           m.collider_mesh_max_distance, control.collider_transform_start, control.collider_transform_end, collider,
-                          state_in.particle_q, state_in.particle_qd, dt],
+                          height, state_in.particle_q, state_in.particle_qd, dt],
                   outputs=[normal, velocity, dv], device=dev)
-        return TapedContacts(collider, normal, velocity, dv)
+        return TapedContacts(collider, height, normal, velocity, dv)
 
     def _adjoint_solve(self, state_in: State, control: Control, dt: float, dv: wp.array, residual: wp.array,
                        contact_normal: wp.array | None = None):
