@@ -645,6 +645,20 @@ def test_layers_rest_at_the_thickness_with_self_contacts_in_the_solve(friction):
     assert report.passes["self_collision"].counters()["self_proximity"] == 0 == report.passes["self_collision"].counters()["self_ccd"]
 
 
+def test_an_edge_pair_nearest_at_an_edge_end_is_left_to_the_vertex_pairs():
+    """Check an edge-edge pair within the contact distance becomes an element when its nearest points are inside both
+    edges, and none when one is at an edge's end (that vertex's contact, held by its vertex-face pairs: as edge pairs
+    it came once per edge at the vertex, eight times as stiff at a T-shirt's armpit, and threw the cloth about)."""
+    k, h, r = 300.0, 1.0 / 120.0, CLOTH_THICKNESS * (1 + float(kct.SELF_CLEARANCE))
+    edges = np.array([[0, 1, -1], [2, 3, -1]], np.int32)
+    tri = np.array([[0, 1, 2]], np.int32)
+    crossing = np.array([[-0.01, 0.0, 0.0], [0.01, 0.0, 0.0], [0.0, 0.5 * r, -0.01], [0.0, 0.5 * r, 0.01]])
+    at_end = np.array([[-0.01, 0.0, 0.0], [0.01, 0.0, 0.0], [0.0, 0.5 * r, 0.0], [0.0, 0.5 * r + 0.01, 0.0]])
+    for x, elements in ((crossing, 1), (at_end, 0)):
+        out = self_contact_element(1, (0, 1), tri, edges, x, np.zeros((4, 3)), r, k, h)
+        assert int(out[6].numpy()[0]) == elements
+
+
 def test_self_contact_elements_are_the_gradient_and_gauss_newton_hessian_of_their_energy(rng):
     """Check each self-contact element the solve builds (kernels/contact.py eval_self_contacts) for random close
     vertex-face and edge-edge pairs: the forces it scatters are -dE/dx of E = k/2 (r - d)^2 (central differences of
