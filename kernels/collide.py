@@ -117,14 +117,16 @@ def shape_distance(shape: int, size: wp.vec3, mesh: wp.uint64, max_distance: flo
 @wp.func
 def pinch_height(collider_count: int, collider_shape: wp.array(dtype=wp.int32), collider_size: wp.array(dtype=wp.vec3),
                  collider_mesh: wp.array(dtype=wp.uint64), collider_deforming: wp.array(dtype=wp.int32), max_distance: float,
-                 collider_transform: wp.array(dtype=wp.transform), x: wp.vec3, n: wp.vec3, d: float, reach: float, dt: float):
+                 collider_transform: wp.array(dtype=wp.transform), x: wp.vec3, n: wp.vec3, d: float, thickness: float, dt: float):
     """Where a particle at x, distance d [m] above a contact's surface along its outward unit normal n (world), is
     pinched: a surface faces that one across a crease (the other side of a body's armpit, another collider), within
-    `reach` [m] along n and turned towards it (cosine c = -n . n2 > PINCH_COSINE). Returns the height s [m] above the
-    contact's surface at which the particle is as far from both, s = c g / (1 + c) with g = d + t the gap along n (t:
-    the distance along n to the other surface, a mesh's by a ray, an analytic shape's by its tangent plane), the
-    least over the colliders; `reach` where none faces it. A mesh deforming over the step (`dt` > 0, its surface in
-    the end shape) is queried at x carried along by its motion, as `collide_colliders` does."""
+    PINCH_REACH x `thickness` [m] along n and turned towards it (cosine c = -n . n2 > PINCH_COSINE). Returns the height
+    s [m] above the contact's surface at which the particle is as far from both, s = c g / (1 + c) with g = d + t the
+    gap along n (t: the distance along n to the other surface, a mesh's by a ray, an analytic shape's by its tangent
+    plane), the least over the colliders; that reach where none faces it. The particle is pinched where s is below the
+    thickness. A mesh deforming over the step (`dt` > 0, its surface in the end shape) is queried at x carried along by
+    its motion, as `collide_colliders` does."""
+    reach = PINCH_REACH * thickness
     height = reach
     for c in range(collider_count):
         shape = collider_shape[c]
@@ -342,7 +344,7 @@ def collide_colliders(
                     if pinch != 0:
                         across = pinch_height(collider_count, collider_shape, collider_size, collider_mesh, collider_deforming,
                                               mesh_max_distance, collider_transform_end, xe, wp.transform_vector(t_end, end_n0),
-                                              end_dist0, PINCH_REACH * thickness, 0.0)
+                                              end_dist0, thickness, 0.0)
                     if across >= thickness:
                         plane = 1
         if plane != 0:
@@ -360,19 +362,20 @@ def collide_colliders(
                     # the end point alone would not have seen this contact: a continuous (CCD) catch
                     wp.atomic_add(counts_out, COUNT_COLLIDER_CCD, 1)
         dist_end, n_end = shape_distance(shape, size, mesh, mesh_max_distance, pe)
-        height = thickness
-        n = wp.transform_vector(t_end, n_end)
-        if dist_end < thickness and pinch != 0:
-            # pinched (a surface faces this one within twice the thickness): out only to where it is as far from both
-            # (less the tolerance: the solve lands it there, to rounding)
-            midway = pinch_height(collider_count, collider_shape, collider_size, collider_mesh, collider_deforming, mesh_max_distance,
-                                  collider_transform_end, xe, n, dist_end, PINCH_REACH * thickness, 0.0)
-            height = wp.min(thickness, midway - tolerance)
-        if dist_end < height:
-            u = surface_velocity(deforming, mesh, mesh_max_distance, t_start, t_end, pe, inv_dt)
-            vbar, ve = contact_response((xe - xs) * inv_dt, ve, u, n, (height - dist_end) * inv_dt, mu_s, mu_k)
-            xe = xs + dt * vbar
-            touched = 1
+        if dist_end < thickness:
+            n = wp.transform_vector(t_end, n_end)
+            height = thickness
+            if pinch != 0:
+                # pinched (a surface faces this one within twice the thickness): out only to where it is as far from
+                # both (less the tolerance: the solve lands it there, to rounding)
+                midway = pinch_height(collider_count, collider_shape, collider_size, collider_mesh, collider_deforming,
+                                      mesh_max_distance, collider_transform_end, xe, n, dist_end, thickness, 0.0)
+                height = wp.min(thickness, midway - tolerance)
+            if dist_end < height:
+                u = surface_velocity(deforming, mesh, mesh_max_distance, t_start, t_end, pe, inv_dt)
+                vbar, ve = contact_response((xe - xs) * inv_dt, ve, u, n, (height - dist_end) * inv_dt, mu_s, mu_k)
+                xe = xs + dt * vbar
+                touched = 1
         if touched != 0:
             wp.atomic_add(counts_out, COUNT_COLLIDER_CONTACTS, 1)
     x_out[i] = xe
