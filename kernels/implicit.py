@@ -1519,6 +1519,8 @@ def eval_contact_friction_terms(
     v0: wp.array(dtype=wp.vec3),
     precond_free: wp.array(dtype=wp.mat33),
     stick_speed: float,
+    contact_height: wp.array(dtype=float),
+    collider_thickness: wp.array(dtype=float),
     # outputs
     rhs_out: wp.array(dtype=wp.vec3),
     effective_mass_out: wp.array(dtype=float),
@@ -1537,15 +1539,17 @@ def eval_contact_friction_terms(
     mu_s lambda at the same speed), which takes a contact from stick to slide and back without the switch kicking
     the cloth around it. `eval_contact_release` switches a damper the solve pushed past the bound to the kinetic
     impulse and solves again. Neither without a last impulse (a new contact) or on a sewn point:
-    `apply_contact_friction` after the solve. A damped contact's preconditioner block becomes the filtered block's
-    inverse (S (P_free^-1 + d T) S)^+ (`filtered_block_inverse`; S (P_free^-1 + d T)^-1 S took 2.3x the iterations on
-    the layered outfit held still); the CG's product takes d on the effective mass (S d c = S d T c)."""
+    `apply_contact_friction` after the solve. Nor on a pinched contact (`contact_height` below the collider's
+    thickness [m]): frictionless (`eval_contact_release`) from the step it is pinched in, after pressing one side.
+    A damped contact's preconditioner block becomes the filtered block's inverse (S (P_free^-1 + d T) S)^+
+    (`filtered_block_inverse`; S (P_free^-1 + d T)^-1 S took 2.3x the iterations on the layered outfit held still);
+    the CG's product takes d on the effective mass (S d c = S d T c)."""
     i = wp.tid()
     friction_mass_out[i] = 0.0
     friction_impulse_out[i] = wp.vec3(0.0)
     c = contact_collider[i]
     impulse = previous_impulse[i]
-    if c < 0 or particle_seam_root[i] >= 0 or impulse <= 0.0:
+    if c < 0 or particle_seam_root[i] >= 0 or impulse <= 0.0 or contact_height[i] < collider_thickness[c]:
         return
     n = contact_normal[i]
     rel = v0[i] - contact_velocity[i]

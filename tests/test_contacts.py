@@ -182,7 +182,8 @@ def test_a_damped_contact_preconditioner_block_inverts_the_filtered_block(rng):
               inputs=[wp.full(count, mass, dtype=float), wp.full(count, -1, dtype=wp.int32), wp.zeros(count, dtype=wp.int32),
                       wp.array(normals.astype(np.float32), dtype=wp.vec3), wp.zeros(count, dtype=wp.vec3),
                       wp.full(count, impulse, dtype=float), wp.array([mu], dtype=float), wp.array([mu], dtype=float),
-                      wp.zeros(count, dtype=wp.vec3), wp.array(np.linalg.inv(a).astype(np.float32), dtype=wp.mat33), stick],
+                      wp.zeros(count, dtype=wp.vec3), wp.array(np.linalg.inv(a).astype(np.float32), dtype=wp.mat33), stick,
+                      wp.full(count, 1.0, dtype=float), wp.array([0.5], dtype=float)],  # (not pinched: above the thickness)
               outputs=out)
     np.testing.assert_allclose(out[3].numpy(), d, rtol=1e-6)
     p = out[2].numpy().astype(np.float64)
@@ -334,6 +335,24 @@ def test_cloth_pinched_in_a_slot_stays_halfway_between_its_sides(kind, gap, tilt
     slide = (g - (g @ up) * up) * frames / 60.0  # g sin(tilt) t along the slot
     np.testing.assert_allclose(sim.state.particle_qd.numpy(), np.tile(slide, (m.particle_count, 1)), atol=1e-3 * 9.81 * frames / 60.0 + 1e-5)
     assert sim.frame_report.passes["colliders"].contacts == 0
+
+
+@pytest.mark.parametrize("kind", ["boxes", "mesh"])
+def test_a_contact_pinched_after_pressing_one_side_is_frictionless_from_its_first_step(kind):
+    """Check cloth that pressed on one side of a tilted slot in its last step (a normal impulse left from it) and is
+    pinched in this one slides at g sin(tilt) from this step on: the friction from that last impulse is not put into
+    this step's system. Given it, the step's damper held the cloth still for a step."""
+    m, up = slot_scene(kind, 0.016, 15.0, friction=1.0)
+    solver = cw.SolverImplicitEuler(m, collider_contacts="solve", contact_friction="solve", tolerance=1e-6)
+    s0, s1, control = m.state(), m.state(), m.control()
+    m.update_control(control, DT, DT, force=True)
+    solver.contact_impulse.fill_(0.01 * float(m.particle_mass.numpy().max()))  # as a step pressing one side leaves it
+    solver.step(s0, s1, control, DT)
+    g = np.array([0.0, -9.81, 0.0])
+    slide = (g - (g @ up) * up) * DT
+    np.testing.assert_allclose(s1.particle_qd.numpy(), np.tile(slide, (m.particle_count, 1)), atol=1e-3 * np.linalg.norm(slide))
+    assert not solver.contact_friction_mass.numpy().any()
+
 
 def test_a_contact_that_pulls_is_released():
     """Check a particle resting on the ground under a gravity pointing away from it (the contact would have to

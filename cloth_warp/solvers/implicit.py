@@ -814,7 +814,8 @@ class SolverImplicitEuler(SolverBase):
             wp.launch(ki.eval_contact_friction_terms, dim=m.particle_count,
                       inputs=[m.particle_mass, self.particle_seam_root, self.contact_collider, self.contact_normal,
                               self.contact_velocity, self.contact_impulse, m.collider_static_friction, m.collider_kinetic_friction,
-                              state_in.particle_qd, self.precond_free, self.contact_stick_speed],
+                              state_in.particle_qd, self.precond_free, self.contact_stick_speed, self.contact_height,
+                              m.collider_thickness],
                       outputs=[self.rhs, self.effective_mass, self.precond, self.contact_friction_mass,
                                self.contact_friction_impulse],
                       device=dev)
