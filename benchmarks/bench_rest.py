@@ -1,0 +1,149 @@
+"""Benchmark: the rest set, piles and drapes over the ball at several resolutions and seeds, with the contacts in the solve.
+
+One run of a piled or draped cloth is chaotic: a change at the level of float rounding moves its last frames' speed by
+a factor of three and its CG iterations by four (README, 2026-11-29), so a change to the contacts is judged here on a
+set of runs. Each run is `benchmarks/bench_contacts.py`'s (the shipped scene as `cloth-warp run` builds it, `--mode`
+default "solve+self+friction", `--frames` default 300 = 5 s) with its grid resolution and `scene.seed` (the cloth's
+jitter) set; `--jobs` runs go at a time, each in its own process. Reported per run and in sum: the largest particle
+speed over the last 20 frames (median; at rest: <= 1 mm/s, issue 17's target), CG iterations per frame (mean over those
+frames) and ms per frame (median over the run); the summary gives how many runs rest, the geometric mean of their
+speeds, and the sums. With --ref REV the same runs are made at git revision REV (a temporary worktree), each next to
+its counterpart, so that both see the same machine noise.
+
+Run:  python benchmarks/bench_rest.py                         (30 runs, ~6 min on 2 cores)
+      python benchmarks/bench_rest.py --ref HEAD~1            (and the revision before: ~12 min)
+      python benchmarks/bench_rest.py --runs 12 --set solver.tolerance=1e-4
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import pathlib
+import platform
+import subprocess
+import sys
+import time
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+# (scene, grid resolution, seed): 32^2 piles seeds 0-9, 48^2 piles seeds 0-1, 48^2 drapes seeds 0-4 and a 64^2 one
+# (the set the 2026-11 sessions measured), then 32^2 piles seeds 10-19 and 40^2 drapes seeds 5-6
+RUNS = ([("pile", 32, s) for s in range(10)] + [("pile", 48, s) for s in range(2)] + [("drape_sphere", 48, s) for s in range(5)]
+        + [("drape_sphere", 64, 0)] + [("pile", 32, s) for s in range(10, 20)] + [("drape_sphere", 40, s) for s in (5, 6)])
+REST = 1.0e-3
+"""[m/s] a run rests when the median of its last 20 frames' largest particle speed is at most this."""
+TAG = "BENCH_REST "
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--runs", type=int, default=len(RUNS), help=f"the first N runs of the set (default all {len(RUNS)})")
+    p.add_argument("--frames", type=int, default=300)
+    p.add_argument("--mode", default="solve+self+friction", help="bench_contacts.py's contact mode")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="scene override (TOML value), repeatable")
+    p.add_argument("--jobs", type=int, default=2, help="runs at a time (one process each)")
+    p.add_argument("--ref", metavar="REV", default=None, help="also run git revision REV (a temporary worktree)")
+    p.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "bench_rest.md"))
+    p.add_argument("--one", nargs=3, metavar=("SCENE", "RES", "SEED"), help=argparse.SUPPRESS)
+    return p.parse_args(argv)
+
+
+def run_one(args) -> None:
+    """A worker: one run, its numbers printed as one tagged JSON line."""
+    import warp as wp
+
+    wp.config.quiet = True
+    from bench_contacts import run
+
+    from cloth_warp.cli import parse_set
+
+    scene, res, seed = args.one[0], int(args.one[1]), int(args.one[2])
+    overrides = {**parse_set(args.set), "cloth.grid.resolution": [res, res], "scene.seed": seed}
+    r = run(scene, args.mode, args.frames, overrides)
+    print(TAG + json.dumps({"speed": r["rest_speed_median"], "iterations": r["iterations"], "ms": r["ms_per_frame"]}), flush=True)
+
+
+def start(tree: pathlib.Path | None, spec, args) -> subprocess.Popen:
+    """A worker process for run `spec` in `tree` (None: this tree as installed)."""
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    if tree is not None:
+        env["PYTHONPATH"] = str(tree) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    cmd = [sys.executable, str(pathlib.Path(__file__).resolve()), "--one", *map(str, spec), "--frames", str(args.frames),
+           "--mode", args.mode] + [a for kv in args.set for a in ("--set", kv)]
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env, cwd=tree or ROOT)
+
+
+def result(proc: subprocess.Popen) -> dict:
+    out, _ = proc.communicate()
+    for line in out.splitlines():
+        if line.startswith(TAG):
+            return json.loads(line[len(TAG):])
+    raise RuntimeError(f"a rest-set run exited without a result (code {proc.returncode})")
+
+
+def run_all(tasks: list, jobs: int) -> list[dict]:
+    """Run (tree, spec, args) tasks `jobs` at a time, in order; their results in the same order."""
+    results, running, queue = [None] * len(tasks), {}, list(enumerate(tasks))
+    while queue or running:
+        while queue and len(running) < jobs:
+            k, (tree, spec, args) = queue.pop(0)
+            running[k] = start(tree, spec, args)
+        k = next(iter(running))
+        results[k] = result(running.pop(k))
+    return results
+
+
+def summary(rows: list[dict]) -> str:
+    resting = sum(r["speed"] <= REST for r in rows)
+    geo = math.exp(sum(math.log(max(r["speed"], 1e-9)) for r in rows) / len(rows))
+    return (f"{resting} of {len(rows)} at rest, geometric mean {1e3 * geo:.2f} mm/s, "
+            f"{sum(r['iterations'] for r in rows):.0f} CG iterations and {sum(r['ms'] for r in rows):.0f} ms per frame in sum")
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    if args.one:
+        run_one(args)
+        return 0
+    from bench_step import make_worktree, remove_worktree
+
+    runs = RUNS[:args.runs]
+    tree = make_worktree(args.ref) if args.ref else None
+    t0 = time.perf_counter()
+    try:
+        trees = [None] + ([tree] if tree else [])
+        results = run_all([(t, spec, args) for spec in runs for t in trees], args.jobs)
+    finally:
+        if tree is not None:
+            remove_worktree(tree)
+    new = results[::len(trees)]
+    ref = results[1::len(trees)] if tree else None
+    command = "python benchmarks/bench_rest.py " + " ".join(sys.argv[1:] if argv is None else argv)
+    import warp as wp
+
+    from reports import write_results
+
+    head = "| scene | resolution | seed | speed [mm/s] | CG its/frame | ms/frame |" + (" ref speed | ref its | ref ms |" if ref else "")
+    lines = ["# bench_rest: piles and drapes over the ball, at rest or not after the run", "",
+             f"Machine: {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, Warp {wp.config.version}. "
+             f"Command: `{command.strip()}`. Mode {args.mode}, {args.frames} frames a run, {args.jobs} at a time "
+             f"({time.perf_counter() - t0:.0f} s in all); speed: the median of the last 20 frames' largest particle speed "
+             f"(at rest: <= {1e3 * REST:g} mm/s).", "",
+             head, "|---|---:|---:|---:|---:|---:|" + ("---:|---:|---:|" if ref else "")]
+    for k, (scene, res, seed) in enumerate(runs):
+        r = new[k]
+        row = f"| {scene} | {res} | {seed} | {1e3 * r['speed']:.2f} | {r['iterations']:.0f} | {r['ms']:.1f} |"
+        if ref:
+            row += f" {1e3 * ref[k]['speed']:.2f} | {ref[k]['iterations']:.0f} | {ref[k]['ms']:.1f} |"
+        lines.append(row)
+    lines += ["", f"This tree: {summary(new)}."] + ([f"`{args.ref}`: {summary(ref)}."] if ref else [])
+    write_results(args.out, lines, {"command": command.strip(), "runs": [list(s) for s in runs], "new": new, "ref": ref})
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
