@@ -22,7 +22,8 @@ the filter itself belong to the solver; this module only finds the contacts.
 import warp as wp
 
 from .collide import mesh_surface_velocity, pinch_height, shape_distance, surface_velocity
-from .implicit import COUNT_CONTACTS, COUNT_SELF_CONTACTS, COUNT_SIZE, RELEASE_FLAG, RELEASE_ROUNDS, RELEASE_SIZE, SLIP_ALLOWANCE
+from .implicit import (COUNT_CONTACTS, COUNT_SELF_CONTACTS, COUNT_SIZE, RELEASE_FLAG, RELEASE_ROUNDS, RELEASE_SIZE, SLIP_ALLOWANCE,
+                       is_pinched)
 from .worlds import particle_world_of, world_slot
 from .selfcollide import NORMAL_EPS, add_impulse, inverse_mass_weight, pair_indices, start_weights, weighted_sum
 
@@ -179,7 +180,7 @@ def eval_collider_contacts(
         height = landing_height(thickness)
         pinch = pinch_height(collider_count, collider_shape, collider_size, collider_mesh, collider_deforming, mesh_max_distance,
                              collider_transform_start, xs, n, found_d0, thickness, dt)
-        if pinch < thickness:
+        if is_pinched(pinch, thickness):
             height = pinch
             found_descent = -1.0
         contact_height_out[i] = height

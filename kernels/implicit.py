@@ -229,6 +229,14 @@ def effective_mass(i: int, particle_mass: wp.array(dtype=float), particle_pin_st
 
 
 @wp.func
+def is_pinched(height: float, thickness: float):
+    """Whether a collider contact landing `height` [m] above its surface (kernels/contact.py eval_collider_contacts) is
+    pinched between it and a surface facing it: landed below the collider's `thickness` [m], as far from both. Such a
+    contact is two-sided and frictionless (`eval_contact_release`)."""
+    return height < thickness
+
+
+@wp.func
 def contact_filter(n: wp.vec3, a: wp.vec3):
     """S_i a for a particle whose velocity along the unit contact normal n is prescribed (a collider contact in the
     solve: S_i = I - n n^T); n = 0 (no contact) leaves a as it is."""
@@ -1425,7 +1433,7 @@ def eval_contact_release(
                           tri_corner_weights, membrane_offsets, membrane_ids, membrane_vertices, system_block, bend_vector, drag_vector,
                           membrane_block, plate_product, m_eff, dv, dt)
     impulse = wp.dot(n, a_dv - rhs_out[i])  # (the friction terms are tangential: no part of it)
-    if contact_height[i] < collider_thickness[contact_collider_out[i]]:
+    if is_pinched(contact_height[i], collider_thickness[contact_collider_out[i]]):
         contact_impulse_out[i] = 0.0  # pinched: held, frictionless
         return
     contact_impulse_out[i] = impulse
@@ -1549,7 +1557,7 @@ def eval_contact_friction_terms(
     friction_impulse_out[i] = wp.vec3(0.0)
     c = contact_collider[i]
     impulse = previous_impulse[i]
-    if c < 0 or particle_seam_root[i] >= 0 or impulse <= 0.0 or contact_height[i] < collider_thickness[c]:
+    if c < 0 or particle_seam_root[i] >= 0 or impulse <= 0.0 or is_pinched(contact_height[i], collider_thickness[c]):
         return
     n = contact_normal[i]
     rel = v0[i] - contact_velocity[i]
@@ -1712,7 +1720,7 @@ def eval_contact_friction(
         return
     n = contact_normal[i]
     impulse = -wp.dot(n, unfiltered_residual[i])
-    if contact_height[i] < collider_thickness[c]:
+    if is_pinched(contact_height[i], collider_thickness[c]):
         impulse = 0.0
     dv_out[i] = coulomb_friction(dv[i], v0[i], contact_velocity[i], n, impulse, particle_mass[i],
                                  collider_static_friction[c], collider_kinetic_friction[c])
