@@ -445,6 +445,38 @@ def test_a_sewn_point_takes_contact_friction_as_one_point():
     np.testing.assert_allclose(lone, 0.0, atol=1e-7)
 
 
+@pytest.mark.parametrize("gap_cm", [0.05, 0.5])
+def test_a_welded_point_takes_its_contact_friction_in_the_solve_and_an_open_one_after_it(gap_cm):
+    """Check which sewn points take collider friction in the solve: two panels sewn along an edge lying on the ground,
+    everything in the solve. A seam closed at the start (0.5 mm: welded by the sewing pass, its particles starting every
+    step together) gives each sewn particle its own damper in the solve, as any resting contact; a seam open at the
+    start (5 mm, pulled shut by its springs) keeps the one-point law after the solve (no damper: each side held where
+    it landed would hold the seam open), the rest of the cloth held in the solve alike. With friction after the
+    solve, every sewn point takes the one-point law."""
+    from test_sewing import two_panels
+    from cloth_warp.sewing import seam_ends
+
+    b = cw.ModelBuilder(gravity=(0.0, 0.0, -9.81))
+    b.add_cloth_pattern(two_panels(gap_cm), edge_length=0.025, material="cotton", name="panels")
+    b.add_plane(normal=(0.0, 0.0, 1.0), point=(0.0, 0.0, -THICKNESS * (1 + kct.CLEARANCE)), thickness=THICKNESS, friction=0.5)
+    m = b.finalize("cpu")
+    welded = gap_cm * 1e-2 < 1e-3
+    sewn = np.unique(seam_ends(m))
+    for friction in ("solve", "after"):
+        solver = cw.SolverImplicitEuler(m, collider_contacts="solve", contact_friction=friction, strain_limit=None)
+        roots = solver.particle_seam_root.numpy()
+        assert (roots[sewn] < 0).all() if welded and friction == "solve" else (roots[sewn] >= 0).all()
+        assert (np.delete(roots, sewn) < 0).all()
+    sim = cw.Simulator(m, solver := cw.SolverImplicitEuler(m, collider_contacts="solve", contact_friction="solve",
+                                                         strain_limit=None), fps=60, substeps=2, capture=False)
+    for _ in range(3):
+        sim.step_frame()
+    assert (solver.contact_collider.numpy() >= 0).all()
+    damped = solver.contact_friction_mass.numpy() > 0
+    assert damped[sewn].all() if welded else not damped[sewn].any()
+    assert np.delete(damped, sewn).mean() > 0.9
+
+
 @pytest.mark.parametrize("friction", ["after", "solve"])
 @pytest.mark.parametrize("tilt", [0.0, 15.0])
 def test_a_moving_collider_carries_cloth_by_friction_without_creep(tilt, friction):

@@ -23,7 +23,7 @@ from ..kernels import contact as kct
 from ..kernels import implicit as ki
 from ..kernels import selfcollide as ksc
 from ..kernels.worlds import world_slots_length
-from ..model import Control, Model, State
+from ..model import Control, Model, ModelFlags, State
 from .base import SolverBase
 from .strain_limit import DEFAULT_SWEEPS
 
@@ -103,7 +103,8 @@ class SolverImplicitEuler(SolverBase):
             (kernels/contact.py), the rest of its motion solved with the cloth; a contact whose solved impulse pulls
             is released and the step solved again (at most `contact_release_rounds` times), and Coulomb friction
             acts (`contact_friction`) on the solved tangential velocity with that impulse (on a garment's sewn points as
-            one point: the particles a seam joins share the law, so friction never holds a seam's sides apart); the
+            one point: the particles a seam joins share the law, so friction never holds a seam's sides apart; with
+            friction in the solve, only the points whose seams are still open: see `contact_friction`); the
             colliders pass still runs after the step as the guarantee). Taped steps differentiated by the adjoint hold them too
             (below; their friction is per particle); CG only.
         contact_margin: "solve" contacts: a particle within the thickness x (1 + margin) at the step's start is in
@@ -119,7 +120,9 @@ class SolverImplicitEuler(SolverBase):
             a sticking or creeping contact as a tangential damper that reaches the static bound at
             `contact_stick_speed` from rest (its solved slip then taken out: no creep) and gives Coulomb's force at the
             speed it creeps at; one the solve pushes past the bound slides, solved again; a sliding one as the kinetic
-            impulse; a new contact and a sewn point take it after the solve. With ``self_contacts="solve"`` the
+            impulse; a new contact and a sewn point the sewing pass does not weld (its seam still open) take it after the
+            solve, as one point (a welded point's particles start every step together with one velocity: each takes
+            its own friction in the solve). With ``self_contacts="solve"`` the
             self-contact elements' friction is in the solve alike (kernels/contact.py self_contact_friction_terms: a
             damper on the pair's relative tangential velocity, or the kinetic impulse). The solve then holds the stuck contacts
             instead of moving the cloth around slides that friction undoes (a drape's contacts slid by up to 1.4 m/s
@@ -321,13 +324,11 @@ class SolverImplicitEuler(SolverBase):
         self.contact_friction_mass = wp.zeros(n, dtype=float, device=dev)
         self.contact_friction_impulse = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.contact_slipping = wp.zeros(n, dtype=wp.int32, device=dev)  # 1: the contact was left sliding by the last step
-        # sewn points take friction as one point (kernels/implicit.py gather_seam_friction): per particle its seam's
-        # root (-1: not sewn), per root the sums the friction law needs
-        sewn = sewn_point_roots(model) if collider_contacts == "solve" else None
-        if sewn is None:
-            sewn = np.full(n, -1, np.int32)
-        self._sewn = bool((sewn >= 0).any())
-        self.particle_seam_root = wp.array(sewn, dtype=wp.int32, device=dev)
+        # sewn points that take friction as one point after the solve (kernels/implicit.py gather_seam_friction,
+        # _seam_friction_roots): per particle its point's root (-1: any other), per root the sums the friction law needs
+        self._sewn_roots = sewn_point_roots(model) if collider_contacts == "solve" else None
+        self._sewn = self._sewn_roots is not None and bool((self._sewn_roots >= 0).any())
+        self.particle_seam_root = wp.array(self._seam_friction_roots(), dtype=wp.int32, device=dev)
         m_sewn = n if self._sewn else 1
         self.seam_momentum = wp.zeros(m_sewn, dtype=wp.vec3, device=dev)
         self.seam_mass = wp.zeros(m_sewn, dtype=float, device=dev)
@@ -349,7 +350,25 @@ class SolverImplicitEuler(SolverBase):
         velocity change no longer predicts this one, so the next solve starts cold."""
         super().notify_model_changed(flags)
         self.previous_ready.zero_()
+        if self._sewn and flags & ModelFlags.PARTICLE_INITIAL_STATE:  # (the sewing pass found its welded points again)
+            self.particle_seam_root.assign(self._seam_friction_roots())
         self._loop_graphs.clear()  # (they hold the model's arrays as they were)
+
+    def _seam_friction_roots(self) -> np.ndarray:
+        """Per particle, the root of its sewn point when the point's contacts take Coulomb friction as one point after
+        the solve, else -1 (int32, (n,)): every sewn point with friction after the solve; with it in the solve, those
+        the sewing pass does not weld (their seams still open: each side held where it landed would keep them open).
+        A welded point's particles start every step together with one velocity, so each takes its own friction in
+        the solve: as one point after it, the dress held still had contacts on its shoulder seams go from sliding to
+        stopped every other step, the cloth beside them swinging at 1.2 mm/s."""
+        n = self.model.particle_count
+        if not self._sewn:
+            return np.full(n, -1, np.int32)
+        roots = self._sewn_roots.copy()
+        sewing = self.pass_named("sewing")
+        if self.contact_friction == "solve" and sewing is not None:
+            roots[sewing.weld.roots >= 0] = -1
+        return roots
 
     # -- the linear system -------------------------------------------------------------------
     def assemble(self, state_in: State, control: Control, dt: float):
