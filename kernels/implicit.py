@@ -1546,12 +1546,12 @@ def eval_contact_friction_terms(
     slide that friction undoes after it; creeping at |v_T| it is Coulomb's force linearised there (its impulse is
     mu_s lambda at the same speed), which takes a contact from stick to slide and back without the switch kicking
     the cloth around it. `eval_contact_release` switches a damper the solve pushed past the bound to the kinetic
-    impulse and solves again. Neither without a last impulse (a new contact) or on a sewn point that takes friction as one
-    point (`particle_seam_root` >= 0: its seam still open): `apply_contact_friction` after the solve. Nor on a pinched contact (`contact_height` below the collider's
-    thickness [m]): frictionless (`eval_contact_release`) from the step it is pinched in, after pressing one side.
-    A damped contact's preconditioner block becomes the filtered block's inverse (S (P_free^-1 + d T) S)^+
-    (`filtered_block_inverse`; S (P_free^-1 + d T)^-1 S took 2.3x the iterations on the layered outfit held still);
-    the CG's product takes d on the effective mass (S d c = S d T c)."""
+    impulse and solves again. Neither without a last impulse (a new contact) or on a sewn point that takes friction
+    as one point (`particle_seam_root` >= 0: its seam still open): `apply_contact_friction` after the solve. Nor on a
+    pinched contact (`contact_height` below the collider's thickness [m]): frictionless (`eval_contact_release`) from
+    the step it is pinched in, after pressing one side. A damped contact's preconditioner block becomes the filtered
+    block's inverse (S (P_free^-1 + d T) S)^+ (`filtered_block_inverse`; S (P_free^-1 + d T)^-1 S took 2.3x the
+    iterations on the layered outfit held still); the CG's product takes d on the effective mass (S d c = S d T c)."""
     i = wp.tid()
     friction_mass_out[i] = 0.0
     friction_impulse_out[i] = wp.vec3(0.0)

@@ -454,21 +454,21 @@ def test_a_welded_point_takes_its_contact_friction_in_the_solve_and_an_open_one_
     it landed would hold the seam open), the rest of the cloth held in the solve alike. With friction after the
     solve, every sewn point takes the one-point law."""
     from test_sewing import two_panels
-    from cloth_warp.sewing import seam_ends
+    from cloth_warp.sewing import WELD_DISTANCE, seam_ends
 
     b = cw.ModelBuilder(gravity=(0.0, 0.0, -9.81))
     b.add_cloth_pattern(two_panels(gap_cm), edge_length=0.025, material="cotton", name="panels")
     b.add_plane(normal=(0.0, 0.0, 1.0), point=(0.0, 0.0, -THICKNESS * (1 + kct.CLEARANCE)), thickness=THICKNESS, friction=0.5)
     m = b.finalize("cpu")
-    welded = gap_cm * 1e-2 < 1e-3
+    welded = gap_cm * 1e-2 < WELD_DISTANCE
     sewn = np.unique(seam_ends(m))
     for friction in ("solve", "after"):
         solver = cw.SolverImplicitEuler(m, collider_contacts="solve", contact_friction=friction, strain_limit=None)
         roots = solver.particle_seam_root.numpy()
         assert (roots[sewn] < 0).all() if welded and friction == "solve" else (roots[sewn] >= 0).all()
         assert (np.delete(roots, sewn) < 0).all()
-    sim = cw.Simulator(m, solver := cw.SolverImplicitEuler(m, collider_contacts="solve", contact_friction="solve",
-                                                         strain_limit=None), fps=60, substeps=2, capture=False)
+    solver = cw.SolverImplicitEuler(m, collider_contacts="solve", contact_friction="solve", strain_limit=None)
+    sim = cw.Simulator(m, solver, fps=60, substeps=2, capture=False)
     for _ in range(3):
         sim.step_frame()
     assert (solver.contact_collider.numpy() >= 0).all()
