@@ -23,7 +23,7 @@ import warp as wp
 
 from .collide import mesh_surface_velocity, pinch_height, shape_distance, surface_velocity
 from .implicit import (COUNT_CONTACTS, COUNT_SELF_CONTACTS, COUNT_SIZE, RELEASE_FLAG, RELEASE_ROUNDS, RELEASE_SIZE, SLIP_ALLOWANCE,
-                       is_pinched, slides_past_bound)
+                       is_pinched)
 from .worlds import particle_world_of, world_slot
 from .selfcollide import NORMAL_EPS, add_impulse, inverse_mass_weight, pair_indices, start_weights, weighted_sum
 
@@ -426,14 +426,14 @@ def slide_self_contacts(
     rhs_out: wp.array(dtype=wp.vec3),
     release_out: wp.array(dtype=wp.int32),
 ):
-    """A self-contact element whose friction damper (`self_contact_friction_terms`) the solve pushed past the static bound
-    (solved relative slip s beyond the stick speed [m/s], d |s| > mu lambda; not one that only creeps:
-    kernels/implicit.py slides_past_bound) slides within the step, as a collider contact does (kernels/implicit.py
-    eval_contact_release): its damper leaves the system (its b part, -d alpha_r v_T0, taken back) for the kinetic
-    impulse J = -mu lambda s / |s| (alpha_r J to each member), and the step is solved again (release_out[RELEASE_FLAG]),
-    while fewer than `max_rounds` re-solves ran. Without it a pair starting from rest under a load above the bound only
-    sped up by the load's ratio to the bound per step (a cloth on a cloth on a 30 deg incline at 0.15 m/s after 10
-    frames, against 0.28 with the slide). The preconditioner keeps the damper's block (still SPD)."""
+    """A self-contact element whose friction damper (`self_contact_friction_terms`) the solve pushed past the static
+    bound (solved relative slip s beyond the stick speed [m/s], d |s| > mu lambda) slides within the step, as a collider
+    contact does (kernels/implicit.py eval_contact_release): its damper leaves the system (its b part, -d alpha_r v_T0,
+    taken back) for the kinetic impulse J = -mu lambda s / |s| (alpha_r J to each member), and the step is solved again
+    (release_out[RELEASE_FLAG]), while fewer than `max_rounds` re-solves ran. Without it a pair starting from rest
+    under a load above the bound only sped up by the load's ratio to the bound per step (a cloth on a cloth on a 30 deg
+    incline at 0.15 m/s after 10 frames, against 0.28 with the slide). The preconditioner keeps the damper's block
+    (still SPD)."""
     e = wp.tid()
     if e >= element_count[0]:
         return
@@ -450,10 +450,10 @@ def slide_self_contacts(
     slip = v_end - wp.dot(v_end, n) * n
     speed = wp.length(slip)
     bound = friction * dt * element_stiffness[e] * element_overlap[e]
+    if speed <= SLIP_ALLOWANCE * stick_speed or d * speed <= SLIP_ALLOWANCE * bound:
+        return
     v_start = weighted_sum(alpha, v0[idx[0]], v0[idx[1]], v0[idx[2]], v0[idx[3]])
     v_t0 = v_start - wp.dot(v_start, n) * n
-    if not slides_past_bound(wp.length(v_t0), speed, d * speed, bound, stick_speed):
-        return
     j = (-bound / speed) * slip
     for r in range(4):
         wp.atomic_add(rhs_out, idx[r], alpha[r] * (j + d * v_t0))

@@ -71,9 +71,6 @@ RELEASE_RESOLVING = wp.constant(2)  # batched: this world takes part in the re-s
 # A friction damper (eval_contact_friction_terms; self-contacts: kernels/contact.py) holds its contact, the slip then
 # taken out, when the solved slip is within this factor of the stick speed (the solve's round-off stays below it).
 SLIP_ALLOWANCE = wp.constant(1.01)
-# A damper the solve pushed past the static bound still creeps as solved, without a re-solve, while its solved slip and
-# the slip it started the step with are both within this factor of the stick speed (slides_past_bound).
-CREEP_SLIP = wp.constant(2.0)
 RELEASE_SIZE = wp.constant(3)  # per world, laid out as the loop state (kernels/worlds.py world_slot)
 # Indices into the contacts' counters (kernels/contact.py counts them, end_linear_solve records them), per world.
 COUNT_CONTACTS = wp.constant(0)  # collider contacts
@@ -1336,22 +1333,6 @@ def filter_contact_preconditioner(
 
 
 @wp.func
-def slides_past_bound(start_speed: float, speed: float, damper_impulse: float, bound: float, stick_speed: float) -> bool:
-    """Whether a friction damper the solve left with slip `speed` [m/s] and impulse `damper_impulse` [kg m/s] slides (its
-    step solved again with the kinetic impulse): past the static `bound` [kg m/s] and the stick speed, unless it only
-    creeps (this slip and the step's starting slip `start_speed` within CREEP_SLIP stick speeds). A creeping contact at
-    the bound keeps the damper's solution, its slip left in (`apply_contact_friction`): a resting pile's contacts left
-    at the bound were let slide ~50 a step, two re-solves a step that ended them at the same slip (1-2 stick speeds),
-    and two a dress held still let slide in a step's last round ended it sliding, stuck again in the next, every other
-    step (the cloth 5-12 cm away at ±3.9 mm/s). One loaded past the bound is not held by it: the next step's damper,
-    linearised at the speed it creeps at, gives Coulomb's force there, its slip grows by the load's ratio to the bound
-    per step, and it slides once past CREEP_SLIP."""
-    if speed <= SLIP_ALLOWANCE * stick_speed or damper_impulse <= SLIP_ALLOWANCE * bound:
-        return False
-    return speed > CREEP_SLIP * stick_speed or start_speed > CREEP_SLIP * stick_speed
-
-
-@wp.func
 def hold_contact(i: int, n: wp.vec3, tangential: wp.vec3, bound: float, stick_speed: float, precond_free: wp.array(dtype=wp.mat33),
                  rhs_out: wp.array(dtype=wp.vec3), effective_mass_out: wp.array(dtype=float), friction_mass_out: wp.array(dtype=float),
                  friction_impulse_out: wp.array(dtype=wp.vec3), precond_out: wp.array(dtype=wp.mat33)):
@@ -1421,26 +1402,26 @@ def eval_contact_release(
     release_out: wp.array(dtype=wp.int32),
 ):
     """The impulse [kg m/s] each collider contact exerts along its normal in the solved step, lambda = n . (A dv - b)_i
-    (the part of the momentum balance the filter took out); a contact that pulls (lambda < -release_impulse m_i [m/s x
-    kg]: the cloth wants to leave the surface faster than prescribed; the threshold keeps the solve's round-off in
-    lambda from releasing a contact that barely bears any load) is released (collider -1, n = 0, z = 0, its unfiltered
-    preconditioner block back, its friction terms (`eval_contact_friction_terms`) out of the system) and
+    (the part of the momentum balance the filter took out); a contact that pulls (lambda < -release_impulse m_i
+    [m/s x kg]: the cloth wants to leave the surface faster than prescribed; the threshold keeps the solve's
+    round-off in lambda from releasing a contact that barely bears any load) is released (collider -1, n = 0, z = 0,
+    its unfiltered preconditioner block back, its friction terms (`eval_contact_friction_terms`) out of the system) and
     release_out[RELEASE_FLAG] set, while fewer than `max_rounds` re-solves were run this step. A contact held by a
     friction damper is first let slide instead (the kinetic impulse -mu_k lambda+ s / |s| along its solved slip s
     relative to the surface, `v0` + dv - `contact_velocity`, in place of the damper; the flag set) where static friction
     cannot hold it: lambda pulls, or the damper's impulse d |s| passed the bound mu_s lambda with |s| above the stick
-    speed [m/s], unless it only creeps (`slides_past_bound`). A damper held past the bound made the stuck cloth pull off
-    the surface where it would fall back sliding, and the contact chattered between the two. A sliding contact whose
-    kinetic impulse reversed its solved slip (friction stronger than what moves it: the normal impulse it was taken from
-    fell in the re-solve) sticks again, with a damper from this solve's lambda, and the step is solved again: left
-    sliding, the cloth round it took the kinetic impulse the contact did not need (`apply_contact_friction` then stops
-    the contact alone), and the contact went from stick to slide and back every step, its neighbours thrown back and
-    forth (a dress held still: 60 particles at 5-7 mm/s in a period-two cycle that did not move them). A pinched contact
-    (its `contact_height` below the collider's thickness, `kernels/contact.py` eval_collider_contacts) is two-sided: its
-    impulse either way presses one of its surfaces, so it is never released; and frictionless, its impulse 0 (what holds
-    it between two surfaces is no squeeze on one: with friction from |lambda| the shipped T-shirt's settling held an
-    armpit seam 7 mm open, which closed without). (Batched worlds: the flag and the rounds are the particle's world's,
-    and the batch's flag is set with a world's.)"""
+    speed [m/s]. A damper held past the bound made the stuck cloth pull off the surface where it would fall back
+    sliding, and the contact chattered between the two. A sliding contact whose kinetic impulse reversed its solved
+    slip (friction stronger than what moves it: the normal impulse it was taken from fell in the re-solve) sticks again,
+    with a damper from this solve's lambda, and the step is solved again: left sliding, the cloth round it took the
+    kinetic impulse the contact did not need (`apply_contact_friction` then stops the contact alone), and the contact
+    went from stick to slide and back every step, its neighbours thrown back and forth (a dress held still: 60
+    particles at 5-7 mm/s in a period-two cycle that did not move them). A pinched contact (its `contact_height` below
+    the collider's thickness, `kernels/contact.py` eval_collider_contacts) is two-sided: its impulse either way presses
+    one of its surfaces, so it is never released; and frictionless, its impulse 0 (what holds it between two surfaces
+    is no squeeze on one: with friction from |lambda| the shipped T-shirt's settling held an armpit seam 7 mm open, which
+    closed without). (Batched worlds: the flag and the rounds are the particle's world's, and the batch's flag is set
+    with a world's.)"""
     i = wp.tid()
     rb = world_slot(particle_world_of(i, particle_world, worlds), worlds, RELEASE_SIZE)
     n = contact_normal_out[i]
@@ -1464,9 +1445,8 @@ def eval_contact_release(
         slip = contact_filter(n, v0[i] + dv[i] - contact_velocity[i])
         speed = wp.length(slip)
         push = wp.max(impulse, 0.0)
-        start_speed = wp.length(contact_filter(n, v0[i] - contact_velocity[i]))
         if (impulse < -release_impulse * particle_mass[i]
-                or slides_past_bound(start_speed, speed, d * speed, collider_static_friction[c] * push, stick_speed)):
+                or (speed > SLIP_ALLOWANCE * stick_speed and d * speed > SLIP_ALLOWANCE * collider_static_friction[c] * push)):
             slide = wp.vec3(0.0)
             if speed > 0.0:
                 slide = (-collider_kinetic_friction[c] * push / speed) * slip

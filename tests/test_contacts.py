@@ -445,49 +445,6 @@ def test_a_sewn_point_takes_contact_friction_as_one_point():
     np.testing.assert_allclose(lone, 0.0, atol=1e-7)
 
 
-@pytest.mark.parametrize("ratio", [1.05, 1.3, 3.0])
-def test_a_resting_contact_loaded_past_the_static_bound_creeps_then_slides(ratio):
-    """Check a particle resting on the ground (its friction in the solve, mu_s = mu_k) whose load turns to `ratio` times
-    the static bound (gravity tilted): while its slip, and the slip it starts the step with, stay within
-    kernels/implicit.py CREEP_SLIP stick speeds it creeps as its damper solved it, without a re-solve (a resting pile's
-    contacts left at the bound were let slide ~50 a step, two re-solves a step that ended them at the same slip), its
-    slip growing by the load's ratio per step; past that it slides by Coulomb (a re-solve), at g_x - mu g from then on,
-    the onset at most log(CREEP_SLIP) / log(ratio) steps late; a load well past the bound slides at once."""
-    from cloth_warp.kernels import implicit as ki
-
-    mu, g, steps = 0.5, 9.81, 40
-    b = cw.ModelBuilder()
-    b.add_particle((0.0, THICKNESS * (1 + kct.CLEARANCE), 0.0), mass=0.01)
-    b.add_ground(thickness=THICKNESS, friction=mu)
-    m = b.finalize("cpu")
-    solver = cw.SolverImplicitEuler(m, collider_contacts="solve", contact_friction="solve", strain_limit=None, tolerance=1e-6)
-    states, control = [m.state(), m.state()], m.control()
-    m.update_control(control, DT, DT, force=True)
-    eps = solver.contact_stick_speed
-
-    def step():
-        solver.reset_report()
-        solver.step(states[0], states[1], control, DT)
-        states.reverse()
-        return float(states[0].particle_qd.numpy()[0, 0]), solver.read_report().contact_resolves
-
-    for _ in range(5):  # at rest, the contact's impulse known
-        step()
-    m.gravity = (ratio * mu * g, -g, 0.0)
-    v, resolves = zip(*(step() for _ in range(steps)))
-    v = np.array(v)
-    late = math.log(float(ki.CREEP_SLIP)) / math.log(ratio)
-    creeping = int(np.argmax(np.array(resolves) > 0))  # the steps before its first re-solve
-    if ratio * 0.999 < float(ki.CREEP_SLIP):
-        assert resolves[0] == 0 and v[0] == pytest.approx(ratio * eps, rel=0.01)  # creeps: no re-solve
-        assert 1 <= creeping <= late + 1
-        np.testing.assert_allclose(v[1:creeping] / v[:creeping - 1], ratio, rtol=0.02)  # its slip grows by the ratio
-    else:
-        assert resolves[0] >= 1  # slides at once
-    a = (ratio - 1.0) * mu * g
-    assert a * DT * (steps - late - 1) <= v[-1] <= a * DT * steps * (1 + 1e-3)  # then slides at g_x - mu g
-
-
 @pytest.mark.parametrize("gap_cm", [0.05, 0.5])
 def test_a_welded_point_takes_its_contact_friction_in_the_solve_and_an_open_one_after_it(gap_cm):
     """Check which sewn points take collider friction in the solve: two panels sewn along an edge lying on the ground,

@@ -119,11 +119,10 @@ class SolverImplicitEuler(SolverBase):
             steps; kernels/implicit.py eval_contact_friction_terms), with the contact's normal impulse of its last step:
             a sticking or creeping contact as a tangential damper that reaches the static bound at
             `contact_stick_speed` from rest (its solved slip then taken out: no creep) and gives Coulomb's force at the
-            speed it creeps at; one the solve pushes past the bound slides, solved again, unless it only creeps (its
-            slip and its starting slip within two stick speeds: kernels/implicit.py slides_past_bound); a sliding one as
-            the kinetic impulse; a new contact and a sewn point the sewing pass does not weld (its seam still open)
-            take it after the solve, as one point (a welded point's particles start every step together with one
-            velocity: each takes its own friction in the solve). With ``self_contacts="solve"`` the
+            speed it creeps at; one the solve pushes past the bound slides, solved again; a sliding one as the kinetic
+            impulse; a new contact and a sewn point the sewing pass does not weld (its seam still open) take it after the
+            solve, as one point (a welded point's particles start every step together with one velocity: each takes
+            its own friction in the solve). With ``self_contacts="solve"`` the
             self-contact elements' friction is in the solve alike (kernels/contact.py self_contact_friction_terms: a
             damper on the pair's relative tangential velocity, or the kinetic impulse). The solve then holds the stuck contacts
             instead of moving the cloth around slides that friction undoes (a drape's contacts slid by up to 1.4 m/s
