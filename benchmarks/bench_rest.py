@@ -10,7 +10,8 @@ frames) and ms per frame (median over the run); the summary gives how many runs 
 speeds, and the sums. With --ref REV the same runs are made at git revision REV (a temporary worktree), each next to
 its counterpart, so that both see the same machine noise.
 
-Run:  python benchmarks/bench_rest.py                         (30 runs, ~6 min on 2 cores)
+Run:  python benchmarks/bench_rest.py                         (30 runs, ~4-6 min on 2 cores)
+      python benchmarks/bench_rest.py --extended              (and 30 more, other seeds: 60 runs)
       python benchmarks/bench_rest.py --ref HEAD~1            (and the revision before: ~12 min)
       python benchmarks/bench_rest.py --runs 12 --set solver.tolerance=1e-4
 """
@@ -34,6 +35,9 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 # (the set the 2026-11 sessions measured), then 32^2 piles seeds 10-19 and 40^2 drapes seeds 5-6
 RUNS = ([("pile", 32, s) for s in range(10)] + [("pile", 48, s) for s in range(2)] + [("drape_sphere", 48, s) for s in range(5)]
         + [("drape_sphere", 64, 0)] + [("pile", 32, s) for s in range(10, 20)] + [("drape_sphere", 40, s) for s in (5, 6)])
+# a second set of 30 (2026-11-29): 32^2 piles seeds 20-39 and 40^2 drapes seeds 7-16. Equivalent trees' counts of runs
+# at rest moved by up to 3 on one set of 30 (README, Benchmarks); `--extended` runs both sets (60 runs)
+MORE_RUNS = [("pile", 32, s) for s in range(20, 40)] + [("drape_sphere", 40, s) for s in range(7, 17)]
 REST = 1.0e-3
 """[m/s] a run rests when the median of its last 20 frames' largest particle speed is at most this."""
 TAG = "BENCH_REST "
@@ -41,7 +45,8 @@ TAG = "BENCH_REST "
 
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--runs", type=int, default=len(RUNS), help=f"the first N runs of the set (default all {len(RUNS)})")
+    p.add_argument("--runs", type=int, default=None, help="the first N runs of the set (default all)")
+    p.add_argument("--extended", action="store_true", help=f"the set and {len(MORE_RUNS)} more runs (other seeds)")
     p.add_argument("--frames", type=int, default=300)
     p.add_argument("--mode", default="solve+self+friction", help="bench_contacts.py's contact mode")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="scene override (TOML value), repeatable")
@@ -111,7 +116,7 @@ def main(argv=None) -> int:
         return 0
     from bench_step import make_worktree, remove_worktree
 
-    runs = RUNS[:args.runs]
+    runs = (RUNS + MORE_RUNS if args.extended else RUNS)[:args.runs]
     tree = make_worktree(args.ref) if args.ref else None
     t0 = time.perf_counter()
     try:
@@ -141,6 +146,9 @@ def main(argv=None) -> int:
             row += f" {1e3 * ref[k]['speed']:.2f} | {ref[k]['iterations']:.0f} | {ref[k]['ms']:.1f} |"
         lines.append(row)
     lines += ["", f"This tree: {summary(new)}."] + ([f"`{args.ref}`: {summary(ref)}."] if ref else [])
+    if len(runs) > len(RUNS):  # each set on its own
+        for name, part in (("the first set", slice(0, len(RUNS))), ("the second set", slice(len(RUNS), None))):
+            lines.append(f"On {name}: this tree {summary(new[part])}" + (f"; `{args.ref}` {summary(ref[part])}." if ref else "."))
     write_results(args.out, lines, {"command": command.strip(), "runs": [list(s) for s in runs], "new": new, "ref": ref})
     return 0
 
