@@ -48,6 +48,9 @@ class DressingReport:
         layered_from: how deep [m] the dressed cloth started on the wrong side of a held layer (under one that goes over
             it, or over one that goes under it: that layer was then moved out of its way; 0: none).
         crossing: particles of the dressed cloth on the wrong side of a layer under it at the end (should be 0).
+        self_crossings: (edge, triangle) pairs of the dressed cloth that cross at the end (:func:`self_crossings`;
+            should be 0: self-collision keeps a tangle it is handed).
+        open_seams: seam springs still longer than the run's weld distance at the end (they stay springs in the run).
     """
 
     seconds: float
@@ -60,6 +63,8 @@ class DressingReport:
     inside: int = 0
     layered_from: float = 0.0
     crossing: int = 0
+    self_crossings: int = 0
+    open_seams: int = 0
 
 
 def frozen_collider(collider, time: float = 0.0):
@@ -313,6 +318,29 @@ def crossing_layers(builder, moving: np.ndarray, under, device=None) -> int:
     return count
 
 
+def self_crossings(builder, particles=None, device=None) -> int:
+    """How many (edge, triangle) pairs of the builder's cloth (the triangles among `particles`, a boolean mask; default
+    all) cross at its positions, a seam's particles counted as one vertex (a garment is one surface): 0 for cloth
+    free of intersections (kernels/collide.py `count_edge_crossings`)."""
+    import warp as wp
+
+    from .kernels import collide as kc
+
+    tris = np.asarray(builder.triangles, np.int64).reshape(-1, 3)
+    if particles is not None:
+        tris = tris[np.asarray(particles, bool)[tris].all(axis=1)]
+    if len(tris) == 0:
+        return 0
+    tris = joined_roots(builder.springs[builder.spring_kind == int(SpringKind.SEAM)], len(builder.particle_positions))[tris]
+    edges = np.unique(np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1), axis=0)
+    mesh = _warp_mesh(builder.particle_positions, tris, device)
+    count = wp.zeros(1, dtype=wp.int32, device=mesh.device)
+    wp.launch(kc.count_edge_crossings, dim=len(edges), inputs=[mesh.id, mesh.points, wp.array(edges.astype(np.int32), dtype=wp.vec2i,
+                                                                                               device=mesh.device), mesh.indices],
+              outputs=[count], device=mesh.device)
+    return int(count.numpy()[0])
+
+
 def seam_gap(builder, positions=None, particles=None) -> float:
     """The largest distance [m] between the two ends of the builder's seam springs (at `positions`, default its own;
     with `particles`, a boolean mask over the particles, only the seams of those)."""
@@ -482,8 +510,12 @@ def _still_run(builder, seconds, closing, gravity, fps, substeps, damping, devic
                  for c in builder.colliders if _closed(c)) if closing > 0.0 else 0
     crossing = crossing_layers(builder, moving, below, device) if below else 0
     strain = float(stats.max_strain) if moving.all() else _max_strain(builder, x, moving)  # (not the held layers moved aside)
+    sewn = builder.springs[(builder.spring_kind == int(SpringKind.SEAM)) & moving[builder.springs[:, 0]]]
+    y = builder.particle_positions
+    open_seams = int(np.count_nonzero(np.linalg.norm(y[sewn[:, 0]] - y[sewn[:, 1]], axis=1) > WELD_DISTANCE))
     return DressingReport(frames / fps, frames * substeps, seam_gap(builder, particles=moving),
-                          float(np.linalg.norm(v[moving], axis=1).max()), strain, finished, grown_from, inside, layered_from, crossing)
+                          float(np.linalg.norm(v[moving], axis=1).max()), strain, finished, grown_from, inside, layered_from, crossing,
+                          self_crossings(builder, moving, device), open_seams)
 
 
 def _max_strain(builder, x: np.ndarray, particles: np.ndarray) -> float:

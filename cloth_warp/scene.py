@@ -870,7 +870,9 @@ def _dressing(b, scene: Scene, stage: str, device):
     with _scene_key(f"dressing.{stage}"):
         try:
             if stage == "settle":
-                log.info("dressing.settle: %s", dressing.settle(b, seconds, fps=fps, device=device, solver_options=options))
+                report = dressing.settle(b, seconds, fps=fps, device=device, solver_options=options)
+                log.info("dressing.settle: %s", report)
+                _warn_handed_over(report, "dressing.settle")
                 return
             layers = layer_order(scene)
             for k, names in enumerate(layers):  # from the inside out, the other layers held still (one layer: all at once)
@@ -886,6 +888,8 @@ def _dressing(b, scene: Scene, stage: str, device):
                     log.warning("dressing.seconds: %d particles of %s are still under %s after the dressing (it started %.1f cm "
                                 "under): place the panels further out, or dress for longer", report.crossing, ", ".join(names),
                                 ", ".join(under), 100.0 * report.layered_from)
+                if float(scene.get("dressing.settle")) <= 0.0:  # (a settle hands over the run's start: it warns then)
+                    _warn_handed_over(report, "dressing.seconds")
         except SimulationDiverged as exc:  # a clear error before any frame is written, not a traceback
             doing = "settling under gravity" if stage == "settle" else "being sewn"
             depth, body = dressing.depth_inside(b, device=device) if stage == "seconds" else (0.0, "")
@@ -894,6 +898,18 @@ def _dressing(b, scene: Scene, stage: str, device):
             raise SceneError(f"dressing.{stage}: the garment diverged while {doing}, before the run ({exc}). Nothing was "
                              f"written.{inside} A garment caught in a crease of the body (the armpits) tears there: try a "
                              f"shorter or longer dressing.{stage}, or the panels placed further from the body") from exc
+
+
+def _warn_handed_over(report, key: str) -> None:
+    """Warn of what the dressing hands the run that the run cannot undo: cloth crossing itself (self-collision keeps a
+    tangle it starts with) and seams left open (springs for the whole run, not welded)."""
+    if report.self_crossings:
+        log.warning("%s: the garments cross themselves (%d edges through triangles) where the run starts; self-collision "
+                    "keeps such a tangle: try another dressing time, edge length or placement of the panels", key,
+                    report.self_crossings)
+    if report.open_seams:
+        log.warning("%s: %d seam springs are still open (%.1f mm at most) where the run starts; they stay springs, not "
+                    "welded: try a longer dressing or settle", key, report.open_seams, 1e3 * report.seam_gap)
 
 
 def layer_order(scene: Scene) -> list[list[str]]:

@@ -404,6 +404,41 @@ def eval_collider_distance(
     normal_out[i] = wp.transform_vector(xf, n)
 
 
+EDGE_CROSSING_HITS = wp.constant(8)  # the most triangles one edge's ray is followed through (those at its own ends skipped)
+
+
+@wp.kernel(enable_backward=False)
+def count_edge_crossings(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), edges: wp.array(dtype=wp.vec2i),
+                         tri_indices: wp.array(dtype=wp.int32), crossings_out: wp.array(dtype=wp.int32)):
+    """How many (edge, triangle) pairs of a triangle mesh cross, the triangle touching neither end of the edge (a
+    surface intersects itself iff one of its edges crosses one of its triangles): each edge is followed as a ray
+    from end to end through the mesh's BVH, up to EDGE_CROSSING_HITS triangles, its ends' own triangles skipped. One
+    thread per edge; the count is added into crossings_out[0]."""
+    e = wp.tid()
+    a = edges[e][0]
+    b = edges[e][1]
+    p = points[a]
+    length = wp.length(points[b] - p)
+    if length <= 0.0:
+        return
+    d = (points[b] - p) / length
+    t = float(0.0)
+    for _ in range(EDGE_CROSSING_HITS):
+        query = wp.mesh_query_ray(mesh, p + t * d, d, length - t)
+        if not query.result:
+            return
+        f = query.face
+        i0 = tri_indices[3 * f]
+        i1 = tri_indices[3 * f + 1]
+        i2 = tri_indices[3 * f + 2]
+        touches = i0 == a or i1 == a or i2 == a or i0 == b or i1 == b or i2 == b
+        if not touches:
+            wp.atomic_add(crossings_out, 0, 1)
+        t = t + query.t + 1.0e-6 * length
+        if t >= length:
+            return
+
+
 @wp.kernel(enable_backward=False)
 def mesh_signed_distance(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), max_distance: float,
                          distance_out: wp.array(dtype=float)):

@@ -11,7 +11,7 @@ import pytest
 
 import cloth_warp as cw
 from cloth_warp.cache import _cloth_meshes
-from cloth_warp.dressing import SEAM_FINISH, dress, finish_seams, seam_gap, settle
+from cloth_warp.dressing import SEAM_FINISH, DressingReport, dress, finish_seams, seam_gap, self_crossings, settle
 from cloth_warp.mannequin import Mannequin
 from cloth_warp.patterns import Wrap, mesh_pattern, read_garmentcode, wrap_points
 from cloth_warp.scene import SceneError, build_model, parse_scene
@@ -345,6 +345,48 @@ def test_a_settling_goes_on_until_a_seam_open_at_its_end_closes():
         np.testing.assert_array_equal(y[i], y[j])
     assert 0.0 < report.finished_from < WELD_DISTANCE
     assert Weld(b.finalize("cpu")).points == len(pairs)
+
+
+def test_self_crossings_counts_cloth_through_cloth_with_a_seam_one_vertex():
+    """Check the dressing's intersection count (kernels/collide.py count_edge_crossings): a square through another
+    crosses it (as the independent checker of tests/intersections.py finds), lifted clear of it does not, and a
+    square sewn at right angles to another along a seam (the seam's particles coincide) is one surface, not a crossing."""
+    from cloth_warp.topology import SpringKind
+
+    def squares(lift: float, sewn: bool = False):
+        b = cw.ModelBuilder()
+        b.add_cloth_grid(resolution=(4, 4), size=(0.2, 0.2), position=(-0.1, 0.5, 0.1),
+                         rotation=cw.quat_from_axis_angle((1, 0, 0), -90.0))  # flat, 0.2 m square centred on (0, 0.5, 0)
+        upright = b.add_cloth_grid(resolution=(4, 4), size=(0.2, 0.2), position=(-0.1, 0.4 + lift, 0.0))
+        if sewn:  # its bottom edge on the flat square's middle row, sewn there
+            x = b.particle_positions
+            for i in upright.indices():
+                if abs(x[i, 1] - 0.5) < 1e-6:
+                    j = int(np.argmin(np.linalg.norm(x[:25] - x[i], axis=1)))
+                    b.add_spring(j, int(i), stiffness=1.0, rest_length=1e-6, kind=SpringKind.SEAM)
+        return b
+
+    through = squares(0.0)
+    assert self_crossings(through) > 0
+    assert len(intersecting_pairs(through.particle_positions, through.triangles)) > 0
+    assert self_crossings(squares(0.15)) == 0
+    sewn = squares(0.1, sewn=True)
+    assert np.count_nonzero(sewn.spring_kind == int(SpringKind.SEAM)) == 5
+    assert self_crossings(sewn) == 0
+
+
+def test_a_garment_handed_to_the_run_tangled_or_open_is_warned_of(caplog):
+    """Check what a dressing hands the run that the run cannot undo is warned of, naming the key: cloth crossing itself
+    (a T-shirt at 2.6 cm edges: 3 edges through triangles after its settle) and seams left open (springs, not welded)."""
+    from cloth_warp.scene import _warn_handed_over
+
+    with caplog.at_level("WARNING", logger="cloth_warp"):
+        _warn_handed_over(DressingReport(0.5, 60, 0.0, 0.0, 0.1), "dressing.settle")
+        assert not caplog.records
+        _warn_handed_over(DressingReport(0.5, 60, 0.0046, 0.0, 0.1, self_crossings=3, open_seams=1), "dressing.settle")
+    text = caplog.text
+    assert "dressing.settle: the garments cross themselves (3 edges" in text
+    assert "dressing.settle: 1 seam springs are still open (4.6 mm at most)" in text
 
 
 def test_a_dressing_that_diverges_stops_with_the_key_and_no_cache(tmp_path, monkeypatch, capsys):
