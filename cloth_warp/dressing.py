@@ -469,7 +469,8 @@ def _still_run(builder, seconds, closing, gravity, fps, substeps, damping, devic
     collisions = solver.pass_named("self_collision")
     if collisions is not None:
         # the broad phase built at every step, as the dressing was tuned: the shipped T-shirt's armpit seams close to a
-        # stitch at its 2.5 cm edges by round-off luck (README "Known limits"), which other candidate orders lose
+        # stitch at its 2.5 cm edges by round-off luck (docs/garments.md, the Known limits entry on sewing), which
+        # other candidate orders lose
         collisions.self_collision.keep_broad_phase = False
     sim = Simulator(model, solver, fps=fps, substeps=substeps)
     frames = max(1, math.ceil(seconds * fps))

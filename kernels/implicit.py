@@ -1318,7 +1318,7 @@ def filter_contact_preconditioner(
     contacts' friction in the solve a contact starts with S P S, and its damper (`eval_contact_friction_terms`) or its
     slide (`eval_contact_release`) gives it the filtered inverse: measured over 11 piles and drapes, that rested 10
     (7 with S P S throughout) in 17 % fewer iterations, while the filtered inverse here too left the 24^2 drape
-    creeping at 2.7 mm/s (README, Known limits)."""
+    creeping at 2.7 mm/s (docs/contacts-in-the-solve.md)."""
     i = wp.tid()
     n = contact_normal[i]
     if wp.dot(n, n) == 0.0:

@@ -30,7 +30,7 @@ from .strain_limit import DEFAULT_SWEEPS
 WARM_START_FLOOR = 1.0e-6  # the smallest relative residual a warm-started float32 solve is asked for
 # With the contacts' friction in the solve, the solves whose contacts are then checked (released, let slide, stuck again)
 # stop at this relative residual where the tolerance is tighter, and one more solve goes on to the tolerance once no
-# contact changes. 18 piles and drapes over 300 frames (README "Known limits"): at tolerance 1e-4, 32 % fewer CG
+# contact changes. 18 piles and drapes over 300 frames (docs/contacts-in-the-solve.md): at tolerance 1e-4, 32 % fewer CG
 # iterations a frame at rest than checking at 1e-4 (14 of them at rest against 15, end states being chaotic); at the
 # default 1e-3, checked there with no solve after, 15 of 18 at rest in 62 % of the time tolerance 1e-4 takes.
 CONTACT_CHECK_TOLERANCE = 1.0e-3
