@@ -320,8 +320,9 @@ def crossing_layers(builder, moving: np.ndarray, under, device=None) -> int:
 
 def self_crossings(builder, particles=None, device=None) -> int:
     """How many (edge, triangle) pairs of the builder's cloth (the triangles among `particles`, a boolean mask; default
-    all) cross at its positions, a seam's particles counted as one vertex (a garment is one surface): 0 for cloth
-    free of intersections (kernels/collide.py `count_edge_crossings`)."""
+    all) cross at its positions, a joined sewn point's particles counted as one vertex (a garment is one surface there;
+    the two sides of a seam still open are two edges of the cloth): 0 for cloth free of intersections
+    (kernels/collide.py `count_edge_crossings`)."""
     import warp as wp
 
     from .kernels import collide as kc
@@ -331,7 +332,10 @@ def self_crossings(builder, particles=None, device=None) -> int:
         tris = tris[np.asarray(particles, bool)[tris].all(axis=1)]
     if len(tris) == 0:
         return 0
-    tris = joined_roots(builder.springs[builder.spring_kind == int(SpringKind.SEAM)], len(builder.particle_positions))[tris]
+    x = builder.particle_positions
+    seams = builder.springs[builder.spring_kind == int(SpringKind.SEAM)]
+    joined = seams[np.all(x[seams[:, 0]] == x[seams[:, 1]], axis=1)]  # (finished: moved onto one point)
+    tris = joined_roots(joined, len(x))[tris]
     edges = np.unique(np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1), axis=0)
     mesh = _warp_mesh(builder.particle_positions, tris, device)
     count = wp.zeros(1, dtype=wp.int32, device=mesh.device)
