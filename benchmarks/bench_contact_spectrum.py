@@ -68,19 +68,7 @@ def read_system(scene_name: str, mode: str, frame: int, overrides: dict) -> dict
     def apply(x: np.ndarray) -> np.ndarray:  # S A x by the CG's own kernels (the one-kernel-per-element form)
         column.assign(x.reshape(n, 3).astype(np.float32))
         product.zero_()
-        if m.linear_spring_count:
-            wp.launch(ki.scatter_spring_product, dim=m.linear_spring_count, inputs=[m.spring_ends, solver.spring_compact, column],
-                      outputs=[product], device=dev)
-        if m.spring_count > m.linear_spring_count:
-            wp.launch(ki.scatter_bend_product, dim=m.spring_count - m.linear_spring_count,
-                      inputs=[m.bend_triples, m.linear_spring_count, solver.bend_vector, column, dt], outputs=[product], device=dev)
-        if m.membrane_count:
-            wp.launch(ki.scatter_membrane_product, dim=m.membrane_count, inputs=[m.membrane_vertices, solver.membrane_block, column],
-                      outputs=[product], device=dev)
-        if m.tri_count:
-            wp.launch(ki.scatter_drag_product, dim=m.tri_count, inputs=[m.tri_vertices, m.tri_corner_weights, solver.drag_vector, column, dt],
-                      outputs=[product], device=dev)
-        solver._plate_product(column, dt, product)
+        solver.scatter_element_product(column, dt, product)
         wp.launch(ki.cg_product, dim=n, inputs=[n, solver.effective_mass, m.particle_pinned, column, solver.contact_normal,
                                                 int(solver._contacts_on), m.particle_world, 1, solver.loop], outputs=[product, sums], device=dev)
         return product.numpy().astype(np.float64).reshape(-1)

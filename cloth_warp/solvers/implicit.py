@@ -553,20 +553,7 @@ class SolverImplicitEuler(SolverBase):
         if self._world_ranges is not None and self.world_threads and not reductions.USE_BLOCKS:
             self._cg_iteration_worlds(dt)
             return
-        bends = m.spring_count - m.linear_spring_count
-        if m.linear_spring_count:
-            wp.launch(ki.scatter_spring_product, dim=m.linear_spring_count, inputs=[m.spring_ends, self.spring_compact, c],
-                      outputs=[q], device=dev)
-        if bends:
-            wp.launch(ki.scatter_bend_product, dim=bends, inputs=[m.bend_triples, m.linear_spring_count, self.bend_vector, c, dt],
-                      outputs=[q], device=dev)
-        if m.membrane_count:
-            wp.launch(ki.scatter_membrane_product, dim=m.membrane_count, inputs=[m.membrane_vertices, self.membrane_block, c],
-                      outputs=[q], device=dev)
-        if m.tri_count:
-            wp.launch(ki.scatter_drag_product, dim=m.tri_count,
-                      inputs=[m.tri_vertices, m.tri_corner_weights, self.drag_vector, c, dt], outputs=[q], device=dev)
-        self._plate_product(c, dt, q)
+        self.scatter_element_product(c, dt, q)
         worlds, batched = self.worlds, self.worlds > 1
         gate = [m.particle_world, worlds, self.loop]  # batched worlds: a world that stopped keeps its dv and residual
         launch_reduction(ki.cg_product, ki.cg_product_blocks, m.particle_count,
@@ -583,6 +570,27 @@ class SolverImplicitEuler(SolverBase):
         wp.launch(ki.cg_direction, dim=m.particle_count, inputs=[self.preconditioned, self.cg_step, self.loop, m.particle_world, worlds,
                                                                  self.dv],
                   outputs=[c, self.dv_best], device=dev)
+
+    def scatter_element_product(self, p: wp.array, dt: float, out: wp.array):
+        """Add the elements' part of A p (springs, bends, membranes, drag triangles, plate stencils, self-contact
+        elements: one kernel per kind, kernels/implicit.py scatter_*_product) to `out`; `cg_product` adds the mass
+        term and filters the rows."""
+        m = self.model
+        dev = m.device
+        bends = m.spring_count - m.linear_spring_count
+        if m.linear_spring_count:
+            wp.launch(ki.scatter_spring_product, dim=m.linear_spring_count, inputs=[m.spring_ends, self.spring_compact, p],
+                      outputs=[out], device=dev)
+        if bends:
+            wp.launch(ki.scatter_bend_product, dim=bends, inputs=[m.bend_triples, m.linear_spring_count, self.bend_vector, p, dt],
+                      outputs=[out], device=dev)
+        if m.membrane_count:
+            wp.launch(ki.scatter_membrane_product, dim=m.membrane_count, inputs=[m.membrane_vertices, self.membrane_block, p],
+                      outputs=[out], device=dev)
+        if m.tri_count:
+            wp.launch(ki.scatter_drag_product, dim=m.tri_count,
+                      inputs=[m.tri_vertices, m.tri_corner_weights, self.drag_vector, p, dt], outputs=[out], device=dev)
+        self._plate_product(p, dt, out)
 
     def _cg_iteration_worlds(self, dt: float):
         """:meth:`_cg_iteration` on the CPU, one thread per world (kernels/implicit.py cg_*_worlds; one world: one thread)."""
