@@ -325,6 +325,7 @@ def self_crossings(builder, particles=None, device=None) -> int:
     (kernels/collide.py `count_edge_crossings`)."""
     import warp as wp
 
+    from .broadphase import unique_edges
     from .kernels import collide as kc
 
     tris = np.asarray(builder.triangles, np.int64).reshape(-1, 3)
@@ -336,7 +337,7 @@ def self_crossings(builder, particles=None, device=None) -> int:
     seams = builder.springs[builder.spring_kind == int(SpringKind.SEAM)]
     joined = seams[np.all(x[seams[:, 0]] == x[seams[:, 1]], axis=1)]  # (finished: moved onto one point)
     tris = joined_roots(joined, len(x))[tris]
-    edges = np.unique(np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1), axis=0)
+    edges = unique_edges(tris)
     mesh = _warp_mesh(builder.particle_positions, tris, device)
     count = wp.zeros(1, dtype=wp.int32, device=mesh.device)
     wp.launch(kc.count_edge_crossings, dim=len(edges), inputs=[mesh.id, mesh.points, wp.array(edges.astype(np.int32), dtype=wp.vec2i,
@@ -515,12 +516,12 @@ def _still_run(builder, seconds, closing, gravity, fps, substeps, damping, devic
                  for c in builder.colliders if _closed(c)) if closing > 0.0 else 0
     crossing = crossing_layers(builder, moving, below, device) if below else 0
     strain = float(stats.max_strain) if moving.all() else _max_strain(builder, x, moving)  # (not the held layers moved aside)
-    sewn = builder.springs[(builder.spring_kind == int(SpringKind.SEAM)) & moving[builder.springs[:, 0]]]
+    sewn = ends[moving[ends[:, 0]]]
     y = builder.particle_positions
-    open_seams = int(np.count_nonzero(np.linalg.norm(y[sewn[:, 0]] - y[sewn[:, 1]], axis=1) > WELD_DISTANCE))
-    return DressingReport(frames / fps, frames * substeps, seam_gap(builder, particles=moving),
+    gaps = np.linalg.norm(y[sewn[:, 0]] - y[sewn[:, 1]], axis=1)
+    return DressingReport(frames / fps, frames * substeps, float(gaps.max(initial=0.0)),
                           float(np.linalg.norm(v[moving], axis=1).max()), strain, finished, grown_from, inside, layered_from, crossing,
-                          self_crossings(builder, moving, device), open_seams)
+                          self_crossings(builder, moving, device), int(np.count_nonzero(gaps > WELD_DISTANCE)))
 
 
 def _max_strain(builder, x: np.ndarray, particles: np.ndarray) -> float:
