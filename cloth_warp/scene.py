@@ -82,6 +82,8 @@ LINEAR_SOLVERS = ("cg", "jacobi")
 COLLIDER_CONTACTS = ("pass", "solve")
 # The same names as cloth_warp.solvers.implicit.CONTACT_FRICTION (a test compares).
 CONTACT_FRICTION = ("after", "solve")
+# The same names as cloth_warp.solvers.implicit.SEWN_POINTS (a test compares).
+SEWN_POINTS = ("solve", "pass")
 # The same names as cloth_warp.solvers.SOLVERS (kept here so validation does not import Warp; a test compares).
 INTEGRATORS = ("implicit_euler", "symplectic_euler", "explicit_euler", "midpoint", "rk4")
 PRESETS = tuple(MATERIAL_PRESETS)
@@ -305,6 +307,8 @@ SCHEMA: dict = {
         "self_contacts": Key("str", "pass", "where implicit Euler resolves cloth-cloth contacts: after the step only (\"pass\"), "
                              "or also inside its CG solve as repulsion elements (\"solve\": in progress, see the README)",
                              allowed=COLLIDER_CONTACTS),
+        "sewn_points": Key("str", "solve", "where implicit Euler keeps each welded sewn point one point: in its solve, as one "
+                           "particle (\"solve\"), or by the sewing pass after the step only (\"pass\")", allowed=SEWN_POINTS),
         "substeps": Key("int", 1, "steps per frame: dt = 1 / (fps x substeps); output.frames x substeps is at most "
                         f"{format_number(MAX_STEPS)} steps", L["substeps"]),
         "strain_limit": Key("float", 0.1, "Provot strain limit on stretch/shear springs (0 disables)", L["strain_limit"]),
@@ -1081,7 +1085,8 @@ def solver_options(scene: Scene, implicit: bool) -> dict:
     if implicit:
         opts.update(linear_solver=scene.get("solver.linear_solver"), tolerance=float(scene.get("solver.tolerance")),
                     max_iterations=int(scene.get("solver.max_iterations")), collider_contacts=scene.get("solver.collider_contacts"),
-                    self_contacts=scene.get("solver.self_contacts"), contact_friction=scene.get("solver.contact_friction"))
+                    self_contacts=scene.get("solver.self_contacts"), contact_friction=scene.get("solver.contact_friction"),
+                    sewn_points=scene.get("solver.sewn_points"))
     return opts
 
 

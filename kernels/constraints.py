@@ -422,3 +422,37 @@ def weld_sewn_points(
         slot = pinned
     x_out[i] = slot_moment[slot] / slot_mass[slot]
     v_out[i] = slot_momentum[slot] / slot_mass[slot]
+
+
+@wp.kernel
+def follow_point_roots(
+    particle_point_root: wp.array(dtype=wp.int32),
+    dv: wp.array(dtype=wp.vec3),
+    # outputs
+    dv_out: wp.array(dtype=wp.vec3),
+):
+    """Each particle of a welded point an implicit solve took as one particle (`particle_point_root` >= 0: its root,
+    cloth_warp/sewing.py `welded_view`) takes the root's velocity change [m/s]; any other particle keeps its own."""
+    i = wp.tid()
+    r = particle_point_root[i]
+    if r >= 0:
+        dv_out[i] = dv[r]
+    else:
+        dv_out[i] = dv[i]
+
+
+@wp.kernel
+def gather_point_masses(
+    particle_point_root: wp.array(dtype=wp.int32),
+    particle_mass: wp.array(dtype=float),
+    # outputs (zeroed by the caller)
+    mass_out: wp.array(dtype=float),
+):
+    """The masses [kg] an implicit solve that takes each welded point as one particle sees: a point's root carries the
+    point's (its own and its other particles'), every particle its own besides (the others are out of the system)."""
+    i = wp.tid()
+    m = particle_mass[i]
+    r = particle_point_root[i]
+    if r >= 0 and r != i:
+        wp.atomic_add(mass_out, r, m)
+    wp.atomic_add(mass_out, i, m)

@@ -264,6 +264,7 @@ def eval_self_contacts(
     tri_indices: wp.array2d(dtype=wp.int32),
     edge_indices: wp.array2d(dtype=wp.int32),
     particle_pinned: wp.array(dtype=wp.int32),
+    particle_point_root: wp.array(dtype=wp.int32),
     # State in
     x0: wp.array(dtype=wp.vec3),
     v0: wp.array(dtype=wp.vec3),
@@ -301,13 +302,17 @@ def eval_self_contacts(
     Batched worlds: `pairs`, `tri_indices` and `edge_indices` are one world's (its own model's), its particles from
     `particle_offset` on in the batch's arrays; the element is counted in its world's counters. Each
     element keeps its k and `coefficient` h^2 k (its world's: the worlds' stiffness may differ) for the product and
-    the friction."""
+    the friction. A particle of a welded point the solve takes as one particle (`particle_point_root` >= 0) is its
+    root in the element (they coincide: cloth_warp/sewing.py `welded_view`)."""
     tid = wp.tid()
     if tid >= count[0]:
         return
     o = particle_offset
     idx = pair_indices(pairs[tid], kind, tri_indices, edge_indices) + wp.vec4i(o, o, o, o)
     for r in range(4):
+        root = particle_point_root[idx[r]]
+        if root >= 0:
+            idx[r] = root
         if particle_pinned[idx[r]] != 0:
             return
     alpha = start_weights(kind, x0, idx)

@@ -130,20 +130,103 @@ def test_an_implicit_step_is_continuous_as_a_seam_closes_exactly():
     np.testing.assert_allclose(out[0], out[1], atol=2e-6)
 
 
-def test_gradients_through_the_weld_match_finite_differences(rng):
+@pytest.mark.parametrize("sewn_points", ["solve", "pass"])
+def test_gradients_through_the_weld_match_finite_differences(rng, sewn_points):
     """Check a taped implicit rollout of the sewn panels (the weld in every step; a crumpled start that opens the seams
     by millimetres, which the first step's weld closes): the directional derivatives of the loss in the initial
-    positions, velocities, spring stiffness (the seams' included) and masses within 1e-2 of central differences. (The
-    explicit integrators are unstable on this 2.5 cm mesh at the gradient tests' step, weld or not.)"""
+    positions, velocities, masses and the membrane elements' stiffness within 1e-2 of central differences, with each
+    welded point one particle in the solve (its masses from the model's on the tape) and with the points welded after
+    the solve only (and there in the springs' stiffness, the seams' included, which carry the seam). In the solve a
+    welded point's seam springs carry nothing: their stiffness has zero gradient. (The explicit integrators are
+    unstable on this 2.5 cm mesh at the gradient tests' step, weld or not.)"""
     from test_gradients import SOFT, Setup
 
-    solver_name = "implicit_cg"
     model, _ = hanging_sewn(material=SOFT, requires_grad=True)
-    setup = Setup("cpu", solver_name, rng, model=model)
+    make = lambda m: cw.SolverImplicitEuler(m, linear_solver="cg", tolerance=1e-6, strain_limit=0.1, strain_limit_iterations=2,
+                                            sewn_points=sewn_points)
+    setup = Setup("cpu", "implicit_cg", rng, model=model, make=make)
     assert setup.solver.pass_named("sewing") is not None
+    assert setup.solver.solves_sewn_points == (sewn_points == "solve")
     state0 = setup.state0()
     value = setup.rollout.gradient(setup.loss, state0)
-    report = {k: setup.check(k, state0, value) for k in ("initial_position", "initial_velocity", "stiffness_field", "mass")}
+    kinds = ["initial_position", "initial_velocity", "mass", "membrane_stiffness"]
+    if sewn_points == "pass":
+        kinds.append("stiffness_field")
+    else:
+        seams = model.spring_kind.numpy() == int(cw.SpringKind.SEAM)
+        assert seams.any() and not model.spring_stiffness.grad.numpy()[seams].any()
+    report = {k: setup.check(k, state0, value) for k in kinds}
     for name, (ad, fd) in report.items():
-        assert fd > 0.0, (solver_name, name, report)
-        assert abs(ad - fd) <= 1e-2 * abs(fd), (solver_name, name, report)
+        assert fd > 0.0, (sewn_points, name, report)
+        assert abs(ad - fd) <= 1e-2 * abs(fd), (sewn_points, name, report)
+
+
+def grid_triangles(nx, ny, h, x0=0.0):
+    """A (nx+1) x (ny+1) vertex grid of spacing h [m] in the plane z = 0 from x = x0, y = 1 m down, its cells split
+    along alternating diagonals: (vertices, triangles)."""
+    xs, ys = np.meshgrid(x0 + h * np.arange(nx + 1), 1.0 - h * np.arange(ny + 1), indexing="xy")
+    v = np.column_stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)])
+    tris = []
+    for j in range(ny):
+        for i in range(nx):
+            a, b, c, d = j * (nx + 1) + i, j * (nx + 1) + i + 1, (j + 1) * (nx + 1) + i, (j + 1) * (nx + 1) + i + 1
+            tris += [(a, c, b), (b, c, d)] if (i + j) % 2 == 0 else [(a, c, d), (a, d, b)]
+    return v, np.array(tris)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_welded_seam_solves_as_the_cloth_it_joins(seed):
+    """Check a 24 x 16 cm sheet (membrane elements, no bending: the same triangles either way) against the same sheet cut
+    into two panels along a grid line and sewn there (the cut's points coincide: welded): from a crumpled start with
+    random velocities (each sewn point's particles alike), three implicit steps (solves to 1e-6, no passes but the
+    weld) end every particle where the one sheet's particle ends, to 2e-6 m. The solve takes each welded point as one
+    particle, its mass the point's: the seam's reduced system is the sheet's. With the points welded after the solve
+    only (sewn_points="pass"), the seam springs in the system, the panels end up to 1e-4 m away."""
+    h, material = 0.02, cw.materials.preset("cotton").replace(bend_stiffness=0.0, bend_stiffness_weft=0.0)
+    b = cw.ModelBuilder()
+    v, t = grid_triangles(12, 8, h)
+    one = b.add_cloth_mesh(v, t, material=material, membrane="element", name="sheet")
+    corners = one.indices(np.flatnonzero((v[:, 1] == 1.0) & ((v[:, 0] == 0.0) | (v[:, 0] == 12 * h))))
+    b.pin(corners)
+    sheet = b.finalize("cpu")
+    b = cw.ModelBuilder()
+    left, right = (b.add_cloth_mesh(*grid_triangles(6, 8, h, x0), material=material, membrane="element", name=name)
+                   for x0, name in ((0.0, "left"), (6 * h, "right")))
+    xl = np.asarray(b.particle_positions)[left.indices()]
+    xr = np.asarray(b.particle_positions)[right.indices()]
+    seam_l = left.indices(np.flatnonzero(np.isclose(xl[:, 0], 6 * h)))
+    seam_r = right.indices(np.flatnonzero(np.isclose(xr[:, 0], 6 * h)))
+    k = material.stretch_stiffness
+    for i, j in zip(seam_l, seam_r):
+        b.add_spring(int(i), int(j), k, 0.01, rest_length=1e-9, kind=cw.SpringKind.SEAM)
+    xs = np.asarray(b.particle_positions)
+    b.pin([i for i in range(len(xs)) if xs[i, 1] == 1.0 and xs[i, 0] in (0.0, 12 * h)])
+    panels = b.finalize("cpu")
+    # each sheet particle's counterparts in the panels (two along the seam)
+    xp = panels.particle_q.numpy()
+    x_sheet = sheet.particle_q.numpy()
+    match = np.linalg.norm(xp[:, None, :] - x_sheet[None, :, :], axis=2).argmin(axis=1)
+    assert np.bincount(match, minlength=len(x_sheet)).max() == 2 and len(seam_l) == 9
+    rng = np.random.default_rng(seed)
+    x0 = x_sheet + rng.normal(scale=3e-3, size=x_sheet.shape)
+    v0 = rng.normal(scale=0.3, size=x_sheet.shape)
+    x0[sheet.particle_pinned.numpy() != 0] = x_sheet[sheet.particle_pinned.numpy() != 0]
+    v0[sheet.particle_pinned.numpy() != 0] = 0.0
+
+    def run(model, x, v, **options):
+        solver = cw.SolverImplicitEuler(model, strain_limit=None, collisions=False, tolerance=1e-6, **options)
+        s0, s1 = model.state(), model.state()
+        s0.particle_q.assign(x.astype(np.float32))
+        s0.particle_qd.assign(v.astype(np.float32))
+        for _ in range(3):
+            solver.step(s0, s1, model.control(), 1.0 / 120.0)
+            s0, s1 = s1, s0
+        return s0.particle_q.numpy(), solver
+
+    ref, _ = run(sheet, x0, v0)
+    got, solver = run(panels, x0[match], v0[match])
+    assert solver.solves_sewn_points and solver.pass_named("sewing").welded_points == 9
+    np.testing.assert_allclose(got, ref[match], atol=2e-6)
+    apart, solver = run(panels, x0[match], v0[match], sewn_points="pass")
+    assert not solver.solves_sewn_points
+    assert np.abs(apart - ref[match]).max() > 1e-4

@@ -16,9 +16,11 @@ from ..profiling import stage
 from ..records import record_values
 from .. import reductions
 from ..reductions import launch_reduction
+from ..sewing import point_masses, solve_roots, welded_view
 from ..topology import sewn_point_roots
 from ..worlds import world_ranges
 from ..kernels import forces as kf
+from ..kernels import constraints as kc
 from ..kernels import contact as kct
 from ..kernels import implicit as ki
 from ..kernels import selfcollide as ksc
@@ -40,6 +42,8 @@ CONTACT_CHECK_TOLERANCE = 1.0e-3
 COLLIDER_CONTACTS = ("pass", "solve")
 # Where "solve" contacts' Coulomb friction acts: on the solved velocities ("after"), or in the solve ("solve").
 CONTACT_FRICTION = ("after", "solve")
+# Where a welded sewn point is kept one point: in the solve as one particle, or by the sewing pass after the step only.
+SEWN_POINTS = ("solve", "pass")
 
 @dataclasses.dataclass(frozen=True)
 class TapedContacts:
@@ -138,6 +142,11 @@ class SolverImplicitEuler(SolverBase):
             (released, let slide, stuck again) stop at this relative residual where `tolerance` is tighter, and once
             none changes one more solve goes on to `tolerance` (default: CONTACT_CHECK_TOLERANCE with the friction in
             the solve, else `tolerance`: every solve to it).
+        sewn_points: "solve" (each sewn point the sewing pass welds is one particle in the system, its root:
+            cloth_warp/sewing.py `welded_view`; the point's other particles take the root's velocity change) or "pass"
+            (every particle its own, the seam springs in the system, the point welded after the step by the sewing pass
+            alone). With "solve" the pass after the step has nothing left to weld; with "pass" it moves what the solve
+            balanced, every step (a T-shirt held still: 91 particles by up to 17 mm/s).
 
     Differentiation (taped steps, ``state_in.requires_grad``): with ``differentiation="adjoint"`` the solve
     runs outside the tape; the tape holds dv and the residual r = S (b - A dv), evaluated element by element
@@ -195,6 +204,7 @@ class SolverImplicitEuler(SolverBase):
         contact_stick_speed: float = 1.0e-4,
         self_contacts: str = "pass",
         contact_check_tolerance: float | None = None,
+        sewn_points: str = "solve",
     ):
         super().__init__(model, strain_limit=strain_limit, strain_limit_iterations=strain_limit_iterations,
                          strain_limit_tolerance=strain_limit_tolerance, collisions=collisions, collision_rounds=collision_rounds)
@@ -324,6 +334,15 @@ class SolverImplicitEuler(SolverBase):
         self.contact_friction_mass = wp.zeros(n, dtype=float, device=dev)
         self.contact_friction_impulse = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.contact_slipping = wp.zeros(n, dtype=wp.int32, device=dev)  # 1: the contact was left sliding by the last step
+        # sewn points as one particle (sewing.welded_view): self.model is then the solve's view of the model
+        if sewn_points not in SEWN_POINTS:
+            raise ValueError(f"unknown sewn_points {sewn_points!r}; allowed: {', '.join(SEWN_POINTS)}")
+        self.sewn_points = sewn_points
+        self.full_model = model
+        """The model as built (self.model: the solve's view of it, where sewn points are one particle)."""
+        self.particle_point_root = wp.full(n, -1, dtype=wp.int32, device=dev)  # per particle its solved point's root (-1: itself)
+        self._point_inv_mass = None  # the view's inverse masses [1/kg] for the self-contacts' friction
+        self._view_sewn_points()
         # sewn points that take friction as one point after the solve (kernels/implicit.py gather_seam_friction,
         # _seam_friction_roots): per particle its point's root (-1: any other), per root the sums the friction law needs
         self._sewn_roots = sewn_point_roots(model) if collider_contacts == "solve" else None
@@ -349,10 +368,34 @@ class SolverImplicitEuler(SolverBase):
         """Model fields changed: besides the passes (:meth:`SolverBase.notify_model_changed`), the previous step's
         velocity change no longer predicts this one, so the next solve starts cold."""
         super().notify_model_changed(flags)
+        self._view_sewn_points()  # (after the sewing pass found its welded points again)
         self.previous_ready.zero_()
         if self._sewn and flags & ModelFlags.PARTICLE_INITIAL_STATE:  # (the sewing pass found its welded points again)
             self.particle_seam_root.assign(self._seam_friction_roots())
         self._loop_graphs.clear()  # (they hold the model's arrays as they were)
+
+    def _view_sewn_points(self):
+        """With sewn_points="solve", solve the model's view in which each point the sewing pass welds is one particle
+        (sewing.welded_view; none welded: the model itself)."""
+        m = self.full_model
+        sewing = self.pass_named("sewing")
+        roots = solve_roots(m, sewing.weld.roots) if sewing is not None and self.sewn_points == "solve" else None
+        if roots is None or not (roots >= 0).any():
+            self.model = m
+            self.particle_point_root.fill_(-1)
+            self._point_inv_mass = None
+            return
+        self.model = welded_view(m, roots)
+        self.particle_point_root.assign(roots)
+        mass = self.model.particle_mass.numpy()
+        free = (self.model.particle_pinned.numpy() == 0) & (mass > 0.0)
+        self._point_inv_mass = wp.array(np.where(free, 1.0 / np.where(free, mass, 1.0), 0.0).astype(np.float32), dtype=float,
+                                        device=m.device)
+
+    @property
+    def solves_sewn_points(self) -> bool:
+        """Whether some sewn points are one particle in this solve (sewn_points="solve" and the sewing pass welds some)."""
+        return self.model is not self.full_model
 
     def _seam_friction_roots(self) -> np.ndarray:
         """Per particle, the root of its sewn point when the point's contacts take Coulomb friction as one point after
@@ -368,6 +411,8 @@ class SolverImplicitEuler(SolverBase):
         sewing = self.pass_named("sewing")
         if self.contact_friction == "solve" and sewing is not None:
             roots[sewing.weld.roots >= 0] = -1
+        if self.solves_sewn_points:  # (a point solved as one particle: its root alone has a contact)
+            roots[self.particle_point_root.numpy() >= 0] = -1
         return roots
 
     # -- the linear system -------------------------------------------------------------------
@@ -450,7 +495,8 @@ class SolverImplicitEuler(SolverBase):
         for (sc, tris, stiffness, first), world in zip(self._self_collisions, candidates):  # world after world (batched)
             for kind, (pairs, count) in enumerate(world):
                 wp.launch(kct.eval_self_contacts, dim=pairs.shape[0],
-                          inputs=[count, pairs, kind, tris, sc.edge_indices, m.particle_pinned, state_in.particle_q,
+                          inputs=[count, pairs, kind, tris, sc.edge_indices, m.particle_pinned, self.particle_point_root,
+                                  state_in.particle_q,
                                   state_in.particle_qd, thickness * (1.0 + float(kct.SELF_CLEARANCE)), stiffness, dt, capacity,
                                   inv_mass, float(m.cloth_friction), self.contact_stick_speed, int(self.contact_friction == "solve"),
                                   first, m.particle_world, self.worlds, dt * dt * stiffness],
@@ -459,7 +505,10 @@ class SolverImplicitEuler(SolverBase):
 
     def _self_contact_inverse_masses(self) -> wp.array:
         """The self-collision passes' inverse masses [1/kg] in the model's particle order: one world's own array, or the
-        worlds' gathered into one (copied each step: a world's pass refreshes its own on a model change)."""
+        worlds' gathered into one (copied each step: a world's pass refreshes its own on a model change); where sewn
+        points are one particle in the solve, the solve's view's (a point's root: the point's mass)."""
+        if self._point_inv_mass is not None:
+            return self._point_inv_mass
         if len(self._self_collisions) == 1:
             return self._self_collisions[0][0].inv_mass
         if self._gathered_inv_mass is None:
@@ -945,11 +994,17 @@ class SolverImplicitEuler(SolverBase):
         )
 
     def integrate(self, state_in: State, x_out, v_out, control: Control, dt: float):
-        m = self.model
+        m = self.full_model
         if state_in.requires_grad:
+            if self.solves_sewn_points:  # the points' masses from the model's, on the tape
+                self.model.particle_mass = point_masses(m, self.particle_point_root, requires_grad=True)
             dv = self._taped_velocity_change(state_in, control, dt)
         else:
             dv = self.solve(state_in, control, dt)
+        if self.solves_sewn_points:  # each sewn point's particles take its root's dv
+            out = self.scratch("dv_points", wp.vec3, state_in.requires_grad)
+            wp.launch(kc.follow_point_roots, dim=m.particle_count, inputs=[self.particle_point_root, dv], outputs=[out], device=m.device)
+            dv = out
         wp.launch(
             ki.integrate_implicit,
             dim=m.particle_count,
