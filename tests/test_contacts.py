@@ -449,10 +449,12 @@ def test_a_sewn_point_takes_contact_friction_as_one_point():
 def test_a_welded_point_takes_its_contact_friction_in_the_solve_and_an_open_one_after_it(gap_cm):
     """Check which sewn points take collider friction in the solve: two panels sewn along an edge lying on the ground,
     everything in the solve. A seam closed at the start (0.5 mm: welded by the sewing pass, its particles starting every
-    step together) gives each sewn particle its own damper in the solve, as any resting contact; a seam open at the
-    start (5 mm, pulled shut by its springs) keeps the one-point law after the solve (no damper: each side held where
-    it landed would hold the seam open), the rest of the cloth held in the solve alike. With friction after the
-    solve, every sewn point takes the one-point law."""
+    step together) is one particle in the solve (its root, the point's mass: sewn_points = "solve"), whose contact takes
+    a damper in the solve as any resting contact, the point's other particles out of the system; with sewn_points =
+    "pass" each sewn particle takes its own damper. A seam open at the start (5 mm, pulled shut by its springs) keeps
+    the one-point law after the solve (no damper: each side held where it landed would hold the seam open), the rest
+    of the cloth held in the solve alike. With friction after the solve, every sewn point of a seam the solve does not
+    join takes the one-point law."""
     from test_sewing import two_panels
     from cloth_warp.sewing import WELD_DISTANCE, seam_ends
 
@@ -462,19 +464,25 @@ def test_a_welded_point_takes_its_contact_friction_in_the_solve_and_an_open_one_
     m = b.finalize("cpu")
     welded = gap_cm * 1e-2 < WELD_DISTANCE
     sewn = np.unique(seam_ends(m))
-    for friction in ("solve", "after"):
-        solver = cw.SolverImplicitEuler(m, collider_contacts="solve", contact_friction=friction, strain_limit=None)
-        roots = solver.particle_seam_root.numpy()
-        assert (roots[sewn] < 0).all() if welded and friction == "solve" else (roots[sewn] >= 0).all()
-        assert (np.delete(roots, sewn) < 0).all()
-    solver = cw.SolverImplicitEuler(m, collider_contacts="solve", contact_friction="solve", strain_limit=None)
-    sim = cw.Simulator(m, solver, fps=60, substeps=2, capture=False)
-    for _ in range(3):
-        sim.step_frame()
-    assert (solver.contact_collider.numpy() >= 0).all()
-    damped = solver.contact_friction_mass.numpy() > 0
-    assert damped[sewn].all() if welded else not damped[sewn].any()
-    assert np.delete(damped, sewn).mean() > 0.9
+    for sewn_points in ("solve", "pass"):
+        for friction in ("solve", "after"):
+            solver = cw.SolverImplicitEuler(m, collider_contacts="solve", contact_friction=friction, strain_limit=None,
+                                            sewn_points=sewn_points)
+            roots = solver.particle_seam_root.numpy()
+            assert solver.solves_sewn_points == (welded and sewn_points == "solve")
+            one_point_law = not welded or (friction == "after" and sewn_points == "pass")
+            assert (roots[sewn] >= 0).all() if one_point_law else (roots[sewn] < 0).all()
+            assert (np.delete(roots, sewn) < 0).all()
+        solver = cw.SolverImplicitEuler(m, collider_contacts="solve", contact_friction="solve", strain_limit=None, sewn_points=sewn_points)
+        sim = cw.Simulator(m, solver, fps=60, substeps=2, capture=False)
+        for _ in range(3):
+            sim.step_frame()
+        point = solver.particle_point_root.numpy()
+        out = (point >= 0) & (point != np.arange(len(point)))  # a solved point's particles other than its root
+        assert out.any() == solver.solves_sewn_points and (solver.contact_collider.numpy()[~out] >= 0).all()
+        damped = solver.contact_friction_mass.numpy() > 0
+        assert damped[sewn[~out[sewn]]].all() if welded else not damped[sewn].any()
+        assert np.delete(damped, sewn).mean() > 0.9
 
 
 @pytest.mark.parametrize("friction", ["after", "solve"])
@@ -824,7 +832,8 @@ def self_contact_element(kind, pair, tri, edges, x, v0, r, k, h, friction=0.0, s
     inv_mass = 1.0 / np.full(4, 1e-3) if mass is None else 1.0 / np.asarray(mass)
     wp.launch(kct.eval_self_contacts, dim=1,
               inputs=[wp.array([1], dtype=wp.int32), wp.array([pair], dtype=wp.vec2i), kind, wp.array(tri, dtype=wp.int32),
-                      wp.array(edges, dtype=wp.int32), wp.zeros(4, dtype=wp.int32), wp.array(x, dtype=wp.vec3),
+                      wp.array(edges, dtype=wp.int32), wp.zeros(4, dtype=wp.int32), wp.full(4, -1, dtype=wp.int32),
+                      wp.array(x, dtype=wp.vec3),
                       wp.array(v0, dtype=wp.vec3), r, k, h, 1, wp.array(inv_mass, dtype=float), friction, stick_speed,
                       int(friction > 0.0), 0, wp.zeros(4, dtype=wp.int32), 1, h * h * k],
               outputs=out)

@@ -10,10 +10,11 @@ from analytic import elastic_catenary_sag
 from cloth_warp import materials
 from cloth_warp.cache import CacheReader
 from cloth_warp.runner import run_scene, shipped_scenes
-from cloth_warp.scene import (COLLIDER_CONTACTS, CONTACT_FRICTION, INTEGRATORS, SceneError, load_scene, parse_scene,
+from cloth_warp.scene import (COLLIDER_CONTACTS, CONTACT_FRICTION, INTEGRATORS, SEWN_POINTS, SceneError, load_scene, parse_scene,
                               schema_markdown)
 from cloth_warp.solvers.implicit import COLLIDER_CONTACTS as IMPLICIT_COLLIDER_CONTACTS
 from cloth_warp.solvers.implicit import CONTACT_FRICTION as IMPLICIT_CONTACT_FRICTION
+from cloth_warp.solvers.implicit import SEWN_POINTS as IMPLICIT_SEWN_POINTS
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SCENES = sorted((ROOT / "scenes").glob("*.toml"))
@@ -39,6 +40,7 @@ def test_schema_names_match_the_code():
     assert set(INTEGRATORS) == set(SOLVERS)
     assert COLLIDER_CONTACTS == IMPLICIT_COLLIDER_CONTACTS
     assert CONTACT_FRICTION == IMPLICIT_CONTACT_FRICTION
+    assert SEWN_POINTS == IMPLICIT_SEWN_POINTS
     from cloth_warp.mannequin import MOTIONS
     from cloth_warp.scene import MANNEQUIN_MOTIONS
 
