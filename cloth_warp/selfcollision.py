@@ -134,6 +134,10 @@ class SelfCollision:
         self._last_weight = None
         self._resolved = None  # (x_start, dt, vbar) of the last round that ended without impacts
         self._close: dict = {}
+        self.proximity_reach = 1.0
+        """How close [fraction of the thickness] two elements come before the proximity pass pushes them apart: the
+        thickness alone (1); an implicit solve that holds the self-contacts sets PROXIMITY_REACH_UNDER_SOLVE, so that the
+        layers its elements hold under load (up to load / stiffness inside their rest distance) are left to it."""
         self.share_close_pairs = False
         """Whether the host path copies its close pairs into the capturable path's lists after each step, where the
         implicit solve's self-contacts read their candidates (:meth:`contact_candidates`; set by that solver)."""
@@ -375,7 +379,7 @@ class SelfCollision:
         # 2. proximity pass (repulsion + friction) at the start positions
         vbar = self._impulse_pass(vbar0, "proximity", rg, lambda kind, pairs, count, dv, w: wp.launch(
             ksc.self_proximity, dim=count,
-            inputs=[pairs, kind, self.tri_indices, self.edge_indices, self.inv_mass, x_start, vbar0, h_c,
+            inputs=[pairs, kind, self.tri_indices, self.edge_indices, self.inv_mass, x_start, vbar0, h_c * self.proximity_reach,
                     self.stiffness, self.friction, dt],
             outputs=[dv, w, self.counts], device=dev))
         # 3. CCD sweeps with impulses; 4. impact zones
@@ -485,7 +489,7 @@ class SelfCollision:
         for kind in KINDS:
             wp.launch(ksc.self_proximity_listed, dim=f.close[kind].shape[0],
                       inputs=[f.close_count[kind], f.close[kind], kind, self.tri_indices, self.edge_indices, self.inv_mass, x_start, f.vbar0,
-                              h_c, self.stiffness, self.friction, dt],
+                              h_c * self.proximity_reach, self.stiffness, self.friction, dt],
                       outputs=[f.dv, f.weight, self.counts], device=dev, record_tape=False)
         wp.launch(ksc.apply_velocity_changes, dim=n, inputs=[f.vbar0, f.dv, f.weight], outputs=[f.vbar], device=dev)
         self._weld_velocity(f.vbar, f.vbar)
