@@ -3,7 +3,9 @@
 For each scene (default: the T-shirt, the dress and the layered outfit) at the scenes' own edge lengths or at
 `--edge` [m] (every garment of the scene), reported: particles, the time to build the model (meshing, the dressing
 and the settle, on one core), ms per frame of the walk (median over `--frames` frames), CG iterations per frame, the
-largest strain at a frame's end, the widest seam gap in any frame, and, with the body held still (`motion = "still"`,
+largest strain at a frame's end, the widest seam gap in any frame, what the passes after the solve still do over the last
+20 frames (collider contacts the colliders pass resolved, proximity and CCD impulses of self-collision, per frame), and,
+with the body held still (`motion = "still"`,
 `--rest` frames after the settle), the largest particle speed over the last 20 frames (at rest means <= 1 mm/s, issue
 18's target) and where it is.
 
@@ -74,19 +76,24 @@ def run(scene_name: str, edge: float | None, frames: int, still: bool, device: s
     load_kernels(solver, model.device)
     sim = Simulator(model, solver, fps=float(scene.get("output.fps")), substeps=int(scene.get("solver.substeps")))
     ends = seam_ends(model)
-    ms, iterations, speeds, strain, gap = [], [], [], 0.0, 0.0
+    ms, iterations, speeds, strain, gap, pass_work = [], [], [], 0.0, 0.0, []
     for _ in range(frames):
         t = time.perf_counter()
         stats = sim.step_frame()
         wp.synchronize()
         ms.append(1e3 * (time.perf_counter() - t))
-        iterations.append(sim.frame_report.iterations)
+        report = sim.frame_report
+        iterations.append(report.iterations)
+        counters = report.counters()
+        pass_work.append((report.passes["colliders"].contacts if "colliders" in report.passes else 0,
+                          counters.get("self_proximity", 0) + counters.get("self_ccd", 0)))
         speeds.append(stats.max_speed)
         strain = max(strain, stats.max_strain)
         gap = max(gap, seam_gap(model, sim.positions(), ends))
     out = {"scene": scene_name, "motion": "still" if still else "walk", "particles": model.particle_count, "build_s": build_s,
            "frames": frames, "ms_per_frame": statistics.median(ms), "cg_per_frame": statistics.mean(iterations),
-           "max_strain": strain, "seam_gap_mm": 1e3 * gap}
+           "max_strain": strain, "seam_gap_mm": 1e3 * gap,
+           "pass_contacts": statistics.mean(w[0] for w in pass_work[-TAIL:]), "self_impulses": statistics.mean(w[1] for w in pass_work[-TAIL:])}
     if still:
         v = np.linalg.norm(sim.state.particle_qd.numpy(), axis=1)
         out.update(rest_speed_mm_s=1e3 * max(speeds[-TAIL:]), rest_speed_median_mm_s=1e3 * statistics.median(speeds[-TAIL:]),
@@ -109,13 +116,15 @@ def main(argv=None):
     lines = [f"# bench_garments ({args.device}, {edge}; Python {platform.python_version()})", "",
              "`python benchmarks/" + pathlib.Path(__file__).name + " " + " ".join(argv if argv is not None else sys.argv[1:]) + "`", "",
              "| scene | motion | particles | build (dress + settle) [s] | frames | ms/frame | CG it/frame | max strain | "
-             "widest seam gap [mm] | rest speed, last 20 frames: max / median [mm/s] |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "widest seam gap [mm] | pass work a frame, last 20 frames: collider contacts / self impulses | "
+             "rest speed, last 20 frames: max / median [mm/s] |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         rest = (f"{r['rest_speed_mm_s']:.2f} / {r['rest_speed_median_mm_s']:.2f} (at {r['fastest_at']})"
                 if "rest_speed_mm_s" in r else "")
         lines.append(f"| {r['scene']} | {r['motion']} | {r['particles']} | {r['build_s']:.0f} | {r['frames']} | {r['ms_per_frame']:.0f} | "
-                     f"{r['cg_per_frame']:.0f} | {r['max_strain']:.4f} | {r['seam_gap_mm']:.3f} | {rest} |")
+                     f"{r['cg_per_frame']:.0f} | {r['max_strain']:.4f} | {r['seam_gap_mm']:.3f} | "
+                     f"{r.get('pass_contacts', float('nan')):.1f} / {r.get('self_impulses', float('nan')):.1f} | {rest} |")
     out = pathlib.Path(args.out)
     out.write_text("\n".join(lines) + "\n")
     out.with_suffix(".json").write_text(json.dumps(rows, indent=1) + "\n")

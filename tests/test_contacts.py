@@ -1033,3 +1033,47 @@ def test_cloth_on_cloth_sticks_or_slides_by_coulomb_with_friction_in_the_solve(t
         a = 9.81 * (math.sin(math.radians(theta)) - mu * math.cos(math.radians(theta)))
         assert (speeds[12] - speeds[6]) * 60 / 6 == pytest.approx(a, rel=0.01)
         assert speeds[6] > 0.25 * a * 6 / 60  # started within the first frames
+
+
+def test_a_released_contact_the_solve_lands_inside_is_put_back_and_held():
+    """Check the contact checks' landing test (kernels/contact.py hold_landed_contacts) on cloth over the ground: a
+    contact released earlier in the step (found at its start, none now) whose solved end point is inside the ground's
+    thickness is put back, its dv's normal part the one that lands it at the thickness (the rest kept), its
+    preconditioner block filtered, held (not released again: kernels/implicit.py eval_contact_release) and the step
+    flagged for a re-solve; one whose end point is clear, one never in contact, and any once the step's re-solves are
+    spent are left as they are. (A T-shirt held still: released on a loose solve's error, such contacts ended inside
+    and the colliders pass pushed 3 particles out by 3-11 mm/s every step.)"""
+    b = cw.ModelBuilder()
+    b.add_cloth_grid(resolution=(1, 1), size=(0.02, 0.02), material="cotton", position=(0.0, THICKNESS, 0.0))
+    b.add_plane(normal=(0.0, 1.0, 0.0), thickness=THICKNESS)
+    m = b.finalize("cpu")
+    n, h = m.particle_count, 1.0 / 120.0
+    x0 = m.particle_q.numpy()
+    v0 = np.zeros((n, 3), np.float32)
+    dv = np.zeros((n, 3), np.float32)
+    dv[:, 0] = 0.01  # along the ground: kept
+    dv[0, 1] = dv[1, 1] = -2e-4 / h  # 0 and 1 end 0.2 mm inside the band; 2 and 3 end where they start, clear of it
+    height = np.array([THICKNESS, THICKNESS, THICKNESS, 0.0], np.float32)  # 0-2 had a contact at the step's start, 3 none
+    for rounds_run, expect in ((0, [1, 1, 0, 0]), (2, [0, 0, 0, 0])):
+        ctrl = m.control()
+        arrays = dict(dv=wp.array(dv, dtype=wp.vec3), precond=wp.array(np.tile(np.eye(3, dtype=np.float32) * 50.0, (n, 1, 1)), dtype=wp.mat33),
+                      free=wp.zeros(n, dtype=wp.mat33), collider=wp.full(n, -1, dtype=wp.int32), normal=wp.zeros(n, dtype=wp.vec3),
+                      velocity=wp.zeros(n, dtype=wp.vec3), z=wp.zeros(n, dtype=wp.vec3), held=wp.zeros(n, dtype=wp.int32),
+                      release=wp.array([0, rounds_run, 0], dtype=wp.int32))
+        wp.launch(kct.hold_landed_contacts, dim=n,
+                  inputs=[m.particle_pinned, m.collider_count, m.collider_shape, m.collider_size, m.collider_mesh, m.collider_deforming,
+                          m.collider_thickness, m.collider_mesh_max_distance, ctrl.collider_transform_start, ctrl.collider_transform_end,
+                          m.particle_q, wp.array(v0, dtype=wp.vec3), h, 2, wp.array(height, dtype=float), m.particle_world, 1],
+                  outputs=[arrays[k] for k in ("dv", "precond", "free", "collider", "normal", "velocity", "z", "held", "release")])
+        held = arrays["held"].numpy()
+        np.testing.assert_array_equal(held, expect)
+        assert arrays["release"].numpy()[0] == int(any(expect))
+        np.testing.assert_array_equal(arrays["collider"].numpy() >= 0, np.array(expect, bool))
+        out = arrays["dv"].numpy()
+        for i in range(n):
+            if expect[i]:
+                end = x0[i, 1] + h * out[i, 1]
+                assert end == pytest.approx(THICKNESS * (1 + kct.CLEARANCE), abs=1e-7)
+                assert out[i, 0] == pytest.approx(0.01) and abs(arrays["precond"].numpy()[i][1, 1]) < 1e-6
+            else:
+                np.testing.assert_array_equal(out[i], dv[i])
