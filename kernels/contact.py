@@ -23,7 +23,7 @@ import warp as wp
 
 from .collide import mesh_surface_velocity, pinch_height, shape_distance, surface_velocity
 from .implicit import (COUNT_CONTACTS, COUNT_SELF_CONTACTS, COUNT_SIZE, RELEASE_FLAG, RELEASE_ROUNDS, RELEASE_SIZE, SLIP_ALLOWANCE,
-                       contact_filter, filtered_block_inverse, is_pinched)
+                       is_pinched)
 from .worlds import particle_world_of, world_slot
 from .selfcollide import NORMAL_EPS, add_impulse, inverse_mass_weight, pair_indices, start_weights, weighted_sum
 
@@ -516,78 +516,3 @@ def eval_self_contact_friction(
         return
     keep = wp.max(1.0 - friction * impulse * mass_weight / speed, 0.0)
     add_impulse(idx, alpha, inv_mass, ((keep - 1.0) / mass_weight) * v_t, dv_sum_out, weight_out)
-
-
-@wp.kernel
-def hold_landed_contacts(
-    # Model
-    particle_pinned: wp.array(dtype=wp.int32),
-    collider_count: int,
-    collider_shape: wp.array(dtype=wp.int32),
-    collider_size: wp.array(dtype=wp.vec3),
-    collider_mesh: wp.array(dtype=wp.uint64),
-    collider_deforming: wp.array(dtype=wp.int32),
-    collider_thickness: wp.array(dtype=float),
-    mesh_max_distance: float,
-    # Control
-    collider_transform_start: wp.array(dtype=wp.transform),
-    collider_transform_end: wp.array(dtype=wp.transform),
-    # State in and the solved velocity change
-    x0: wp.array(dtype=wp.vec3),
-    v0: wp.array(dtype=wp.vec3),
-    dt: float,
-    max_rounds: int,
-    contact_height: wp.array(dtype=float),
-    particle_world: wp.array(dtype=wp.int32),
-    worlds: int,
-    # outputs
-    dv_out: wp.array(dtype=wp.vec3),
-    precond_out: wp.array(dtype=wp.mat33),
-    precond_free_out: wp.array(dtype=wp.mat33),
-    contact_collider_out: wp.array(dtype=wp.int32),
-    contact_normal_out: wp.array(dtype=wp.vec3),
-    contact_velocity_out: wp.array(dtype=wp.vec3),
-    contact_dv_out: wp.array(dtype=wp.vec3),
-    contact_held_out: wp.array(dtype=wp.int32),
-    release_out: wp.array(dtype=wp.int32),
-):
-    """A contact the step's checks released (found at its start, `contact_height` > 0, now none) whose particle the solve
-    then leaves inside a collider's thickness at the step's end (x0 + h (v0 + dv)) is put back: the deepest such
-    collider's, landing at its thickness as `eval_collider_contacts` lands one, held to the step's end (no release again:
-    `contact_held_out`), its dv constrained and its preconditioner block filtered, and the step solved again
-    (release_out[RELEASE_FLAG]), while fewer than `max_rounds` re-solves ran. Released by a solve stopped short of the
-    tolerance (its impulse within the solve's error), such a contact was left where the cloth pulled it into the band,
-    and the colliders pass pushed it out after every step (a T-shirt held still: 3 particles by 3-11 mm/s each step)."""
-    i = wp.tid()
-    if particle_pinned[i] != 0 or contact_collider_out[i] >= 0 or contact_height[i] <= 0.0:
-        return
-    w = particle_world_of(i, particle_world, worlds)
-    rb = world_slot(w, worlds, RELEASE_SIZE)
-    if release_out[rb + RELEASE_ROUNDS] >= max_rounds:
-        return
-    xe = x0[i] + dt * (v0[i] + dv_out[i])
-    found = int(-1)
-    best = float(0.0)
-    for c in range(collider_count):
-        d_end, n_end = shape_distance(collider_shape[c], collider_size[c], collider_mesh[c], mesh_max_distance,
-                                      wp.transform_point(wp.transform_inverse(collider_transform_end[c]), xe))
-        depth = d_end - collider_thickness[c]
-        if depth < 0.0 and (found < 0 or depth < best):
-            found = c
-            best = depth
-    if found < 0:
-        return
-    d0, n, u = surface_contact(collider_shape[found], collider_size[found], collider_mesh[found], mesh_max_distance,
-                               collider_deforming[found], collider_transform_start[found], collider_transform_end[found], x0[i], dt)
-    z = prescribed_velocity_change(n, u, v0[i], d0, landing_height(collider_thickness[found]), dt, -1.0)
-    contact_collider_out[i] = found
-    contact_normal_out[i] = n
-    contact_velocity_out[i] = u
-    contact_dv_out[i] = z
-    contact_held_out[i] = 1
-    dv_out[i] = contact_filter(n, dv_out[i]) + z
-    p = precond_out[i]
-    precond_free_out[i] = p
-    precond_out[i] = filtered_block_inverse(wp.inverse(p), n)
-    release_out[rb + RELEASE_FLAG] = 1
-    release_out[RELEASE_FLAG] = 1

@@ -1387,7 +1387,6 @@ def eval_contact_release(
     collider_static_friction: wp.array(dtype=float),
     collider_kinetic_friction: wp.array(dtype=float),
     stick_speed: float,
-    contact_held: wp.array(dtype=wp.int32),
     particle_world: wp.array(dtype=wp.int32),
     worlds: int,
     # outputs
@@ -1421,9 +1420,8 @@ def eval_contact_release(
     the collider's thickness, `kernels/contact.py` eval_collider_contacts) is two-sided: its impulse either way presses
     one of its surfaces, so it is never released; and frictionless, its impulse 0 (what holds it between two surfaces
     is no squeeze on one: with friction from |lambda| the shipped T-shirt's settling held an armpit seam 7 mm open, which
-    closed without). A contact put back after a release (`contact_held`, kernels/contact.py hold_landed_contacts) is not
-    released again in the step. (Batched worlds: the flag and the rounds are the particle's world's, and the batch's
-    flag is set with a world's.)"""
+    closed without). (Batched worlds: the flag and the rounds are the particle's world's, and the batch's flag is set
+    with a world's.)"""
     i = wp.tid()
     rb = world_slot(particle_world_of(i, particle_world, worlds), worlds, RELEASE_SIZE)
     n = contact_normal_out[i]
@@ -1475,7 +1473,7 @@ def eval_contact_release(
             release_out[rb + RELEASE_FLAG] = 1
             release_out[RELEASE_FLAG] = 1
             return
-    if impulse < -release_impulse * particle_mass[i] and release_out[rb + RELEASE_ROUNDS] < max_rounds and contact_held[i] == 0:
+    if impulse < -release_impulse * particle_mass[i] and release_out[rb + RELEASE_ROUNDS] < max_rounds:
         rhs_out[i] = rhs_out[i] - friction_impulse_out[i]
         effective_mass_out[i] = effective_mass_out[i] - friction_mass_out[i]
         friction_impulse_out[i] = wp.vec3(0.0)

@@ -340,8 +340,6 @@ class SolverImplicitEuler(SolverBase):
         self.contact_friction_mass = wp.zeros(n, dtype=float, device=dev)
         self.contact_friction_impulse = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.contact_slipping = wp.zeros(n, dtype=wp.int32, device=dev)  # 1: the contact was left sliding by the last step
-        self.contact_held = wp.zeros(n, dtype=wp.int32, device=dev)  # 1: put back after a release this step (held to its end)
-        self._step_x0, self._step_control = None, None  # the step being solved with contacts: its start positions, control
         # sewn points as one particle (sewing.welded_view): self.model is then the solve's view of the model
         if sewn_points not in SEWN_POINTS:
             raise ValueError(f"unknown sewn_points {sewn_points!r}; allowed: {', '.join(SEWN_POINTS)}")
@@ -881,8 +879,6 @@ class SolverImplicitEuler(SolverBase):
         warm), release contacts that pull and solve again (all on the device; friction follows in :meth:`solve`)."""
         m = self.model
         dev = m.device
-        self.contact_held.zero_()
-        self._step_x0, self._step_control = state_in.particle_q, control  # (the checks' landing test reads them)
         wp.launch(kct.eval_collider_contacts, dim=m.particle_count,
                   inputs=[m.particle_pinned, m.collider_count, m.collider_shape, m.collider_size, m.collider_mesh, m.collider_deforming,
                           m.collider_thickness, m.collider_static_friction, m.collider_kinetic_friction, m.collider_mesh_max_distance,
@@ -948,9 +944,7 @@ class SolverImplicitEuler(SolverBase):
 
     def _check_release(self, dt: float, v0: wp.array, rounds: int | None = None):
         """Each contact's solved impulse; release those that pull (:func:`~cloth_warp.kernels.implicit.eval_contact_release`);
-        friction dampers the solve pushed past the static bound slide (the slip from the step's start velocities `v0`); a
-        contact released earlier in the step whose particle the solve leaves inside a collider's thickness is put back
-        and held (kernels/contact.py hold_landed_contacts)."""
+        friction dampers the solve pushed past the static bound slide (the slip from the step's start velocities `v0`)."""
         m = self.model
         rounds = self.contact_release_rounds if rounds is None else rounds
         self._plate_product(self.dv, dt)
@@ -960,20 +954,10 @@ class SolverImplicitEuler(SolverBase):
                           self.precond_free, m.global_damping, dt, self.contact_release_fraction * self._gravity_norm * dt,
                           rounds, v0, self.contact_velocity, self.contact_height, m.collider_thickness,
                           m.collider_static_friction,
-                          m.collider_kinetic_friction, self.contact_stick_speed, self.contact_held, m.particle_world, self.worlds],
+                          m.collider_kinetic_friction, self.contact_stick_speed, m.particle_world, self.worlds],
                   outputs=[self.rhs, self.effective_mass, self.contact_friction_mass, self.contact_friction_impulse, self.precond,
                            self.contact_collider, self.contact_normal, self.contact_dv, self.contact_impulse, self.release],
                   device=m.device)
-        if not v0.requires_grad:  # (a taped step holds its contact set)
-            control = self._step_control
-            wp.launch(kct.hold_landed_contacts, dim=m.particle_count,
-                      inputs=[m.particle_pinned, m.collider_count, m.collider_shape, m.collider_size, m.collider_mesh,
-                              m.collider_deforming, m.collider_thickness, m.collider_mesh_max_distance,
-                              control.collider_transform_start, control.collider_transform_end, self._step_x0, v0, dt, rounds,
-                              self.contact_height, m.particle_world, self.worlds],
-                      outputs=[self.dv, self.precond, self.precond_free, self.contact_collider, self.contact_normal,
-                               self.contact_velocity, self.contact_dv, self.contact_held, self.release],
-                      device=m.device)
         if self._self_contacts_on and self.contact_friction == "solve":  # (same rounds and flag as the collider contacts')
             el = self._self_contact_elements
             wp.launch(kct.slide_self_contacts, dim=el[0].shape[0],
