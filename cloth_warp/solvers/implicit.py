@@ -142,7 +142,8 @@ class SolverImplicitEuler(SolverBase):
             (also inside the solve: each vertex-face or edge-edge pair closer than the cloth thickness (1 + 5 %) at the
             step's start, among the pairs the self-collision pass found close in the last step, is a repulsion element
             with the model's self-collision stiffness in the system, kernels/contact.py; the pass still runs after the
-            step as the guarantee). Forward steps only; CG only; needs self-collision on.
+            step as the guarantee, its proximity impulses then only within PROXIMITY_REACH_UNDER_SOLVE of the thickness).
+            Forward steps only; CG only; needs self-collision on.
         contact_check_tolerance: "solve" contacts, forward steps: the solves after which the contacts are checked
             (released, let slide, stuck again) stop at this relative residual where `tolerance` is tighter, and once
             none changes one more solve goes on to `tolerance` (default: CONTACT_CHECK_TOLERANCE with the friction in
