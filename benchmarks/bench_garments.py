@@ -125,10 +125,9 @@ def main(argv=None):
         lines.append(f"| {r['scene']} | {r['motion']} | {r['particles']} | {r['build_s']:.0f} | {r['frames']} | {r['ms_per_frame']:.0f} | "
                      f"{r['cg_per_frame']:.0f} | {r['max_strain']:.4f} | {r['seam_gap_mm']:.3f} | "
                      f"{r.get('pass_contacts', float('nan')):.1f} / {r.get('self_impulses', float('nan')):.1f} | {rest} |")
-    out = pathlib.Path(args.out)
-    out.write_text("\n".join(lines) + "\n")
-    out.with_suffix(".json").write_text(json.dumps(rows, indent=1) + "\n")
-    print("\n".join(lines))
+    from reports import write_results
+
+    write_results(args.out, lines + [""], rows)
 
 
 if __name__ == "__main__":

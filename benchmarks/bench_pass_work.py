@@ -102,10 +102,9 @@ def main(argv=None):
     for r in rows:
         per = ", ".join(f"{s} {m:.1f} ({r['largest_mm_s'][s]:.1f})" for s, m in r["moved_per_step"].items())
         lines.append(f"| {r['scene']} | {r['motion']} | {r['steps']} | {per} | {r['total_per_step']:.1f} |")
-    out = pathlib.Path(args.out)
-    out.write_text("\n".join(lines) + "\n")
-    out.with_suffix(".json").write_text(json.dumps(rows, indent=1) + "\n")
-    print("\n".join(lines))
+    from reports import write_results
+
+    write_results(args.out, lines + [""], rows)
 
 
 if __name__ == "__main__":
