@@ -64,6 +64,12 @@ BUFFERS = {"points": ksc.NEED_POINT_ENTRIES, "edges": ksc.NEED_EDGE_ENTRIES, "ve
            "edge_edge": ksc.NEED_EDGE_EDGE}
 
 
+def inverse_masses(mass: np.ndarray, pinned: np.ndarray) -> np.ndarray:
+    """1 / m [1/kg] per particle, 0 for pinned (`pinned`: booleans) and massless ones (float64, (n,))."""
+    mass = np.asarray(mass, np.float64)
+    return np.where(pinned | (mass <= 0.0), 0.0, 1.0 / np.maximum(mass, 1e-30))
+
+
 @dataclass(frozen=True)
 class SelfCollisionStatus:
     """What the capturable path reports after a frame (one device read, :meth:`SelfCollision.status`)."""
@@ -191,7 +197,7 @@ class SelfCollision:
         mass = m.particle_mass.numpy().astype(np.float64)
         pinned = m.particle_pinned.numpy() != 0
         self.mass = mass
-        self.inv_mass_np = np.where(pinned | (mass <= 0.0), 0.0, 1.0 / np.maximum(mass, 1e-30))
+        self.inv_mass_np = inverse_masses(mass, pinned)
         self.inv_mass.assign(self.inv_mass_np.astype(np.float32))  # in place: launches keep reading this array
 
     # -- counters --------------------------------------------------------------------------------

@@ -16,6 +16,7 @@ from ..profiling import stage
 from ..records import record_values
 from .. import reductions
 from ..reductions import launch_reduction
+from ..selfcollision import inverse_masses
 from ..sewing import point_masses, solve_roots, welded_view
 from ..topology import sewn_point_roots
 from ..worlds import world_ranges
@@ -394,10 +395,8 @@ class SolverImplicitEuler(SolverBase):
             return
         self.model = welded_view(m, roots)
         self.particle_point_root.assign(roots)
-        mass = self.model.particle_mass.numpy()
-        free = (self.model.particle_pinned.numpy() == 0) & (mass > 0.0)
-        self._point_inv_mass = wp.array(np.where(free, 1.0 / np.where(free, mass, 1.0), 0.0).astype(np.float32), dtype=float,
-                                        device=m.device)
+        inv_mass = inverse_masses(self.model.particle_mass.numpy(), self.model.particle_pinned.numpy() != 0)
+        self._point_inv_mass = wp.array(inv_mass.astype(np.float32), dtype=float, device=m.device)
 
     @property
     def solves_sewn_points(self) -> bool:
