@@ -376,7 +376,8 @@ class SolverImplicitEuler(SolverBase):
         """Model fields changed: besides the passes (:meth:`SolverBase.notify_model_changed`), the previous step's
         velocity change no longer predicts this one, so the next solve starts cold."""
         super().notify_model_changed(flags)
-        self._view_sewn_points()  # (after the sewing pass found its welded points again)
+        if flags & (ModelFlags.PARTICLE_PROPERTIES | ModelFlags.PARTICLE_INITIAL_STATE):  # the points' masses, the welded points
+            self._view_sewn_points()  # (after the sewing pass found its welded points again; the rest the view shares)
         self.previous_ready.zero_()
         if self._sewn and flags & ModelFlags.PARTICLE_INITIAL_STATE:  # (the sewing pass found its welded points again)
             self.particle_seam_root.assign(self._seam_friction_roots())
