@@ -69,7 +69,7 @@ def read_system(scene_name: str, mode: str, frame: int, overrides: dict) -> dict
         column.assign(x.reshape(n, 3).astype(np.float32))
         product.zero_()
         solver.scatter_element_product(column, dt, product)
-        wp.launch(ki.cg_product, dim=n, inputs=[n, solver.effective_mass, m.particle_pinned, column, solver.contact_normal,
+        wp.launch(ki.cg_product, dim=n, inputs=[n, solver.effective_mass, m.particle_pinned, column, solver.contact_normal, solver.contact_crease,
                                                 int(solver._contacts_on), m.particle_world, 1, solver.loop], outputs=[product, sums], device=dev)
         return product.numpy().astype(np.float64).reshape(-1)
 
@@ -84,11 +84,12 @@ def read_system(scene_name: str, mode: str, frame: int, overrides: dict) -> dict
         identity = np.eye(3 * n)
         a = np.stack([apply(identity[j]) for j in range(3 * n)], axis=1)
         normal = solver.contact_normal.numpy().astype(np.float64) if solver._contacts_on else np.zeros((n, 3))
+        crease = solver.contact_crease.numpy().astype(np.float64) if solver._contacts_on else np.zeros((n, 3))
         s = np.zeros((3 * n, 3 * n))
         for i in range(n):
-            s[3 * i:3 * i + 3, 3 * i:3 * i + 3] = np.eye(3) - np.outer(normal[i], normal[i])
+            s[3 * i:3 * i + 3, 3 * i:3 * i + 3] = projector(normal[i], crease[i])
         a = s @ a @ s
-        read.update(a=0.5 * (a + a.T), blocks=solver.precond.numpy().astype(np.float64), normal=normal,
+        read.update(a=0.5 * (a + a.T), blocks=solver.precond.numpy().astype(np.float64), normal=normal, crease=crease,
                     r0=solver.residual.numpy().astype(np.float64).reshape(-1),
                     stop=float(status[ki.STATUS_STOP]) * float(np.sqrt(status[ki.STATUS_REFERENCE])),
                     start=float(status[ki.STATUS_RELATIVE]))
@@ -126,11 +127,16 @@ def pcg(a: np.ndarray, blocks: np.ndarray, r: np.ndarray, stop: float, cap: int 
     return cap
 
 
-def filtered_inverse_blocks(a: np.ndarray, blocks: np.ndarray, normal: np.ndarray) -> np.ndarray:
+def projector(normal: np.ndarray, crease: np.ndarray) -> np.ndarray:
+    """A particle's filter S_i = I - n n^T - m m^T (kernels/implicit.py `contact_projector`)."""
+    return np.eye(3) - np.outer(normal, normal) - np.outer(crease, crease)
+
+
+def filtered_inverse_blocks(a: np.ndarray, blocks: np.ndarray, normal: np.ndarray, crease: np.ndarray) -> np.ndarray:
     """Every contact's block the filtered block's inverse (S_i A_ii S_i)^+ (kernels/implicit.py `filtered_block_inverse`)."""
     out = blocks.copy()
     for i in np.flatnonzero((normal * normal).sum(axis=1) > 0.0):
-        t = np.eye(3) - np.outer(normal[i], normal[i])
+        t = projector(normal[i], crease[i])
         b = t @ a[3 * i:3 * i + 3, 3 * i:3 * i + 3] @ t
         out[i] = np.linalg.pinv(0.5 * (b + b.T), rcond=1e-7)
     return out
@@ -172,7 +178,7 @@ def main(argv=None) -> int:
         s = read_system(args.scene, mode, args.frame, overrides)
         row = {"mode": mode, "particles": s["particles"], "contacts": int(((s["normal"] ** 2).sum(axis=1) > 0).sum()),
                "start": s["start"], "run": s["iterations"], "numpy": pcg(s["a"], s["blocks"], s["r0"].copy(), s["stop"]),
-               "filtered_inverse": pcg(s["a"], filtered_inverse_blocks(s["a"], s["blocks"], s["normal"]), s["r0"].copy(), s["stop"]),
+               "filtered_inverse": pcg(s["a"], filtered_inverse_blocks(s["a"], s["blocks"], s["normal"], s["crease"]), s["r0"].copy(), s["stop"]),
                **spectrum(s["a"], s["blocks"], s["normal"])}
         rows.append(row)
         print(row, flush=True)

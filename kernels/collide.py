@@ -123,11 +123,12 @@ def pinch_height(collider_count: int, collider_shape: wp.array(dtype=wp.int32), 
     PINCH_REACH x `thickness` [m] along n and turned towards it (cosine c = -n . n2 > PINCH_COSINE). Returns the height
     s [m] above the contact's surface at which the particle is as far from both, s = c g / (1 + c) with g = d + t the
     gap along n (t: the distance along n to the other surface, a mesh's by a ray, an analytic shape's by its tangent
-    plane), the least over the colliders; that reach where none faces it. The particle is pinched where s is below the
-    thickness. A mesh deforming over the step (`dt` > 0, its surface in the end shape) is queried at x carried along by
+    plane), the least over the colliders, and the outward unit normal (world) of the surface that gives it (zero where
+    none faces it, s then that reach). The particle is pinched where s is below the thickness. A mesh deforming over the step (`dt` > 0, its surface in the end shape) is queried at x carried along by
     its motion, as `collide_colliders` does."""
     reach = PINCH_REACH * thickness
     height = reach
+    facing = wp.vec3(0.0)
     for c in range(collider_count):
         shape = collider_shape[c]
         mesh = collider_mesh[c]
@@ -138,21 +139,25 @@ def pinch_height(collider_count: int, collider_shape: wp.array(dtype=wp.int32), 
             p = p + dt * mesh_surface_velocity(mesh, max_distance, p)
         cosine = float(0.0)
         gap = float(0.0)
+        other = wp.vec3(0.0)  # (local)
         if shape == SHAPE_MESH:
             query = wp.mesh_query_ray(mesh, p, direction, reach)
             if query.result and query.t > 0.0:
-                cosine = -wp.dot(direction, query.normal)
+                other = query.normal
+                cosine = -wp.dot(direction, other)
                 gap = d + query.t
         else:
             d_other, n_other = shape_distance(shape, collider_size[c], mesh, max_distance, p)
+            other = n_other
             cosine = -wp.dot(direction, n_other)
             if cosine > PINCH_COSINE and d_other >= 0.0:
                 gap = d + d_other / cosine
             else:
                 cosine = 0.0
-        if cosine > PINCH_COSINE:
-            height = wp.min(height, cosine * gap / (1.0 + cosine))
-    return height
+        if cosine > PINCH_COSINE and cosine * gap / (1.0 + cosine) < height:
+            height = cosine * gap / (1.0 + cosine)
+            facing = wp.transform_vector(collider_transform[c], other)
+    return height, facing
 
 
 @wp.func
@@ -342,7 +347,7 @@ def collide_colliders(
                     # (not when pinched: between two facing surfaces, the nearest changes sides without crossing anything)
                     across = thickness
                     if pinch != 0:
-                        across = pinch_height(collider_count, collider_shape, collider_size, collider_mesh, collider_deforming,
+                        across, _facing = pinch_height(collider_count, collider_shape, collider_size, collider_mesh, collider_deforming,
                                               mesh_max_distance, collider_transform_end, xe, wp.transform_vector(t_end, end_n0),
                                               end_dist0, thickness, 0.0)
                     if across >= thickness:
@@ -368,7 +373,7 @@ def collide_colliders(
             if pinch != 0:
                 # pinched (a surface faces this one within twice the thickness): out only to where it is as far from
                 # both (less the tolerance: the solve lands it there, to rounding)
-                midway = pinch_height(collider_count, collider_shape, collider_size, collider_mesh, collider_deforming,
+                midway, _facing = pinch_height(collider_count, collider_shape, collider_size, collider_mesh, collider_deforming,
                                       mesh_max_distance, collider_transform_end, xe, n, dist_end, thickness, 0.0)
                 height = wp.min(thickness, midway - tolerance)
             if dist_end < height:

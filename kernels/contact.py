@@ -41,6 +41,10 @@ CLEARANCE = wp.constant(2.0e-3)
 # A contact within the band above the landing height that is not predicted to reach the surface settles onto it at
 # most this fast [m/s] (eval_collider_contacts), instead of landing in one step.
 SETTLE_SPEED = wp.constant(1.0e-3)
+# A pinched contact whose facing surface's normal leans less than this sine off the contact normal's opposite (two sides
+# within ~3 degrees of parallel: a slot) is held along its normal only; one between sides at a larger angle (a crease,
+# as an armpit's) along the facing normal's part orthogonal to it too (eval_collider_contacts).
+CREASE_SINE = wp.constant(0.05)
 
 
 @wp.func
@@ -72,6 +76,23 @@ def prescribed_velocity_change(n: wp.vec3, u: wp.vec3, v0: wp.vec3, d0: float, h
     if descent >= 0.0:
         push = wp.max(push, -descent)
     return (wp.dot(u, n) + push - wp.dot(v0, n)) * n
+
+
+@wp.func
+def crease_direction(n: wp.vec3, facing: wp.vec3):
+    """The second direction a contact pinched in a crease is held along: the unit part of the facing surface's outward
+    normal orthogonal to the contact normal n (zero when the two sides are within CREASE_SINE of parallel)."""
+    m = facing - wp.dot(facing, n) * n
+    if wp.length(m) <= CREASE_SINE:
+        return wp.vec3(0.0)
+    return wp.normalize(m)
+
+
+@wp.func
+def crease_velocity_change(m: wp.vec3, u: wp.vec3, v0: wp.vec3):
+    """z_m = ((u - v0) . m) m [m/s]: the velocity change along a crease direction m (zero: none) that leaves the
+    particle moving with the surface (velocity u) along it, where it is as far from both sides."""
+    return wp.dot(u - v0, m) * m
 
 
 
@@ -109,6 +130,7 @@ def eval_collider_contacts(
     contact_velocity_out: wp.array(dtype=wp.vec3),
     contact_dv_out: wp.array(dtype=wp.vec3),
     contact_height_out: wp.array(dtype=float),
+    contact_crease_out: wp.array(dtype=wp.vec3),
     counts_out: wp.array(dtype=wp.int32),
 ):
     """Per particle: the collider it touches (-1: none), the outward unit normal n (world, end pose; zero without a
@@ -125,7 +147,12 @@ def eval_collider_contacts(
     armpit's crease), the height at which it is as far from both, below the thickness. A pinched contact is two-sided:
     the solve does not release it (`eval_contact_release`), for it cannot leave one surface but towards the other; with
     one side held and released, the cloth pulled it off the first and the colliders pass pushed it out of the other,
-    every step (a T-shirt's armpit: 3.6 mm in a step)."""
+    every step (a T-shirt's armpit: 3.6 mm in a step). Where the two sides meet at an angle (a crease: more than
+    CREASE_SINE off parallel), moving in the contact's tangent plane takes the particle nearer the other side, and
+    held along its normal alone it slid into the crease and the colliders pass pushed it back (two welded points in a
+    T-shirt's armpits, 10 mm/s held still): such a contact is also held along the facing normal's part orthogonal to
+    n, `contact_crease_out` (unit; zero on every other particle), z keeping it with the surface along it, so only the
+    crease's line is free (the solve's filter S = I - n n^T - m m^T, kernels/implicit.py `contact_projector`)."""
     i = wp.tid()
     pressed = contact_impulse[i] > 0.0  # (the last step's, read before this step's contacts replace it)
     contact_collider_out[i] = -1
@@ -133,6 +160,7 @@ def eval_collider_contacts(
     contact_velocity_out[i] = wp.vec3(0.0)
     contact_dv_out[i] = wp.vec3(0.0)
     contact_height_out[i] = 0.0
+    contact_crease_out[i] = wp.vec3(0.0)
     if particle_pinned[i] != 0:
         return
     xs = x0[i]
@@ -178,13 +206,18 @@ def eval_collider_contacts(
         thickness = collider_thickness[found]
         n = contact_normal_out[i]
         height = landing_height(thickness)
-        pinch = pinch_height(collider_count, collider_shape, collider_size, collider_mesh, collider_deforming, mesh_max_distance,
-                             collider_transform_start, xs, n, found_d0, thickness, dt)
+        pinch, facing = pinch_height(collider_count, collider_shape, collider_size, collider_mesh, collider_deforming,
+                                     mesh_max_distance, collider_transform_start, xs, n, found_d0, thickness, dt)
+        crease = wp.vec3(0.0)
         if is_pinched(pinch, thickness):
             height = pinch
             found_descent = -1.0
+            crease = crease_direction(n, facing)
         contact_height_out[i] = height
-        contact_dv_out[i] = prescribed_velocity_change(n, contact_velocity_out[i], v0[i], found_d0, height, dt, found_descent)
+        contact_crease_out[i] = crease
+        u = contact_velocity_out[i]
+        contact_dv_out[i] = (prescribed_velocity_change(n, u, v0[i], found_d0, height, dt, found_descent)
+                             + crease_velocity_change(crease, u, v0[i]))
         wp.atomic_add(counts_out, world_slot(particle_world_of(i, particle_world, worlds), worlds, COUNT_SIZE) + COUNT_CONTACTS, 1)
 
 
@@ -199,10 +232,11 @@ def eval_contact_constraints(
     # Control
     collider_transform_start: wp.array(dtype=wp.transform),
     collider_transform_end: wp.array(dtype=wp.transform),
-    # the contact set, held fixed (a solved step's: `eval_collider_contacts`, less the released), and the heights
-    # its contacts end the step at
+    # the contact set, held fixed (a solved step's: `eval_collider_contacts`, less the released), the heights its
+    # contacts end the step at and the pinched ones' crease directions
     contact_collider: wp.array(dtype=wp.int32),
     contact_height: wp.array(dtype=float),
+    contact_crease: wp.array(dtype=wp.vec3),
     # State in
     x0: wp.array(dtype=wp.vec3),
     v0: wp.array(dtype=wp.vec3),
@@ -214,7 +248,8 @@ def eval_contact_constraints(
 ):
     """The normal, surface velocity and prescribed velocity change of each contact of a given set, as
     `eval_collider_contacts` finds them, as differentiable functions of x0, v0 and the colliders' poses (a taped
-    step's contacts: the set itself, a discrete choice, is held fixed, and so is a pinched contact's height)."""
+    step's contacts: the set itself, a discrete choice, is held fixed, and so are a pinched contact's height and
+    crease direction)."""
     i = wp.tid()
     c = contact_collider[i]
     if c < 0:
@@ -223,7 +258,7 @@ def eval_contact_constraints(
                                collider_transform_start[c], collider_transform_end[c], x0[i], dt)
     contact_normal_out[i] = n
     contact_velocity_out[i] = u
-    contact_dv_out[i] = prescribed_velocity_change(n, u, v0[i], d0, contact_height[i], dt, -1.0)
+    contact_dv_out[i] = prescribed_velocity_change(n, u, v0[i], d0, contact_height[i], dt, -1.0) + crease_velocity_change(contact_crease[i], u, v0[i])
 
 
 # -- self-contacts in the solve ----------------------------------------------------------------------------------

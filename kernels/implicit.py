@@ -237,22 +237,35 @@ def is_pinched(height: float, thickness: float):
 
 
 @wp.func
-def contact_filter(n: wp.vec3, a: wp.vec3):
-    """S_i a for a particle whose velocity along the unit contact normal n is prescribed (a collider contact in the
-    solve: S_i = I - n n^T); n = 0 (no contact) leaves a as it is."""
+def contact_projector(n: wp.vec3, m: wp.vec3):
+    """S_i = I - n n^T - m m^T for a particle whose velocity is prescribed along the unit contact normal n (a collider
+    contact in the solve) and, pinched in a crease (`kernels/contact.py` eval_collider_contacts), along the unit m
+    orthogonal to it (zero elsewhere): only the crease's line is left free. n = m = 0 (no contact): the identity."""
+    return wp.identity(n=3, dtype=float) - wp.outer(n, n) - wp.outer(m, m)
+
+
+@wp.func
+def contact_filter(n: wp.vec3, m: wp.vec3, a: wp.vec3):
+    """S_i a (`contact_projector`): a less its parts along the contact normal n and the crease direction m."""
+    return a - wp.dot(a, n) * n - wp.dot(a, m) * m
+
+
+@wp.func
+def tangential_part(n: wp.vec3, a: wp.vec3):
+    """a less its part along the unit contact normal n: a contact's velocity or slip in the surface's tangent plane,
+    which friction acts on (n = 0: a)."""
     return a - wp.dot(a, n) * n
 
 
 @wp.func
-def filtered_block_inverse(block: wp.mat33, n: wp.vec3):
-    """(S B S)^+ with S = I - n n^T: the inverse of the SPD block B [kg] within the plane normal to the unit contact
-    normal n, zero along n. S B^-1 S is not it: where B is soft along a direction leaning out of the plane (a cloth
+def filtered_block_inverse(block: wp.mat33, n: wp.vec3, m: wp.vec3):
+    """(S B S)^+ with S = `contact_projector`(n, m): the inverse of the SPD block B [kg] within the directions S leaves
+    free, zero along n and m. S B^-1 S is not it: where B is soft along a direction leaning out of the plane (a cloth
     edge's particle: little mass, stiff springs along the edge), B^-1's large entries leak into the plane (up to ~100x
     the in-plane inverse), and as a contact's preconditioner block that took a pile's preconditioned spectrum to ~200
     (condition number 3e5, against 4.7e3)."""
-    nn = wp.outer(n, n)
-    s = wp.identity(n=3, dtype=float) - nn
-    return s * wp.inverse(s * block * s + (wp.trace(block) / 3.0) * nn) * s
+    s = contact_projector(n, m)
+    return s * wp.inverse(s * block * s + (wp.trace(block) / 3.0) * (wp.identity(n=3, dtype=float) - s)) * s
 
 
 @wp.func
@@ -659,6 +672,7 @@ def cg_product_row(
     particle_pinned: wp.array(dtype=wp.int32),
     search: wp.array(dtype=wp.vec3),
     contact_normal: wp.array(dtype=wp.vec3),
+    contact_crease: wp.array(dtype=wp.vec3),
     filtered: int,
     product_out: wp.array(dtype=wp.vec3),
 ):
@@ -669,8 +683,8 @@ def cg_product_row(
         return wp.float64(0.0)
     c = search[i]
     q = effective_mass[i] * c + product_out[i]
-    if filtered != 0:  # collider contacts in the solve (`contact_normal`; the per-particle read only then)
-        q = contact_filter(contact_normal[i], q)
+    if filtered != 0:  # collider contacts in the solve (`contact_normal`, `contact_crease`; the per-particle reads only then)
+        q = contact_filter(contact_normal[i], contact_crease[i], q)
     product_out[i] = q
     return wp.float64(wp.dot(c, q))
 
@@ -683,6 +697,7 @@ def cg_product(
     particle_pinned: wp.array(dtype=wp.int32),
     search: wp.array(dtype=wp.vec3),
     contact_normal: wp.array(dtype=wp.vec3),
+    contact_crease: wp.array(dtype=wp.vec3),
     filtered: int,
     particle_world: wp.array(dtype=wp.int32),
     worlds: int,
@@ -697,7 +712,7 @@ def cg_product(
     w = particle_world_of(i, particle_world, worlds)
     if not world_iterates(w, worlds, loop):
         return
-    cq = cg_product_row(i, effective_mass, particle_pinned, search, contact_normal, filtered, product_out)
+    cq = cg_product_row(i, effective_mass, particle_pinned, search, contact_normal, contact_crease, filtered, product_out)
     wp.atomic_add(cg_sums_out, w * CG_COLUMNS + CG_CAC, cq)
 
 
@@ -709,6 +724,7 @@ def cg_product_blocks(
     particle_pinned: wp.array(dtype=wp.int32),
     search: wp.array(dtype=wp.vec3),
     contact_normal: wp.array(dtype=wp.vec3),
+    contact_crease: wp.array(dtype=wp.vec3),
     filtered: int,
     particle_world: wp.array(dtype=wp.int32),
     worlds: int,
@@ -722,7 +738,7 @@ def cg_product_blocks(
     i = block * wp.block_dim() + lane
     cq = wp.float64(0.0)
     if i < particle_count:
-        cq = cg_product_row(i, effective_mass, particle_pinned, search, contact_normal, filtered, product_out)
+        cq = cg_product_row(i, effective_mass, particle_pinned, search, contact_normal, contact_crease, filtered, product_out)
     total = wp.tile_extract(wp.tile_sum(wp.tile(cq)), 0)
     if lane == 0:
         wp.atomic_add(cg_sums_out, CG_CAC, total)
@@ -906,6 +922,7 @@ def cg_product_worlds(
     particle_pinned: wp.array(dtype=wp.int32),
     search: wp.array(dtype=wp.vec3),
     contact_normal: wp.array(dtype=wp.vec3),
+    contact_crease: wp.array(dtype=wp.vec3),
     filtered: int,
     scatter: int,
     rows: int,
@@ -951,7 +968,7 @@ def cg_product_worlds(
     i = ranges[RANGE_PARTICLES, w]
     end = ranges[RANGE_PARTICLES, w + 1]
     while i < end:
-        cac += cg_product_row(i, effective_mass, particle_pinned, search, contact_normal, filtered, product_out)
+        cac += cg_product_row(i, effective_mass, particle_pinned, search, contact_normal, contact_crease, filtered, product_out)
         i += 1
     wp.atomic_add(cg_sums_out, w * CG_COLUMNS + CG_CAC, cac)
 
@@ -1241,6 +1258,7 @@ def cg_warm_start(
     rhs: wp.array(dtype=wp.vec3),
     guess: wp.array(dtype=wp.vec3),
     contact_normal: wp.array(dtype=wp.vec3),
+    contact_crease: wp.array(dtype=wp.vec3),
     friction_mass: wp.array(dtype=float),
     global_damping: float,
     dt: float,
@@ -1269,8 +1287,7 @@ def cg_warm_start(
         search_out[i] = wp.vec3(0.0)
         return
     m_eff = effective_mass(i, particle_mass, particle_pin_stiffness, global_damping, dt) + friction_mass[i]
-    n = contact_normal[i]
-    r = contact_filter(n, rhs[i] - system_product(i, spring_offsets, spring_ids, spring_role, spring_indices, spring_middle, tri_offsets, tri_ids, tri_indices, tri_corner_weights, membrane_offsets, membrane_ids, membrane_vertices, system_block, bend_vector, drag_vector, membrane_block, plate_product, m_eff, guess, dt))
+    r = contact_filter(contact_normal[i], contact_crease[i], rhs[i] - system_product(i, spring_offsets, spring_ids, spring_role, spring_indices, spring_middle, tri_offsets, tri_ids, tri_indices, tri_corner_weights, membrane_offsets, membrane_ids, membrane_vertices, system_block, bend_vector, drag_vector, membrane_block, plate_product, m_eff, guess, dt))
     s = precond[i] * r
     residual_out[i] = r
     preconditioned_out[i] = s
@@ -1285,6 +1302,7 @@ def compose_warm_start(
     dv_previous: wp.array(dtype=wp.vec3),
     dv_pinned: wp.array(dtype=wp.vec3),
     contact_normal: wp.array(dtype=wp.vec3),
+    contact_crease: wp.array(dtype=wp.vec3),
     contact_dv: wp.array(dtype=wp.vec3),
     use_previous: wp.array(dtype=wp.int32),
     particle_world: wp.array(dtype=wp.int32),
@@ -1293,7 +1311,7 @@ def compose_warm_start(
     guess_out: wp.array(dtype=wp.vec3),
 ):
     """guess = this step's prescribed z on pinned particles; elsewhere the previous step's dv (when use_previous[0],
-    else 0) with, on a collider contact, its normal part replaced by the contact's prescribed z."""
+    else 0) with, on a collider contact, its constrained part (the normal's, a crease's) replaced by the contact's prescribed z."""
     i = wp.tid()
     if particle_pinned[i] != 0:
         guess_out[i] = dv_pinned[i]
@@ -1301,12 +1319,13 @@ def compose_warm_start(
     free = wp.vec3(0.0)
     if use_previous[particle_world_of(i, particle_world, worlds)] != 0:
         free = dv_previous[i]
-    guess_out[i] = contact_filter(contact_normal[i], free) + contact_dv[i]
+    guess_out[i] = contact_filter(contact_normal[i], contact_crease[i], free) + contact_dv[i]
 
 
 @wp.kernel(enable_backward=False)
 def filter_contact_preconditioner(
     contact_normal: wp.array(dtype=wp.vec3),
+    contact_crease: wp.array(dtype=wp.vec3),
     filtered_inverse: int,
     # outputs
     precond_out: wp.array(dtype=wp.mat33),
@@ -1325,10 +1344,11 @@ def filter_contact_preconditioner(
         return
     p = precond_out[i]
     precond_free_out[i] = p
+    m = contact_crease[i]
     if filtered_inverse != 0:
-        precond_out[i] = filtered_block_inverse(wp.inverse(p), n)
+        precond_out[i] = filtered_block_inverse(wp.inverse(p), n, m)
     else:
-        s = wp.identity(n=3, dtype=float) - wp.outer(n, n)
+        s = contact_projector(n, m)
         precond_out[i] = s * p * s
 
 
@@ -1348,7 +1368,8 @@ def hold_contact(i: int, n: wp.vec3, tangential: wp.vec3, bound: float, stick_sp
     friction_impulse_out[i] = stick
     rhs_out[i] = rhs_out[i] + stick
     effective_mass_out[i] = effective_mass_out[i] + d
-    precond_out[i] = filtered_block_inverse(wp.inverse(precond_free[i]) + d * (wp.identity(n=3, dtype=float) - wp.outer(n, n)), n)
+    precond_out[i] = filtered_block_inverse(wp.inverse(precond_free[i]) + d * (wp.identity(n=3, dtype=float) - wp.outer(n, n)), n,
+                                            wp.vec3(0.0))
 
 
 @wp.kernel(enable_backward=False)
@@ -1442,7 +1463,7 @@ def eval_contact_release(
         # a sticking contact that static friction cannot hold (its damper past the bound, or no push left to hold
         # it): it slides in this step, solved again (its release, if it still pulls, is the next round's)
         c = contact_collider_out[i]
-        slip = contact_filter(n, v0[i] + dv[i] - contact_velocity[i])
+        slip = tangential_part(n, v0[i] + dv[i] - contact_velocity[i])
         speed = wp.length(slip)
         push = wp.max(impulse, 0.0)
         if (impulse < -release_impulse * particle_mass[i]
@@ -1454,7 +1475,7 @@ def eval_contact_release(
             effective_mass_out[i] = effective_mass_out[i] - d
             friction_mass_out[i] = 0.0
             friction_impulse_out[i] = slide
-            precond_out[i] = filtered_block_inverse(wp.inverse(precond_free[i]), n)
+            precond_out[i] = filtered_block_inverse(wp.inverse(precond_free[i]), n, wp.vec3(0.0))
             release_out[rb + RELEASE_FLAG] = 1
             release_out[RELEASE_FLAG] = 1
         return
@@ -1462,13 +1483,13 @@ def eval_contact_release(
     if d == 0.0 and wp.dot(fi, fi) > 0.0 and impulse > 0.0 and release_out[rb + RELEASE_ROUNDS] < max_rounds:
         c = contact_collider_out[i]
         rel = v0[i] - contact_velocity[i]
-        slip = contact_filter(n, rel + dv[i])
+        slip = tangential_part(n, rel + dv[i])
         if wp.dot(slip, fi) > 0.0:
             # the kinetic impulse reversed the contact's slip: friction held it, so it sticks (a damper from this
             # solve's normal impulse, as eval_contact_friction_terms makes one), solved again
             # (a kinetic impulse means mu_s >= mu_k > 0 and lambda > 0: the damper's mass is positive)
             rhs_out[i] = rhs_out[i] - fi
-            hold_contact(i, n, contact_filter(n, rel), collider_static_friction[c] * impulse, stick_speed, precond_free, rhs_out,
+            hold_contact(i, n, tangential_part(n, rel), collider_static_friction[c] * impulse, stick_speed, precond_free, rhs_out,
                          effective_mass_out, friction_mass_out, friction_impulse_out, precond_out)
             release_out[rb + RELEASE_FLAG] = 1
             release_out[RELEASE_FLAG] = 1
@@ -1561,7 +1582,7 @@ def eval_contact_friction_terms(
         return
     n = contact_normal[i]
     rel = v0[i] - contact_velocity[i]
-    tangential = contact_filter(n, rel)
+    tangential = tangential_part(n, rel)
     speed = wp.length(tangential)
     if particle_mass[i] * speed > collider_static_friction[c] * impulse:
         slide = (-collider_kinetic_friction[c] * impulse / speed) * tangential
@@ -1582,7 +1603,7 @@ def coulomb_friction(dv: wp.vec3, v0: wp.vec3, surface_velocity: wp.vec3, n: wp.
         return dv
     normal_change = impulse / mass
     rel = v0 + dv - surface_velocity
-    tangential = contact_filter(n, rel)
+    tangential = tangential_part(n, rel)
     speed = wp.length(tangential)
     if speed <= static_friction * normal_change:
         return dv - tangential
@@ -1656,7 +1677,7 @@ def apply_contact_friction(
     if d > 0.0:  # damped: held exactly within the stick speed, past it (creeping): as solved
         n = contact_normal[i]
         rel = v0[i] + dv_out[i] - contact_velocity[i]
-        slip = contact_filter(n, rel)
+        slip = tangential_part(n, rel)
         if wp.length(slip) <= SLIP_ALLOWANCE * stick_speed:
             dv_out[i] = dv_out[i] - slip
         else:
@@ -1666,7 +1687,7 @@ def apply_contact_friction(
     if wp.dot(slide, slide) > 0.0:
         n_slide = contact_normal[i]
         rel = v0[i] + dv_out[i] - contact_velocity[i]
-        tangential = contact_filter(n_slide, rel)
+        tangential = tangential_part(n_slide, rel)
         if wp.dot(tangential, slide) > 0.0:
             dv_out[i] = dv_out[i] - tangential
         else:
@@ -1690,7 +1711,7 @@ def apply_contact_friction(
     dv_out[i] = dv
     n_new = contact_normal[i]
     rel = v0[i] + dv - contact_velocity[i]
-    if contact_impulse[i] > 0.0 and wp.length(contact_filter(n_new, rel)) > 0.0:
+    if contact_impulse[i] > 0.0 and wp.length(tangential_part(n_new, rel)) > 0.0:
         slipping_out[i] = 1  # it slid
 
 
@@ -1729,27 +1750,29 @@ def eval_contact_friction(
 @wp.kernel
 def constrain_contact_velocity_change(
     contact_normal: wp.array(dtype=wp.vec3),
+    contact_crease: wp.array(dtype=wp.vec3),
     contact_dv: wp.array(dtype=wp.vec3),
     dv: wp.array(dtype=wp.vec3),
     # outputs
     dv_out: wp.array(dtype=wp.vec3),
 ):
-    """A taped step's dv with its contacts' normal part prescribed: S_i dv + z_i (z_i a function of x0, v0 and the
+    """A taped step's dv with its contacts' constrained part prescribed: S_i dv + z_i (z_i a function of x0, v0 and the
     collider, `kernels/contact.py` eval_contact_constraints), as pins are in `compose_velocity_change`."""
     i = wp.tid()
-    dv_out[i] = contact_filter(contact_normal[i], dv[i]) + contact_dv[i]
+    dv_out[i] = contact_filter(contact_normal[i], contact_crease[i], dv[i]) + contact_dv[i]
 
 
 @wp.kernel
 def filter_contact_residual(
     contact_normal: wp.array(dtype=wp.vec3),
+    contact_crease: wp.array(dtype=wp.vec3),
     residual: wp.array(dtype=wp.vec3),
     # outputs
     residual_out: wp.array(dtype=wp.vec3),
 ):
     """S r: the residual of a step whose contacts are constrained (differentiable, the normal included)."""
     i = wp.tid()
-    residual_out[i] = contact_filter(contact_normal[i], residual[i])
+    residual_out[i] = contact_filter(contact_normal[i], contact_crease[i], residual[i])
 
 
 # -- the solve's loop on the device ---------------------------------------------------------------

@@ -24,7 +24,7 @@ def find_contacts(model, x, v, time=0.0, dt=DT, last_step=None, gravity=(0.0, 0.
     model.update_control(control, time + dt, dt, force=True)
     n = len(x)
     out = [wp.zeros(n, dtype=wp.int32), wp.zeros(n, dtype=wp.vec3), wp.zeros(n, dtype=wp.vec3), wp.zeros(n, dtype=wp.vec3),
-           wp.zeros(n, dtype=float), wp.zeros(1, dtype=wp.int32)]
+           wp.zeros(n, dtype=float), wp.zeros(n, dtype=wp.vec3), wp.zeros(1, dtype=wp.int32)]
     wp.launch(kct.eval_collider_contacts, dim=n,
               inputs=[model.particle_pinned, model.collider_count, model.collider_shape, model.collider_size, model.collider_mesh,
                       model.collider_deforming, model.collider_thickness, model.collider_static_friction,
@@ -32,7 +32,7 @@ def find_contacts(model, x, v, time=0.0, dt=DT, last_step=None, gravity=(0.0, 0.
                       control.collider_transform_end, wp.array(x, dtype=wp.vec3), wp.array(v, dtype=wp.vec3), wp.vec3(*gravity), dt,
                       MARGIN, *(landing_always(n) if last_step is None else last_step)],
               outputs=out)
-    return [a.numpy() for a in out]  # collider, normal, surface velocity, prescribed dv, height, count
+    return [a.numpy() for a in out]  # collider, normal, surface velocity, prescribed dv, height, crease, count
 
 
 def landing_always(n):
@@ -58,7 +58,7 @@ def test_contacts_on_a_ground_plane():
     m = b.finalize("cpu")
     x = np.array([(0.1 * k, y, 0.0) for k, y in enumerate(heights)], np.float32)
     v = np.array([(0.0, s, 0.0) for s in speeds], np.float32)
-    col, normal, vel, dv, _, count = find_contacts(m, x, v)
+    col, normal, vel, dv, _, _, count = find_contacts(m, x, v)
     np.testing.assert_array_equal(col, [0, 0, 0, 0, -1, -1])
     assert count[0] == 4
     np.testing.assert_allclose(normal[:4], [[0, 1, 0]] * 4, atol=1e-6)
@@ -83,7 +83,7 @@ def test_a_contact_pinched_between_facing_surfaces_lands_where_it_is_as_far_from
     b.add_plane(normal=tuple(n2), point=(0.0, gap, 0.0), thickness=THICKNESS)
     m = b.finalize("cpu")
     x = np.array([[0.0, 0.005, 0.0]], np.float32)
-    col, normal, _, dv, height, _ = find_contacts(m, x, np.zeros_like(x))
+    col, normal, _, dv, height, _, _ = find_contacts(m, x, np.zeros_like(x))
     c = math.cos(a)
     pinched = c > kcol.PINCH_COSINE and c * gap / (1 + c) < THICKNESS
     expected = c * gap / (1 + c) if pinched else THICKNESS * (1 + kct.CLEARANCE)
@@ -116,7 +116,7 @@ def test_a_band_contact_the_cloth_holds_up_keeps_its_height():
             wp.array(impulse, dtype=float)]
 
     def contacts(last_step):
-        col, _, _, dv, _, _ = find_contacts(m, x, v, last_step=last_step, gravity=(0.0, -9.81, 0.0))
+        col, _, _, dv, _, _, _ = find_contacts(m, x, v, last_step=last_step, gravity=(0.0, -9.81, 0.0))
         return col, v[:, 1] + dv[:, 1]  # collider, end normal velocity
 
     col, v_end = contacts(hold)
@@ -156,7 +156,8 @@ def test_a_contact_preconditioner_block_inverts_the_filtered_block(rng):
     blocks = {}
     for filtered in (1, 0):
         precond = wp.array(np.linalg.inv(a).astype(np.float32), dtype=wp.mat33)
-        wp.launch(ki.filter_contact_preconditioner, dim=len(a), inputs=[wp.array(normals.astype(np.float32), dtype=wp.vec3), filtered],
+        wp.launch(ki.filter_contact_preconditioner, dim=len(a),
+                  inputs=[wp.array(normals.astype(np.float32), dtype=wp.vec3), wp.zeros(len(a), dtype=wp.vec3), filtered],
                   outputs=[precond, wp.zeros(len(a), dtype=wp.mat33)])
         blocks[filtered] = precond.numpy().astype(np.float64)
     p = blocks[1]
@@ -226,7 +227,7 @@ def test_contact_normals_match_the_collider_distance(shape, rng):
     pts = (pts + heights[:, None] * n).astype(np.float32)
     d, n = collider_distance(model0, 0, pts)
     m = with_collider(pts)
-    col, normal, vel, dv, _, _ = find_contacts(m, pts, np.zeros_like(pts))
+    col, normal, vel, dv, _, _, _ = find_contacts(m, pts, np.zeros_like(pts))
     touching = d < THICKNESS * (1.0 + MARGIN)
     clear = np.abs(d - THICKNESS * (1.0 + MARGIN)) > 1e-5  # away from the threshold's float32 rounding
     np.testing.assert_array_equal((col == 0)[clear], touching[clear])
@@ -241,7 +242,7 @@ def test_contact_takes_a_moving_collider_surface_velocity():
     b.add_particle((0.0, 0.11, 0.0))
     b.add_box((0.0, 0.0, 0.0), (1.0, 0.2, 1.0), thickness=THICKNESS, keyframes=[(0.0, (0, 0, 0)), (2.0, (0, 2.0, 0))])
     m = b.finalize("cpu")
-    col, normal, vel, _, _, _ = find_contacts(m, np.array([[0.0, 0.11, 0.0]], np.float32), np.zeros((1, 3), np.float32))
+    col, normal, vel, _, _, _, _ = find_contacts(m, np.array([[0.0, 0.11, 0.0]], np.float32), np.zeros((1, 3), np.float32))
     assert col[0] == 0
     np.testing.assert_allclose(normal[0], [0, 1, 0], atol=1e-6)
     np.testing.assert_allclose(vel[0], [0.0, 1.0, 0.0], atol=1e-4)
@@ -259,7 +260,7 @@ def test_contact_prescribes_landing_at_the_thickness():
     x = wp.array([[0.0, 0.013, 0.0]], dtype=wp.vec3)
     v0 = np.array([[0.5, -0.2, 0.0]], np.float32)
     out = [wp.zeros(1, dtype=wp.int32), wp.zeros(1, dtype=wp.vec3), wp.zeros(1, dtype=wp.vec3), wp.zeros(1, dtype=wp.vec3),
-           wp.zeros(1, dtype=float), wp.zeros(1, dtype=wp.int32)]
+           wp.zeros(1, dtype=float), wp.zeros(1, dtype=wp.vec3), wp.zeros(1, dtype=wp.int32)]
     wp.launch(kct.eval_collider_contacts, dim=1,
               inputs=[m.particle_pinned, m.collider_count, m.collider_shape, m.collider_size, m.collider_mesh, m.collider_deforming,
                       m.collider_thickness, m.collider_static_friction, m.collider_kinetic_friction, m.collider_mesh_max_distance,
@@ -335,6 +336,66 @@ def test_cloth_pinched_in_a_slot_stays_halfway_between_its_sides(kind, gap, tilt
     slide = (g - (g @ up) * up) * frames / 60.0  # g sin(tilt) t along the slot
     np.testing.assert_allclose(sim.state.particle_qd.numpy(), np.tile(slide, (m.particle_count, 1)), atol=1e-3 * 9.81 * frames / 60.0 + 1e-5)
     assert sim.frame_report.passes["colliders"].contacts == 0
+
+
+def crease_scene(kind, wall, tilt):
+    """A chain of 5 particles (springs, no drag) along the bottom of a V-shaped crease: two walls at `wall` [deg] from
+    the horizontal (the crease's opening 180 - 2 wall), meeting along z, the chain halfway between them at 0.8 of the
+    thickness from each (pinched: it cannot be at the thickness from both), all turned by `tilt` [deg] about x
+    (gravity stays -y): two boxes, or one mesh of both (the other side found by a ray, as across a body's armpit).
+    Returns the model, the rotation and the walls' outward unit normals before it."""
+    beta = math.radians(wall)
+    normals = [np.array([-math.sin(beta), math.cos(beta), 0.0]), np.array([math.sin(beta), math.cos(beta), 0.0])]
+    turn = trimesh.transformations.rotation_matrix(math.radians(tilt), (1, 0, 0))
+    b = cw.ModelBuilder()
+    height = 0.8 * THICKNESS / math.cos(beta)
+    for z in np.linspace(-0.04, 0.04, 5):
+        b.add_particle(tuple(turn[:3, :3] @ np.array([0.0, height, z])), mass=1.0e-3)
+    for k in range(4):
+        b.add_spring(k, k + 1, stiffness=10.0)
+    poses = []
+    for side, normal in zip((1.0, -1.0), normals):
+        pose = turn @ trimesh.transformations.rotation_matrix(side * beta, (0, 0, 1))
+        pose[:3, 3] = turn[:3, :3] @ (-0.05 * normal)
+        poses.append(pose)
+    extents = (0.6, 0.1, 0.6)
+    if kind == "boxes":
+        for pose in poses:
+            w, x, y, z = trimesh.transformations.quaternion_from_matrix(pose)
+            b.add_box(tuple(pose[:3, 3]), extents, rotation=(x, y, z, w), thickness=THICKNESS, friction=0.5)
+    else:
+        both = trimesh.util.concatenate([trimesh.creation.box(extents=extents, transform=pose) for pose in poses])
+        b.add_collider_mesh(both.vertices, both.faces, thickness=THICKNESS, friction=0.5)
+    return b.finalize("cpu"), turn[:3, :3], normals
+
+
+@pytest.mark.parametrize("kind", ["boxes", "mesh"])
+@pytest.mark.parametrize("wall,tilt", [(70.0, 0.0), (80.0, 0.0), (75.0, 20.0), (70.0, -15.0)])
+def test_cloth_pinched_in_a_crease_stays_in_it_and_moves_only_along_it(kind, wall, tilt):
+    """Check cloth pinched in a crease, two sides meeting at an angle (an armpit's), stays as far from both, at rest in
+    a level crease and sliding along a tilted one at g sin(tilt) (frictionless, as pinched contacts are), with nothing
+    left for the colliders pass: the solve holds each contact along its normal and along the facing side's normal
+    (`contact_crease`: unit, orthogonal to the normal, across the crease), so only the crease's line is free. Held along
+    its normal alone, a contact slid down its side's slope into the other side, and the colliders pass pushed it back
+    out every step (two sewn points in a T-shirt's armpits, 10 mm/s held still)."""
+    m, turn, normals = crease_scene(kind, wall, tilt)
+    solver = cw.SolverImplicitEuler(m, collider_contacts="solve", contact_friction="solve")
+    sim = cw.Simulator(m, solver, fps=60, substeps=2)
+    frames = 12
+    for _ in range(frames):
+        sim.step_frame()
+        assert sim.frame_report.passes["colliders"].contacts == 0
+    local = sim.positions() @ turn  # (rows: the points in the crease's frame before the turn)
+    heights = np.stack([local @ n for n in normals], axis=1)  # the distance to each wall
+    np.testing.assert_allclose(heights, 0.8 * THICKNESS, atol=2e-5)
+    along = turn @ np.array([0.0, 0.0, 1.0])
+    g = np.array([0.0, -9.81, 0.0])
+    slide = (g @ along) * along * frames / 60.0  # g sin(tilt) t along the crease
+    np.testing.assert_allclose(sim.state.particle_qd.numpy(), np.tile(slide, (m.particle_count, 1)), atol=1e-3 * 9.81 * frames / 60.0 + 1e-5)
+    normal, crease = solver.contact_normal.numpy(), solver.contact_crease.numpy()
+    np.testing.assert_allclose(np.linalg.norm(crease, axis=1), 1.0, atol=1e-5)
+    np.testing.assert_allclose(np.einsum("ij,ij->i", normal, crease), 0.0, atol=1e-5)
+    np.testing.assert_allclose(crease @ along, 0.0, atol=1e-4)  # (float32 normals of a mesh's faces)
 
 
 @pytest.mark.parametrize("kind", ["boxes", "mesh"])

@@ -53,12 +53,14 @@ SEWN_POINTS = ("solve", "pass")
 
 @dataclasses.dataclass(frozen=True)
 class TapedContacts:
-    """A taped step's collider contacts (per particle): the collider (-1: none; the set held fixed) and the height [m]
-    it ends the step at (held fixed; below the collider's thickness: pinched), and on the tape the unit normal, the
+    """A taped step's collider contacts (per particle): the collider (-1: none; the set held fixed), the height [m]
+    it ends the step at (held fixed; below the collider's thickness: pinched) and a pinched one's crease direction (held
+    fixed; zero: none), and on the tape the unit normal, the
     surface velocity [m/s] and the prescribed velocity change z [m/s]."""
 
     collider: wp.array
     height: wp.array
+    crease: wp.array
     normal: wp.array
     velocity: wp.array
     dv: wp.array
@@ -331,6 +333,7 @@ class SolverImplicitEuler(SolverBase):
         # collider contacts in the solve (kernels/contact.py; zero normals: none, as in every other solve)
         self.contact_collider = wp.zeros(n, dtype=wp.int32, device=dev)
         self.contact_normal = wp.zeros(n, dtype=wp.vec3, device=dev)
+        self.contact_crease = wp.zeros(n, dtype=wp.vec3, device=dev)  # a contact pinched in a crease: its second direction
         self.contact_velocity = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.contact_dv = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.contact_impulse = wp.zeros(n, dtype=float, device=dev)
@@ -613,7 +616,8 @@ class SolverImplicitEuler(SolverBase):
         worlds, batched = self.worlds, self.worlds > 1
         gate = [m.particle_world, worlds, self.loop]  # batched worlds: a world that stopped keeps its dv and residual
         launch_reduction(ki.cg_product, ki.cg_product_blocks, m.particle_count,
-                         inputs=[self.effective_mass, m.particle_pinned, c, self.contact_normal, int(self._contacts_on), *gate],
+                         inputs=[self.effective_mass, m.particle_pinned, c, self.contact_normal, self.contact_crease, int(self._contacts_on),
+                                 *gate],
                          outputs=[q, self.cg_sums], device=dev, per_item=batched)
         wp.launch(ki.cg_step_size, dim=worlds, inputs=[worlds, self.loop], outputs=[self.cg_sums, self.cg_scalars, self.cg_step], device=dev)
         wp.launch(ki.cg_update, dim=m.particle_count, inputs=[self.precond, c, self.cg_step, *gate],
@@ -657,7 +661,7 @@ class SolverImplicitEuler(SolverBase):
         product = [ranges, worlds, self.loop, m.spring_ends, self.spring_compact, m.bend_triples, m.linear_spring_count,
                    self.bend_vector, dt, m.membrane_vertices, self.membrane_block, m.tri_vertices, m.tri_corner_weights,
                    self.drag_vector, m.plate_offsets, m.plate_points, m.plate_weights, m.plate_stiffness, dt * dt,
-                   self.effective_mass, m.particle_pinned, c, self.contact_normal, int(self._contacts_on)]
+                   self.effective_mass, m.particle_pinned, c, self.contact_normal, self.contact_crease, int(self._contacts_on)]
         if self._self_contacts_on:  # their part between the elements' and the rows (the one-item kernels' order)
             wp.launch(ki.cg_product_worlds, dim=worlds, inputs=[*product, 1, 0], outputs=[q, self.cg_sums], device=dev)
             self._self_contact_product(c, dt, q, walk=True)
@@ -827,6 +831,7 @@ class SolverImplicitEuler(SolverBase):
             else:
                 if self.collider_contacts == "solve":  # none this step (no collider, an unrolled taped step): no filter
                     self.contact_normal.zero_()
+                    self.contact_crease.zero_()
                     self.contact_friction_mass.zero_()
                     self.release.zero_()
                 if warm:
@@ -869,7 +874,8 @@ class SolverImplicitEuler(SolverBase):
         particles and this step's z on pinned ones, and its residual in `warm_scalars`."""
         m = self.model
         wp.launch(ki.compose_warm_start, dim=m.particle_count,
-                  inputs=[m.particle_pinned, self.dv_previous, self.dv, self.contact_normal, self.contact_dv, self._enabled,
+                  inputs=[m.particle_pinned, self.dv_previous, self.dv, self.contact_normal, self.contact_crease, self.contact_dv,
+                          self._enabled,
                           m.particle_world, self.worlds],
                   outputs=[self.dv_alt], device=m.device)
         self._start_from_guess(dt, self.previous_ready, self.warm_scalars)
@@ -887,8 +893,9 @@ class SolverImplicitEuler(SolverBase):
                           wp.vec3(*m.gravity), dt, self.contact_margin, int(not state_in.requires_grad), self.dv_previous,
                           self.previous_ready if self.warm_start else self._disabled, m.particle_world, self.worlds, self.contact_impulse],
                   outputs=[self.contact_collider, self.contact_normal, self.contact_velocity, self.contact_dv,
-                           self.contact_height, self.contact_counts], device=dev)
-        wp.launch(ki.filter_contact_preconditioner, dim=m.particle_count, inputs=[self.contact_normal, self._filtered_inverse()],
+                           self.contact_height, self.contact_crease, self.contact_counts], device=dev)
+        wp.launch(ki.filter_contact_preconditioner, dim=m.particle_count,
+                  inputs=[self.contact_normal, self.contact_crease, self._filtered_inverse()],
                   outputs=[self.precond, self.precond_free], device=dev)
         if self.contact_friction == "solve" and state_in.requires_grad:  # a taped step's friction is on the tape
             self.contact_friction_mass.zero_()
@@ -903,7 +910,7 @@ class SolverImplicitEuler(SolverBase):
                                self.contact_friction_impulse],
                       device=dev)
         wp.launch(ki.compose_warm_start, dim=m.particle_count,
-                  inputs=[m.particle_pinned, self.dv_previous, self.dv, self.contact_normal, self.contact_dv,
+                  inputs=[m.particle_pinned, self.dv_previous, self.dv, self.contact_normal, self.contact_crease, self.contact_dv,
                           self.previous_ready if warm else self._disabled, m.particle_world, self.worlds],
                   outputs=[self.dv_alt], device=dev)
         self._start_from_guess(dt, self._enabled, self.warm_scalars)
@@ -994,7 +1001,7 @@ class SolverImplicitEuler(SolverBase):
             dim=m.particle_count,
             inputs=[*self._product_args(), m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, self.system_block,
                     self.bend_vector, self.drag_vector, self.membrane_block, self.plate_product, self.precond, self.rhs, self.dv_alt,
-                    self.contact_normal, self.contact_friction_mass, m.global_damping, dt, enabled, m.particle_world,
+                    self.contact_normal, self.contact_crease, self.contact_friction_mass, m.global_damping, dt, enabled, m.particle_world,
                     self.worlds],
             outputs=[self.dv, self.residual, self.preconditioned, self.search, scalars],
             device=m.device,
@@ -1075,13 +1082,14 @@ class SolverImplicitEuler(SolverBase):
             return dv
         contacts = self._taped_contacts(state_in, control, dt) if self._contacts_in_solve(state_in) else None
         if contacts is not None:
-            dv = self._taped_launch(ki.constrain_contact_velocity_change, [contacts.normal, contacts.dv, dv])
+            dv = self._taped_launch(ki.constrain_contact_velocity_change, [contacts.normal, contacts.crease, contacts.dv, dv])
         r = self.system_residual(state_in, control, dt, dv)
         if contacts is not None:
-            r = self._taped_launch(ki.filter_contact_residual, [contacts.normal, r])
+            r = self._taped_launch(ki.filter_contact_residual, [contacts.normal, contacts.crease, r])
         if tape is not None:
             normal = None if contacts is None else wp.clone(contacts.normal, requires_grad=False)
-            tape.record_func(lambda dv=dv, r=r: self._adjoint_solve(state_in, control, dt, dv, r, normal), [dv, r])
+            crease = None if contacts is None else contacts.crease
+            tape.record_func(lambda dv=dv, r=r: self._adjoint_solve(state_in, control, dt, dv, r, normal, crease), [dv, r])
         if contacts is not None:  # friction from the contacts' impulses n . (A dv - b), evaluated after the adjoint's input
             unfiltered = self.system_residual(state_in, control, dt, dv)
             dv = self._taped_launch(ki.eval_contact_friction, [m.particle_mass, contacts.collider, contacts.height, m.collider_thickness,
@@ -1104,27 +1112,31 @@ class SolverImplicitEuler(SolverBase):
         dev = m.device
         collider = wp.clone(self.contact_collider, requires_grad=False)
         height = wp.clone(self.contact_height, requires_grad=False)
+        crease = wp.clone(self.contact_crease, requires_grad=False)
         normal, velocity, dv = (wp.zeros(m.particle_count, dtype=wp.vec3, device=dev, requires_grad=True) for _ in range(3))
         wp.launch(kct.eval_contact_constraints, dim=m.particle_count,
                   inputs=[m.collider_shape, m.collider_size, m.collider_mesh, m.collider_deforming,
                           m.collider_mesh_max_distance, control.collider_transform_start, control.collider_transform_end, collider,
-                          height, state_in.particle_q, state_in.particle_qd, dt],
+                          height, crease, state_in.particle_q, state_in.particle_qd, dt],
                   outputs=[normal, velocity, dv], device=dev)
-        return TapedContacts(collider, height, normal, velocity, dv)
+        return TapedContacts(collider, height, crease, normal, velocity, dv)
 
     def _adjoint_solve(self, state_in: State, control: Control, dt: float, dv: wp.array, residual: wp.array,
-                       contact_normal: wp.array | None = None):
+                       contact_normal: wp.array | None = None, contact_crease: wp.array | None = None):
         """Backward of one taped step: solve S A S lam = S dL/d(dv) and add lam to dL/dr (S: the pins' and, given
-        `contact_normal`, the step's collider contacts' filter)."""
+        `contact_normal` and `contact_crease`, the step's collider contacts' filter)."""
         m = self.model
         report = (wp.clone(self.loop), wp.clone(self.solve_status))  # the forward step's, kept as its report
         self._self_contacts_on = False
         self.assemble(state_in, control, dt)  # the step's blocks and preconditioner (overwritten since)
         if contact_normal is None:
             self.contact_normal.zero_()
+            self.contact_crease.zero_()
         else:
             wp.copy(self.contact_normal, contact_normal)
-            wp.launch(ki.filter_contact_preconditioner, dim=m.particle_count, inputs=[self.contact_normal, self._filtered_inverse()],
+            wp.copy(self.contact_crease, contact_crease)
+            wp.launch(ki.filter_contact_preconditioner, dim=m.particle_count,
+                      inputs=[self.contact_normal, self.contact_crease, self._filtered_inverse()],
                       outputs=[self.precond, self.precond_free], device=m.device)
         self._contacts_on = contact_normal is not None
         wp.copy(self.rhs, dv.grad)
