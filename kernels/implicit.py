@@ -1418,6 +1418,7 @@ def eval_contact_release(
     precond_out: wp.array(dtype=wp.mat33),
     contact_collider_out: wp.array(dtype=wp.int32),
     contact_normal_out: wp.array(dtype=wp.vec3),
+    contact_crease_out: wp.array(dtype=wp.vec3),
     contact_dv_out: wp.array(dtype=wp.vec3),
     contact_impulse_out: wp.array(dtype=float),
     release_out: wp.array(dtype=wp.int32),
@@ -1441,7 +1442,9 @@ def eval_contact_release(
     the collider's thickness, `kernels/contact.py` eval_collider_contacts) is two-sided: its impulse either way presses
     one of its surfaces, so it is never released; and frictionless, its impulse 0 (what holds it between two surfaces
     is no squeeze on one: with friction from |lambda| the shipped T-shirt's settling held an armpit seam 7 mm open, which
-    closed without). (Batched worlds: the flag and the rounds are the particle's world's, and the batch's flag is set
+    closed without). In a crease (`contact_crease_out` m: the facing side's normal, orthogonal to n) it is held along m
+    too, one-sided: where that part of its impulse pulls it towards the facing side (the cloth draws it out of the
+    crease, along its own side), m is let go and the step solved again; it is still held along n. (Batched worlds: the flag and the rounds are the particle's world's, and the batch's flag is set
     with a world's.)"""
     i = wp.tid()
     rb = world_slot(particle_world_of(i, particle_world, worlds), worlds, RELEASE_SIZE)
@@ -1456,6 +1459,16 @@ def eval_contact_release(
     impulse = wp.dot(n, a_dv - rhs_out[i])  # (the friction terms are tangential: no part of it)
     if is_pinched(contact_height[i], collider_thickness[contact_collider_out[i]]):
         contact_impulse_out[i] = 0.0  # pinched: held, frictionless
+        m = contact_crease_out[i]
+        if (wp.dot(m, a_dv - rhs_out[i]) < -release_impulse * particle_mass[i] and wp.dot(m, m) > 0.0
+                and release_out[rb + RELEASE_ROUNDS] < max_rounds):
+            # in a crease, held off the facing side by pulling towards it: the cloth leaves the crease (along m, away
+            # from that side), so the crease direction is let go and the step solved again
+            contact_dv_out[i] = contact_dv_out[i] - wp.dot(contact_dv_out[i], m) * m
+            contact_crease_out[i] = wp.vec3(0.0)
+            precond_out[i] = filtered_block_inverse(wp.inverse(precond_free[i]), n, wp.vec3(0.0))
+            release_out[rb + RELEASE_FLAG] = 1
+            release_out[RELEASE_FLAG] = 1
         return
     contact_impulse_out[i] = impulse
     d = friction_mass_out[i]

@@ -964,7 +964,8 @@ class SolverImplicitEuler(SolverBase):
                           m.collider_static_friction,
                           m.collider_kinetic_friction, self.contact_stick_speed, m.particle_world, self.worlds],
                   outputs=[self.rhs, self.effective_mass, self.contact_friction_mass, self.contact_friction_impulse, self.precond,
-                           self.contact_collider, self.contact_normal, self.contact_dv, self.contact_impulse, self.release],
+                           self.contact_collider, self.contact_normal, self.contact_crease, self.contact_dv, self.contact_impulse,
+                           self.release],
                   device=m.device)
         if self._self_contacts_on and self.contact_friction == "solve":  # (same rounds and flag as the collider contacts')
             el = self._self_contact_elements
