@@ -69,8 +69,9 @@ def read_system(scene_name: str, mode: str, frame: int, overrides: dict) -> dict
         column.assign(x.reshape(n, 3).astype(np.float32))
         product.zero_()
         solver.scatter_element_product(column, dt, product)
-        wp.launch(ki.cg_product, dim=n, inputs=[n, solver.effective_mass, m.particle_pinned, column, solver.contact_normal, solver.contact_crease,
-                                                int(solver._contacts_on), m.particle_world, 1, solver.loop], outputs=[product, sums], device=dev)
+        wp.launch(ki.cg_product, dim=n, inputs=[n, solver.effective_mass, m.particle_pinned, column, solver.contact_normal,
+                                                solver.contact_crease, int(solver._contacts_on), m.particle_world, 1, solver.loop],
+                  outputs=[product, sums], device=dev)
         return product.numpy().astype(np.float64).reshape(-1)
 
     read = {}
@@ -178,7 +179,8 @@ def main(argv=None) -> int:
         s = read_system(args.scene, mode, args.frame, overrides)
         row = {"mode": mode, "particles": s["particles"], "contacts": int(((s["normal"] ** 2).sum(axis=1) > 0).sum()),
                "start": s["start"], "run": s["iterations"], "numpy": pcg(s["a"], s["blocks"], s["r0"].copy(), s["stop"]),
-               "filtered_inverse": pcg(s["a"], filtered_inverse_blocks(s["a"], s["blocks"], s["normal"], s["crease"]), s["r0"].copy(), s["stop"]),
+               "filtered_inverse": pcg(s["a"], filtered_inverse_blocks(s["a"], s["blocks"], s["normal"], s["crease"]), s["r0"].copy(),
+                                       s["stop"]),
                **spectrum(s["a"], s["blocks"], s["normal"])}
         rows.append(row)
         print(row, flush=True)

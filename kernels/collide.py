@@ -124,8 +124,9 @@ def pinch_height(collider_count: int, collider_shape: wp.array(dtype=wp.int32), 
     s [m] above the contact's surface at which the particle is as far from both, s = c g / (1 + c) with g = d + t the
     gap along n (t: the distance along n to the other surface, a mesh's by a ray, an analytic shape's by its tangent
     plane), the least over the colliders, and the outward unit normal (world) of the surface that gives it (zero where
-    none faces it, s then that reach). The particle is pinched where s is below the thickness. A mesh deforming over the step (`dt` > 0, its surface in the end shape) is queried at x carried along by
-    its motion, as `collide_colliders` does."""
+    none faces it, s then that reach). The particle is pinched where s is below the thickness. A mesh deforming over
+    the step (`dt` > 0, its surface in the end shape) is queried at x carried along by its motion, as
+    `collide_colliders` does."""
     reach = PINCH_REACH * thickness
     height = reach
     facing = wp.vec3(0.0)
@@ -347,9 +348,9 @@ def collide_colliders(
                     # (not when pinched: between two facing surfaces, the nearest changes sides without crossing anything)
                     across = thickness
                     if pinch != 0:
-                        across, _facing = pinch_height(collider_count, collider_shape, collider_size, collider_mesh, collider_deforming,
-                                              mesh_max_distance, collider_transform_end, xe, wp.transform_vector(t_end, end_n0),
-                                              end_dist0, thickness, 0.0)
+                        across, _facing = pinch_height(collider_count, collider_shape, collider_size, collider_mesh,
+                                                       collider_deforming, mesh_max_distance, collider_transform_end, xe,
+                                                       wp.transform_vector(t_end, end_n0), end_dist0, thickness, 0.0)
                     if across >= thickness:
                         plane = 1
         if plane != 0:
@@ -374,7 +375,7 @@ def collide_colliders(
                 # pinched (a surface faces this one within twice the thickness): out only to where it is as far from
                 # both (less the tolerance: the solve lands it there, to rounding)
                 midway, _facing = pinch_height(collider_count, collider_shape, collider_size, collider_mesh, collider_deforming,
-                                      mesh_max_distance, collider_transform_end, xe, n, dist_end, thickness, 0.0)
+                                               mesh_max_distance, collider_transform_end, xe, n, dist_end, thickness, 0.0)
                 height = wp.min(thickness, midway - tolerance)
             if dist_end < height:
                 u = surface_velocity(deforming, mesh, mesh_max_distance, t_start, t_end, pe, inv_dt)

@@ -258,7 +258,8 @@ def eval_contact_constraints(
                                collider_transform_start[c], collider_transform_end[c], x0[i], dt)
     contact_normal_out[i] = n
     contact_velocity_out[i] = u
-    contact_dv_out[i] = prescribed_velocity_change(n, u, v0[i], d0, contact_height[i], dt, -1.0) + crease_velocity_change(contact_crease[i], u, v0[i])
+    contact_dv_out[i] = (prescribed_velocity_change(n, u, v0[i], d0, contact_height[i], dt, -1.0)
+                         + crease_velocity_change(contact_crease[i], u, v0[i]))
 
 
 # -- self-contacts in the solve ----------------------------------------------------------------------------------

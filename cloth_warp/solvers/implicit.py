@@ -616,8 +616,8 @@ class SolverImplicitEuler(SolverBase):
         worlds, batched = self.worlds, self.worlds > 1
         gate = [m.particle_world, worlds, self.loop]  # batched worlds: a world that stopped keeps its dv and residual
         launch_reduction(ki.cg_product, ki.cg_product_blocks, m.particle_count,
-                         inputs=[self.effective_mass, m.particle_pinned, c, self.contact_normal, self.contact_crease, int(self._contacts_on),
-                                 *gate],
+                         inputs=[self.effective_mass, m.particle_pinned, c, self.contact_normal, self.contact_crease,
+                                 int(self._contacts_on), *gate],
                          outputs=[q, self.cg_sums], device=dev, per_item=batched)
         wp.launch(ki.cg_step_size, dim=worlds, inputs=[worlds, self.loop], outputs=[self.cg_sums, self.cg_scalars, self.cg_step], device=dev)
         wp.launch(ki.cg_update, dim=m.particle_count, inputs=[self.precond, c, self.cg_step, *gate],
@@ -1002,8 +1002,8 @@ class SolverImplicitEuler(SolverBase):
             dim=m.particle_count,
             inputs=[*self._product_args(), m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, self.system_block,
                     self.bend_vector, self.drag_vector, self.membrane_block, self.plate_product, self.precond, self.rhs, self.dv_alt,
-                    self.contact_normal, self.contact_crease, self.contact_friction_mass, m.global_damping, dt, enabled, m.particle_world,
-                    self.worlds],
+                    self.contact_normal, self.contact_crease, self.contact_friction_mass, m.global_damping, dt, enabled,
+                    m.particle_world, self.worlds],
             outputs=[self.dv, self.residual, self.preconditioned, self.search, scalars],
             device=m.device,
         )
