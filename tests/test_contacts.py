@@ -338,13 +338,13 @@ def test_cloth_pinched_in_a_slot_stays_halfway_between_its_sides(kind, gap, tilt
     assert sim.frame_report.passes["colliders"].contacts == 0
 
 
-def crease_scene(kind, wall, tilt, gravity=(0.0, -9.81, 0.0)):
+def crease_scene(kind, wall, tilt, gravity=(0.0, -9.81, 0.0), velocity=(0.0, 0.0, 0.0)):
     """A chain of 5 particles (springs, no drag) along the bottom of a V-shaped crease: two walls at `wall` [deg] from
     the horizontal (the crease's opening 180 - 2 wall), meeting along z, the chain halfway between them at 0.8 of the
     thickness from each (pinched: it cannot be at the thickness from both), all turned by `tilt` [deg] about x
-    (`gravity` [m/s^2] is not turned): two boxes, or one mesh of both (the other side found by a ray, as across a
-    body's armpit).
-    Returns the model, the rotation and the walls' outward unit normals before it."""
+    (`gravity` [m/s^2] is not turned), the walls moving at `velocity` [m/s] (world): two boxes, or one mesh of both (the
+    other side found by a ray, as across a body's armpit). Returns the model, the rotation and the walls' outward unit
+    normals before it."""
     beta = math.radians(wall)
     normals = [np.array([-math.sin(beta), math.cos(beta), 0.0]), np.array([math.sin(beta), math.cos(beta), 0.0])]
     turn = trimesh.transformations.rotation_matrix(math.radians(tilt), (1, 0, 0))
@@ -360,39 +360,46 @@ def crease_scene(kind, wall, tilt, gravity=(0.0, -9.81, 0.0)):
         pose[:3, 3] = turn[:3, :3] @ (-0.05 * normal)
         poses.append(pose)
     extents = (0.6, 0.1, 0.6)
+    keyframes = [(0.0, (0.0, 0.0, 0.0)), (10.0, tuple(10.0 * np.asarray(velocity, float)))]
     if kind == "boxes":
         for pose in poses:
             w, x, y, z = trimesh.transformations.quaternion_from_matrix(pose)
-            b.add_box(tuple(pose[:3, 3]), extents, rotation=(x, y, z, w), thickness=THICKNESS, friction=0.5)
+            b.add_box(tuple(pose[:3, 3]), extents, rotation=(x, y, z, w), thickness=THICKNESS, friction=0.5, keyframes=keyframes)
     else:
         both = trimesh.util.concatenate([trimesh.creation.box(extents=extents, transform=pose) for pose in poses])
-        b.add_collider_mesh(both.vertices, both.faces, thickness=THICKNESS, friction=0.5)
+        b.add_collider_mesh(both.vertices, both.faces, thickness=THICKNESS, friction=0.5, keyframes=keyframes)
     return b.finalize("cpu"), turn[:3, :3], normals
 
 
 @pytest.mark.parametrize("kind", ["boxes", "mesh"])
-@pytest.mark.parametrize("wall,tilt", [(70.0, 0.0), (80.0, 0.0), (75.0, 20.0), (70.0, -15.0)])
-def test_cloth_pinched_in_a_crease_stays_in_it_and_moves_only_along_it(kind, wall, tilt):
+@pytest.mark.parametrize("wall,tilt,velocity", [(70.0, 0.0, (0.0, 0.0, 0.0)), (80.0, 0.0, (0.0, 0.0, 0.0)), (75.0, 20.0, (0.0, 0.0, 0.0)),
+                                                (70.0, -15.0, (0.0, 0.0, 0.0)), (75.0, 0.0, (0.05, 0.02, 0.0)),
+                                                (70.0, 10.0, (-0.04, 0.03, 0.0))])
+def test_cloth_pinched_in_a_crease_stays_in_it_and_moves_only_along_it(kind, wall, tilt, velocity):
     """Check cloth pinched in a crease, two sides meeting at an angle (an armpit's), stays as far from both, at rest in
     a level crease and sliding along a tilted one at g sin(tilt) (frictionless, as pinched contacts are), with nothing
-    left for the colliders pass: the solve holds each contact along its normal and along the facing side's normal
-    (`contact_crease`: unit, orthogonal to the normal, across the crease), so only the crease's line is free. Held along
+    left for the colliders pass, also where the walls move across the crease (the cloth carried with them): the solve
+    holds each contact along its normal and along the facing side's normal (`contact_crease`: unit, orthogonal to the
+    normal, across the crease), moving with the surface, so only the crease's line is free. Held along
     its normal alone, a contact slid down its side's slope into the other side, and the colliders pass pushed it back
     out every step (two sewn points in a T-shirt's armpits, 10 mm/s held still)."""
-    m, turn, normals = crease_scene(kind, wall, tilt)
+    m, turn, normals = crease_scene(kind, wall, tilt, velocity=velocity)
     solver = cw.SolverImplicitEuler(m, collider_contacts="solve", contact_friction="solve")
     sim = cw.Simulator(m, solver, fps=60, substeps=2)
     frames = 12
     for _ in range(frames):
         sim.step_frame()
         assert sim.frame_report.passes["colliders"].contacts == 0
-    local = sim.positions() @ turn  # (rows: the points in the crease's frame before the turn)
+    w = np.asarray(velocity)
+    local = (sim.positions() - w * frames / 60.0) @ turn  # (rows: the points in the walls' frame before the turn)
     heights = np.stack([local @ n for n in normals], axis=1)  # the distance to each wall
     np.testing.assert_allclose(heights, 0.8 * THICKNESS, atol=2e-5)
     along = turn @ np.array([0.0, 0.0, 1.0])
     g = np.array([0.0, -9.81, 0.0])
     slide = (g @ along) * along * frames / 60.0  # g sin(tilt) t along the crease
-    np.testing.assert_allclose(sim.state.particle_qd.numpy(), np.tile(slide, (m.particle_count, 1)), atol=1e-3 * 9.81 * frames / 60.0 + 1e-5)
+    carried = w - (w @ along) * along  # the walls' motion across the crease, the cloth's too
+    np.testing.assert_allclose(sim.state.particle_qd.numpy(), np.tile(slide + carried, (m.particle_count, 1)),
+                               atol=1e-3 * 9.81 * frames / 60.0 + 1e-5)
     normal, crease = solver.contact_normal.numpy(), solver.contact_crease.numpy()
     np.testing.assert_allclose(np.linalg.norm(crease, axis=1), 1.0, atol=1e-5)
     np.testing.assert_allclose(np.einsum("ij,ij->i", normal, crease), 0.0, atol=1e-5)
