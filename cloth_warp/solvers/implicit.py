@@ -55,8 +55,8 @@ SEWN_POINTS = ("solve", "pass")
 class TapedContacts:
     """A taped step's collider contacts (per particle): the collider (-1: none; the set held fixed), the height [m]
     it ends the step at (held fixed; below the collider's thickness: pinched) and a pinched one's crease direction (held
-    fixed; zero: none), and on the tape the unit normal, the
-    surface velocity [m/s] and the prescribed velocity change z [m/s]."""
+    fixed; zero: none), and on the tape the unit normal, the surface velocity [m/s] and the prescribed velocity change
+    z [m/s]."""
 
     collider: wp.array
     height: wp.array
@@ -875,8 +875,7 @@ class SolverImplicitEuler(SolverBase):
         m = self.model
         wp.launch(ki.compose_warm_start, dim=m.particle_count,
                   inputs=[m.particle_pinned, self.dv_previous, self.dv, self.contact_normal, self.contact_crease, self.contact_dv,
-                          self._enabled,
-                          m.particle_world, self.worlds],
+                          self._enabled, m.particle_world, self.worlds],
                   outputs=[self.dv_alt], device=m.device)
         self._start_from_guess(dt, self.previous_ready, self.warm_scalars)
 
