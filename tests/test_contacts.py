@@ -1027,7 +1027,8 @@ def test_the_default_rounds_let_a_stick_slide_stick_contact_end_its_step_stuck(s
     it did not need) than 2 rounds, over the first 2 s of the drape over the ball and the pile: a contact at the static
     bound that one check lets slide and the next finds stuck needs two re-solves, and more when contacts switch in
     turn. With 2 rounds a garment held still went from stick to slide and back every step (the shipped dress: 13.8 mm/s;
-    0.08 with 4). Measured: 66 and 12 steps of ~240 with 2 rounds, 11 and 1 with 4."""
+    0.08 with 4). Measured: 189 and 6 steps of ~240 with 2 rounds, 2 and 1 with 4 (before released contacts were taken
+    back, 66 and 12 with 2, 11 and 1 with 4)."""
     from cloth_warp.runner import find_scene
     from cloth_warp.scene import build_model, build_solver, load_scene
 
@@ -1053,8 +1054,57 @@ def test_the_default_rounds_let_a_stick_slide_stick_contact_end_its_step_stuck(s
         return sum(ends)
 
     two = steps_ending_reversed(2)
-    assert two >= 10
+    assert two >= 5
     assert steps_ending_reversed(None) <= two / 4
+
+
+@pytest.mark.parametrize("scene,resolution,seed", [("drape_sphere", 24, 0), ("pile", 16, 1)])
+def test_a_released_contact_the_re_solve_carries_into_the_collider_is_taken_back(scene, resolution, seed):
+    """Check, on the drape over the ball and the pile over their first 2 s, that no check with a round left ends with a
+    contact released earlier in its step whose solved end point (x0 + h (v0 + dv), the collider's own distance) lies
+    inside the collider's thickness: the contact is taken back and the step solved again. A contact released in a check
+    that also let the dampers around it slide was carried into the surface by the cloth round it; the colliders pass
+    pushed it out after the step, and it pulled again in the next (a dress held still, 4 cm edges: 12 mm/s, 0.8 with
+    the rule)."""
+    from cloth_warp.collision import collider_distance
+    from cloth_warp.runner import find_scene
+    from cloth_warp.scene import build_model, build_solver, load_scene
+
+    spec = load_scene(find_scene(scene), {"cloth.grid.resolution": [resolution, resolution], "scene.seed": seed,
+                                          "solver.collider_contacts": "solve", "solver.self_contacts": "solve",
+                                          "solver.contact_friction": "solve", "solver.tolerance": 1e-4})
+    m = build_model(spec, "cpu")
+    solver = build_solver(spec, m)
+    sim = cw.Simulator(m, solver, fps=60, substeps=2, capture=False)
+    thickness = m.collider_thickness.numpy()
+    check, step = solver._check_release, solver.step
+    start = {}
+    inside, released = [0], [0]
+
+    def stepped(state_in, state_out, control, dt):
+        start.clear()
+        start["x0"], start["v0"], start["dt"] = state_in.particle_q.numpy(), state_in.particle_qd.numpy(), dt
+        step(state_in, state_out, control, dt)
+
+    def counted(dt, v0, rounds=None):
+        if "contacts" not in start:
+            start["contacts"] = solver.contact_collider.numpy().copy()
+        check(dt, v0, rounds)
+        if int(solver.release.numpy()[1]) >= (solver.contact_release_rounds if rounds is None else rounds):  # (RELEASE_ROUNDS)
+            return
+        let_go = np.nonzero((start["contacts"] >= 0) & (solver.contact_collider.numpy() < 0))[0]
+        released[0] += len(let_go)
+        end = start["x0"][let_go] + start["dt"] * (start["v0"][let_go] + solver.dv.numpy()[let_go])
+        for c in range(m.collider_count):
+            mine = start["contacts"][let_go] == c
+            if mine.any():
+                inside[0] += int((collider_distance(m, c, end[mine])[0] < thickness[c] * (1.0 - 1e-3)).sum())
+
+    solver.step, solver._check_release = stepped, counted
+    for _ in range(120):
+        sim.step_frame()
+    assert released[0] > 0
+    assert inside[0] == 0
 
 
 def test_contacts_checked_short_of_the_tolerance_end_every_step_at_it():

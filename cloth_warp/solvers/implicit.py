@@ -349,6 +349,10 @@ class SolverImplicitEuler(SolverBase):
         # mass [kg], and the friction impulse [kg m/s] in the right-hand side (sticking or sliding)
         self.contact_friction_mass = wp.zeros(n, dtype=float, device=dev)
         self.contact_friction_impulse = wp.zeros(n, dtype=wp.vec3, device=dev)
+        # the contacts released in this step (collider + 1; -1: taken back), with their normals and prescribed changes
+        self.contact_released = wp.zeros(n, dtype=wp.int32, device=dev)
+        self.contact_released_normal = wp.zeros(n, dtype=wp.vec3, device=dev)
+        self.contact_released_dv = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.contact_slipping = wp.zeros(n, dtype=wp.int32, device=dev)  # 1: the contact was left sliding by the last step
         # sewn points as one particle (sewing.welded_view): self.model is then the solve's view of the model
         if sewn_points not in SEWN_POINTS:
@@ -926,6 +930,7 @@ class SolverImplicitEuler(SolverBase):
             rounds = max(rounds - 1, 0)
         self.solve_cg(dt, warm, restarted=True, tolerance=loose)
         self.release.zero_()
+        self.contact_released.zero_()
         self._check_release(dt, state_in.particle_qd, rounds)
         device_while(self.release, self._resolve, dt=dt, v0=state_in.particle_qd, tolerance=loose, rounds=rounds)
         if loose > self.tolerance:
@@ -969,7 +974,7 @@ class SolverImplicitEuler(SolverBase):
                           m.collider_kinetic_friction, self.contact_stick_speed, m.particle_world, self.worlds],
                   outputs=[self.rhs, self.effective_mass, self.contact_friction_mass, self.contact_friction_impulse, self.precond,
                            self.contact_collider, self.contact_normal, self.contact_crease, self.contact_dv, self.contact_impulse,
-                           self.release],
+                           self.release, self.contact_released, self.contact_released_normal, self.contact_released_dv],
                   device=m.device)
         if self._self_contacts_on and self.contact_friction == "solve":  # (same rounds and flag as the collider contacts')
             el = self._self_contact_elements
