@@ -976,6 +976,23 @@ def test_friction_in_the_solve_holds_the_stuck_contacts_it_solved(resolution, mu
     assert friction_after_the_solve("after")[0] > 0.1
 
 
+def everything_in_the_solve(scene: str, resolution: int, seed: int, rounds: int | None = None):
+    """A shipped scene at another grid resolution and jitter seed with the collider contacts, the self-contacts and
+    both frictions in the solve (tolerance 1e-4; `rounds`: its re-solve rounds, default the solver's), uncaptured (the
+    tests wrap the solver's methods). Returns the model, the solver and a 60 fps simulator of 2 substeps."""
+    from cloth_warp.runner import find_scene
+    from cloth_warp.scene import build_model, build_solver, load_scene
+
+    spec = load_scene(find_scene(scene), {"cloth.grid.resolution": [resolution, resolution], "scene.seed": seed,
+                                          "solver.collider_contacts": "solve", "solver.self_contacts": "solve",
+                                          "solver.contact_friction": "solve", "solver.tolerance": 1e-4})
+    m = build_model(spec, "cpu")
+    solver = build_solver(spec, m)
+    if rounds is not None:
+        solver.contact_release_rounds = rounds
+    return m, solver, cw.Simulator(m, solver, fps=60, substeps=2, capture=False)
+
+
 def reversed_slides(solver, v0) -> int:
     """Collider contacts left sliding (a kinetic impulse, no damper) that push but whose solved slip relative to the
     surface runs along their friction impulse: the kinetic impulse reversed them."""
@@ -995,15 +1012,7 @@ def test_a_slide_its_kinetic_impulse_reverses_sticks_again(scene, resolution, se
     it sticks again (a damper from that solve's normal impulse) and the step is solved again. Left sliding, the cloth
     round it took an impulse the contact did not need, and such contacts went from stick to slide and back every step
     (a dress held still: 60 particles in a period-two cycle at 5-7 mm/s). Measured without the rule: 89 and 95 such checks."""
-    from cloth_warp.runner import find_scene
-    from cloth_warp.scene import build_model, build_solver, load_scene
-
-    scene = load_scene(find_scene(scene), {"cloth.grid.resolution": [resolution, resolution], "scene.seed": seed,
-                                           "solver.collider_contacts": "solve", "solver.self_contacts": "solve",
-                                           "solver.contact_friction": "solve", "solver.tolerance": 1e-4})
-    m = build_model(scene, "cpu")
-    solver = build_solver(scene, m)
-    sim = cw.Simulator(m, solver, fps=60, substeps=2, capture=False)
+    m, solver, sim = everything_in_the_solve(scene, resolution, seed)
     check = solver._check_release
     reversed_left, rounds_left = [0], [0]
 
@@ -1029,18 +1038,8 @@ def test_the_default_rounds_let_a_stick_slide_stick_contact_end_its_step_stuck(s
     turn. With 2 rounds a garment held still went from stick to slide and back every step (the shipped dress: 13.8 mm/s;
     0.08 with 4). Measured: 189 and 6 steps of ~240 with 2 rounds, 2 and 1 with 4 (before released contacts were taken
     back, 66 and 12 with 2, 11 and 1 with 4)."""
-    from cloth_warp.runner import find_scene
-    from cloth_warp.scene import build_model, build_solver, load_scene
-
     def steps_ending_reversed(rounds):
-        spec = load_scene(find_scene(scene), {"cloth.grid.resolution": [resolution, resolution], "scene.seed": seed,
-                                              "solver.collider_contacts": "solve", "solver.self_contacts": "solve",
-                                              "solver.contact_friction": "solve", "solver.tolerance": 1e-4})
-        m = build_model(spec, "cpu")
-        solver = build_solver(spec, m)
-        if rounds is not None:
-            solver.contact_release_rounds = rounds
-        sim = cw.Simulator(m, solver, fps=60, substeps=2, capture=False)
+        _m, solver, sim = everything_in_the_solve(scene, resolution, seed, rounds)
         apply = solver._apply_contact_friction
         ends = []
 
@@ -1067,15 +1066,8 @@ def test_a_released_contact_the_re_solve_carries_into_the_collider_is_taken_back
     pushed it out after the step, and it pulled again in the next (a dress held still, 4 cm edges: 12 mm/s, 0.8 with
     the rule)."""
     from cloth_warp.collision import collider_distance
-    from cloth_warp.runner import find_scene
-    from cloth_warp.scene import build_model, build_solver, load_scene
 
-    spec = load_scene(find_scene(scene), {"cloth.grid.resolution": [resolution, resolution], "scene.seed": seed,
-                                          "solver.collider_contacts": "solve", "solver.self_contacts": "solve",
-                                          "solver.contact_friction": "solve", "solver.tolerance": 1e-4})
-    m = build_model(spec, "cpu")
-    solver = build_solver(spec, m)
-    sim = cw.Simulator(m, solver, fps=60, substeps=2, capture=False)
+    m, solver, sim = everything_in_the_solve(scene, resolution, seed)
     thickness = m.collider_thickness.numpy()
     check, step = solver._check_release, solver.step
     start = {}
