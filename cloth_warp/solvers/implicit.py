@@ -128,7 +128,7 @@ class SolverImplicitEuler(SolverBase):
             going from stick to slide or back; with a `contact_check_tolerance` looser than `tolerance`, the last is the
             solve to the tolerance). A contact at the static bound that one check lets slide and the next finds stuck
             needs two; with 2, a garment held still went from stick to slide and back every step (the shipped dress:
-            17 contacts, 13.8 mm/s; with 4: 0.08 mm/s, 10 % fewer CG iterations a frame; `docs/garments.md`).
+            17 contacts, 13.8 mm/s; with 4: 0.08 mm/s and 10 % fewer CG iterations a frame; `docs/garments.md`).
         contact_release_fraction: "solve" contacts: a contact is released when it pulls with more than this fraction
             of the particle's weight (times the step): below it the pull is the solve's round-off, and a released
             particle has no friction.
