@@ -1064,7 +1064,8 @@ def test_a_released_contact_the_re_solve_carries_into_the_collider_is_taken_back
     inside the collider's thickness: the contact is taken back and the step solved again. A contact released in a check
     that also let the dampers around it slide was carried into the surface by the cloth round it; the colliders pass
     pushed it out after the step, and it pulled again in the next (a dress held still, 4 cm edges: 12 mm/s, 0.8 with
-    the rule)."""
+    the rule). Where a contact taken back ends is not checked: its re-solve keeps the free solve's normal velocity
+    (kernels/implicit.py eval_contact_release), and 148 and 31 such ends lie inside the thickness here."""
     from cloth_warp.collision import collider_distance
 
     m, solver, sim = everything_in_the_solve(scene, resolution, seed)
