@@ -34,6 +34,16 @@ wp.set_module_options({"enable_backward": False})
 SELF_CLEARANCE = wp.constant(0.05)
 # An edge-edge pair whose nearest points have a weight this small is nearest at an edge's end (eval_self_contacts).
 EDGE_END = wp.constant(1.0e-4)
+# A candidate pair that started beyond the self-contacts' rest distance by more than this fraction of the clearance and
+# whose solved end points are inside it by as much becomes an element within the step (admit_self_contacts) ...
+SELF_ADMIT_DEPTH = wp.constant(0.1)
+# ... when it starts within this fraction of the thickness beyond the rest distance (farther, what the start normal
+# predicts is no measure of where the pair ends: admitted from up to 1 thickness out, a cloth dropped from 3 cm onto
+# another, at 0.7 m/s, threw it up and ended 2.3 mm into it; 3.8 mm apart from 0.5).
+SELF_ADMIT_REACH = wp.constant(0.5)
+# ... and, a point-face pair, when its start normal is within ~25 degrees of the face's normal, an edge-edge pair, when
+# its edges cross at more than ~25 degrees (admit_self_contacts).
+SELF_ADMIT_COSINE = wp.constant(0.9)
 # The solve lands a contact this fraction of the thickness above it, clear of the colliders pass's contact band
 # (1e-3 of the thickness, kernels/collide.py), so that float32 rounding does not leave the
 # end point a hair inside, where the colliders pass after the step would push it again (8 um for 4 mm).
@@ -291,6 +301,55 @@ def self_contact_friction_terms(v_t: wp.vec3, impulse: float, mass_weight: float
     return wp.vec4(bound / wp.max(stick_speed, speed), 0.0, 0.0, 0.0)
 
 
+@wp.func
+def solved_pair(pair: wp.vec2i, kind: int, tri_indices: wp.array2d(dtype=wp.int32), edge_indices: wp.array2d(dtype=wp.int32),
+                particle_point_root: wp.array(dtype=wp.int32), particle_offset: int):
+    """A candidate pair's four particles as the solve takes them: offset into the batch's arrays, a welded point's
+    particle replaced by its root (cloth_warp/sewing.py `welded_view`)."""
+    o = particle_offset
+    idx = pair_indices(pair, kind, tri_indices, edge_indices) + wp.vec4i(o, o, o, o)
+    for r in range(4):
+        root = particle_point_root[idx[r]]
+        if root >= 0:
+            idx[r] = root
+    return idx
+
+
+@wp.func
+def any_pinned(idx: wp.vec4i, particle_pinned: wp.array(dtype=wp.int32)):
+    """Whether a pair has a pinned particle (no element: the pin holds it)."""
+    for r in range(4):
+        if particle_pinned[idx[r]] != 0:
+            return True
+    return False
+
+
+@wp.func
+def at_edge_end(kind: int, alpha: wp.vec4):
+    """Whether an edge-edge pair (kind 1) is nearest at an edge's end: that vertex's contact, which its vertex-face
+    pairs hold (as edge pairs it came once per edge at the vertex: eight at a T-shirt's armpit, one contact eight times
+    as stiff, throwing the cloth out 3.4 mm in a step and back: 220-390 mm/s, against 7-18 without them)."""
+    return kind == 1 and wp.min(wp.min(alpha[0], alpha[1]), wp.min(-alpha[2], -alpha[3])) <= EDGE_END
+
+
+@wp.func
+def store_element(e: int, idx: wp.vec4i, alpha: wp.vec4, n: wp.vec3, overlap: float, friction_mass: float, slide: wp.vec3,
+                  stiffness: float, coefficient: float, element_indices_out: wp.array(dtype=wp.vec4i),
+                  element_weights_out: wp.array(dtype=wp.vec4), element_normal_out: wp.array(dtype=wp.vec3),
+                  element_overlap_out: wp.array(dtype=float), element_friction_mass_out: wp.array(dtype=float),
+                  element_friction_impulse_out: wp.array(dtype=wp.vec3), element_stiffness_out: wp.array(dtype=float),
+                  element_coefficient_out: wp.array(dtype=float)):
+    """Write self-contact element e."""
+    element_indices_out[e] = idx
+    element_weights_out[e] = alpha
+    element_normal_out[e] = n
+    element_overlap_out[e] = overlap
+    element_friction_mass_out[e] = friction_mass
+    element_friction_impulse_out[e] = slide
+    element_stiffness_out[e] = stiffness
+    element_coefficient_out[e] = coefficient
+
+
 @wp.kernel
 def eval_self_contacts(
     # candidates: the last step's close pairs of one kind (the first count[0] of `pairs`)
@@ -343,19 +402,11 @@ def eval_self_contacts(
     tid = wp.tid()
     if tid >= count[0]:
         return
-    o = particle_offset
-    idx = pair_indices(pairs[tid], kind, tri_indices, edge_indices) + wp.vec4i(o, o, o, o)
-    for r in range(4):
-        root = particle_point_root[idx[r]]
-        if root >= 0:
-            idx[r] = root
-        if particle_pinned[idx[r]] != 0:
-            return
+    idx = solved_pair(pairs[tid], kind, tri_indices, edge_indices, particle_point_root, particle_offset)
+    if any_pinned(idx, particle_pinned):
+        return
     alpha = start_weights(kind, x0, idx)
-    if kind == 1 and wp.min(wp.min(alpha[0], alpha[1]), wp.min(-alpha[2], -alpha[3])) <= EDGE_END:
-        # an edge pair nearest at an edge's end is that vertex's contact, which its vertex-face pairs hold: as edge
-        # pairs it came once per edge at the vertex (eight at a T-shirt's armpit, one contact eight times as stiff,
-        # throwing the cloth out 3.4 mm in a step and back: 220-390 mm/s, against 7-18 without them)
+    if at_edge_end(kind, alpha):
         return
     gap = weighted_sum(alpha, x0[idx[0]], x0[idx[1]], x0[idx[2]], x0[idx[3]])
     d = wp.length(gap)
@@ -367,13 +418,7 @@ def eval_self_contacts(
     n = gap / d
     v_rel = weighted_sum(alpha, v0[idx[0]], v0[idx[1]], v0[idx[2]], v0[idx[3]])
     v_n = wp.dot(n, v_rel)
-    element_indices_out[e] = idx
-    element_weights_out[e] = alpha
-    element_stiffness_out[e] = stiffness
-    element_coefficient_out[e] = coefficient
-    element_normal_out[e] = n
     overlap = rest_distance - d
-    element_overlap_out[e] = overlap
     friction_mass = float(0.0)
     slide = wp.vec3(0.0)
     if friction_in_solve != 0:
@@ -381,8 +426,9 @@ def eval_self_contacts(
                                             friction, stick_speed)
         friction_mass = terms[0]
         slide = wp.vec3(terms[1], terms[2], terms[3])
-    element_friction_mass_out[e] = friction_mass
-    element_friction_impulse_out[e] = slide
+    store_element(e, idx, alpha, n, overlap, friction_mass, slide, stiffness, coefficient, element_indices_out,
+                  element_weights_out, element_normal_out, element_overlap_out, element_friction_mass_out,
+                  element_friction_impulse_out, element_stiffness_out, element_coefficient_out)
     # the damper's b part, -d alpha_r v_T, and the slide's alpha_r J, as forces (b = h (f0 - h K v0))
     push = slide - friction_mass * (v_rel - v_n * n)
     block = (dt * dt * stiffness) * wp.outer(n, n) + friction_mass * (wp.identity(n=3, dtype=float) - wp.outer(n, n))
@@ -500,6 +546,106 @@ def slide_self_contacts(
         wp.atomic_add(rhs_out, idx[r], alpha[r] * (j + d * v_t0))
     element_friction_mass_out[e] = 0.0
     element_friction_impulse_out[e] = j
+    release_out[rb + RELEASE_FLAG] = 1
+    release_out[RELEASE_FLAG] = 1
+
+
+@wp.kernel
+def admit_self_contacts(
+    # candidates: the last step's close pairs of one kind (the first count[0] of `pairs`), as eval_self_contacts takes them
+    count: wp.array(dtype=wp.int32),
+    pairs: wp.array(dtype=wp.vec2i),
+    kind: int,
+    tri_indices: wp.array2d(dtype=wp.int32),
+    edge_indices: wp.array2d(dtype=wp.int32),
+    particle_pinned: wp.array(dtype=wp.int32),
+    particle_point_root: wp.array(dtype=wp.int32),
+    x0: wp.array(dtype=wp.vec3),
+    v0: wp.array(dtype=wp.vec3),
+    dv: wp.array(dtype=wp.vec3),
+    rest_distance: float,
+    stiffness: float,
+    dt: float,
+    capacity: int,
+    max_rounds: int,
+    particle_offset: int,
+    particle_world: wp.array(dtype=wp.int32),
+    worlds: int,
+    coefficient: float,
+    # outputs
+    admitted_out: wp.array(dtype=wp.int32),
+    element_indices_out: wp.array(dtype=wp.vec4i),
+    element_weights_out: wp.array(dtype=wp.vec4),
+    element_normal_out: wp.array(dtype=wp.vec3),
+    element_overlap_out: wp.array(dtype=float),
+    element_friction_mass_out: wp.array(dtype=float),
+    element_friction_impulse_out: wp.array(dtype=wp.vec3),
+    element_count_out: wp.array(dtype=wp.int32),
+    rhs_out: wp.array(dtype=wp.vec3),
+    counts_out: wp.array(dtype=wp.int32),
+    element_stiffness_out: wp.array(dtype=float),
+    element_coefficient_out: wp.array(dtype=float),
+    release_out: wp.array(dtype=wp.int32),
+):
+    """A candidate pair that starts the step apart, beyond `rest_distance` r by more than SELF_ADMIT_DEPTH of the
+    clearance (no element of eval_self_contacts), but whose solved end points, at its start weights, are inside r by as
+    much (d1 = |sum_r alpha_r (x0_r + h (v0_r + dv_r))|) becomes an element for the rest of the step, and the step is
+    solved again (release_out[RELEASE_FLAG]) while fewer than `max_rounds` re-solves ran. Its linear force
+    k (r - d0 - h n . v_rel1) is the penalty's at the end of the step, which the re-solve makes push: the admitting half
+    of an active set on the piecewise-linear penalty, what backward Euler asks of it (an element that ends a step
+    pulling is kept: README, Known limits). Without it a pair closing within a step met no force until the next step
+    found it inside, by up to the whole approach, and was thrown out past r, to fall in again: a fold's edge in a 32^2
+    pile (seed 12) swung by 0.3 mm every four steps at 24 mm/s; a cloth dropped onto another ended a step 1.8 mm inside.
+    Admitted only: pairs within SELF_ADMIT_REACH of the thickness beyond r; point-face pairs whose start normal n is
+    within SELF_ADMIT_COSINE of the face's; edges that cross at an angle whose cosine is below it. Pairs resting within
+    the depth of r are left to the next step's element, and the end is measured at the start weights, not along n: a
+    cloth sliding down a cloth on a 30 deg incline admitted pairs resting at r and pairs passing a face's corner, whose
+    re-solves took the rounds its kinetic friction needed; it stuck (-0.91 m/s^2 against g (sin - mu cos) = 2.36).
+    The element's b part, h alpha_i k (r - d0 - h v_n0) n, goes into rhs_out; its diagonal block stays out of the
+    preconditioner (still SPD); it carries no friction this step (its overlap is kept as 0). `admitted_out` (per
+    candidate, zeroed each step) keeps a pair from being admitted twice."""
+    tid = wp.tid()
+    if tid >= count[0] or admitted_out[tid] != 0:
+        return
+    idx = solved_pair(pairs[tid], kind, tri_indices, edge_indices, particle_point_root, particle_offset)
+    if any_pinned(idx, particle_pinned):
+        return
+    rb = world_slot(particle_world_of(idx[0], particle_world, worlds), worlds, RELEASE_SIZE)
+    if release_out[rb + RELEASE_ROUNDS] >= max_rounds:
+        return
+    alpha = start_weights(kind, x0, idx)
+    if at_edge_end(kind, alpha):
+        return
+    gap = weighted_sum(alpha, x0[idx[0]], x0[idx[1]], x0[idx[2]], x0[idx[3]])
+    d = wp.length(gap)
+    depth = SELF_ADMIT_DEPTH * rest_distance * SELF_CLEARANCE / (1.0 + SELF_CLEARANCE)
+    if d < rest_distance + depth or d >= rest_distance + SELF_ADMIT_REACH * rest_distance / (1.0 + SELF_CLEARANCE):
+        return  # (an element already, or resting at r, which the next step's element holds; too far for the start normal)
+    n = gap / d
+    if kind == 0:  # a point beside the face (nearest on its rim, the normal leaning off the face's) may pass it by
+        face = wp.cross(x0[idx[1]] - x0[idx[0]], x0[idx[2]] - x0[idx[0]])
+        if wp.abs(wp.dot(face, n)) < SELF_ADMIT_COSINE * wp.length(face):
+            return
+    else:  # edges side by side (near parallel: their normal may lie in the layers) slide past each other
+        a = x0[idx[1]] - x0[idx[0]]
+        b = x0[idx[3]] - x0[idx[2]]
+        if wp.abs(wp.dot(a, b)) > SELF_ADMIT_COSINE * wp.length(a) * wp.length(b):
+            return
+    v_start = wp.dot(n, weighted_sum(alpha, v0[idx[0]], v0[idx[1]], v0[idx[2]], v0[idx[3]]))
+    d_end = wp.length(gap + dt * pair_end_velocity(alpha, idx, v0, dv))  # (passing by, its distance along n would fall)
+    if d_end > rest_distance - depth:
+        return
+    e = wp.atomic_add(element_count_out, 0, 1)
+    if e >= capacity:
+        return
+    admitted_out[tid] = 1
+    store_element(e, idx, alpha, n, 0.0, 0.0, wp.vec3(0.0), stiffness, coefficient, element_indices_out, element_weights_out,
+                  element_normal_out, element_overlap_out, element_friction_mass_out, element_friction_impulse_out,
+                  element_stiffness_out, element_coefficient_out)
+    push = (dt * stiffness * (rest_distance - d - dt * v_start)) * n
+    for r in range(4):
+        wp.atomic_add(rhs_out, idx[r], alpha[r] * push)
+    wp.atomic_add(counts_out, world_slot(particle_world_of(idx[0], particle_world, worlds), worlds, COUNT_SIZE) + COUNT_SELF_CONTACTS, 1)
     release_out[rb + RELEASE_FLAG] = 1
     release_out[RELEASE_FLAG] = 1
 
