@@ -350,6 +350,25 @@ def store_element(e: int, idx: wp.vec4i, alpha: wp.vec4, n: wp.vec3, overlap: fl
     element_coefficient_out[e] = coefficient
 
 
+@wp.func
+def admissible(kind: int, x0: wp.array(dtype=wp.vec3), idx: wp.vec4i, gap: wp.vec3, d: float, rest_distance: float):
+    """Whether a pair d [m] apart at the step's start (beyond the rest distance r, along gap) is one the contact checks
+    may admit (admit_self_contacts): beyond r by more than SELF_ADMIT_DEPTH of the clearance (resting at r, the next
+    step's element holds it), within SELF_ADMIT_REACH of the thickness (farther, its start normal is no measure of where
+    it ends), a point-face pair's normal within SELF_ADMIT_COSINE of the face's (beside the face it may pass it by), an
+    edge pair's edges crossing at an angle whose cosine is below it (side by side, their normal may lie in the layers)."""
+    depth = SELF_ADMIT_DEPTH * rest_distance * SELF_CLEARANCE / (1.0 + SELF_CLEARANCE)
+    if d < rest_distance + depth or d >= rest_distance + SELF_ADMIT_REACH * rest_distance / (1.0 + SELF_CLEARANCE):
+        return False
+    n = gap / d
+    if kind == 0:
+        face = wp.cross(x0[idx[1]] - x0[idx[0]], x0[idx[2]] - x0[idx[0]])
+        return wp.abs(wp.dot(face, n)) >= SELF_ADMIT_COSINE * wp.length(face)
+    a = x0[idx[1]] - x0[idx[0]]
+    b = x0[idx[3]] - x0[idx[2]]
+    return wp.abs(wp.dot(a, b)) <= SELF_ADMIT_COSINE * wp.length(a) * wp.length(b)
+
+
 @wp.kernel
 def eval_self_contacts(
     # candidates: the last step's close pairs of one kind (the first count[0] of `pairs`)
@@ -390,6 +409,15 @@ def eval_self_contacts(
     counts_out: wp.array(dtype=wp.int32),
     element_stiffness_out: wp.array(dtype=float),
     element_coefficient_out: wp.array(dtype=float),
+    # the pairs beyond r the contact checks may admit (admit_self_contacts), appended: particles, weights, start gap
+    # [m], k, h^2 k, admitted (0 here)
+    admissible_indices_out: wp.array(dtype=wp.vec4i),
+    admissible_weights_out: wp.array(dtype=wp.vec4),
+    admissible_gap_out: wp.array(dtype=wp.vec3),
+    admissible_stiffness_out: wp.array(dtype=float),
+    admissible_coefficient_out: wp.array(dtype=float),
+    admissible_admitted_out: wp.array(dtype=wp.int32),
+    admissible_count_out: wp.array(dtype=wp.int32),
 ):
     """Each candidate pair closer than `rest_distance` r [m] at x0, none of its particles pinned, becomes a repulsion
     element of `stiffness` k [N/m] (see above); its overlap r - d [m] is kept for friction. With `friction_in_solve`,
@@ -398,7 +426,9 @@ def eval_self_contacts(
     `particle_offset` on in the batch's arrays; the element is counted in its world's counters. Each
     element keeps its k and `coefficient` h^2 k (its world's: the worlds' stiffness may differ) for the product and
     the friction. A particle of a welded point the solve takes as one particle (`particle_point_root` >= 0) is its
-    root in the element (they coincide: cloth_warp/sewing.py `welded_view`)."""
+    root in the element (they coincide: cloth_warp/sewing.py `welded_view`). A pair beyond r that the contact checks may
+    admit within the step (`admissible`) is kept in the admissible arrays instead, so that each check reads it there
+    rather than weighing every candidate again."""
     tid = wp.tid()
     if tid >= count[0]:
         return
@@ -410,7 +440,18 @@ def eval_self_contacts(
         return
     gap = weighted_sum(alpha, x0[idx[0]], x0[idx[1]], x0[idx[2]], x0[idx[3]])
     d = wp.length(gap)
-    if d >= rest_distance or d <= NORMAL_EPS:
+    if d <= NORMAL_EPS:
+        return
+    if d >= rest_distance:
+        if admissible(kind, x0, idx, gap, d, rest_distance):
+            slot = wp.atomic_add(admissible_count_out, 0, 1)
+            if slot < capacity:
+                admissible_indices_out[slot] = idx
+                admissible_weights_out[slot] = alpha
+                admissible_gap_out[slot] = gap
+                admissible_stiffness_out[slot] = stiffness
+                admissible_coefficient_out[slot] = coefficient
+                admissible_admitted_out[slot] = 0
         return
     e = wp.atomic_add(element_count_out, 0, 1)
     if e >= capacity:
@@ -552,28 +593,23 @@ def slide_self_contacts(
 
 @wp.kernel
 def admit_self_contacts(
-    # candidates: the last step's close pairs of one kind (the first count[0] of `pairs`), as eval_self_contacts takes them
-    count: wp.array(dtype=wp.int32),
-    pairs: wp.array(dtype=wp.vec2i),
-    kind: int,
-    tri_indices: wp.array2d(dtype=wp.int32),
-    edge_indices: wp.array2d(dtype=wp.int32),
-    particle_pinned: wp.array(dtype=wp.int32),
-    particle_point_root: wp.array(dtype=wp.int32),
-    x0: wp.array(dtype=wp.vec3),
+    # the step's admissible pairs (eval_self_contacts)
+    admissible_count: wp.array(dtype=wp.int32),
+    admissible_indices: wp.array(dtype=wp.vec4i),
+    admissible_weights: wp.array(dtype=wp.vec4),
+    admissible_gap: wp.array(dtype=wp.vec3),
+    admissible_stiffness: wp.array(dtype=float),
+    admissible_coefficient: wp.array(dtype=float),
     v0: wp.array(dtype=wp.vec3),
     dv: wp.array(dtype=wp.vec3),
     rest_distance: float,
-    stiffness: float,
     dt: float,
     capacity: int,
     max_rounds: int,
-    particle_offset: int,
     particle_world: wp.array(dtype=wp.int32),
     worlds: int,
-    coefficient: float,
     # outputs
-    admitted_out: wp.array(dtype=wp.int32),
+    admissible_admitted_out: wp.array(dtype=wp.int32),
     element_indices_out: wp.array(dtype=wp.vec4i),
     element_weights_out: wp.array(dtype=wp.vec4),
     element_normal_out: wp.array(dtype=wp.vec3),
@@ -587,61 +623,44 @@ def admit_self_contacts(
     element_coefficient_out: wp.array(dtype=float),
     release_out: wp.array(dtype=wp.int32),
 ):
-    """A candidate pair that starts the step apart, beyond `rest_distance` r by more than SELF_ADMIT_DEPTH of the
-    clearance (no element of eval_self_contacts), but whose solved end points, at its start weights, are inside r by as
-    much (d1 = |sum_r alpha_r (x0_r + h (v0_r + dv_r))|) becomes an element for the rest of the step, and the step is
+    """An admissible pair (eval_self_contacts `admissible`: it starts the step apart, beyond `rest_distance` r by more
+    than SELF_ADMIT_DEPTH of the clearance) whose solved end points, at its start weights, are inside r by as much
+    (d1 = |sum_r alpha_r (x0_r + h (v0_r + dv_r))|) becomes an element for the rest of the step, and the step is
     solved again (release_out[RELEASE_FLAG]) while fewer than `max_rounds` re-solves ran. Its linear force
     k (r - d0 - h n . v_rel1) is the penalty's at the end of the step, which the re-solve makes push: the admitting half
     of an active set on the piecewise-linear penalty, what backward Euler asks of it (an element that ends a step
     pulling is kept: README, Known limits). Without it a pair closing within a step met no force until the next step
     found it inside, by up to the whole approach, and was thrown out past r, to fall in again: a fold's edge in a 32^2
     pile (seed 12) swung by 0.3 mm every four steps at 24 mm/s; a cloth dropped onto another ended a step 1.8 mm inside.
-    Admitted only: pairs within SELF_ADMIT_REACH of the thickness beyond r; point-face pairs whose start normal n is
-    within SELF_ADMIT_COSINE of the face's; edges that cross at an angle whose cosine is below it. Pairs resting within
-    the depth of r are left to the next step's element, and the end is measured at the start weights, not along n: a
-    cloth sliding down a cloth on a 30 deg incline admitted pairs resting at r and pairs passing a face's corner, whose
-    re-solves took the rounds its kinetic friction needed; it stuck (-0.91 m/s^2 against g (sin - mu cos) = 2.36).
-    The element's b part, h alpha_i k (r - d0 - h v_n0) n, goes into rhs_out; its diagonal block stays out of the
-    preconditioner (still SPD); it carries no friction this step (its overlap is kept as 0). `admitted_out` (per
-    candidate, zeroed each step) keeps a pair from being admitted twice."""
-    tid = wp.tid()
-    if tid >= count[0] or admitted_out[tid] != 0:
+    The admissible filters and the end measured at the start weights, not along the start normal n: a cloth sliding
+    down a cloth on a 30 deg incline admitted pairs resting at r and pairs passing a face's corner, whose re-solves took
+    the rounds its kinetic friction needed; it stuck (-0.91 m/s^2 against g (sin - mu cos) = 2.36). The element's b
+    part, h alpha_i k (r - d0 - h v_n0) n, goes into rhs_out; its diagonal block stays out of the preconditioner (still
+    SPD); it carries no friction this step (its overlap is kept as 0). `admissible_admitted_out` keeps a pair from being
+    admitted twice."""
+    a = wp.tid()
+    if a >= admissible_count[0] or admissible_admitted_out[a] != 0:
         return
-    idx = solved_pair(pairs[tid], kind, tri_indices, edge_indices, particle_point_root, particle_offset)
-    if any_pinned(idx, particle_pinned):
-        return
+    idx = admissible_indices[a]
     rb = world_slot(particle_world_of(idx[0], particle_world, worlds), worlds, RELEASE_SIZE)
     if release_out[rb + RELEASE_ROUNDS] >= max_rounds:
         return
-    alpha = start_weights(kind, x0, idx)
-    if at_edge_end(kind, alpha):
-        return
-    gap = weighted_sum(alpha, x0[idx[0]], x0[idx[1]], x0[idx[2]], x0[idx[3]])
+    alpha = admissible_weights[a]
+    gap = admissible_gap[a]
     d = wp.length(gap)
-    depth = SELF_ADMIT_DEPTH * rest_distance * SELF_CLEARANCE / (1.0 + SELF_CLEARANCE)
-    if d < rest_distance + depth or d >= rest_distance + SELF_ADMIT_REACH * rest_distance / (1.0 + SELF_CLEARANCE):
-        return  # (an element already, or resting at r, which the next step's element holds; too far for the start normal)
     n = gap / d
-    if kind == 0:  # a point beside the face (nearest on its rim, the normal leaning off the face's) may pass it by
-        face = wp.cross(x0[idx[1]] - x0[idx[0]], x0[idx[2]] - x0[idx[0]])
-        if wp.abs(wp.dot(face, n)) < SELF_ADMIT_COSINE * wp.length(face):
-            return
-    else:  # edges side by side (near parallel: their normal may lie in the layers) slide past each other
-        a = x0[idx[1]] - x0[idx[0]]
-        b = x0[idx[3]] - x0[idx[2]]
-        if wp.abs(wp.dot(a, b)) > SELF_ADMIT_COSINE * wp.length(a) * wp.length(b):
-            return
     v_start = wp.dot(n, weighted_sum(alpha, v0[idx[0]], v0[idx[1]], v0[idx[2]], v0[idx[3]]))
     d_end = wp.length(gap + dt * pair_end_velocity(alpha, idx, v0, dv))  # (passing by, its distance along n would fall)
-    if d_end > rest_distance - depth:
+    if d_end > rest_distance - SELF_ADMIT_DEPTH * rest_distance * SELF_CLEARANCE / (1.0 + SELF_CLEARANCE):
         return
     e = wp.atomic_add(element_count_out, 0, 1)
     if e >= capacity:
         return
-    admitted_out[tid] = 1
-    store_element(e, idx, alpha, n, 0.0, 0.0, wp.vec3(0.0), stiffness, coefficient, element_indices_out, element_weights_out,
-                  element_normal_out, element_overlap_out, element_friction_mass_out, element_friction_impulse_out,
-                  element_stiffness_out, element_coefficient_out)
+    admissible_admitted_out[a] = 1
+    stiffness = admissible_stiffness[a]
+    store_element(e, idx, alpha, n, 0.0, 0.0, wp.vec3(0.0), stiffness, admissible_coefficient[a], element_indices_out,
+                  element_weights_out, element_normal_out, element_overlap_out, element_friction_mass_out,
+                  element_friction_impulse_out, element_stiffness_out, element_coefficient_out)
     push = (dt * stiffness * (rest_distance - d - dt * v_start)) * n
     for r in range(4):
         wp.atomic_add(rhs_out, idx[r], alpha[r] * push)

@@ -968,11 +968,14 @@ def test_self_contact_friction_in_the_solve_is_a_damper_or_the_kinetic_impulse(r
 def self_contact_element(kind, pair, tri, edges, x, v0, r, k, h, friction=0.0, stick_speed=1e-4, mass=None):
     """Build one self-contact element (kernels/contact.py eval_self_contacts) for the pair of 4 particles at x, v0;
     with `friction` > 0 its friction is in the solve. Returns the kernel's outputs: indices, weights, normal, overlap,
-    friction mass, friction impulse, count, force, K v0, diagonal blocks, counters, k and h^2 k."""
+    friction mass, friction impulse, count, force, K v0, diagonal blocks, counters, k and h^2 k, then the admissible
+    pair's arrays and count (a pair beyond r the contact checks may admit)."""
     out = [wp.zeros(1, dtype=wp.vec4i), wp.zeros(1, dtype=wp.vec4), wp.zeros(1, dtype=wp.vec3), wp.zeros(1, dtype=float),
            wp.zeros(1, dtype=float), wp.zeros(1, dtype=wp.vec3), wp.zeros(1, dtype=wp.int32), wp.zeros(4, dtype=wp.vec3),
            wp.zeros(4, dtype=wp.vec3), wp.zeros(4, dtype=wp.mat33), wp.zeros(kct.COUNT_SIZE, dtype=wp.int32),
-           wp.zeros(1, dtype=float), wp.zeros(1, dtype=float)]
+           wp.zeros(1, dtype=float), wp.zeros(1, dtype=float),
+           wp.zeros(1, dtype=wp.vec4i), wp.zeros(1, dtype=wp.vec4), wp.zeros(1, dtype=wp.vec3), wp.zeros(1, dtype=float),
+           wp.zeros(1, dtype=float), wp.zeros(1, dtype=wp.int32), wp.zeros(1, dtype=wp.int32)]
     inv_mass = 1.0 / np.full(4, 1e-3) if mass is None else 1.0 / np.asarray(mass)
     wp.launch(kct.eval_self_contacts, dim=1,
               inputs=[wp.array([1], dtype=wp.int32), wp.array([pair], dtype=wp.vec2i), kind, wp.array(tri, dtype=wp.int32),

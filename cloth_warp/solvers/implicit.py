@@ -379,9 +379,10 @@ class SolverImplicitEuler(SolverBase):
         self._gathered_inv_mass = None  # batched worlds: the worlds' self-collision inverse masses in one array
         self._self_contact_elements = None  # (indices, weights, normals, overlaps, friction masses, friction impulses, stiffness, h^2 k), capacity: the candidates'
         self._self_contacts_on = False  # whether the step being solved has self-contact elements
-        self._self_contact_candidates = []  # this step's candidate lists (eval_self_contacts' launches) and their admitted flags
-        self._self_contact_admitted = []
-        self._step_q = None  # the step being solved's start positions [m] (admit_self_contacts)
+        # the pairs beyond the elements' rest distance the contact checks may admit (kernels/contact.py admit_self_contacts):
+        # (indices, weights, start gaps, stiffness, h^2 k, admitted), capacity: the candidates'
+        self._self_contact_admissible = None
+        self.self_contact_admissible_count = wp.zeros(1, dtype=wp.int32, device=dev)
         self._loop_graphs = LoopGraphs()  # the linear solves' loops, recorded once where they run eagerly (_solve_loop)
         self.friction_dv = wp.zeros(n, dtype=wp.vec3, device=dev)  # self-contact friction: summed changes and their count
         self.friction_weight = wp.zeros(n, dtype=float, device=dev)
@@ -512,14 +513,15 @@ class SolverImplicitEuler(SolverBase):
                                            wp.zeros(capacity, dtype=wp.vec3, device=dev), wp.zeros(capacity, dtype=float, device=dev),
                                            wp.zeros(capacity, dtype=float, device=dev), wp.zeros(capacity, dtype=wp.vec3, device=dev),
                                            wp.zeros(capacity, dtype=float, device=dev), wp.zeros(capacity, dtype=float, device=dev))
+            self._self_contact_admissible = (wp.zeros(capacity, dtype=wp.vec4i, device=dev), wp.zeros(capacity, dtype=wp.vec4, device=dev),
+                                             wp.zeros(capacity, dtype=wp.vec3, device=dev), wp.zeros(capacity, dtype=float, device=dev),
+                                             wp.zeros(capacity, dtype=float, device=dev), wp.zeros(capacity, dtype=wp.int32, device=dev))
         self.self_contact_count.zero_()
+        self.self_contact_admissible_count.zero_()
         inv_mass = self._self_contact_inverse_masses()
         el = self._self_contact_elements
-        self._self_contact_candidates = []
         for (sc, tris, stiffness, first), world in zip(self._self_collisions, candidates):  # world after world (batched)
             for kind, (pairs, count) in enumerate(world):
-                admitted = self._admitted_flags(len(self._self_contact_candidates), pairs.shape[0])
-                self._self_contact_candidates.append((sc, tris, stiffness, first, kind, pairs, count, admitted))
                 wp.launch(kct.eval_self_contacts, dim=pairs.shape[0],
                           inputs=[count, pairs, kind, tris, sc.edge_indices, m.particle_pinned, self.particle_point_root,
                                   state_in.particle_q,
@@ -527,33 +529,21 @@ class SolverImplicitEuler(SolverBase):
                                   inv_mass, float(m.cloth_friction), self.contact_stick_speed, int(self.contact_friction == "solve"),
                                   first, m.particle_world, self.worlds, dt * dt * stiffness],
                           outputs=[*el[:6], self.self_contact_count, force, self.membrane_kv, self.membrane_diag, self.contact_counts,
-                                   el[6], el[7]], device=dev)
+                                   el[6], el[7], *self._self_contact_admissible, self.self_contact_admissible_count], device=dev)
 
     def _self_contact_distance(self) -> float:
         """The self-contact elements' rest distance r [m]: the cloth thickness and the solve's clearance."""
         return float(self.model.cloth_thickness) * (1.0 + float(kct.SELF_CLEARANCE))
 
-    def _admitted_flags(self, k: int, capacity: int) -> wp.array:
-        """Candidate list k's flags (admit_self_contacts: admitted this step), zeroed."""
-        flags = self._self_contact_admitted
-        if len(flags) <= k or flags[k].shape[0] != capacity:
-            flags[k:k + 1] = [wp.zeros(capacity, dtype=wp.int32, device=self.model.device)]
-        flags[k].zero_()
-        return flags[k]
-
     def _admit_self_contacts(self, dt: float, v0: wp.array, rounds: int):
-        """Candidate pairs the solved step carries inside the rest distance become elements, and the step is solved
+        """Admissible pairs the solved step carries inside the rest distance become elements, and the step is solved
         again (kernels/contact.py admit_self_contacts)."""
-        m = self.model
-        el = self._self_contact_elements
-        capacity = el[0].shape[0]
-        for sc, tris, stiffness, first, kind, pairs, count, admitted in self._self_contact_candidates:
-            wp.launch(kct.admit_self_contacts, dim=pairs.shape[0],
-                      inputs=[count, pairs, kind, tris, sc.edge_indices, m.particle_pinned, self.particle_point_root, self._step_q,
-                              v0, self.dv, self._self_contact_distance(), stiffness, dt, capacity,
-                              rounds, first, m.particle_world, self.worlds, dt * dt * stiffness],
-                      outputs=[admitted, *el[:6], self.self_contact_count, self.rhs, self.contact_counts, el[6], el[7], self.release],
-                      device=m.device)
+        el, ad = self._self_contact_elements, self._self_contact_admissible
+        wp.launch(kct.admit_self_contacts, dim=el[0].shape[0],
+                  inputs=[self.self_contact_admissible_count, *ad[:5], v0, self.dv, self._self_contact_distance(), dt, el[0].shape[0],
+                          rounds, self.model.particle_world, self.worlds],
+                  outputs=[ad[5], *el[:6], self.self_contact_count, self.rhs, self.contact_counts, el[6], el[7], self.release],
+                  device=self.model.device)
 
     def _self_contact_inverse_masses(self) -> wp.array:
         """The self-collision passes' inverse masses [1/kg] in the model's particle order: one world's own array, or the
@@ -860,7 +850,6 @@ class SolverImplicitEuler(SolverBase):
         forward solve (warm-started from the last one's dv when there is one, decided on the device) can be
         recorded in a graph."""
         self._self_contacts_on = self._self_contacts_in_solve(state_in)
-        self._step_q = state_in.particle_q  # the step's start positions (the contact checks' admit_self_contacts)
         if "solve" in (self.collider_contacts, self.self_contacts):
             self.contact_counts.zero_()
         with stage("assemble"):
