@@ -577,24 +577,31 @@ class UsdCacheWriter(CacheWriter):
 
     def __init__(self, path, model, *, fps: float, start_frame: int = 1, save_every: int = 25, normals: bool = True,
                  velocities: bool = True, metadata: dict | None = None, lock: OutputLock | None = None):
-        from pxr import Sdf, Usd, UsdGeom, UsdPhysics, Vt
-
         path = pathlib.Path(path)
         if path.suffix.lower() not in USD_SUFFIXES:
             raise ValueError(f"a USD cache must end in {', '.join(USD_SUFFIXES)}, got {path.name!r}")
         self.text_format = path.suffix.lower() == ".usda"
         per_frame = model.particle_count * 12 * (1 + bool(normals) + bool(velocities)) * (4 if self.text_format else 1)
         self._begin(path, model, fps, start_frame, save_every, per_frame, metadata, lock)
+        try:  # whatever stops the writer half made (a failed save, Ctrl-C) leaves no partial file
+            self._define_stage(model, normals, velocities)
+        except BaseException:
+            self.abort()
+            raise
+
+    def _define_stage(self, model, normals: bool, velocities: bool):
+        """Create the partial layer, define the cloth meshes (topology, UVs, looks, rest pose, diagnostics) and
+        the colliders, and save it once."""
+        from pxr import Sdf, Usd, UsdGeom, UsdPhysics, Vt
+
         try:
             stale = Sdf.Layer.Find(str(self.partial))
             self.layer = stale if stale is not None else Sdf.Layer.CreateNew(str(self.partial))
             if stale is not None:
                 stale.Clear()
         except Exception as exc:  # Tf.ErrorException: an unwritable folder
-            self.abort()
             raise CacheWriteError(f"{self.partial}: cannot create: {usd_error_text(exc)}") from None
         if self.layer is None:
-            self.abort()
             raise CacheWriteError(f"{self.partial}: cannot create")
         self._Vt = Vt
         stage = self.stage = Usd.Stage.Open(self.layer)
@@ -657,11 +664,7 @@ class UsdCacheWriter(CacheWriter):
         self.colliders = _define_colliders(stage, model)
         self._write_collider_poses(0)
         self._checkpoint_attr = None
-        try:
-            self._save_file()
-        except CacheWriteError:
-            self.abort()
-            raise
+        self._save_file()
 
     def _write_collider_poses(self, k: int):
         """Author the animated colliders' poses at frame k (time k / fps; static ones once, at default time)."""

@@ -300,28 +300,33 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
                     "description": scene.get("scene.description"), "frames_requested": n_frames}
         if source is not None:
             metadata["resumed_from"] = {"path": str(source[0]), "frames": source[1]}
-        writer = open_cache(out, model, fps=fps, start_frame=start, save_every=int(scene.get("output.save_every")),
-                            normals=bool(scene.get("output.normals")), velocities=bool(scene.get("output.velocities")),
-                            metadata=metadata, lock=lock)
+        lo, hi = model.rest_positions.min(0), model.rest_positions.max(0)
+        summary = {
+            "scene": metadata["scene_path"], "status": "running", "frames": 0, "frames_requested": n_frames,
+            "fps": fps, "start_frame": start, "device": str(model.device), "particles": model.particle_count,
+            "springs": model.spring_count, "triangles": model.tri_count, "integrator": solver.name,
+            "substeps": substeps, "dt_nominal": 1.0 / (fps * substeps), "bounds_m": [lo.tolist(), hi.tolist()],
+            "output": str(out),
+        }
+        max_strain, dt_min, dt_max, iterations, rejected, contacts = 0.0, math.inf, 0.0, [], 0, {}
+        resumed_limit: list[dict] = []  # the per-frame diagnostics of frames copied from an earlier run
+        seams, worst_seam = seam_ends(model), 0.0  # the sewn particle pairs; the widest any opened [m]
+        # From the writer's partial file on, a Ctrl-C is held until the loop's handlers below can close or drop it
+        # (one between the writer and the loop once left the partial file behind under a loaded full suite).
+        with DeferredSignals() as opening:
+            writer = open_cache(out, model, fps=fps, start_frame=start, save_every=int(scene.get("output.save_every")),
+                                normals=bool(scene.get("output.normals")), velocities=bool(scene.get("output.velocities")),
+                                metadata=metadata, lock=lock)
+            t_loop = time.perf_counter()
+            interrupted = write_error = None
     except BaseException:
         lock.release()
         raise
-    lo, hi = model.rest_positions.min(0), model.rest_positions.max(0)
-    summary = {
-        "scene": metadata["scene_path"], "status": "running", "frames": 0, "frames_requested": n_frames,
-        "fps": fps, "start_frame": start, "device": str(model.device), "particles": model.particle_count,
-        "springs": model.spring_count, "triangles": model.tri_count, "integrator": solver.name,
-        "substeps": substeps, "dt_nominal": 1.0 / (fps * substeps), "bounds_m": [lo.tolist(), hi.tolist()],
-        "output": str(out),
-    }
-    max_strain, dt_min, dt_max, iterations, rejected, contacts = 0.0, math.inf, 0.0, [], 0, {}
-    resumed_limit: list[dict] = []  # the per-frame diagnostics of frames copied from an earlier run
-    seams, worst_seam = seam_ends(model), 0.0  # the sewn particle pairs; the widest any opened [m]
-    t_loop = time.perf_counter()
-    interrupted = write_error = None
-    if profile:
-        profiling.enable(model.device)
     try:
+        if opening.pending:
+            raise KeyboardInterrupt
+        if profile:
+            profiling.enable(model.device)
         first = 0
         if source is not None:  # the earlier run's frames, then its state at the last of them
             from .cache import read_frames

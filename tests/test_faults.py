@@ -330,6 +330,45 @@ def test_ctrl_c_while_a_frame_is_written_keeps_that_frame(tmp_path, monkeypatch)
     assert reader.frame_count >= 4 and np.isfinite(reader.points(reader.end_frame)).all()
 
 
+@pytest.mark.parametrize("where", ["first_save", "stage"])
+def test_ctrl_c_while_a_writer_opens_leaves_no_partial_file(tmp_path, monkeypatch, where):
+    """Check a KeyboardInterrupt inside a USD writer's construction (its first save, or while it defines the
+    stage after the partial layer exists) drops the partial file and the lock instead of leaving them."""
+    target = "_save_file" if where == "first_save" else "_write_collider_poses"
+
+    def interrupted(self, *args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(UsdCacheWriter, target, interrupted)
+    out = tmp_path / "w.usdc"
+    with pytest.raises(KeyboardInterrupt):
+        UsdCacheWriter(out, _model(), fps=24)
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+    OutputLock(out).acquire().release()  # not held any more
+
+
+def test_ctrl_c_between_the_writer_and_the_first_frame_leaves_no_partial_file(tmp_path, monkeypatch):
+    """Check a SIGINT that lands while `run_scene` opens its cache (after the writer's partial file exists,
+    before the frame loop) stops the run as interrupted with no file left, not a partial file."""
+    import cloth_warp.cache as cache_module
+    from cloth_warp.runner import run_scene
+
+    opening = cache_module.open_cache
+
+    def open_interrupted(*args, **kwargs):
+        writer = opening(*args, **kwargs)
+        assert list(tmp_path.glob("*.partial-*"))
+        os.kill(os.getpid(), signal.SIGINT)
+        return writer
+
+    monkeypatch.setattr(cache_module, "open_cache", open_interrupted)
+    out = tmp_path / "cut.usdc"
+    with pytest.raises(KeyboardInterrupt) as info:
+        run_scene(HANG, {"cloth.grid.resolution": [6, 6]}, output=out, frames=5)
+    assert info.value.summary["status"] == "interrupted" and info.value.summary["frames"] == 0
+    assert [p.name for p in tmp_path.iterdir() if not p.name.startswith(".")] == []
+
+
 # -- resume and determinism ------------------------------------------------------------------------------------
 
 def _cache_arrays(path):
