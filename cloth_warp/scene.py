@@ -314,6 +314,9 @@ SCHEMA: dict = {
         "strain_limit": Key("float", 0.1, "Provot strain limit on stretch/shear springs (0 disables)", L["strain_limit"]),
         "strain_limit_iterations": Key("int", 128, "the most strain-limit sweeps per step (sweeping stops earlier once no structural/shear spring exceeds the limit by more than 1e-3; frames left above it are reported)", L["iterations"]),
         "tolerance": Key("float", 1e-3, "relative residual at which the linear solve stops", L["tolerance"]),
+        "velocity_tolerance": Key("float", 0.0, "contacts in the solve, cloth near rest (tolerance x its RMS speed below "
+                                  "this): the RMS velocity error [m/s] the step's last solve goes on to (0: none; 1e-5 rests "
+                                  "a drape's ringing edge, at a cost)", L["velocity_tolerance"]),
         "max_iterations": Key("int", 1000, "linear-solver iteration cap per step", L["iterations"]),
         "adaptive": Key("bool", False, "check every step and halve dt on divergence (grows back after good steps)"),
         "dt_min": Key("float", 1e-6, "adaptive floor: below it the run stops with a diagnosis", L["dt_min"]),
@@ -1086,7 +1089,7 @@ def solver_options(scene: Scene, implicit: bool) -> dict:
         opts.update(linear_solver=scene.get("solver.linear_solver"), tolerance=float(scene.get("solver.tolerance")),
                     max_iterations=int(scene.get("solver.max_iterations")), collider_contacts=scene.get("solver.collider_contacts"),
                     self_contacts=scene.get("solver.self_contacts"), contact_friction=scene.get("solver.contact_friction"),
-                    sewn_points=scene.get("solver.sewn_points"))
+                    sewn_points=scene.get("solver.sewn_points"), velocity_tolerance=float(scene.get("solver.velocity_tolerance")))
     return opts
 
 

@@ -136,6 +136,7 @@ LIMITS: dict[str, Range] = {
     "strain_limit": Range(0.0, 10.0),
     "iterations": Range(1, 100_000, integer=True),  # linear-solver and strain-limit caps per step
     "tolerance": Range(1e-10, 1.0),
+    "velocity_tolerance": Range(0.0, 10.0, "m/s"),  # 0: none
     "dt_min": Range(1e-9, 1.0, "s"),
     # fitting
     "fit_iterations": Range(1, 1_000_000, integer=True),

@@ -84,7 +84,11 @@ STATUS_REFERENCE = wp.constant(0)  # |S (b - A z)|^2 of the zero guess: the tole
 STATUS_STOP = wp.constant(1)  # the relative residual at which this solve stops
 STATUS_RELATIVE = wp.constant(2)  # the last relative residual measured (NaN: the system is not finite)
 STATUS_BEST = wp.constant(3)  # CG: the smallest |r|^2 of this solve's iterations (its dv kept in `dv_best`)
-STATUS_SIZE = wp.constant(4)
+STATUS_ERROR_TARGET = wp.constant(4)  # CG: the r.s at or below which the solve's velocity error is small enough (begin_linear_solve)
+STATUS_SIZE = wp.constant(5)
+# The smallest relative residual a solve is asked for (float32's floor): a warm start's reduction and the velocity-error
+# target stop there.
+SOLVE_FLOOR = wp.constant(1.0e-6)
 # The record of solves since its reset (float64), read once per frame.
 RECORD_SOLVES = wp.constant(0)
 RECORD_ITERATIONS = wp.constant(1)
@@ -1559,14 +1563,18 @@ def eval_contact_release(
 def begin_contact_resolve(
     worlds: int,
     polish: int,
+    motion: wp.array(dtype=wp.float64),
+    tolerance: wp.float64,
+    velocity_tolerance: wp.float64,
     # outputs
     release_out: wp.array(dtype=wp.int32),
     loop_out: wp.array(dtype=wp.int32),
 ):
     """A re-solve starts (1 thread per world): a world with a contact released takes part (RELEASE_RESOLVING): one
     more round, its flag cleared, its last solve's iterations carried; batched, a world without sits it out, its
-    solve as it was (and the batch's flag is cleared). With `polish` (the contacts settled on solves short of the
-    tolerance: the step's last solve, to it) every world takes part, without spending a round."""
+    solve as it was (and the batch's flag is cleared). With `polish` (the step's last solve, after the contacts settled
+    on solves short of the tolerance: to it) every world takes part, without spending a round; with `polish` 2 (short
+    of the velocity tolerance only: begin_linear_solve), the worlds near rest (`near_rest`) only."""
     w = wp.tid()
     rb = world_slot(w, worlds, RELEASE_SIZE)
     base = world_loop(w, worlds)
@@ -1574,6 +1582,8 @@ def begin_contact_resolve(
         release_out[RELEASE_FLAG] = 0
     release_out[rb + RELEASE_RESOLVING] = 0
     if release_out[rb + RELEASE_FLAG] == 0 and polish == 0:
+        return
+    if polish == 2 and not near_rest(motion, w, tolerance, velocity_tolerance):
         return
     release_out[rb + RELEASE_RESOLVING] = 1
     release_out[rb + RELEASE_FLAG] = 0
@@ -1844,6 +1854,43 @@ def stops(relative: wp.float64, stop: wp.float64) -> bool:
     return relative <= stop or not wp.isfinite(relative)
 
 
+@wp.func
+def cg_stops(relative: wp.float64, stop: wp.float64, rs: wp.float64, error_target: wp.float64) -> bool:
+    """A CG solve stops at or below its stop residual once its velocity error is within its target too (r.s, the
+    preconditioned residual's energy, at or below `error_target`; or the residual at SOLVE_FLOOR), and on a non-finite
+    residual."""
+    if not wp.isfinite(relative):
+        return True
+    return relative <= stop and (rs <= error_target or relative <= wp.float64(SOLVE_FLOOR))
+
+
+@wp.func
+def near_rest(motion: wp.array(dtype=wp.float64), w: int, tolerance: wp.float64, velocity_tolerance: wp.float64) -> bool:
+    """Whether world w is near rest for a solve to `tolerance`: a velocity tolerance v_tol > 0 [m/s] at least tolerance
+    x its RMS speed at the step's start (`sum_motion`)."""
+    mass = motion[2 * w + 1]
+    if velocity_tolerance <= wp.float64(0.0) or mass <= wp.float64(0.0):
+        return False
+    return tolerance * wp.sqrt(motion[2 * w] / mass) <= velocity_tolerance
+
+
+@wp.kernel(enable_backward=False)
+def sum_motion(
+    particle_mass: wp.array(dtype=float),
+    v0: wp.array(dtype=wp.vec3),
+    particle_world: wp.array(dtype=wp.int32),
+    worlds: int,
+    # outputs (accumulated; zeroed by the caller)
+    motion_out: wp.array(dtype=wp.float64),
+):
+    """Each world's sum m |v0|^2 [kg m^2/s^2] and mass [kg] at the step's start (begin_linear_solve's speed scale)."""
+    i = wp.tid()
+    w = particle_world_of(i, particle_world, worlds)
+    m = wp.float64(particle_mass[i])
+    wp.atomic_add(motion_out, 2 * w, m * wp.float64(wp.dot(v0[i], v0[i])))
+    wp.atomic_add(motion_out, 2 * w + 1, m)
+
+
 @wp.kernel(enable_backward=False)
 def begin_linear_solve(
     warm_scalars: wp.array2d(dtype=wp.float64),
@@ -1857,6 +1904,8 @@ def begin_linear_solve(
     max_iterations: int,
     worlds: int,
     release: wp.array(dtype=wp.int32),
+    motion: wp.array(dtype=wp.float64),
+    velocity_tolerance: wp.float64,
     # outputs
     cg_scalars_out: wp.array2d(dtype=wp.float64),
     status_out: wp.array(dtype=wp.float64),
@@ -1869,13 +1918,25 @@ def begin_linear_solve(
     zeroed by the caller) keeps the step's reference and the iterations carried from its earlier solves. Iterates when the reference is
     positive and the starting residual above the stop. With batched worlds the batch's loop state (cleared by the
     caller) runs while any world does; in a re-solve, only the worlds taking part (`release`, begin_contact_resolve) start
-    again, the others keep their solve as it was."""
+    again, the others keep their solve as it was.
+
+    With `velocity_tolerance` v_tol > 0 [m/s] (the forward step's last solve with contacts in the solve), in a world
+    near rest (tolerance x v_rms <= v_tol, v_rms its RMS speed at the step's start: `motion`, `sum_motion`) a CG solve
+    also goes on until its RMS velocity error is within v_tol: r.s <= M v_tol^2 (`cg_stops`; r.s ~ sum m |e|^2 for the
+    velocity error e, the block-diagonal preconditioner being ~ the inverse mass), or until the residual reaches
+    SOLVE_FLOOR. Relative to the zero guess's residual alone, whose scale is the step's weight h M g, cloth at rest was
+    solved to ~5 um/s RMS (0.1 mm/s at a particle), as large as what moved it: a drape's free edge over the ball kept
+    waving at 16 mm/s, a limit cycle fed by each step's error (docs/contacts-in-the-solve.md)."""
     w = wp.tid()
     base = world_loop(w, worlds)
     col = w * CG_COLUMNS
     st = w * STATUS_SIZE
     if resolve != 0 and release[world_slot(w, worlds, RELEASE_SIZE) + RELEASE_RESOLVING] == 0:
         return
+    error_target = wp.float64(1.0e300)
+    if near_rest(motion, w, tolerance, velocity_tolerance):
+        error_target = motion[2 * w + 1] * velocity_tolerance * velocity_tolerance
+    status_out[st + STATUS_ERROR_TARGET] = error_target
     reference = cg_scalars_out[0, col + CG_RR]
     if resolve != 0:
         reference = status_out[st + STATUS_REFERENCE]  # the step's, measured by its first solve
@@ -1896,7 +1957,7 @@ def begin_linear_solve(
     if resolve == 0:
         loop_out[base + LOOP_CARRIED] = 0
     loop_out[base + LOOP_RUNNING] = 0
-    if reference > wp.float64(1.0e-300) and relative > stop and max_iterations > 0:
+    if reference > wp.float64(1.0e-300) and not cg_stops(relative, stop, cg_scalars_out[0, col + CG_RS], error_target) and max_iterations > 0:
         loop_out[base + LOOP_RUNNING] = 1
         if worlds > 1:
             wp.atomic_max(loop_out, LOOP_RUNNING, 1)
@@ -1945,7 +2006,7 @@ def end_cg_iteration(
     if k % check_every == 0 or k >= max_iterations:
         relative = relative_residual(rr_new, status_out[st + STATUS_REFERENCE])
         status_out[st + STATUS_RELATIVE] = relative
-        if stops(relative, status_out[st + STATUS_STOP]):
+        if cg_stops(relative, status_out[st + STATUS_STOP], rs_new, status_out[st + STATUS_ERROR_TARGET]):
             loop_out[base + LOOP_RUNNING] = 0
     if k >= max_iterations:
         loop_out[base + LOOP_RUNNING] = 0

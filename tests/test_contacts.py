@@ -1172,9 +1172,11 @@ def test_contacts_checked_short_of_the_tolerance_end_every_step_at_it():
     is refused."""
     m, solver = drape_over_ball(16, 0.4, 0, "solve")
     assert solver.tolerance == 1e-4 and solver.contact_check_tolerance == 1e-3
-    loose = cw.SolverImplicitEuler(m, collider_contacts="solve", contact_friction="solve", tolerance=1e-3)
+    loose = cw.SolverImplicitEuler(m, collider_contacts="solve", contact_friction="solve", tolerance=1e-3, velocity_tolerance=0.0)
     assert loose.contact_check_tolerance == 1e-3
-    for s, polish in ((solver, 1), (loose, 0)):
+    # at the check's tolerance, a velocity tolerance is what the last solve goes on to
+    velocity = cw.SolverImplicitEuler(m, collider_contacts="solve", contact_friction="solve", tolerance=1e-3, velocity_tolerance=1e-5)
+    for s, polish in ((solver, 1), (loose, 0), (velocity, 1)):
         calls = []
         solve_cg = s.solve_cg
         s.solve_cg = lambda *a, **k: calls.append(k.get("tolerance")) or solve_cg(*a, **k)
@@ -1191,6 +1193,43 @@ def test_contacts_checked_short_of_the_tolerance_end_every_step_at_it():
         assert checked > 0
     with pytest.raises(ValueError, match="contact_check_tolerance"):
         cw.SolverImplicitEuler(m, collider_contacts="solve", contact_friction="solve", contact_check_tolerance=0.0)
+
+
+def test_the_step_s_last_solve_goes_on_to_the_velocity_tolerance():
+    """Check the velocity tolerance of forward solves with the contacts in the solve (kernels/implicit.py
+    begin_linear_solve, cg_stops), over the drape onto the ball as it falls, lands and settles: in a world near rest
+    (tolerance x v_rms <= v_tol, v_rms the mass-weighted RMS speed at the step's start) the target is M v_tol^2, M its
+    mass, and the step's last solve ends with r.s (~ sum m |e|^2 for the velocity error e) within it, or at the floor
+    residual; faster, there is none. Taped steps and a velocity tolerance of 0 have none; a negative one is refused."""
+    from cloth_warp.kernels import implicit as ki
+
+    m, _ = drape_over_ball(16, 0.4, 0, "solve")
+    assert cw.SolverImplicitEuler(m, collider_contacts="solve").velocity_tolerance == 0.0  # (opt-in)
+    solver = cw.SolverImplicitEuler(m, collider_contacts="solve", contact_friction="solve", tolerance=1e-3, velocity_tolerance=1e-5)
+    sim = cw.Simulator(m, solver, fps=60, substeps=2, capture=False)
+    mass = m.particle_mass.numpy().astype(np.float64)
+    near_rest = moving = 0
+    for _ in range(150):
+        sim.step_frame()  # (2 substeps: the target is the last one's, from its start velocities)
+        target = solver.solve_status.numpy()[ki.STATUS_ERROR_TARGET]
+        assert solver.motion.numpy()[1] == pytest.approx(mass.sum(), rel=1e-9)
+        v_rms = np.sqrt(solver.motion.numpy()[0] / mass.sum())
+        if 1e-3 * v_rms > 1e-5:
+            assert target >= 1e300
+            moving += 1
+            continue
+        assert target == pytest.approx(mass.sum() * 1e-10, rel=1e-9)
+        k = solver.loop.numpy()[ki.LOOP_ITERATION]
+        rs = solver.cg_scalars.numpy()[k, ki.CG_RS]
+        relative = solver.solve_status.numpy()[ki.STATUS_RELATIVE]
+        assert rs <= target or relative <= float(ki.SOLVE_FLOOR), (rs, target, relative, k)
+        near_rest += 1
+    assert near_rest > 20 and moving > 20, (near_rest, moving)
+    off = cw.SolverImplicitEuler(m, collider_contacts="solve", contact_friction="solve", tolerance=1e-3, velocity_tolerance=0.0)
+    cw.Simulator(m, off, fps=60, substeps=2, capture=False).step_frame()
+    assert off.solve_status.numpy()[ki.STATUS_ERROR_TARGET] >= 1e300
+    with pytest.raises(ValueError, match="velocity_tolerance"):
+        cw.SolverImplicitEuler(m, collider_contacts="solve", velocity_tolerance=-1e-5)
 
 
 @pytest.mark.parametrize("resolution,mu,seed", [(16, 0.4, 0), (24, 0.4, 1), (24, 0.8, 2),

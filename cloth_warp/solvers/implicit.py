@@ -30,7 +30,7 @@ from ..model import Control, Model, ModelFlags, State
 from .base import SolverBase
 from .strain_limit import DEFAULT_SWEEPS
 
-WARM_START_FLOOR = 1.0e-6  # the smallest relative residual a warm-started float32 solve is asked for
+WARM_START_FLOOR = float(ki.SOLVE_FLOOR)  # the smallest relative residual a warm-started float32 solve is asked for
 # With the contacts' friction in the solve, the solves whose contacts are then checked (released, let slide, stuck again)
 # stop at this relative residual where the tolerance is tighter, and one more solve goes on to the tolerance once no
 # contact changes. 18 piles and drapes over 300 frames (docs/contacts-in-the-solve.md): at tolerance 1e-4, 32 % fewer CG
@@ -108,6 +108,11 @@ class SolverImplicitEuler(SolverBase):
             `tolerance` carries that solve's error from step to step, and the delay sustains a ~6 Hz limit
             cycle of cloth resting on colliders (~30 mm/s at the free edges of a drape, measured; 0.1 mm/s
             with 0.01).
+        velocity_tolerance: contacts in the solve, forward steps near rest (tolerance x the RMS speed at the step's
+            start below it): after the solves that decide the contacts, the step's last solve goes on until its RMS
+            velocity error is within it [m/s] (kernels/implicit.py begin_linear_solve), changing no contact; 0 (the
+            default): none. At rest the tolerance alone left ~5 um/s RMS of error, which fed a 6.7 Hz wave on the
+            shipped drape's free edge; 1e-5 rests it, at a cost (docs/contacts-in-the-solve.md).
         strain_limit, strain_limit_iterations, collisions: see :class:`~cloth_warp.solvers.base.SolverBase`.
         collider_contacts: "pass" (collider contacts resolved after the step by the colliders pass only) or "solve"
             (also inside the solve, Baraff & Witkin's filter: a particle touching a collider at the start of the step
@@ -221,6 +226,7 @@ class SolverImplicitEuler(SolverBase):
         self_contacts: str = "pass",
         contact_check_tolerance: float | None = None,
         sewn_points: str = "solve",
+        velocity_tolerance: float = 0.0,
     ):
         super().__init__(model, strain_limit=strain_limit, strain_limit_iterations=strain_limit_iterations,
                          strain_limit_tolerance=strain_limit_tolerance, collisions=collisions, collision_rounds=collision_rounds)
@@ -294,6 +300,9 @@ class SolverImplicitEuler(SolverBase):
         if not (0.0 < warm_start_reduction <= 1.0):
             raise ValueError(f"warm_start_reduction must be in (0, 1], got {warm_start_reduction!r}")
         self.warm_start_reduction = float(warm_start_reduction)
+        if not (math.isfinite(velocity_tolerance) and velocity_tolerance >= 0.0):
+            raise ValueError(f"velocity_tolerance must be a speed >= 0 [m/s], got {velocity_tolerance!r}")
+        self.velocity_tolerance = float(velocity_tolerance)
         n, s, t = model.particle_count, max(model.spring_count, 1), max(model.tri_count, 1)
         dev = model.device
         self.stiffness_block = wp.zeros(s, dtype=wp.mat33, device=dev)
@@ -331,6 +340,8 @@ class SolverImplicitEuler(SolverBase):
         # the solve's state on the device (kernels/implicit.py LOOP_*, STATUS_*, RECORD_*): no host read inside a step
         self.loop = wp.zeros(world_slots_length(ki.LOOP_SIZE, worlds), dtype=wp.int32, device=dev)
         self.solve_status = wp.zeros(worlds * ki.STATUS_SIZE, dtype=wp.float64, device=dev)
+        self.motion = wp.zeros(2 * worlds, dtype=wp.float64, device=dev)  # per world: sum m |v0|^2, sum m (kernels/implicit.py sum_motion)
+        self._velocity_tolerance_now = 0.0  # the velocity tolerance of the solve under way (0: none, as in taped and adjoint solves)
         self.solve_record = wp.zeros(worlds * ki.RECORD_SIZE, dtype=wp.float64, device=dev)
         # on the CPU: each world's items, walked by the one-thread-per-world CG kernels
         self._world_ranges = wp.array(world_ranges(model), dtype=wp.int32, device=dev) if dev.is_cpu else None
@@ -753,7 +764,8 @@ class SolverImplicitEuler(SolverBase):
                   inputs=[self.warm_scalars, self.previous_ready, int(warm), int(restarted), int(resolve),
                           wp.float64(self.tolerance if tolerance is None else tolerance),
                           wp.float64(self.warm_start_reduction),
-                          wp.float64(WARM_START_FLOOR), self.max_iterations, self.worlds, self.release],
+                          wp.float64(WARM_START_FLOOR), self.max_iterations, self.worlds, self.release, self.motion,
+                          wp.float64(self._velocity_tolerance_now if self.linear_solver == LinearSolver.CG else 0.0)],
                   outputs=[self.cg_scalars, self.solve_status, self.loop], device=self.model.device)
 
     # -- the solve's report (each property reads the device; the Simulator reads the record once per frame) ----------
@@ -855,6 +867,13 @@ class SolverImplicitEuler(SolverBase):
         with stage("assemble"):
             self.assemble(state_in, control, dt)
         warm = self.warm_start and not state_in.requires_grad
+        in_solve = "solve" in (self.collider_contacts, self.self_contacts)
+        self._velocity_tolerance_now = self.velocity_tolerance if in_solve and not state_in.requires_grad else 0.0
+        if self._velocity_tolerance_now > 0.0:
+            self.motion.zero_()
+            wp.launch(ki.sum_motion, dim=self.model.particle_count,
+                      inputs=[self.model.particle_mass, state_in.particle_qd, self.model.particle_world, self.worlds],
+                      outputs=[self.motion], device=self.model.device)
         contacts = self._contacts_in_solve(state_in)
         with stage("linear_solve"):
             self._contacts_on = contacts
@@ -948,19 +967,28 @@ class SolverImplicitEuler(SolverBase):
         # the solves that decide which contacts are released or slide stop short of the tolerance; the step's last solve,
         # from where they left it, goes on to it (forward steps: a taped step's contacts are held fixed)
         loose = self.tolerance if state_in.requires_grad else max(self.tolerance, self.contact_check_tolerance)
+        # (and short of the velocity tolerance: the step's last solve goes on to it, a solve more that changes no contact;
+        # letting that solve's check change them too, piles of the rest set slid on for seconds: 41 of 60 at rest,
+        # geometric mean 1.23 mm/s, against 43 and 0.70 changing none; docs/contacts-in-the-solve.md)
+        polish = loose > self.tolerance or self._velocity_tolerance_now > 0.0
         rounds = self.contact_release_rounds
         if loose > self.tolerance:  # the last round is the last solve's, to the tolerance
             rounds = max(rounds - 1, 0)
+        velocity_tolerance, self._velocity_tolerance_now = self._velocity_tolerance_now, 0.0
         self.solve_cg(dt, warm, restarted=True, tolerance=loose)
         self.release.zero_()
         self.contact_released.zero_()
         self._check_release(dt, state_in.particle_qd, rounds)
         device_while(self.release, self._resolve, dt=dt, v0=state_in.particle_qd, tolerance=loose, rounds=rounds)
-        if loose > self.tolerance:
-            wp.launch(ki.begin_contact_resolve, dim=self.worlds, inputs=[self.worlds, 1], outputs=[self.release, self.loop], device=dev)
+        self._velocity_tolerance_now = velocity_tolerance
+        if polish:  # (to the velocity tolerance only: the worlds near rest)
+            self._begin_resolve(1 if loose > self.tolerance else 2)
             self._restart(dt)
-            self._check_release(dt, state_in.particle_qd)
-            device_while(self.release, self._resolve, dt=dt, v0=state_in.particle_qd)
+            if loose > self.tolerance:
+                self._check_release(dt, state_in.particle_qd)
+                device_while(self.release, self._resolve, dt=dt, v0=state_in.particle_qd)
+            else:  # to the velocity tolerance only: the contacts' impulses, for the next step's friction; no changes
+                self._check_release(dt, state_in.particle_qd, 0)
         return self.dv
 
     def _apply_contact_friction(self, state_in: State):
@@ -1013,10 +1041,15 @@ class SolverImplicitEuler(SolverBase):
     def _resolve(self, dt: float, v0: wp.array, tolerance: float | None = None, rounds: int | None = None):
         """Solve the step again from its last dv with the released contacts free (to `tolerance`, default the solver's),
         then check again (allowing `rounds` re-solves in the step, default `contact_release_rounds`)."""
-        wp.launch(ki.begin_contact_resolve, dim=self.worlds, inputs=[self.worlds, 0], outputs=[self.release, self.loop],
-                  device=self.model.device)
+        self._begin_resolve(0)
         self._restart(dt, tolerance)
         self._check_release(dt, v0, rounds)
+
+    def _begin_resolve(self, polish: int):
+        """Mark the worlds that solve again (:func:`~cloth_warp.kernels.implicit.begin_contact_resolve`)."""
+        wp.launch(ki.begin_contact_resolve, dim=self.worlds,
+                  inputs=[self.worlds, polish, self.motion, wp.float64(self.tolerance), wp.float64(self._velocity_tolerance_now)],
+                  outputs=[self.release, self.loop], device=self.model.device)
 
     def _restart(self, dt: float, tolerance: float | None = None):
         """Solve the step again from its last dv (the worlds begin_contact_resolve marked)."""
@@ -1163,6 +1196,7 @@ class SolverImplicitEuler(SolverBase):
         m = self.model
         report = (wp.clone(self.loop), wp.clone(self.solve_status))  # the forward step's, kept as its report
         self._self_contacts_on = False
+        self._velocity_tolerance_now = 0.0  # (to the tolerance alone: the gradients' accuracy is the tolerance's)
         self.assemble(state_in, control, dt)  # the step's blocks and preconditioner (overwritten since)
         if contact_normal is None:
             self.contact_normal.zero_()
