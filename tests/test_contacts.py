@@ -1200,7 +1200,7 @@ def test_the_step_s_last_solve_goes_on_to_the_velocity_tolerance():
     begin_linear_solve, cg_stops), over the drape onto the ball as it falls, lands and settles: in a world near rest
     (tolerance x v_rms <= v_tol, v_rms the mass-weighted RMS speed at the step's start) the target is M v_tol^2, M its
     mass, and the step's last solve ends with r.s (~ sum m |e|^2 for the velocity error e) within it, or at the floor
-    residual; faster, there is none. Taped steps and a velocity tolerance of 0 have none; a negative one is refused."""
+    residual; faster, there is none. A velocity tolerance of 0 has none (the default); a negative one is refused."""
     from cloth_warp.kernels import implicit as ki
 
     m, _ = drape_over_ball(16, 0.4, 0, "solve")
