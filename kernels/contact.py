@@ -351,14 +351,20 @@ def store_element(e: int, idx: wp.vec4i, alpha: wp.vec4, n: wp.vec3, overlap: fl
 
 
 @wp.func
+def admit_depth(rest_distance: float):
+    """How far [m] beyond the self-contacts' rest distance r an admissible pair starts, and inside it its solved end lies,
+    for admission: SELF_ADMIT_DEPTH of the clearance (r = thickness (1 + SELF_CLEARANCE))."""
+    return SELF_ADMIT_DEPTH * rest_distance * SELF_CLEARANCE / (1.0 + SELF_CLEARANCE)
+
+
+@wp.func
 def admissible(kind: int, x0: wp.array(dtype=wp.vec3), idx: wp.vec4i, gap: wp.vec3, d: float, rest_distance: float):
     """Whether a pair d [m] apart at the step's start (beyond the rest distance r, along gap) is one the contact checks
     may admit (admit_self_contacts): beyond r by more than SELF_ADMIT_DEPTH of the clearance (resting at r, the next
     step's element holds it), within SELF_ADMIT_REACH of the thickness (farther, its start normal is no measure of where
     it ends), a point-face pair's normal within SELF_ADMIT_COSINE of the face's (beside the face it may pass it by), an
     edge pair's edges crossing at an angle whose cosine is below it (side by side, their normal may lie in the layers)."""
-    depth = SELF_ADMIT_DEPTH * rest_distance * SELF_CLEARANCE / (1.0 + SELF_CLEARANCE)
-    if d < rest_distance + depth or d >= rest_distance + SELF_ADMIT_REACH * rest_distance / (1.0 + SELF_CLEARANCE):
+    if d < rest_distance + admit_depth(rest_distance) or d >= rest_distance + SELF_ADMIT_REACH * rest_distance / (1.0 + SELF_CLEARANCE):
         return False
     n = gap / d
     if kind == 0:
@@ -651,7 +657,7 @@ def admit_self_contacts(
     n = gap / d
     v_start = wp.dot(n, weighted_sum(alpha, v0[idx[0]], v0[idx[1]], v0[idx[2]], v0[idx[3]]))
     d_end = wp.length(gap + dt * pair_end_velocity(alpha, idx, v0, dv))  # (passing by, its distance along n would fall)
-    if d_end > rest_distance - SELF_ADMIT_DEPTH * rest_distance * SELF_CLEARANCE / (1.0 + SELF_CLEARANCE):
+    if d_end > rest_distance - admit_depth(rest_distance):
         return
     e = wp.atomic_add(element_count_out, 0, 1)
     if e >= capacity:

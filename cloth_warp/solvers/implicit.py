@@ -341,7 +341,6 @@ class SolverImplicitEuler(SolverBase):
         self.loop = wp.zeros(world_slots_length(ki.LOOP_SIZE, worlds), dtype=wp.int32, device=dev)
         self.solve_status = wp.zeros(worlds * ki.STATUS_SIZE, dtype=wp.float64, device=dev)
         self.motion = wp.zeros(2 * worlds, dtype=wp.float64, device=dev)  # per world: sum m |v0|^2, sum m (kernels/implicit.py sum_motion)
-        self._velocity_tolerance_now = 0.0  # the velocity tolerance of the solve under way (0: none, as in taped and adjoint solves)
         self.solve_record = wp.zeros(worlds * ki.RECORD_SIZE, dtype=wp.float64, device=dev)
         # on the CPU: each world's items, walked by the one-thread-per-world CG kernels
         self._world_ranges = wp.array(world_ranges(model), dtype=wp.int32, device=dev) if dev.is_cpu else None
@@ -633,11 +632,13 @@ class SolverImplicitEuler(SolverBase):
         key = (solver, float(dt), self._contacts_on, elements, self.max_iterations, self.check_every)
         self._loop_graphs.run(key, self.loop, body, dt=dt)
 
-    def solve_cg(self, dt: float, warm: bool = False, restarted: bool = False, resolve: bool = False, tolerance: float | None = None) -> wp.array:
+    def solve_cg(self, dt: float, warm: bool = False, restarted: bool = False, resolve: bool = False, tolerance: float | None = None,
+                 velocity_tolerance: float = 0.0) -> wp.array:
         """Filtered PCG on the assembled system (`warm`: a warm start may have replaced the cold one, see
         :meth:`solve`; `restarted`: the start is a composed guess; `resolve`: the step's solve again), iterating on
-        the device until the stop residual; returns the array holding dv."""
-        self._begin_iterations(warm, restarted, resolve, tolerance)
+        the device until the stop residual (and, near rest, within `velocity_tolerance` [m/s]: `begin_linear_solve`);
+        returns the array holding dv."""
+        self._begin_iterations(warm, restarted, resolve, tolerance, velocity_tolerance)
         self.product.zero_()  # then each iteration's cg_update clears it for the next
         self._solve_loop("cg", self._cg_iteration, dt)
         m = self.model
@@ -756,7 +757,8 @@ class SolverImplicitEuler(SolverBase):
         wp.launch(ki.end_jacobi_iteration, dim=self.worlds, inputs=[self.check_every, self.max_iterations, self.worlds],
                   outputs=[self.cg_scalars, self.loop], device=dev)
 
-    def _begin_iterations(self, warm: bool, restarted: bool = False, resolve: bool = False, tolerance: float | None = None):
+    def _begin_iterations(self, warm: bool, restarted: bool = False, resolve: bool = False, tolerance: float | None = None,
+                          velocity_tolerance: float = 0.0):
         """The reference residual, the stop and whether to iterate, on the device (:func:`~cloth_warp.kernels.implicit.begin_linear_solve`)."""
         if self.worlds > 1:  # the batch's loop state, set by the worlds that iterate
             self.loop[:ki.LOOP_SIZE].zero_()
@@ -765,7 +767,7 @@ class SolverImplicitEuler(SolverBase):
                           wp.float64(self.tolerance if tolerance is None else tolerance),
                           wp.float64(self.warm_start_reduction),
                           wp.float64(WARM_START_FLOOR), self.max_iterations, self.worlds, self.release, self.motion,
-                          wp.float64(self._velocity_tolerance_now if self.linear_solver == LinearSolver.CG else 0.0)],
+                          wp.float64(velocity_tolerance)],
                   outputs=[self.cg_scalars, self.solve_status, self.loop], device=self.model.device)
 
     # -- the solve's report (each property reads the device; the Simulator reads the record once per frame) ----------
@@ -868,8 +870,8 @@ class SolverImplicitEuler(SolverBase):
             self.assemble(state_in, control, dt)
         warm = self.warm_start and not state_in.requires_grad
         in_solve = "solve" in (self.collider_contacts, self.self_contacts)
-        self._velocity_tolerance_now = self.velocity_tolerance if in_solve and not state_in.requires_grad else 0.0
-        if self._velocity_tolerance_now > 0.0:
+        velocity_tolerance = self.velocity_tolerance if in_solve and not state_in.requires_grad else 0.0  # (forward steps)
+        if velocity_tolerance > 0.0:
             self.motion.zero_()
             wp.launch(ki.sum_motion, dim=self.model.particle_count,
                       inputs=[self.model.particle_mass, state_in.particle_qd, self.model.particle_world, self.worlds],
@@ -878,7 +880,7 @@ class SolverImplicitEuler(SolverBase):
         with stage("linear_solve"):
             self._contacts_on = contacts
             if contacts:
-                dv = self._solve_with_contacts(state_in, control, dt, warm)
+                dv = self._solve_with_contacts(state_in, control, dt, warm, velocity_tolerance)
             else:
                 if self.collider_contacts == "solve":  # none this step (no collider, an unrolled taped step): no filter
                     self.contact_normal.zero_()
@@ -887,7 +889,7 @@ class SolverImplicitEuler(SolverBase):
                     self.release.zero_()
                 if warm:
                     self._restart_from_previous(dt)
-                dv = self._iterate(dt, warm)
+                dv = self._iterate(dt, warm, velocity_tolerance)
         m = self.model
         wp.launch(ki.end_linear_solve, dim=self.worlds, inputs=[self.solve_status, self.loop, wp.float64(self.tolerance), int(self.warm_start),
                                                                 self.contact_counts, self.release, self.worlds],
@@ -917,8 +919,10 @@ class SolverImplicitEuler(SolverBase):
         friction is in the solve, whose damper or slide gives it that (kernels/implicit.py filter_contact_preconditioner)."""
         return int(self.contact_friction != "solve")
 
-    def _iterate(self, dt: float, warm: bool = False) -> wp.array:
-        return self.solve_cg(dt, warm) if self.linear_solver == LinearSolver.CG else self.solve_jacobi(dt, warm)
+    def _iterate(self, dt: float, warm: bool = False, velocity_tolerance: float = 0.0) -> wp.array:
+        if self.linear_solver == LinearSolver.CG:
+            return self.solve_cg(dt, warm, velocity_tolerance=velocity_tolerance)
+        return self.solve_jacobi(dt, warm)
 
     def _restart_from_previous(self, dt: float):
         """When the last solve left a start (``previous_ready``, on the device): the guess = its dv on free
@@ -931,9 +935,11 @@ class SolverImplicitEuler(SolverBase):
         self._start_from_guess(dt, self.previous_ready, self.warm_scalars)
 
     # -- collider contacts in the solve ----------------------------------------------------------
-    def _solve_with_contacts(self, state_in: State, control: Control, dt: float, warm: bool) -> wp.array:
+    def _solve_with_contacts(self, state_in: State, control: Control, dt: float, warm: bool,
+                             velocity_tolerance: float = 0.0) -> wp.array:
         """Find the step's collider contacts, solve from the guess that meets them (the previous dv elsewhere when
-        warm), release contacts that pull and solve again (all on the device; friction follows in :meth:`solve`)."""
+        warm), release contacts that pull and solve again (all on the device; friction follows in :meth:`solve`);
+        near rest, the last solve goes on to `velocity_tolerance` [m/s]."""
         m = self.model
         dev = m.device
         wp.launch(kct.eval_collider_contacts, dim=m.particle_count,
@@ -970,20 +976,18 @@ class SolverImplicitEuler(SolverBase):
         # (and short of the velocity tolerance: the step's last solve goes on to it, a solve more that changes no contact;
         # letting that solve's check change them too, piles of the rest set slid on for seconds: 41 of 60 at rest,
         # geometric mean 1.23 mm/s, against 43 and 0.70 changing none; docs/contacts-in-the-solve.md)
-        polish = loose > self.tolerance or self._velocity_tolerance_now > 0.0
+        polish = loose > self.tolerance or velocity_tolerance > 0.0
         rounds = self.contact_release_rounds
         if loose > self.tolerance:  # the last round is the last solve's, to the tolerance
             rounds = max(rounds - 1, 0)
-        velocity_tolerance, self._velocity_tolerance_now = self._velocity_tolerance_now, 0.0
         self.solve_cg(dt, warm, restarted=True, tolerance=loose)
         self.release.zero_()
         self.contact_released.zero_()
         self._check_release(dt, state_in.particle_qd, rounds)
         device_while(self.release, self._resolve, dt=dt, v0=state_in.particle_qd, tolerance=loose, rounds=rounds)
-        self._velocity_tolerance_now = velocity_tolerance
         if polish:  # (to the velocity tolerance only: the worlds near rest)
-            self._begin_resolve(1 if loose > self.tolerance else 2)
-            self._restart(dt)
+            self._begin_resolve(1 if loose > self.tolerance else 2, velocity_tolerance)
+            self._restart(dt, velocity_tolerance=velocity_tolerance)
             if loose > self.tolerance:
                 self._check_release(dt, state_in.particle_qd)
                 device_while(self.release, self._resolve, dt=dt, v0=state_in.particle_qd)
@@ -1027,9 +1031,9 @@ class SolverImplicitEuler(SolverBase):
                            self.contact_collider, self.contact_normal, self.contact_crease, self.contact_dv, self.contact_impulse,
                            self.release, self.contact_released, self.contact_released_normal, self.contact_released_dv],
                   device=m.device)
-        if self._self_contacts_on:  # (same rounds and flag as the collider contacts')
+        if self._self_contacts_on and rounds > 0:  # (same rounds and flag as the collider contacts'; none left: no change)
             self._admit_self_contacts(dt, v0, rounds)
-        if self._self_contacts_on and self.contact_friction == "solve":  # (same rounds and flag as the collider contacts')
+        if self._self_contacts_on and rounds > 0 and self.contact_friction == "solve":
             el = self._self_contact_elements
             wp.launch(kct.slide_self_contacts, dim=el[0].shape[0],
                       inputs=[self.self_contact_count, *el[:4], v0, self.dv, el[6],
@@ -1045,18 +1049,19 @@ class SolverImplicitEuler(SolverBase):
         self._restart(dt, tolerance)
         self._check_release(dt, v0, rounds)
 
-    def _begin_resolve(self, polish: int):
-        """Mark the worlds that solve again (:func:`~cloth_warp.kernels.implicit.begin_contact_resolve`)."""
+    def _begin_resolve(self, polish: int, velocity_tolerance: float = 0.0):
+        """Mark the worlds that solve again (:func:`~cloth_warp.kernels.implicit.begin_contact_resolve`; `polish` 2: those
+        near rest for `velocity_tolerance`)."""
         wp.launch(ki.begin_contact_resolve, dim=self.worlds,
-                  inputs=[self.worlds, polish, self.motion, wp.float64(self.tolerance), wp.float64(self._velocity_tolerance_now)],
+                  inputs=[self.worlds, polish, self.motion, wp.float64(self.tolerance), wp.float64(velocity_tolerance)],
                   outputs=[self.release, self.loop], device=self.model.device)
 
-    def _restart(self, dt: float, tolerance: float | None = None):
+    def _restart(self, dt: float, tolerance: float | None = None, velocity_tolerance: float = 0.0):
         """Solve the step again from its last dv (the worlds begin_contact_resolve marked)."""
         wp.copy(self.dv_alt, self.dv)
         self._start_from_guess(dt, self._enabled, self.warm_scalars)
         self.cg_scalars.zero_()  # the first solve's rows (the iterations accumulate into them)
-        self.solve_cg(dt, restarted=True, resolve=True, tolerance=tolerance)
+        self.solve_cg(dt, restarted=True, resolve=True, tolerance=tolerance, velocity_tolerance=velocity_tolerance)
 
     def _start_from_guess(self, dt: float, enabled: wp.array, scalars: wp.array):
         """Restart the iteration from the guess in dv_alt when enabled[0]: r0 = S (rhs - A guess), search direction,
@@ -1196,7 +1201,6 @@ class SolverImplicitEuler(SolverBase):
         m = self.model
         report = (wp.clone(self.loop), wp.clone(self.solve_status))  # the forward step's, kept as its report
         self._self_contacts_on = False
-        self._velocity_tolerance_now = 0.0  # (to the tolerance alone: the gradients' accuracy is the tolerance's)
         self.assemble(state_in, control, dt)  # the step's blocks and preconditioner (overwritten since)
         if contact_normal is None:
             self.contact_normal.zero_()
