@@ -226,7 +226,9 @@ def test_checkpointed_gradient_equals_full_tape(device, rng):
 @pytest.mark.parametrize("case", ["cg", "jacobi", "contacts_in_solve"])
 def test_replayed_solve_loops_give_the_eager_gradients(device, case):
     """A taped rollout's solves (forward and adjoint) replay their loops as graphs (SolverImplicitEuler.replay_loops):
-    the loss and every gradient equal those of the same rollout with each kernel launched one by one, bit for bit."""
+    the loss and every gradient equal those of the same rollout with each kernel launched one by one, bit for bit on the
+    CPU. On CUDA the adjoint kernels' float atomics add in any order, so two runs of either kind differ in the last bits
+    (a 5-step rollout's velocity gradients by ~1e-5 of their largest on an H200): there, equal to 1e-4 of the largest."""
     results = []
     for replay in (False, True):
         b = cw.ModelBuilder()
@@ -248,7 +250,11 @@ def test_replayed_solve_loops_give_the_eager_gradients(device, case):
                         model.particle_mass.grad.numpy().copy()))
     assert results[0][0] == results[1][0]
     for a, b in zip(results[0][1:], results[1][1:]):
-        assert np.array_equal(a, b) and np.abs(a).max() > 0.0
+        assert np.abs(a).max() > 0.0
+        if wp.get_device(device).is_cpu:
+            assert np.array_equal(a, b)
+        else:
+            np.testing.assert_allclose(b, a, rtol=0.0, atol=1e-4 * np.abs(a).max())
 
 
 HYGIENE_SCRIPT = """
