@@ -481,7 +481,8 @@ def eval_self_contacts(
     v_rel = weighted_sum(alpha, v0[idx[0]], v0[idx[1]], v0[idx[2]], v0[idx[3]])
     v_n = wp.dot(n, v_rel)
     leaving = leaves_contact(d, v_n, rest_distance, dt, gravity)
-    if d >= rest_distance and not (d < rest_distance + admit_depth(rest_distance) and nearest_inside(kind, alpha)) or leaving:
+    resting_beyond = d < rest_distance + admit_depth(rest_distance) and nearest_inside(kind, alpha)  # force-free element
+    if leaving or not (d < rest_distance or resting_beyond):
         if leaving or admissible(kind, x0, idx, gap, d, rest_distance):
             slot = wp.atomic_add(admissible_count_out, 0, 1)
             if slot < capacity:

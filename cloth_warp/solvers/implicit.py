@@ -280,7 +280,6 @@ class SolverImplicitEuler(SolverBase):
         if not contact_stick_speed > 0.0:
             raise ValueError(f"contact_stick_speed must be positive, got {contact_stick_speed!r}")
         self.contact_stick_speed = float(contact_stick_speed)
-        self._gravity_norm = float(np.linalg.norm(np.asarray(model.gravity, np.float64)))
         # Backward-pass report: adjoint solves run and their iterations (summed).
         self.adjoint_solves = 0
         self.adjoint_iterations = 0
@@ -542,6 +541,11 @@ class SolverImplicitEuler(SolverBase):
                                   first, m.particle_world, self.worlds, dt * dt * stiffness],
                           outputs=[*el[:6], self.self_contact_count, force, self.membrane_kv, self.membrane_diag, self.contact_counts,
                                    el[6], el[7], *self._self_contact_admissible, self.self_contact_admissible_count], device=dev)
+
+    @property
+    def _gravity_norm(self) -> float:
+        """|g| [m/s^2] of the model's gravity as it is now (a model change may set it)."""
+        return float(np.linalg.norm(np.asarray(self.model.gravity, np.float64)))
 
     def _self_contact_distance(self) -> float:
         """The self-contact elements' rest distance r [m]: the cloth thickness and the solve's clearance."""
