@@ -1456,10 +1456,10 @@ def eval_contact_release(
     crease, along its own side), m is let go and the step solved again; it is still held along n. A released contact
     is kept (`released_out`: collider + 1, its normal and prescribed change): where a later check finds that the
     re-solve ends it below the collider's thickness, the contact is taken back (`released_out` -1: not released again
-    in the step) and the step solved again. The re-solve starts from the last dv, whose normal part the filtered CG
-    keeps: a contact taken back holds the free solve's normal velocity (into the collider; the colliders pass puts it
-    out after the step), not its z. Started from z (a probe): the dress at 4 cm edges held still 0.08 mm/s, but the
-    shipped T-shirt 6.93 (0.10 as it is). A contact found pulling in a check that also let many dampers around it
+    in the step) and the step solved again, from its prescribed z (`SolverImplicitEuler._restart`; the filtered CG
+    keeps a guess's normal part): from the last dv it held the free solve's normal velocity into the collider, which
+    the colliders pass put out after the step, and the shipped T-shirt held still went through a neck contact's
+    take-back every other step at 6.5 mm/s (0.46 from z). A contact found pulling in a check that also let many dampers around it
     slide was released, and the cloth round it, sliding, carried it into the surface; the colliders pass pushed it out
     after the step and it was a contact again in the next, which pulled again: a dress held still (4 cm edges) went
     back and forth at 12 mm/s (0.8 with this). (Batched worlds: the flag and the rounds are the particle's world's, and

@@ -1067,8 +1067,14 @@ class SolverImplicitEuler(SolverBase):
                   outputs=[self.release, self.loop], device=self.model.device)
 
     def _restart(self, dt: float, tolerance: float | None = None, velocity_tolerance: float = 0.0):
-        """Solve the step again from its last dv (the worlds begin_contact_resolve marked)."""
-        wp.copy(self.dv_alt, self.dv)
+        """Solve the step again from its last dv (the worlds begin_contact_resolve marked), each held contact's
+        constrained part its prescribed z: a contact taken back (`eval_contact_release`) starts there, not at the free
+        solve's velocity into the collider (the others' constrained part is z already)."""
+        m = self.model
+        wp.launch(ki.compose_warm_start, dim=m.particle_count,
+                  inputs=[m.particle_pinned, self.dv, self.dv, self.contact_normal, self.contact_crease, self.contact_dv,
+                          self._enabled, m.particle_world, self.worlds],
+                  outputs=[self.dv_alt], device=m.device)
         self._start_from_guess(dt, self._enabled, self.warm_scalars)
         self.cg_scalars.zero_()  # the first solve's rows (the iterations accumulate into them)
         self.solve_cg(dt, restarted=True, resolve=True, tolerance=tolerance, velocity_tolerance=velocity_tolerance)
