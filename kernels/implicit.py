@@ -72,6 +72,9 @@ RELEASE_RESOLVING = wp.constant(2)  # batched: this world takes part in the re-s
 # taken out, when the solved slip is within this factor of the stick speed (the solve's round-off stays below it).
 SLIP_ALLOWANCE = wp.constant(1.01)
 RELEASE_SIZE = wp.constant(3)  # per world, laid out as the loop state (kernels/worlds.py world_slot)
+# `contact_released` of a contact admitted within its step (kernels/contact.py admit_collider_contacts): it may still be
+# released (-1, a contact taken back, may not; collider + 1: released)
+ADMITTED = wp.constant(-2)
 # Indices into the contacts' counters (kernels/contact.py counts them, end_linear_solve records them), per world.
 COUNT_CONTACTS = wp.constant(0)  # collider contacts
 COUNT_SELF_CONTACTS = wp.constant(1)  # self-contact elements
@@ -1329,6 +1332,32 @@ def compose_warm_start(
 
 
 @wp.kernel(enable_backward=False)
+def compose_restart(
+    contact_released: wp.array(dtype=wp.int32),
+    contact_normal: wp.array(dtype=wp.vec3),
+    contact_crease: wp.array(dtype=wp.vec3),
+    contact_dv: wp.array(dtype=wp.vec3),
+    dv: wp.array(dtype=wp.vec3),
+    release: wp.array(dtype=wp.int32),
+    particle_world: wp.array(dtype=wp.int32),
+    worlds: int,
+    # outputs
+    guess_out: wp.array(dtype=wp.vec3),
+):
+    """A re-solve's start: the last dv, where a contact was taken back or admitted in this step (`contact_released` < 0)
+    in a world taking part in the re-solve (RELEASE_RESOLVING, `begin_contact_resolve`) with its constrained part
+    replaced by its prescribed z. The filtered CG keeps a guess's constrained part: from the last dv such a contact kept
+    the free solve's velocity into the collider. Elsewhere dv bit for bit: a batch's worlds that sit the re-solve out
+    keep theirs, as their single runs do (every other contact's constrained part is z already)."""
+    i = wp.tid()
+    g = dv[i]
+    rb = world_slot(particle_world_of(i, particle_world, worlds), worlds, RELEASE_SIZE)
+    if contact_released[i] < 0 and release[rb + RELEASE_RESOLVING] != 0:
+        g = contact_filter(contact_normal[i], contact_crease[i], g) + contact_dv[i]
+    guess_out[i] = g
+
+
+@wp.kernel(enable_backward=False)
 def filter_contact_preconditioner(
     contact_normal: wp.array(dtype=wp.vec3),
     contact_crease: wp.array(dtype=wp.vec3),
@@ -1542,7 +1571,8 @@ def eval_contact_release(
             release_out[rb + RELEASE_FLAG] = 1
             release_out[RELEASE_FLAG] = 1
             return
-    if impulse < -release_impulse * particle_mass[i] and release_out[rb + RELEASE_ROUNDS] < max_rounds and released_out[i] == 0:
+    if (impulse < -release_impulse * particle_mass[i] and release_out[rb + RELEASE_ROUNDS] < max_rounds
+            and (released_out[i] == 0 or released_out[i] == ADMITTED)):
         released_out[i] = contact_collider_out[i] + 1
         released_normal_out[i] = n
         released_dv_out[i] = contact_dv_out[i]

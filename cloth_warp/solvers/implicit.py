@@ -361,8 +361,10 @@ class SolverImplicitEuler(SolverBase):
         # mass [kg], and the friction impulse [kg m/s] in the right-hand side (sticking or sliding)
         self.contact_friction_mass = wp.zeros(n, dtype=float, device=dev)
         self.contact_friction_impulse = wp.zeros(n, dtype=wp.vec3, device=dev)
-        # the contacts released in this step (collider + 1; -1: taken back), with their normals and prescribed changes
+        # the contacts released in this step (collider + 1; -1: taken back; -2: admitted within it), with their normals
+        # and prescribed changes
         self.contact_released = wp.zeros(n, dtype=wp.int32, device=dev)
+        self._admit_colliders = False  # (set per step by _solve_with_contacts, with the step's start it reads)
         self.contact_released_normal = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.contact_released_dv = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.contact_slipping = wp.zeros(n, dtype=wp.int32, device=dev)  # 1: the contact was left sliding by the last step
@@ -947,6 +949,9 @@ class SolverImplicitEuler(SolverBase):
         to `velocity_tolerance` [m/s]."""
         m = self.model
         dev = m.device
+        # (the contact checks read the step's start and colliders: particles the solve carries into one are admitted)
+        self._contact_x0, self._contact_control = state_in.particle_q, control
+        self._admit_colliders = not state_in.requires_grad
         wp.launch(kct.eval_collider_contacts, dim=m.particle_count,
                   inputs=[m.particle_pinned, m.collider_count, m.collider_shape, m.collider_size, m.collider_mesh, m.collider_deforming,
                           m.collider_thickness, m.collider_static_friction, m.collider_kinetic_friction, m.collider_mesh_max_distance,
@@ -1041,6 +1046,17 @@ class SolverImplicitEuler(SolverBase):
                            self.contact_collider, self.contact_normal, self.contact_crease, self.contact_dv, self.contact_impulse,
                            self.release, self.contact_released, self.contact_released_normal, self.contact_released_dv],
                   device=m.device)
+        if self._admit_colliders and rounds > 0:  # (forward steps; the same rounds and flag)
+            c = self._contact_control
+            wp.launch(kct.admit_collider_contacts, dim=m.particle_count,
+                      inputs=[m.particle_pinned, m.collider_count, m.collider_shape, m.collider_size, m.collider_mesh,
+                              m.collider_deforming, m.collider_thickness, m.collider_mesh_max_distance,
+                              c.collider_transform_start, c.collider_transform_end, self._contact_x0, v0, self.dv, dt, rounds,
+                              m.particle_world, self.worlds],
+                      outputs=[self.contact_collider, self.contact_normal, self.contact_velocity, self.contact_dv,
+                               self.contact_height, self.precond, self.precond_free, self.release, self.contact_released,
+                               self.contact_counts],
+                      device=m.device)
         if self._self_contacts_on and rounds > 0:  # (same rounds and flag as the collider contacts'; none left: no change)
             self._admit_self_contacts(dt, v0, rounds)
         if self._self_contacts_on and rounds > 0 and self.contact_friction == "solve":
@@ -1067,13 +1083,13 @@ class SolverImplicitEuler(SolverBase):
                   outputs=[self.release, self.loop], device=self.model.device)
 
     def _restart(self, dt: float, tolerance: float | None = None, velocity_tolerance: float = 0.0):
-        """Solve the step again from its last dv (the worlds begin_contact_resolve marked), each held contact's
-        constrained part its prescribed z: a contact taken back (`eval_contact_release`) starts there, not at the free
-        solve's velocity into the collider (the others' constrained part is z already)."""
+        """Solve the step again from its last dv (the worlds begin_contact_resolve marked), a contact taken back or
+        admitted in the step from its prescribed z (:func:`~cloth_warp.kernels.implicit.compose_restart`), not the free
+        solve's velocity into the collider."""
         m = self.model
-        wp.launch(ki.compose_warm_start, dim=m.particle_count,
-                  inputs=[m.particle_pinned, self.dv, self.dv, self.contact_normal, self.contact_crease, self.contact_dv,
-                          self._enabled, m.particle_world, self.worlds],
+        wp.launch(ki.compose_restart, dim=m.particle_count,
+                  inputs=[self.contact_released, self.contact_normal, self.contact_crease, self.contact_dv, self.dv, self.release,
+                          m.particle_world, self.worlds],
                   outputs=[self.dv_alt], device=m.device)
         self._start_from_guess(dt, self._enabled, self.warm_scalars)
         self.cg_scalars.zero_()  # the first solve's rows (the iterations accumulate into them)
