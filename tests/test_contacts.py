@@ -1189,9 +1189,10 @@ def test_the_default_rounds_let_a_stick_slide_stick_contact_end_its_step_stuck()
     it did not need) than 2 rounds, summed over the first 2 s of the drape over the ball and the pile: a contact at
     the static bound that one check lets slide and the next finds stuck needs two re-solves, and more when contacts
     switch in turn. With 2 rounds a garment held still went from stick to slide and back every step (the shipped
-    dress: 13.8 mm/s; 0.08 with 4). Measured (steps of ~240 each, drape + pile): 24 + 6 with 2 rounds, 1 + 4 with 4
-    since a contact taken back is re-solved from its z (70 + 13 and 3 + 1 before). The pile alone says little (its runs
-    are chaotic and 2 rounds end few of its steps reversed), so the two are summed."""
+    dress: 13.8 mm/s; 0.08 with 4). Measured (steps of ~240 each, drape + pile): 152 + 5 with 2 rounds, 1 + 3 with 4
+    (70 + 13 and 3 + 1 before contacts taken back or admitted within the step were re-solved from their z; a build
+    between, 24 + 6 and 1 + 4). The pile alone says little (its runs are chaotic and 2 rounds end few of its steps
+    reversed), so the two are summed."""
     def steps_ending_reversed(scene, resolution, seed, rounds):
         _m, solver, sim = everything_in_the_solve(scene, resolution, seed, rounds)
         apply = solver._apply_contact_friction
@@ -1279,7 +1280,7 @@ def test_a_particle_the_solve_carries_into_a_collider_becomes_a_contact(scene, r
     into a collider are made contacts within the step (kernels/contact.py admit_collider_contacts) and the step
     solved again: some are admitted, and no step with a re-solve round left at its end ends with a particle in no
     contact whose solved end point (x0 + h (v0 + dv)) lies inside a collider's thickness, which the colliders pass
-    would push out after it. Measured: 39, 43 and 1870 contacts admitted (the sheet swings back onto the stopped ball
+    would push out after it. Measured: 36, 39 and 1875 contacts admitted (the sheet swings back onto the stopped ball
     for 2 s); before, with the start's test alone, 16, 39 and 14 such ends (the T-shirt's walk: ~40 a step, up to 7 mm
     deep, its largest strain 13.6 % over 60 frames where the pass pushed them out; 10.7 % with them admitted)."""
     from cloth_warp.collision import collider_distance
