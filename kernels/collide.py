@@ -39,6 +39,9 @@ PINCH_REACH = wp.constant(2.5)
 DISTANCE_EPS = wp.constant(1.0e-9)
 # A mesh's nearest point is inside a face (not on an edge or a corner) when its barycentric weights all pass this.
 FACE_INTERIOR = wp.constant(1.0e-6)
+# The colliders pass resolves a particle that comes within this fraction of the thickness inside it (its contact band;
+# kernels/contact.py admit_collider_contacts admits into the solve the particles the pass would resolve).
+CONTACT_BAND = wp.constant(1.0e-3)
 
 # Indices into the counters array of a collision pass.
 COUNT_COLLIDER_CONTACTS = wp.constant(0)
@@ -309,7 +312,7 @@ def collide_colliders(
         pe = wp.transform_point(wp.transform_inverse(t_end), xe)
         if deforming != 0:
             ps = ps + dt * mesh_surface_velocity(mesh, mesh_max_distance, ps)
-        tolerance = 1.0e-3 * thickness + 1.0e-7
+        tolerance = CONTACT_BAND * thickness + 1.0e-7
         end_dist0, end_n0 = shape_distance(shape, size, mesh, mesh_max_distance, pe)
         hit, t = first_contact(shape, size, mesh, mesh_max_distance, ps, pe, thickness, tolerance)
         touched = int(0)

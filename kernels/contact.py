@@ -21,7 +21,7 @@ the filter itself belong to the solver; this module only finds the contacts.
 
 import warp as wp
 
-from .collide import mesh_surface_velocity, pinch_height, shape_distance, surface_velocity
+from .collide import CONTACT_BAND, mesh_surface_velocity, pinch_height, shape_distance, surface_velocity
 from .implicit import (ADMITTED, COUNT_CONTACTS, COUNT_SELF_CONTACTS, COUNT_SIZE, RELEASE_FLAG, RELEASE_ROUNDS, RELEASE_SIZE,
                        SLIP_ALLOWANCE, filtered_block_inverse, is_pinched)
 from .worlds import particle_world_of, world_slot
@@ -47,7 +47,7 @@ SELF_ADMIT_REACH = wp.constant(0.5)
 # its edges cross at more than ~25 degrees (admit_self_contacts).
 SELF_ADMIT_COSINE = wp.constant(0.9)
 # The solve lands a contact this fraction of the thickness above it, clear of the colliders pass's contact band
-# (1e-3 of the thickness, kernels/collide.py), so that float32 rounding does not leave the
+# (CONTACT_BAND, 1e-3 of the thickness, kernels/collide.py), so that float32 rounding does not leave the
 # end point a hair inside, where the colliders pass after the step would push it again (8 um for 4 mm).
 CLEARANCE = wp.constant(2.0e-3)
 # A contact within the band above the landing height that is not predicted to reach the surface settles onto it at
@@ -268,8 +268,8 @@ def admit_collider_contacts(
     counts_out: wp.array(dtype=wp.int32),
 ):
     """A particle with no collider contact in its step (none found at the start, none released) whose solved end point
-    x0 + h (v0 + dv) lies inside a collider's thickness (below it by more than the colliders pass's band, 1e-3 of it,
-    the collider in its end pose) becomes a contact of the deepest such collider, as `eval_collider_contacts` would
+    x0 + h (v0 + dv) lies inside a collider's thickness (below it by more than the colliders pass's band, CONTACT_BAND
+    of it, the collider in its end pose) becomes a contact of the deepest such collider, as `eval_collider_contacts` would
     have made it at the start (normal, surface velocity, z landing it at `landing_height`; frictionless in the solve,
     friction after it from the measured impulse; `released_out` ADMITTED), and the step is solved again, while fewer than `max_rounds`
     re-solves were run (the release rounds and flag, kernels/implicit.py eval_contact_release, which releases it again
@@ -295,7 +295,7 @@ def admit_collider_contacts(
         d_end, n_end = shape_distance(collider_shape[c], collider_size[c], collider_mesh[c], mesh_max_distance,
                                       wp.transform_point(wp.transform_inverse(collider_transform_end[c]), xe))
         depth = d_end - thickness
-        if d_end < thickness * (1.0 - 1.0e-3) and (found < 0 or depth < best):
+        if d_end < thickness * (1.0 - CONTACT_BAND) and (found < 0 or depth < best):
             found = c
             best = depth
     if found < 0:
