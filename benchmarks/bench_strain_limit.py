@@ -117,7 +117,7 @@ if mode == "before":  # the old taped path: every pass of `iterations` sweeps re
                 last = k == lim.iterations - 1 and c == m.strain_limit_color_count - 1
                 y = state_out.particle_q if last else wp.zeros_like(x, requires_grad=True)
                 wp.launch(kc.apply_strain_limit_color, dim=m.particle_count, inputs=[m.strain_limit_colors, m.spring_indices,
-                          m.spring_rest_length, m.particle_mass, m.particle_pinned, x, c, lim.max_strain, lim.relaxation,
+                          m.spring_rest_length, m.particle_mass, m.particle_pinned, lim.contact_normal, x, c, lim.max_strain, lim.relaxation,
                           m.particle_world, 1, lim._loop], outputs=[y])
                 x = y
         wp.launch(kc.correct_velocity, dim=m.particle_count, inputs=[x_in, state_out.particle_q, v_in, dt], outputs=[state_out.particle_qd])

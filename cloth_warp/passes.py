@@ -114,6 +114,8 @@ def build_passes(model: Model, *, strain_limit: float | None = 0.1, strain_limit
             out.append(limiter)
     sewing = SewingPass(model)
     if sewing.active:
+        if out:
+            out[0].weld_sewn_points(sewing.weld.weld_distance)  # the limiter keeps the welded points together
         out.append(sewing)
     if collisions and model.collider_count:
         out.append(ColliderPass(model))

@@ -391,6 +391,14 @@ def collide_colliders(
     v_out[i] = ve
 
 
+@wp.func
+def world_distance(shape: int, size: wp.vec3, mesh: wp.uint64, max_distance: float, transform: wp.transform, x: wp.vec3):
+    """Signed distance [m] of the world point x to a collider's surface in its pose `transform` (world <- local) and the
+    outward unit normal there (world)."""
+    d, n = shape_distance(shape, size, mesh, max_distance, wp.transform_point(wp.transform_inverse(transform), x))
+    return d, wp.transform_vector(transform, n)
+
+
 @wp.kernel(enable_backward=False)
 def eval_collider_distance(
     collider: int,
@@ -406,11 +414,68 @@ def eval_collider_distance(
 ):
     """Signed distance [m] of world points to one collider's surface and the outward normal (world)."""
     i = wp.tid()
-    xf = collider_transform[collider]
-    p = wp.transform_point(wp.transform_inverse(xf), x[i])
-    d, n = shape_distance(collider_shape[collider], collider_size[collider], collider_mesh[collider], mesh_max_distance, p)
+    d, n = world_distance(collider_shape[collider], collider_size[collider], collider_mesh[collider], mesh_max_distance,
+                          collider_transform[collider], x[i])
     distance_out[i] = d
-    normal_out[i] = wp.transform_vector(xf, n)
+    normal_out[i] = n
+
+
+LIMIT_CONTACT_REACH = wp.constant(1.0)
+"""How far beyond a collider's thickness, in thicknesses, a particle counts as touching it for the strain limiter."""
+
+
+@wp.kernel(enable_backward=False)
+def eval_limit_contacts(
+    particle_pinned: wp.array(dtype=wp.int32),
+    collider_count: int,
+    collider_shape: wp.array(dtype=wp.int32),
+    collider_size: wp.array(dtype=wp.vec3),
+    collider_mesh: wp.array(dtype=wp.uint64),
+    collider_thickness: wp.array(dtype=float),
+    mesh_max_distance: float,
+    collider_transform: wp.array(dtype=wp.transform),
+    x: wp.array(dtype=wp.vec3),
+    # outputs
+    collider_out: wp.array(dtype=wp.int32),
+):
+    """The collider each free particle touches, for the strain limiter: the one whose surface it is nearest relative to
+    the thickness, when outside the solid and within (1 + LIMIT_CONTACT_REACH) thicknesses of it; -1 for none."""
+    i = wp.tid()
+    touched = int(-1)
+    if particle_pinned[i] == 0:
+        best = LIMIT_CONTACT_REACH
+        for c in range(collider_count):
+            d, n = world_distance(collider_shape[c], collider_size[c], collider_mesh[c], mesh_max_distance, collider_transform[c], x[i])
+            gap = d / wp.max(collider_thickness[c], DISTANCE_EPS) - 1.0
+            if d > 0.0 and gap < best:  # inside the solid: left to the colliders pass (and a dressing), as it traces it
+                best = gap
+                touched = c
+    collider_out[i] = touched
+
+
+@wp.kernel
+def eval_limit_contact_normals(
+    contact_collider: wp.array(dtype=wp.int32),
+    collider_shape: wp.array(dtype=wp.int32),
+    collider_size: wp.array(dtype=wp.vec3),
+    collider_mesh: wp.array(dtype=wp.uint64),
+    mesh_max_distance: float,
+    collider_transform: wp.array(dtype=wp.transform),
+    x: wp.array(dtype=wp.vec3),
+    # outputs
+    normal_out: wp.array(dtype=wp.vec3),
+):
+    """The outward normal (world) at x of the collider each particle touches (`eval_limit_contacts`), zero for none
+    (kernels/constraints.py `limit_split`). Differentiable in x with the contacts held fixed (a curved surface's normal
+    turns with the point; the choice, a loop over the colliders, is a kernel of its own: Warp's adjoint does not carry
+    what a dynamic loop chose)."""
+    i = wp.tid()
+    c = contact_collider[i]
+    if c < 0:
+        normal_out[i] = wp.vec3(0.0)
+    else:
+        d, n = world_distance(collider_shape[c], collider_size[c], collider_mesh[c], mesh_max_distance, collider_transform[c], x[i])
+        normal_out[i] = n
 
 
 EDGE_CROSSING_HITS = wp.constant(8)  # the most triangles one edge's ray is followed through (those at its own ends skipped)

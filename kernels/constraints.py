@@ -7,6 +7,24 @@ from .worlds import particle_world_of, world_slot
 
 LENGTH_EPS = wp.constant(1.0e-9)
 ATTACHMENT_MAX = wp.constant(4)  # long-range attachments per particle
+WELD_MEMBERS_MAX = wp.constant(8)  # particles per welded sewn point the strain limiter keeps together
+SPLIT_FLOOR = wp.constant(1.0e-2)  # limit_split: the least share of a spring's inverse mass along it that is moved
+
+
+@wp.func
+def limit_split(w_self: float, w_other: float, u: wp.vec3, n_self: wp.vec3, c_self: float, c_other: float):
+    """The move per unit excess [m/m] of one end of a spring shortened along u (its unit vector from the other end to
+    this one) when an end touches a collider (kernels/collide.py `eval_limit_contact_normals`): an end whose move
+    (-u for this one) would go into its collider (c = its normal's component against the move, > 0) moves only in
+    its tangent plane, its inverse mass along u w (1 - c^2), and the other end takes the rest of the excess
+    (mass-weighted projection with the contact's inverse mass w (I - n n^T), as the implicit solve's filter).
+    Zero when neither end can move much along u (a_self + a_other < SPLIT_FLOOR (w_self + w_other): the spring runs
+    through the collider), so a blocked end never slides more than 10x the excess."""
+    blocked_self = wp.max(c_self, 0.0)
+    blocked_other = wp.max(c_other, 0.0)
+    total = w_self * (1.0 - blocked_self * blocked_self) + w_other * (1.0 - blocked_other * blocked_other)
+    share = wp.where(total < SPLIT_FLOOR * (w_self + w_other), 0.0, w_self / wp.max(total, LENGTH_EPS))
+    return share * (u - blocked_self * n_self)
 
 
 @wp.kernel
@@ -17,6 +35,7 @@ def apply_strain_limit_color(
     spring_rest_length: wp.array(dtype=float),
     particle_mass: wp.array(dtype=float),
     particle_pinned: wp.array(dtype=wp.int32),
+    contact_normal: wp.array(dtype=wp.vec3),
     # State in
     x_in: wp.array(dtype=wp.vec3),
     color: int,
@@ -57,7 +76,13 @@ def apply_strain_limit_color(
     if particle_pinned[j] == 0:
         wj = 1.0 / particle_mass[j]
     excess = wp.min(relaxation * (length - limit), length - spring_rest_length[s])
-    x_out[i] = xi - (wi / (wi + wj)) * excess / length * d
+    u = d / length
+    ci = wp.dot(u, contact_normal[i])
+    cj = -wp.dot(u, contact_normal[j])
+    if ci <= 0.0 and cj <= 0.0:
+        x_out[i] = xi - (wi / (wi + wj)) * excess / length * d
+    else:
+        x_out[i] = xi - limit_split(wi, wj, u, contact_normal[i], ci, cj) * excess
 
 
 @wp.kernel
@@ -115,6 +140,53 @@ def apply_attachment_limit(
     x_out[i] = xi
 
 
+@wp.kernel
+def weld_limited_points(
+    # Strain limiter data: per particle, the particles of its welded sewn point (itself among them; -1 padded)
+    point_members: wp.array2d(dtype=wp.int32),
+    particle_mass: wp.array(dtype=float),
+    particle_pinned: wp.array(dtype=wp.int32),
+    # State in
+    x_in: wp.array(dtype=wp.vec3),
+    particle_world: wp.array(dtype=wp.int32),
+    worlds: int,
+    loop: wp.array(dtype=wp.int32),
+    # outputs
+    x_out: wp.array(dtype=wp.vec3),
+):
+    """Each free particle of a welded sewn point to the point's centre of mass, or where its pinned particles are (the
+    sewing weld, cloth_warp/sewing.py, as a pass of a strain-limit sweep: the limiter moves a point's particles as one;
+    batched worlds: in the worlds still sweeping, `loop`)."""
+    i = wp.tid()
+    xi = x_in[i]
+    sweeping = True
+    if worlds > 1:
+        sweeping = loop[world_slot(particle_world[i], worlds, LIMIT_LOOP_SIZE)] != 0
+    if particle_pinned[i] != 0 or not sweeping or point_members[i, 0] < 0:
+        x_out[i] = xi
+        return
+    mass = float(0.0)
+    moment = wp.vec3(0.0)
+    pinned_mass = float(0.0)
+    pinned_moment = wp.vec3(0.0)
+    for k in range(WELD_MEMBERS_MAX):  # a constant range is unrolled: the sums stay differentiable
+        j = -1
+        if k < point_members.shape[1]:
+            j = point_members[i, k]
+        if j >= 0:
+            mj = particle_mass[j]
+            if particle_pinned[j] != 0:
+                pinned_mass = pinned_mass + mj
+                pinned_moment = pinned_moment + mj * x_in[j]
+            else:
+                mass = mass + mj
+                moment = moment + mj * x_in[j]
+    if pinned_mass > 0.0:
+        x_out[i] = pinned_moment / pinned_mass
+    else:
+        x_out[i] = moment / mass
+
+
 @wp.kernel(enable_backward=False)
 def apply_strain_limit_springs(
     # Model
@@ -124,6 +196,7 @@ def apply_strain_limit_springs(
     spring_rest_length: wp.array(dtype=float),
     particle_mass: wp.array(dtype=float),
     particle_pinned: wp.array(dtype=wp.int32),
+    contact_normal: wp.array(dtype=wp.vec3),
     max_strain: float,
     relaxation: float,
     particle_world: wp.array(dtype=wp.int32),
@@ -154,9 +227,16 @@ def apply_strain_limit_springs(
     if length <= limit or length < LENGTH_EPS:
         return
     excess = wp.min(relaxation * (length - limit), length - spring_rest_length[s])
-    corr = (excess / ((wa + wb) * length)) * d
-    x_out[a] = x_out[a] - wa * corr
-    x_out[b] = x_out[b] + wb * corr
+    u = d / length
+    ca = wp.dot(u, contact_normal[a])
+    cb = -wp.dot(u, contact_normal[b])
+    if ca <= 0.0 and cb <= 0.0:
+        corr = (excess / ((wa + wb) * length)) * d
+        x_out[a] = x_out[a] - wa * corr
+        x_out[b] = x_out[b] + wb * corr
+    else:
+        x_out[a] = x_out[a] - limit_split(wa, wb, u, contact_normal[a], ca, cb) * excess
+        x_out[b] = x_out[b] - limit_split(wb, wa, -u, contact_normal[b], cb, ca) * excess
 
 
 # -- convergence bookkeeping (on the device, so a captured graph checks too) ---------------------------------

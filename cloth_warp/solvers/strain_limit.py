@@ -18,6 +18,7 @@ import warp as wp
 from ..autodiff import paused_tape
 from ..diagnostics import StrainLimitReport
 from ..graphs import device_while
+from ..kernels import collide as kcol
 from ..kernels import constraints as kc
 from ..kernels.worlds import world_slots_length
 from ..model import Control, Model, ModelFlags, State
@@ -49,6 +50,16 @@ class StrainLimiter(StepPass):
     position change over dt (Provot's "inverse dynamics"), so the limiter adds no momentum: the centre of
     mass of a free sheet moves as without it.
 
+    A particle touching a collider at a sweep's start (outside its solid and within one thickness beyond
+    it; the nearest, relative to the thickness; the colliders at their end-of-step poses) is not moved into it: a
+    spring whose correction would move that end inward moves it in the collider's tangent plane only, with the share
+    of the excess its inverse mass has along the spring there, and the other end takes the rest (kernels/constraints.py
+    `limit_split`). Without that, the limiter shortened springs wrapping a rim or a body through the solid and the
+    colliders pass pushed their ends back out, stretched again. The contacts are found again at every sweep, so cloth
+    the sweeps carry over a rim is free to turn round it. With seams (:meth:`weld_sewn_points`, set by
+    :func:`~cloth_warp.passes.build_passes`) every sweep ends with the sewing pass's weld, so a welded point's
+    particles move as one and the weld after the limiter stretches nothing again.
+
     Sweeps stop when no limited spring exceeds the limit by more than `tolerance` (strain; checked on the
     device after every sweep, also inside a captured graph and under the tape) or after `iterations`
     sweeps (the cap); a step whose integrator output already meets the tolerance runs none. With
@@ -69,6 +80,8 @@ class StrainLimiter(StepPass):
         attachments: pinned groups each particle is attached to (0: none; at most 4).
         tolerance: excess strain at which sweeping stops; None for exactly `iterations` sweeps.
         relaxation: over-relaxation of each correction, in [1, 2).
+        colliders: keep particles touching a collider from being moved into it (below); False sweeps as if there
+            were no colliders.
     """
 
     name = "strain_limit"
@@ -76,7 +89,7 @@ class StrainLimiter(StepPass):
     device_loops = True
 
     def __init__(self, model: Model, max_strain: float = 0.1, iterations: int = DEFAULT_SWEEPS, attachments: int = 4,
-                 tolerance: float | None = 1.0e-3, relaxation: float = 1.5):
+                 tolerance: float | None = 1.0e-3, relaxation: float = 1.5, colliders: bool = True):
         from ..validation import LIMITS, check_number
 
         max_strain = check_number("max_strain", max_strain, LIMITS["strain_limit"])
@@ -100,6 +113,17 @@ class StrainLimiter(StepPass):
         self.record = wp.zeros(worlds * kc.RECORD_SIZE, dtype=float, device=dev)
         self._record_backup = wp.zeros(worlds * kc.RECORD_SIZE, dtype=float, device=dev)
         self._buffers: dict = {}  # taped steps' work arrays (see the taped path)
+        self.colliders = bool(colliders)
+        self.contact_normal = wp.zeros(model.particle_count, dtype=wp.vec3, device=dev)
+        """Per particle, the outward normal of the collider it touches at the sweep's start, zero for none (unit, (n,))."""
+        self.contact_collider = wp.full(model.particle_count, -1, dtype=wp.int32, device=dev)
+        """Per particle, the collider it touches at the sweep's start, -1 for none ((n,))."""
+        self._touching = False
+        self._collider_poses: wp.array | None = None  # the colliders' poses in the apply running (None: no colliders)
+        self.weld_distance: float | None = None
+        self.point_members: wp.array | None = None
+        """Per particle, the particles of its welded sewn point (itself among them), -1 padded ((n, k) int32; None: none
+        welded or not set, :meth:`weld_sewn_points`)."""
         if not (0 <= int(attachments) <= kc.ATTACHMENT_MAX):
             raise ValueError(f"attachments: must be in [0, {kc.ATTACHMENT_MAX}], got {attachments!r}")
         self._attachments = int(attachments)
@@ -110,10 +134,39 @@ class StrainLimiter(StepPass):
             self.attachment_rest_distance = wp.array(dist.astype(np.float32), dtype=float, device=dev)
         wp.launch(kc.reset_strain_excess, dim=worlds, outputs=[self._excess], device=dev, record_tape=False)
 
+    def weld_sewn_points(self, weld_distance: float | None) -> None:
+        """Keep each welded sewn point's particles together in every sweep (the sewing pass's weld,
+        :func:`~cloth_warp.sewing.welded_point_roots` at `weld_distance` [m]; None: not), so that the weld after the
+        limiter does not stretch the springs beside a seam again (see the class)."""
+        from ..sewing import welded_point_roots
+
+        self.weld_distance = None if weld_distance is None else float(weld_distance)
+        roots = np.full(self.model.particle_count, -1) if weld_distance is None else welded_point_roots(self.model, weld_distance)
+        sewn = np.flatnonzero(roots >= 0)
+        if not len(sewn):
+            self.point_members = None
+            return
+        order = sewn[np.argsort(roots[sewn], kind="stable")]
+        _, first, count = np.unique(roots[order], return_index=True, return_counts=True)
+        if count.max() > kc.WELD_MEMBERS_MAX:
+            raise ValueError(f"a welded sewn point joins {count.max()} particles; the strain limiter keeps at most "
+                             f"{kc.WELD_MEMBERS_MAX} together")
+        table = np.full((self.model.particle_count, int(count.max())), -1, np.int32)
+        for f, c in zip(first.tolist(), count.tolist()):
+            members = order[f:f + c]
+            table[members, :c] = members
+        if self.point_members is not None and self.point_members.shape == table.shape:
+            self.point_members.assign(table)  # in place: captured graphs keep reading the same array
+        else:
+            self.point_members = wp.array(table, dtype=wp.int32, device=self.model.device)
+
     def notify_model_changed(self, flags: int) -> None:
         """Model fields changed (:class:`~cloth_warp.model.ModelFlags`): new rest lengths give new attachment
-        distances (rewritten in place: captured graphs keep reading the same arrays). Masses and rest lengths
-        are otherwise read at every sweep; which particles are pinned is topology."""
+        distances (rewritten in place: captured graphs keep reading the same arrays), new initial positions new
+        welded points. Masses and rest lengths are otherwise read at every sweep; which particles are pinned is
+        topology."""
+        if flags & ModelFlags.PARTICLE_INITIAL_STATE and self.weld_distance is not None:
+            self.weld_sewn_points(self.weld_distance)
         if flags & ModelFlags.SPRING_PROPERTIES and self.attachment_count:
             ids, dist = attachment_table(self.model, self._attachments)
             self.attachment_particle.assign(ids)
@@ -125,7 +178,7 @@ class StrainLimiter(StepPass):
 
     @property
     def kernel_modules(self) -> tuple:
-        return (kc,)
+        return (kc, kcol)
 
     @property
     def report_tolerance(self) -> float:
@@ -188,13 +241,39 @@ class StrainLimiter(StepPass):
 
     # -- limiting -----------------------------------------------------------------------------------------------------
     def apply(self, x_start, x_end: wp.array, v_end: wp.array, control: Control, dt: float, x_out: wp.array, v_out: wp.array):
-        """Limit x_end into x_out and correct v_end into v_out by the position change over dt (see the class;
-        the start positions and the control are not used)."""
+        """Limit x_end into x_out and correct v_end into v_out by the position change over dt (see the class; the
+        control gives the colliders' end poses, None: no colliders; the start positions are not used)."""
+        self._collider_poses = None
+        if self.colliders and self.model.collider_count and control is not None:
+            self._collider_poses = control.collider_transform_end
+        elif self._touching:
+            self.contact_normal.zero_()
+            self.contact_collider.fill_(-1)
+            self._touching = False
         state_out = State(x_out, v_out)
         if x_end.requires_grad:
             self._apply_taped(x_end, v_end, state_out, dt)
         else:
             self._apply_forward(x_end, v_end, state_out, dt)
+
+    def _touch_colliders(self, x):
+        """The collider each particle touches at x (a sweep's start) and its outward normal (:attr:`contact_normal`;
+        off a tape: held fixed through the sweep, as the implicit solve holds its contact set)."""
+        if self._collider_poses is None:
+            return
+        m = self.model
+        self._touching = True
+        wp.launch(kcol.eval_limit_contacts, dim=m.particle_count,
+                  inputs=[m.particle_pinned, m.collider_count, m.collider_shape, m.collider_size, m.collider_mesh,
+                          m.collider_thickness, m.collider_mesh_max_distance, self._collider_poses, x],
+                  outputs=[self.contact_collider], device=m.device, record_tape=False)
+        wp.launch(kcol.eval_limit_contact_normals, dim=m.particle_count, inputs=self._normal_inputs(x),
+                  outputs=[self.contact_normal], device=m.device, record_tape=False)
+
+    def _normal_inputs(self, x) -> list:
+        m = self.model
+        return [self.contact_collider, m.collider_shape, m.collider_size, m.collider_mesh, m.collider_mesh_max_distance,
+                self._collider_poses, x]
 
     @property
     def _check(self) -> int:
@@ -245,6 +324,7 @@ class StrainLimiter(StepPass):
 
     def _sweep_in_place(self, x):
         m = self.model
+        self._touch_colliders(x)
         if self.attachment_count:
             self._attach(x, x)  # reads only pinned neighbours, writes its own particle: safe in place
         offsets = m.strain_limit_color_offsets
@@ -253,10 +333,16 @@ class StrainLimiter(StepPass):
                 kc.apply_strain_limit_springs,
                 dim=int(offsets[c + 1] - offsets[c]),
                 inputs=[m.strain_limit_color_springs, int(offsets[c]), m.spring_indices, m.spring_rest_length,
-                        m.particle_mass, m.particle_pinned, self.max_strain, self.relaxation, m.particle_world, self.worlds, self._loop],
+                        m.particle_mass, m.particle_pinned, self.contact_normal, self.max_strain, self.relaxation, m.particle_world, self.worlds, self._loop],
                 outputs=[x],
                 device=m.device,
             )
+        if self.point_members is not None:
+            welded = self._buffer("welded")
+            wp.launch(kc.weld_limited_points, dim=m.particle_count,
+                      inputs=[self.point_members, m.particle_mass, m.particle_pinned, x, m.particle_world, self.worlds, self._loop],
+                      outputs=[welded], device=m.device)
+            wp.copy(x, welded)
         self._end_sweep(x)
 
     # -- taped path -----------------------------------------------------------------------------------------------
@@ -294,7 +380,8 @@ class StrainLimiter(StepPass):
             wp.copy(x_out, x)
         if tape is not None:
             grads = [a for a in (x_in, x_out, m.spring_rest_length, m.particle_mass) if a.grad is not None]
-            tape.record_func(lambda: self._backward(snapshots, gates, sweeps, x_in, x_out), grads)
+            poses = self._collider_poses
+            tape.record_func(lambda: self._backward(snapshots, gates, sweeps, x_in, x_out, poses), grads)
         wp.launch(kc.correct_velocity, dim=m.particle_count, inputs=[x_in, x_out, v_in, dt], outputs=[state_out.particle_qd], device=m.device)
 
     def _passes(self, gate: wp.array | None = None):
@@ -308,8 +395,11 @@ class StrainLimiter(StepPass):
                         [self.max_strain, m.particle_world, self.worlds, gate]))
         for c in range(m.strain_limit_color_count):
             out.append((kc.apply_strain_limit_color, [m.strain_limit_colors, m.spring_indices, m.spring_rest_length,
-                                                      m.particle_mass, m.particle_pinned],
+                                                      m.particle_mass, m.particle_pinned, self.contact_normal],
                         [c, self.max_strain, self.relaxation, m.particle_world, self.worlds, gate]))
+        if self.point_members is not None:
+            out.append((kc.weld_limited_points, [self.point_members, m.particle_mass, m.particle_pinned],
+                        [m.particle_world, self.worlds, gate]))
         return out
 
     def _buffer(self, key):
@@ -322,6 +412,7 @@ class StrainLimiter(StepPass):
         """One sweep out of place through the pass buffers; returns the last pass's (a buffer: copy it to keep it).
         `record` gets the input of every pass; `gate` as in :meth:`_passes`."""
         m = self.model
+        self._touch_colliders(x_src)
         for k, (kernel, before, after) in enumerate(self._passes(gate)):
             dst = self._buffer(("pass", k))
             wp.launch(kernel, dim=m.particle_count, inputs=[*before, x_src, *after], outputs=[dst], device=m.device)
@@ -330,13 +421,15 @@ class StrainLimiter(StepPass):
             x_src = dst
         return x_src
 
-    def _backward(self, snapshots: list, gates: list, sweeps: int, x_in: wp.array, x_out: wp.array):
+    def _backward(self, snapshots: list, gates: list, sweeps: int, x_in: wp.array, x_out: wp.array, poses: wp.array | None = None):
         """Adjoint of a taped apply(): d/dx_out -> d/dx_in (and the rest lengths and masses, when they have gradients).
 
         Segment by segment from the last: the sweep starts of the segment are recomputed from its snapshot, then
         each sweep's passes from its start (bit-identical to the forward run, in the worlds it ran in: `gates`) and
-        their adjoints run in reverse."""
+        their adjoints run in reverse; each sweep's contact normals from its start, with the colliders' poses of the
+        step taped (`poses`)."""
         m = self.model
+        self._collider_poses = poses
 
         def gate(k):
             return gates[k] if gates else None
@@ -347,6 +440,9 @@ class StrainLimiter(StepPass):
         if not x_out.retain_grad:  # consumed, as a kernel's adjoint consumes its outputs' (Warp's final-write-wins)
             x_out.grad.zero_()
         grad_of = {id(a): a.grad for a in (m.spring_rest_length, m.particle_mass) if a.grad is not None}
+        normal_adj = None
+        if poses is not None:  # the contact normals turn with the points they were found at (a sweep's start)
+            normal_adj = grad_of[id(self.contact_normal)] = self._buffer("normal_adjoint")
         for first in range(every * ((sweeps - 1) // every) if sweeps else -1, -1, -every):
             starts = [snapshots[first // every]]
             for k in range(first + 1, min(first + every, sweeps)):
@@ -358,6 +454,8 @@ class StrainLimiter(StepPass):
                 sources: list = []
                 self._sweep(start, sources, gate=gate(k))
                 passes = self._passes(gate(k))
+                if normal_adj is not None:
+                    normal_adj.zero_()
                 for j in range(len(passes) - 1, -1, -1):
                     kernel, before, after = passes[j]
                     spare.zero_()
@@ -365,6 +463,10 @@ class StrainLimiter(StepPass):
                               adj_inputs=[grad_of.get(id(a)) for a in before] + [spare] + [None] * len(after), adj_outputs=[adj],
                               adjoint=True, device=m.device)
                     adj, spare = spare, adj
+                if normal_adj is not None:
+                    wp.launch(kcol.eval_limit_contact_normals, dim=m.particle_count, inputs=self._normal_inputs(start),
+                              outputs=[self.contact_normal], adj_inputs=[None] * 6 + [adj], adj_outputs=[normal_adj],
+                              adjoint=True, device=m.device)
         wp.launch(kc.accumulate_vectors, dim=m.particle_count, inputs=[adj], outputs=[x_in.grad], device=m.device)
 
     def _attach(self, x_src, x_dst):
