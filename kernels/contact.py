@@ -91,6 +91,18 @@ def prescribed_velocity_change(n: wp.vec3, u: wp.vec3, v0: wp.vec3, d0: float, h
 
 
 @wp.func
+def pinch_frame(n: wp.vec3, facing: wp.vec3):
+    """A pinched contact's normal and height scale: the unit normal b = (n - f) / |n - f| of the plane of points as far
+    from its own side (outward normal n) as from the side facing it (f), and k = sqrt((1 - n . f) / 2), the rate at
+    which a height above its own side along n changes per metre along b at the plane (so heights k d0 and k s measured
+    along b put the particle on it where s, `pinch_height`, does along n). The same frame (b up to its sign) whichever
+    side is the nearer: held along its own side's normal, a particle halfway across a T-shirt's shoulder was held along
+    one side's normal or the other's as the nearer changed from step to step, its free plane turning with it, and the
+    T-shirt held still kept moving there at 1.5 mm/s."""
+    return wp.normalize(n - facing), wp.sqrt(0.5 * (1.0 - wp.dot(n, facing)))
+
+
+@wp.func
 def crease_direction(n: wp.vec3, facing: wp.vec3):
     """The second direction a contact pinched in a crease is held along: the unit part of the facing surface's outward
     normal orthogonal to the contact normal n (zero when the two sides are within CREASE_SINE of parallel)."""
@@ -143,6 +155,7 @@ def eval_collider_contacts(
     contact_dv_out: wp.array(dtype=wp.vec3),
     contact_height_out: wp.array(dtype=float),
     contact_crease_out: wp.array(dtype=wp.vec3),
+    contact_facing_out: wp.array(dtype=wp.vec3),
     counts_out: wp.array(dtype=wp.int32),
 ):
     """Per particle: the collider it touches (-1: none), the outward unit normal n (world, end pose; zero without a
@@ -173,6 +186,7 @@ def eval_collider_contacts(
     contact_dv_out[i] = wp.vec3(0.0)
     contact_height_out[i] = 0.0
     contact_crease_out[i] = wp.vec3(0.0)
+    contact_facing_out[i] = wp.vec3(0.0)
     if particle_pinned[i] != 0:
         return
     xs = x0[i]
@@ -222,8 +236,12 @@ def eval_collider_contacts(
                                      mesh_max_distance, collider_transform_start, xs, n, found_d0, thickness, dt)
         crease = wp.vec3(0.0)
         if is_pinched(pinch, thickness):
-            height = pinch
             found_descent = -1.0
+            n, scale = pinch_frame(n, facing)
+            contact_normal_out[i] = n
+            contact_facing_out[i] = facing
+            found_d0 = scale * found_d0
+            height = scale * pinch
             crease = crease_direction(n, facing)
         contact_height_out[i] = height
         contact_crease_out[i] = crease
@@ -333,6 +351,7 @@ def eval_contact_constraints(
     contact_collider: wp.array(dtype=wp.int32),
     contact_height: wp.array(dtype=float),
     contact_crease: wp.array(dtype=wp.vec3),
+    contact_facing: wp.array(dtype=wp.vec3),
     # State in
     x0: wp.array(dtype=wp.vec3),
     v0: wp.array(dtype=wp.vec3),
@@ -345,13 +364,17 @@ def eval_contact_constraints(
     """The normal, surface velocity and prescribed velocity change of each contact of a given set, as
     `eval_collider_contacts` finds them, as differentiable functions of x0, v0 and the colliders' poses (a taped
     step's contacts: the set itself, a discrete choice, is held fixed, and so are a pinched contact's height and
-    crease direction)."""
+    crease direction and facing normal)."""
     i = wp.tid()
     c = contact_collider[i]
     if c < 0:
         return
     d0, n, u = surface_contact(collider_shape[c], collider_size[c], collider_mesh[c], mesh_max_distance, collider_deforming[c],
                                collider_transform_start[c], collider_transform_end[c], x0[i], dt)
+    facing = contact_facing[i]
+    if wp.length_sq(facing) > 0.0:  # pinched: held along the normal of the points as far from both sides
+        n, scale = pinch_frame(n, facing)
+        d0 = scale * d0
     contact_normal_out[i] = n
     contact_velocity_out[i] = u
     contact_dv_out[i] = (prescribed_velocity_change(n, u, v0[i], d0, contact_height[i], dt, -1.0)

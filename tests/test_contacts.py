@@ -24,7 +24,7 @@ def find_contacts(model, x, v, time=0.0, dt=DT, last_step=None, gravity=(0.0, 0.
     model.update_control(control, time + dt, dt, force=True)
     n = len(x)
     out = [wp.zeros(n, dtype=wp.int32), wp.zeros(n, dtype=wp.vec3), wp.zeros(n, dtype=wp.vec3), wp.zeros(n, dtype=wp.vec3),
-           wp.zeros(n, dtype=float), wp.zeros(n, dtype=wp.vec3), wp.zeros(1, dtype=wp.int32)]
+           wp.zeros(n, dtype=float), wp.zeros(n, dtype=wp.vec3), wp.zeros(n, dtype=wp.vec3), wp.zeros(1, dtype=wp.int32)]
     wp.launch(kct.eval_collider_contacts, dim=n,
               inputs=[model.particle_pinned, model.collider_count, model.collider_shape, model.collider_size, model.collider_mesh,
                       model.collider_deforming, model.collider_thickness, model.collider_static_friction,
@@ -32,7 +32,7 @@ def find_contacts(model, x, v, time=0.0, dt=DT, last_step=None, gravity=(0.0, 0.
                       control.collider_transform_end, wp.array(x, dtype=wp.vec3), wp.array(v, dtype=wp.vec3), wp.vec3(*gravity), dt,
                       MARGIN, *(landing_always(n) if last_step is None else last_step)],
               outputs=out)
-    return [a.numpy() for a in out]  # collider, normal, surface velocity, prescribed dv, height, crease, count
+    return [a.numpy() for a in out]  # collider, normal, surface velocity, prescribed dv, height, crease, facing, count
 
 
 def landing_always(n):
@@ -58,7 +58,7 @@ def test_contacts_on_a_ground_plane():
     m = b.finalize("cpu")
     x = np.array([(0.1 * k, y, 0.0) for k, y in enumerate(heights)], np.float32)
     v = np.array([(0.0, s, 0.0) for s in speeds], np.float32)
-    col, normal, vel, dv, _, _, count = find_contacts(m, x, v)
+    col, normal, vel, dv, _, _, _, count = find_contacts(m, x, v)
     np.testing.assert_array_equal(col, [0, 0, 0, 0, -1, -1])
     assert count[0] == 4
     np.testing.assert_allclose(normal[:4], [[0, 1, 0]] * 4, atol=1e-6)
@@ -69,12 +69,15 @@ def test_contacts_on_a_ground_plane():
     np.testing.assert_array_equal(dv[4:], 0.0)
 
 
-@pytest.mark.parametrize("angle,gap", [(0.0, 0.012), (30.0, 0.015), (30.0, 0.03), (50.0, 0.016)])
+@pytest.mark.parametrize("angle,gap", [(0.0, 0.012), (30.0, 0.015), (30.0, 0.03), (50.0, 0.016), (0.0, 0.016), (20.0, 0.012)])
 def test_a_contact_pinched_between_facing_surfaces_lands_where_it_is_as_far_from_both(angle, gap):
     """Check a particle above the ground under a plane tilted by `angle` towards it (a crease, its apex `gap` above the
-    particle's foot) lands at the height s where it is as far from both, s = c g / (1 + c) (c: the cosine between the
-    two normals, reversed), when that is below the thickness and the planes face each other within 45 degrees; else at
-    the thickness (an open corner: the particle leaves it along the bisector)."""
+    particle's foot), when the height s = c g / (1 + c) at which it is as far from both (c: the cosine between the two
+    normals, reversed) is below the thickness and the planes face each other within 45 degrees, is held along the
+    normal of the plane of such points, b = (n - f) / |n - f|, whichever side is the nearer (the frame the same from
+    either side: kernels/contact.py `pinch_frame`), at the height k s along it (k = sqrt((1 + c) / 2)), and its
+    prescribed step lands it on that plane, as far from both; else it lands at the thickness along the ground's normal
+    (an open corner: the particle leaves it along the bisector)."""
     a = math.radians(angle)
     n2 = np.array([-math.sin(a), -math.cos(a), 0.0])
     b = cw.ModelBuilder()
@@ -83,13 +86,28 @@ def test_a_contact_pinched_between_facing_surfaces_lands_where_it_is_as_far_from
     b.add_plane(normal=tuple(n2), point=(0.0, gap, 0.0), thickness=THICKNESS)
     m = b.finalize("cpu")
     x = np.array([[0.0, 0.005, 0.0]], np.float32)
-    col, normal, _, dv, height, _, _ = find_contacts(m, x, np.zeros_like(x))
+    col, normal, _, dv, height, _, facing, _ = find_contacts(m, x, np.zeros_like(x))
     c = math.cos(a)
     pinched = c > kcol.PINCH_COSINE and c * gap / (1 + c) < THICKNESS
-    expected = c * gap / (1 + c) if pinched else THICKNESS * (1 + kct.CLEARANCE)
-    assert col[0] == 0 and normal[0] == pytest.approx([0.0, 1.0, 0.0], abs=1e-6)  # the nearer: the ground
-    assert height[0] == pytest.approx(expected, abs=1e-6)
-    assert 0.005 + DT * dv[0][1] == pytest.approx(expected, abs=1e-6)  # the prescribed step lands it there
+    assert col[0] == 0  # the nearer: the ground
+    end = x[0] + DT * dv[0]
+    if pinched:
+        up = np.array([0.0, 1.0, 0.0])
+        assert normal[0] == pytest.approx((up - n2) / np.linalg.norm(up - n2), abs=1e-6)
+        assert facing[0] == pytest.approx(n2, abs=1e-6)
+        assert height[0] == pytest.approx(math.sqrt(0.5 * (1 + c)) * c * gap / (1 + c), abs=1e-6)
+        assert end[1] == pytest.approx(float(np.dot(n2, end - np.array([0.0, gap, 0.0]))), abs=1e-6)  # as far from both
+        assert np.linalg.norm(np.cross(end - x[0], normal[0])) < 1e-6  # moved along b alone
+        other = np.array([[0.0, 0.7 * gap, 0.0]], np.float32)  # nearer the tilted plane: held in the same frame
+        col, normal_other, _, dv, _, _, facing, _ = find_contacts(m, other, np.zeros_like(other))
+        assert col[0] == 1 and facing[0] == pytest.approx(up, abs=1e-6)
+        assert normal_other[0] == pytest.approx(-normal[0], abs=1e-6)
+        end = other[0] + DT * dv[0]
+        assert end[1] == pytest.approx(float(np.dot(n2, end - np.array([0.0, gap, 0.0]))), abs=1e-6)
+    else:
+        assert normal[0] == pytest.approx([0.0, 1.0, 0.0], abs=1e-6) and not facing[0].any()
+        assert height[0] == pytest.approx(THICKNESS * (1 + kct.CLEARANCE), abs=1e-6)
+        assert end[1] == pytest.approx(THICKNESS * (1 + kct.CLEARANCE), abs=1e-6)
 
 
 def test_a_band_contact_the_cloth_holds_up_keeps_its_height():
@@ -116,7 +134,7 @@ def test_a_band_contact_the_cloth_holds_up_keeps_its_height():
             wp.array(impulse, dtype=float)]
 
     def contacts(last_step):
-        col, _, _, dv, _, _, _ = find_contacts(m, x, v, last_step=last_step, gravity=(0.0, -9.81, 0.0))
+        col, _, _, dv, _, _, _, _ = find_contacts(m, x, v, last_step=last_step, gravity=(0.0, -9.81, 0.0))
         return col, v[:, 1] + dv[:, 1]  # collider, end normal velocity
 
     col, v_end = contacts(hold)
@@ -227,7 +245,7 @@ def test_contact_normals_match_the_collider_distance(shape, rng):
     pts = (pts + heights[:, None] * n).astype(np.float32)
     d, n = collider_distance(model0, 0, pts)
     m = with_collider(pts)
-    col, normal, vel, dv, _, _, _ = find_contacts(m, pts, np.zeros_like(pts))
+    col, normal, vel, dv, _, _, _, _ = find_contacts(m, pts, np.zeros_like(pts))
     touching = d < THICKNESS * (1.0 + MARGIN)
     clear = np.abs(d - THICKNESS * (1.0 + MARGIN)) > 1e-5  # away from the threshold's float32 rounding
     np.testing.assert_array_equal((col == 0)[clear], touching[clear])
@@ -242,7 +260,7 @@ def test_contact_takes_a_moving_collider_surface_velocity():
     b.add_particle((0.0, 0.11, 0.0))
     b.add_box((0.0, 0.0, 0.0), (1.0, 0.2, 1.0), thickness=THICKNESS, keyframes=[(0.0, (0, 0, 0)), (2.0, (0, 2.0, 0))])
     m = b.finalize("cpu")
-    col, normal, vel, _, _, _, _ = find_contacts(m, np.array([[0.0, 0.11, 0.0]], np.float32), np.zeros((1, 3), np.float32))
+    col, normal, vel, _, _, _, _, _ = find_contacts(m, np.array([[0.0, 0.11, 0.0]], np.float32), np.zeros((1, 3), np.float32))
     assert col[0] == 0
     np.testing.assert_allclose(normal[0], [0, 1, 0], atol=1e-6)
     np.testing.assert_allclose(vel[0], [0.0, 1.0, 0.0], atol=1e-4)
@@ -260,7 +278,7 @@ def test_contact_prescribes_landing_at_the_thickness():
     x = wp.array([[0.0, 0.013, 0.0]], dtype=wp.vec3)
     v0 = np.array([[0.5, -0.2, 0.0]], np.float32)
     out = [wp.zeros(1, dtype=wp.int32), wp.zeros(1, dtype=wp.vec3), wp.zeros(1, dtype=wp.vec3), wp.zeros(1, dtype=wp.vec3),
-           wp.zeros(1, dtype=float), wp.zeros(1, dtype=wp.vec3), wp.zeros(1, dtype=wp.int32)]
+           wp.zeros(1, dtype=float), wp.zeros(1, dtype=wp.vec3), wp.zeros(1, dtype=wp.vec3), wp.zeros(1, dtype=wp.int32)]
     wp.launch(kct.eval_collider_contacts, dim=1,
               inputs=[m.particle_pinned, m.collider_count, m.collider_shape, m.collider_size, m.collider_mesh, m.collider_deforming,
                       m.collider_thickness, m.collider_static_friction, m.collider_kinetic_friction, m.collider_mesh_max_distance,
@@ -667,7 +685,7 @@ def _fd(loss_at, eps):
     return (4.0 * fine - coarse) / 3.0
 
 
-@pytest.mark.parametrize("collider", ["ground", "sphere"])
+@pytest.mark.parametrize("collider", ["ground", "sphere", "crease"])
 def test_gradients_through_contacts_in_the_solve_match_finite_differences(collider):
     """Check the adjoint through the contact-filtered solve (the filter and the prescribed normal velocity on the tape,
     the transposed system filtered alike, Coulomb friction from the solved impulse): a cloth sliding over the ground or
@@ -675,16 +693,22 @@ def test_gradients_through_contacts_in_the_solve_match_finite_differences(collid
     gradient in the initial positions and velocities and the kinetic friction match central differences within 0.2 %,
     the springs' stiffness within 1 % (measured 0.005-0.6 %; with the adjoint solved unfiltered, 0.5 % and 8 % off).
     The contact set, and whether a contact sticks, is held fixed: the perturbations are small enough not to change it,
-    which the test asserts. (The velocity step is 3 mm/s: at 1 mm/s the difference was at float32's noise, 0.04-0.2 %
+    which the test asserts. Under a plane tilted 3 degrees 14-24 mm above the ground (`crease`), the contacts where the
+    gap is narrower than twice the thickness are pinched, held along the normal of the points as far from both sides
+    (kernels/contact.py `pinch_frame`, its facing normal held fixed on the tape) and frictionless: no friction case
+    there. (The velocity step is 3 mm/s: at 1 mm/s the difference was at float32's noise, 0.04-0.2 %
     off as unrelated kernel edits moved the rounding; at 3 mm/s 0.02-0.03 %.)"""
     soft = cw.materials.COTTON.replace(stretch_stiffness=60.0, shear_stiffness=20.0, bend_stiffness=2.0e-5, damping=0.01)
     b = cw.ModelBuilder()
     b.add_cloth_grid(resolution=(4, 4), size=(0.2, 0.2), material=soft, position=(0, THICKNESS * (1 + kct.CLEARANCE), 0),
                      rotation=cw.quat_from_axis_angle((1, 0, 0), -90.0))
-    if collider == "ground":
-        b.add_ground(thickness=THICKNESS, friction=0.3)
-    else:
+    if collider == "sphere":
         b.add_sphere((0.0, -0.3, 0.0), 0.3, thickness=THICKNESS, friction=0.3)
+    else:
+        b.add_ground(thickness=THICKNESS, friction=0.3)
+    if collider == "crease":
+        tilt = math.radians(3.0)
+        b.add_plane(normal=(-math.sin(tilt), -math.cos(tilt), 0.0), point=(0.1, 0.019, 0.0), thickness=THICKNESS)
     m = b.finalize("cpu", requires_grad=True)
     rng = np.random.default_rng(1)
     n = m.particle_count
@@ -710,6 +734,9 @@ def test_gradients_through_contacts_in_the_solve_match_finite_differences(collid
     rollout.gradient(loss, s0)
     held = solver.read_report().contacts
     assert held > 0
+    if collider == "crease":
+        pinched = np.flatnonzero(np.abs(solver.contact_facing.numpy()).sum(1) > 0)
+        assert 0 < len(pinched) < n, len(pinched)  # the last step's: some pinched, some not
 
     def along(grad, eps, perturbed, base=1.0):
         """|g| and the central difference along g of the loss with `perturbed(delta)` in place (g and delta in
@@ -737,12 +764,14 @@ def test_gradients_through_contacts_in_the_solve_match_finite_differences(collid
     cases = {
         "initial velocity": along(s0.particle_qd.grad.numpy(), 3e-3, lambda d: contextlib.nullcontext(state0(v=v0 + d))),
         "initial position": along(s0.particle_q.grad.numpy(), 1e-4, lambda d: contextlib.nullcontext(state0(x=x0 + d))),
-        "kinetic friction": along(m.collider_kinetic_friction.grad.numpy(), 1e-2, lambda d: field(m.collider_kinetic_friction, d)),
+        **({} if collider == "crease" else {
+            "kinetic friction": along(m.collider_kinetic_friction.grad.numpy(), 1e-2, lambda d: field(m.collider_kinetic_friction, d))}),
         # the relative step: the largest that holds the contact set. On the ground 20 % (at 10 % the difference moved by
         # 1 % when CG's dot products changed their rounding, at 5 % by 2 %; at 20 % and 30 % it stayed within 0.3 % of
-        # the adjoint before and after); on the ball 10 % (at 12 % a contact is added)
-        "stiffness": along(m.spring_stiffness.grad.numpy(), 0.2 if collider == "ground" else 0.1, lambda d: field(m.spring_stiffness, d),
-                           base=k),
+        # the adjoint before and after); on the ball 10 % (at 12 % a contact is added); in the crease 5 % (at 10 % and
+        # 20 % the difference was 7 % and 25 % off: the contacts pinched change)
+        "stiffness": along(m.spring_stiffness.grad.numpy(), {"ground": 0.2, "sphere": 0.1, "crease": 0.05}[collider],
+                           lambda d: field(m.spring_stiffness, d), base=k),
     }
     for kind, (ad, fd) in cases.items():
         tolerance = 1e-2 if kind == "stiffness" else 2e-3  # the stiffness's loss change is ~1e-4 of the loss: float32 noise

@@ -351,6 +351,7 @@ class SolverImplicitEuler(SolverBase):
         self.contact_collider = wp.zeros(n, dtype=wp.int32, device=dev)
         self.contact_normal = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.contact_crease = wp.zeros(n, dtype=wp.vec3, device=dev)  # a contact pinched in a crease: its second direction
+        self.contact_facing = wp.zeros(n, dtype=wp.vec3, device=dev)  # a pinched contact: the facing side's outward normal
         self.contact_velocity = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.contact_dv = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.contact_impulse = wp.zeros(n, dtype=float, device=dev)
@@ -959,7 +960,7 @@ class SolverImplicitEuler(SolverBase):
                           wp.vec3(*m.gravity), dt, self.contact_margin, int(not state_in.requires_grad), self.dv_previous,
                           self.previous_ready if self.warm_start else self._disabled, m.particle_world, self.worlds, self.contact_impulse],
                   outputs=[self.contact_collider, self.contact_normal, self.contact_velocity, self.contact_dv,
-                           self.contact_height, self.contact_crease, self.contact_counts], device=dev)
+                           self.contact_height, self.contact_crease, self.contact_facing, self.contact_counts], device=dev)
         wp.launch(ki.filter_contact_preconditioner, dim=m.particle_count,
                   inputs=[self.contact_normal, self.contact_crease, self._filtered_inverse()],
                   outputs=[self.precond, self.precond_free], device=dev)
@@ -1218,11 +1219,12 @@ class SolverImplicitEuler(SolverBase):
         collider = wp.clone(self.contact_collider, requires_grad=False)
         height = wp.clone(self.contact_height, requires_grad=False)
         crease = wp.clone(self.contact_crease, requires_grad=False)
+        facing = wp.clone(self.contact_facing, requires_grad=False)
         normal, velocity, dv = (wp.zeros(m.particle_count, dtype=wp.vec3, device=dev, requires_grad=True) for _ in range(3))
         wp.launch(kct.eval_contact_constraints, dim=m.particle_count,
                   inputs=[m.collider_shape, m.collider_size, m.collider_mesh, m.collider_deforming,
                           m.collider_mesh_max_distance, control.collider_transform_start, control.collider_transform_end, collider,
-                          height, crease, state_in.particle_q, state_in.particle_qd, dt],
+                          height, crease, facing, state_in.particle_q, state_in.particle_qd, dt],
                   outputs=[normal, velocity, dv], device=dev)
         return TapedContacts(collider, height, crease, normal, velocity, dv)
 
