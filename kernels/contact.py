@@ -169,7 +169,9 @@ def eval_collider_contacts(
     start around it was off); held at its height while loaded, the lower of two layers stayed bumpy.
     `contact_height_out`: the height [m] above the surface the contact ends the step at, `landing_height`, or, for a
     particle pinched between that surface and one facing it closer than twice the thickness (`pinch_height`: an
-    armpit's crease), the height at which it is as far from both, below the thickness. A pinched contact is two-sided:
+    armpit's crease), the height at which it is as far from both, below the thickness; a pinched contact's normal,
+    heights and crease direction are those of `pinch_frame` (the frame of the points as far from both sides), and
+    `contact_facing_out` is the facing side's outward normal (zero for every other particle). A pinched contact is two-sided:
     the solve does not release it (`eval_contact_release`), for it cannot leave one surface but towards the other; with
     one side held and released, the cloth pulled it off the first and the colliders pass pushed it out of the other,
     every step (a T-shirt's armpit: 3.6 mm in a step). Where the two sides meet at an angle (a crease: more than
