@@ -437,11 +437,15 @@ def eval_limit_contacts(
     x: wp.array(dtype=wp.vec3),
     # outputs
     collider_out: wp.array(dtype=wp.int32),
+    normal_out: wp.array(dtype=wp.vec3),
 ):
     """The collider each free particle touches, for the strain limiter: the one whose surface it is nearest relative to
-    the thickness, when outside the solid and within (1 + LIMIT_CONTACT_REACH) thicknesses of it; -1 for none."""
+    the thickness, when outside the solid and within (1 + LIMIT_CONTACT_REACH) thicknesses of it (-1 for none), and
+    its outward normal there (world; zero for none), as `eval_limit_contact_normals` gives it (whose adjoint a taped
+    limiter runs)."""
     i = wp.tid()
     touched = int(-1)
+    normal = wp.vec3(0.0)
     if particle_pinned[i] == 0:
         best = LIMIT_CONTACT_REACH
         for c in range(collider_count):
@@ -450,7 +454,9 @@ def eval_limit_contacts(
             if d > 0.0 and gap < best:  # inside the solid: left to the colliders pass (and a dressing), as it traces it
                 best = gap
                 touched = c
+                normal = n
     collider_out[i] = touched
+    normal_out[i] = normal
 
 
 @wp.kernel

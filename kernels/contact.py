@@ -21,7 +21,7 @@ the filter itself belong to the solver; this module only finds the contacts.
 
 import warp as wp
 
-from .collide import CONTACT_BAND, mesh_surface_velocity, pinch_height, shape_distance, surface_velocity
+from .collide import CONTACT_BAND, mesh_surface_velocity, pinch_height, shape_distance, surface_velocity, world_distance
 from .implicit import (ADMITTED, COUNT_CONTACTS, COUNT_SELF_CONTACTS, COUNT_SIZE, RELEASE_FLAG, RELEASE_ROUNDS, RELEASE_SIZE,
                        SLIP_ALLOWANCE, filtered_block_inverse, is_pinched)
 from .worlds import particle_world_of, world_slot
@@ -312,8 +312,8 @@ def admit_collider_contacts(
     best = float(0.0)
     for c in range(collider_count):
         thickness = collider_thickness[c]
-        d_end, n_end = shape_distance(collider_shape[c], collider_size[c], collider_mesh[c], mesh_max_distance,
-                                      wp.transform_point(wp.transform_inverse(collider_transform_end[c]), xe))
+        d_end, n_end = world_distance(collider_shape[c], collider_size[c], collider_mesh[c], mesh_max_distance,
+                                      collider_transform_end[c], xe)
         depth = d_end - thickness
         if d_end < thickness * (1.0 - CONTACT_BAND) and (found < 0 or depth < best):
             found = c

@@ -550,7 +550,8 @@ def test_taped_limiter_on_a_collider_matches_the_tape_through_its_kernels(collid
         for _ in range(sweeps):
             touched = wp.zeros(m.particle_count, dtype=wp.int32)
             wp.launch(kcol.eval_limit_contacts, dim=m.particle_count, inputs=[m.particle_pinned, m.collider_count, m.collider_shape,
-                      m.collider_size, m.collider_mesh, m.collider_thickness, m.collider_mesh_max_distance, poses, x_k], outputs=[touched])
+                      m.collider_size, m.collider_mesh, m.collider_thickness, m.collider_mesh_max_distance, poses, x_k],
+                      outputs=[touched, wp.zeros(m.particle_count, dtype=wp.vec3)])
             with tape:
                 normal = wp.zeros(m.particle_count, dtype=wp.vec3, requires_grad=True)
                 wp.launch(kcol.eval_limit_contact_normals, dim=m.particle_count, inputs=[touched, m.collider_shape, m.collider_size,

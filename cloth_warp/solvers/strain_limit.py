@@ -266,14 +266,7 @@ class StrainLimiter(StepPass):
         wp.launch(kcol.eval_limit_contacts, dim=m.particle_count,
                   inputs=[m.particle_pinned, m.collider_count, m.collider_shape, m.collider_size, m.collider_mesh,
                           m.collider_thickness, m.collider_mesh_max_distance, self._collider_poses, x],
-                  outputs=[self.contact_collider], device=m.device, record_tape=False)
-        wp.launch(kcol.eval_limit_contact_normals, dim=m.particle_count, inputs=self._normal_inputs(x),
-                  outputs=[self.contact_normal], device=m.device, record_tape=False)
-
-    def _normal_inputs(self, x) -> list:
-        m = self.model
-        return [self.contact_collider, m.collider_shape, m.collider_size, m.collider_mesh, m.collider_mesh_max_distance,
-                self._collider_poses, x]
+                  outputs=[self.contact_collider, self.contact_normal], device=m.device, record_tape=False)
 
     @property
     def _check(self) -> int:
@@ -463,8 +456,10 @@ class StrainLimiter(StepPass):
                               adj_inputs=[grad_of.get(id(a)) for a in before] + [spare] + [None] * len(after), adj_outputs=[adj],
                               adjoint=True, device=m.device)
                     adj, spare = spare, adj
-                if normal_adj is not None:
-                    wp.launch(kcol.eval_limit_contact_normals, dim=m.particle_count, inputs=self._normal_inputs(start),
+                if normal_adj is not None:  # (the sweep's recomputation found its contacts: `_touch_colliders`)
+                    wp.launch(kcol.eval_limit_contact_normals, dim=m.particle_count,
+                              inputs=[self.contact_collider, m.collider_shape, m.collider_size, m.collider_mesh,
+                                      m.collider_mesh_max_distance, poses, start],
                               outputs=[self.contact_normal], adj_inputs=[None] * 6 + [adj], adj_outputs=[normal_adj],
                               adjoint=True, device=m.device)
         wp.launch(kc.accumulate_vectors, dim=m.particle_count, inputs=[adj], outputs=[x_in.grad], device=m.device)
