@@ -51,6 +51,8 @@ class DressingReport:
         self_crossings: (edge, triangle) pairs of the dressed cloth that cross at the end (:func:`self_crossings`;
             should be 0: self-collision keeps a tangle it is handed).
         open_seams: seam springs still longer than the run's weld distance at the end (they stay springs in the run).
+        unfinished: sewn points closed within the finish's distance but left as they were, because moving their
+            particles together would have moved cloth through cloth (:func:`finish_seams_clear`).
     """
 
     seconds: float
@@ -65,6 +67,7 @@ class DressingReport:
     crossing: int = 0
     self_crossings: int = 0
     open_seams: int = 0
+    unfinished: int = 0
 
 
 def frozen_collider(collider, time: float = 0.0):
@@ -318,32 +321,42 @@ def crossing_layers(builder, moving: np.ndarray, under, device=None) -> int:
     return count
 
 
-def self_crossings(builder, particles=None, device=None) -> int:
-    """How many (edge, triangle) pairs of the builder's cloth (the triangles among `particles`, a boolean mask; default
-    all) cross at its positions, a joined sewn point's particles counted as one vertex (a garment is one surface there;
-    the two sides of a seam still open are two edges of the cloth): 0 for cloth free of intersections
-    (kernels/collide.py `count_edge_crossings`)."""
+def crossing_pairs(x: np.ndarray, triangles: np.ndarray, roots: np.ndarray, device=None) -> set[tuple[int, int, int]]:
+    """The (edge's first particle, edge's second particle, triangle) triples of a cloth (positions `x` [m], its
+    `triangles`) whose edge crosses the triangle, the triangle touching neither end of the edge, a particle touching
+    the triangles of every particle that shares its `roots` entry (a sewn point's: :func:`~cloth_warp.topology.joined_roots`)
+    (kernels/collide.py `find_edge_crossings`). Empty for cloth free of intersections."""
     import warp as wp
 
     from .broadphase import unique_edges
     from .kernels import collide as kc
 
+    tris = np.asarray(triangles, np.int64).reshape(-1, 3)
+    if len(tris) == 0:
+        return set()
+    edges = unique_edges(tris)
+    mesh = _warp_mesh(x, tris, device)
+    crossed = wp.empty((len(edges), int(kc.EDGE_CROSSING_HITS)), dtype=wp.int32, device=mesh.device)
+    wp.launch(kc.find_edge_crossings, dim=len(edges),
+              inputs=[mesh.id, mesh.points, wp.array(edges.astype(np.int32), dtype=wp.vec2i, device=mesh.device), mesh.indices,
+                      wp.array(np.asarray(roots, np.int32), dtype=wp.int32, device=mesh.device)], outputs=[crossed], device=mesh.device)
+    e, k = np.nonzero(crossed.numpy() >= 0)
+    faces = crossed.numpy()[e, k]
+    return {(int(edges[i, 0]), int(edges[i, 1]), int(f)) for i, f in zip(e, faces)}
+
+
+def self_crossings(builder, particles=None, device=None) -> int:
+    """How many (edge, triangle) pairs of the builder's cloth (the triangles among `particles`, a boolean mask; default
+    all) cross at its positions, a joined sewn point's particles counted as one vertex (a garment is one surface there;
+    the two sides of a seam still open are two edges of the cloth): 0 for cloth free of intersections
+    (:func:`crossing_pairs`)."""
     tris = np.asarray(builder.triangles, np.int64).reshape(-1, 3)
     if particles is not None:
         tris = tris[np.asarray(particles, bool)[tris].all(axis=1)]
-    if len(tris) == 0:
-        return 0
     x = builder.particle_positions
     seams = builder.springs[builder.spring_kind == int(SpringKind.SEAM)]
     joined = seams[np.all(x[seams[:, 0]] == x[seams[:, 1]], axis=1)]  # (finished: moved onto one point)
-    tris = joined_roots(joined, len(x))[tris]
-    edges = unique_edges(tris)
-    mesh = _warp_mesh(builder.particle_positions, tris, device)
-    count = wp.zeros(1, dtype=wp.int32, device=mesh.device)
-    wp.launch(kc.count_edge_crossings, dim=len(edges), inputs=[mesh.id, mesh.points, wp.array(edges.astype(np.int32), dtype=wp.vec2i,
-                                                                                               device=mesh.device), mesh.indices],
-              outputs=[count], device=mesh.device)
-    return int(count.numpy()[0])
+    return len(crossing_pairs(x, tris, joined_roots(joined, len(x)), device))
 
 
 def seam_gap(builder, positions=None, particles=None) -> float:
@@ -388,9 +401,9 @@ def finish_seams(x: np.ndarray, pairs: np.ndarray, within: float = SEAM_FINISH) 
     """Finish every sewn point the dressing closed to within a stitch (:data:`SEAM_FINISH`): the particles of each group
     joined by seam `pairs` ((k, 2) particle indices) closer than that move to their middle, so that the run starts with
     them welded (:mod:`~cloth_warp.sewing`: a seam closed at the start stays closed). Pairs left wider stay apart (their
-    seam springs pull on in the run): snapping wider gaps shut, 8 mm at a T-shirt's armpit, dragged cloth through cloth.
-    (`within` [m]: the dressing's stitch, :data:`SEAM_FINISH`; a settling's, the run's :data:`WELD_DISTANCE`.)
-    Returns the positions (a copy) and the largest gap finished [m] (0: none)."""
+    seam springs pull on in the run): snapping wider gaps shut, 8 mm at a T-shirt's armpit, dragged cloth through cloth
+    (:func:`finish_seams_clear` also leaves those whose finish would). Returns the positions (a copy) and the largest
+    gap finished [m] (0: none)."""
     x = np.array(x, np.float64)
     pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
     gaps = np.linalg.norm(x[pairs[:, 0]] - x[pairs[:, 1]], axis=1)
@@ -404,6 +417,33 @@ def finish_seams(x: np.ndarray, pairs: np.ndarray, within: float = SEAM_FINISH) 
     middle /= np.maximum(np.bincount(roots[sewn_point], minlength=len(x)), 1)[:, None]
     x[sewn_point] = middle[roots[sewn_point]]
     return x, float(gaps[gaps < within].max())
+
+
+def finish_seams_clear(x: np.ndarray, pairs: np.ndarray, triangles: np.ndarray, within: float = SEAM_FINISH,
+                       device=None) -> tuple[np.ndarray, float, int]:
+    """:func:`finish_seams`, less the sewn points whose finish would move cloth through cloth: a point's particles
+    moved to their middle turn their triangles about it, and where cloth lies folded flat against them (a sleeve
+    under an armpit, a fraction of a millimetre from the panel it is sewn to) that turn carried a triangle through a
+    particle of the fold (the T-shirt at 2.6 and 3.0 cm edges: 0.3-1.0 mm moves, 4 and 5 edges through triangles that
+    self-collision then kept for the whole run). An edge crossing a triangle after the finish that did not before
+    (:func:`crossing_pairs`, every sewn point of `pairs` one vertex) leaves the points it moved as they were, until no
+    new crossing is left; their seam springs, and in a run the sewing pass's weld under self-collision's CCD, close
+    them. Returns the positions (a copy), the largest gap finished [m] (0: none) and how many sewn points were left
+    open so."""
+    x = np.asarray(x, np.float64)
+    pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
+    tris = np.asarray(triangles, np.int64).reshape(-1, 3)
+    roots = joined_roots(pairs, len(x))
+    before = crossing_pairs(x, tris, roots, device)
+    left = np.zeros(len(x), bool)
+    while True:
+        y, finished = finish_seams(x, pairs[~left[pairs[:, 0]]], within)
+        new = crossing_pairs(y, tris, roots, device) - before
+        ends = np.array([[a, b, *tris[f]] for a, b, f in new], np.int64).reshape(-1)
+        moved = ends[np.any(y[ends] != x[ends], axis=1)]
+        if not len(moved):
+            return y, finished, len(np.unique(roots[left]))
+        left |= np.isin(roots, roots[moved])
 
 
 def _cloth_particles(builder, names) -> np.ndarray | None:
@@ -426,8 +466,8 @@ def settle(builder, seconds: float = 1.0, *, fps: float = 60.0, substeps: int = 
     colliders still in their pose at t = 0 and the attachments holding, then write the positions back into `builder`
     with zero velocities: the animation starts from a garment at rest instead of one falling from where it was sewn.
     A seam still open (a sewn point the dressing left beyond a stitch: its seam springs pull it in under gravity) keeps
-    it going, up to half as long again, until every seam is within :data:`~cloth_warp.sewing.WELD_DISTANCE`: its points
-    are then joined, and the run welds them."""
+    it going, up to half as long again, until every seam is within :data:`~cloth_warp.sewing.WELD_DISTANCE`; the
+    points then within a stitch (:data:`SEAM_FINISH`) are joined, as the dressing's are, and the run welds them."""
     return _still_run(builder, seconds, 0.0, True, fps, substeps, damping, device, solver_options)
 
 
@@ -501,33 +541,45 @@ def _still_run(builder, seconds, closing, gravity, fps, substeps, damping, devic
         stats = sim.step_frame()
     # a seam still open (cloth caught on the body while it closed): go on until it is closed, a dressing up to as long
     # again, a settling up to half as long again (under gravity, cloth caught in a crease is pulled through it: the
-    # T-shirt's settle diverged at 0.6 s of 1.5)
+    # T-shirt's settle diverged at 0.6 s of 1.5), and end at the frame whose widest seam is the narrowest (the panels
+    # meeting at an armpit can close and open again by millimetres from frame to frame: the T-shirt at 2.4 cm edges
+    # had its corner's four particles within 1.75 mm of each other 8 frames before the dressing's last, 5.4 mm at it)
     extra = 0
     limit = frames if closing > 0.0 else frames // 2
-    while seam.any() and extra < limit and seam_gap(builder, sim.positions(), moving) >= SEAM_CLOSED:
+    x = np.asarray(sim.positions(), np.float64)
+    v = np.asarray(sim.state.particle_qd.numpy(), np.float64)
+    narrowest = seam_gap(builder, x, moving) if seam.any() else 0.0
+    gap, last = narrowest, True
+    while seam.any() and extra < limit and gap >= SEAM_CLOSED:
         stats = sim.step_frame()
         extra += 1
+        y = np.asarray(sim.positions(), np.float64)
+        gap = seam_gap(builder, y, moving)
+        last = gap <= narrowest
+        if last:
+            x, v, narrowest = y, np.asarray(sim.state.particle_qd.numpy(), np.float64), gap
     frames += extra
-    x = np.asarray(sim.positions(), np.float64)
     free = (builder.particle_pinned == 0) & moving
-    finished = 0.0
+    finished, unfinished = 0.0, 0
     if seam.any():
-        # the dressing finishes its stitches; a settling the points the run welds (closed within WELD_DISTANCE), so that
-        # the run starts with them one point (a settling with the contacts in the solve left one 0.34 mm open)
-        x, finished = finish_seams(x, ends[free[ends[:, 0]] & free[ends[:, 1]]], SEAM_FINISH if closing > 0.0 else WELD_DISTANCE)
-    v = np.asarray(sim.state.particle_qd.numpy(), np.float64)
+        # the stitches are finished, so that the run starts with them one point and welds them: a settling's too (one
+        # with the contacts in the solve left one 0.34 mm open, and a T-shirt's at 2.0 and 3.5 cm edges two each, 1.0 and
+        # 1.7 mm, beyond the run's weld distance: springs for the whole run)
+        x, finished, unfinished = finish_seams_clear(x, ends[free[ends[:, 0]] & free[ends[:, 1]]], builder.triangles,
+                                                     SEAM_FINISH, device)
     builder.particle_positions[free] = x[free]
     builder.particle_velocities[:] = 0.0
     inside = sum(int(np.count_nonzero(mesh_depths(c, builder.particle_positions[moving], device=device) < 0.0))
                  for c in builder.colliders if _closed(c)) if closing > 0.0 else 0
     crossing = crossing_layers(builder, moving, below, device) if below else 0
-    strain = float(stats.max_strain) if moving.all() else _max_strain(builder, x, moving)  # (not the held layers moved aside)
+    # (not the held layers moved aside; the solver's measure when the last frame is kept)
+    strain = float(stats.max_strain) if moving.all() and last else _max_strain(builder, x, moving)
     sewn = ends[moving[ends[:, 0]]]
     y = builder.particle_positions
     gaps = np.linalg.norm(y[sewn[:, 0]] - y[sewn[:, 1]], axis=1)
     return DressingReport(frames / fps, frames * substeps, float(gaps.max(initial=0.0)),
                           float(np.linalg.norm(v[moving], axis=1).max()), strain, finished, grown_from, inside, layered_from, crossing,
-                          self_crossings(builder, moving, device), int(np.count_nonzero(gaps > WELD_DISTANCE)))
+                          self_crossings(builder, moving, device), int(np.count_nonzero(gaps > WELD_DISTANCE)), unfinished)
 
 
 def _max_strain(builder, x: np.ndarray, particles: np.ndarray) -> float:

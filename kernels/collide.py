@@ -488,13 +488,18 @@ EDGE_CROSSING_HITS = wp.constant(8)  # the most triangles one edge's ray is foll
 
 
 @wp.kernel(enable_backward=False)
-def count_edge_crossings(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), edges: wp.array(dtype=wp.vec2i),
-                         tri_indices: wp.array(dtype=wp.int32), crossings_out: wp.array(dtype=wp.int32)):
-    """How many (edge, triangle) pairs of a triangle mesh cross, the triangle touching neither end of the edge (a
-    surface intersects itself iff one of its edges crosses one of its triangles): each edge is followed as a ray
-    from end to end through the mesh's BVH, up to EDGE_CROSSING_HITS triangles, its ends' own triangles skipped. One
-    thread per edge; the count is added into crossings_out[0]."""
+def find_edge_crossings(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), edges: wp.array(dtype=wp.vec2i),
+                        tri_indices: wp.array(dtype=wp.int32), vertex_root: wp.array(dtype=wp.int32),
+                        crossed_out: wp.array2d(dtype=wp.int32)):
+    """The triangles of a triangle mesh that each of its edges crosses, the triangle touching neither end of the edge
+    (a surface intersects itself iff one of its edges crosses one of its triangles): each edge is followed as a ray
+    from end to end through the mesh's BVH, up to EDGE_CROSSING_HITS triangles. A vertex touches a triangle when its
+    `vertex_root` is one of the triangle's vertices' (a sewn point's particles are one vertex of a garment: the
+    smallest particle it is sewn to; the vertex itself elsewhere). One thread per edge; crossed_out[e] (edges,
+    EDGE_CROSSING_HITS) gets the faces it crosses in the order met along it, -1 after the last."""
     e = wp.tid()
+    for k in range(EDGE_CROSSING_HITS):
+        crossed_out[e, k] = -1
     a = edges[e][0]
     b = edges[e][1]
     p = points[a]
@@ -502,18 +507,22 @@ def count_edge_crossings(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), edges
     if length <= 0.0:
         return
     d = (points[b] - p) / length
+    ra = vertex_root[a]
+    rb = vertex_root[b]
     t = float(0.0)
+    found = int(0)
     for _ in range(EDGE_CROSSING_HITS):
         query = wp.mesh_query_ray(mesh, p + t * d, d, length - t)
         if not query.result:
             return
         f = query.face
-        i0 = tri_indices[3 * f]
-        i1 = tri_indices[3 * f + 1]
-        i2 = tri_indices[3 * f + 2]
-        touches = i0 == a or i1 == a or i2 == a or i0 == b or i1 == b or i2 == b
+        r0 = vertex_root[tri_indices[3 * f]]
+        r1 = vertex_root[tri_indices[3 * f + 1]]
+        r2 = vertex_root[tri_indices[3 * f + 2]]
+        touches = r0 == ra or r1 == ra or r2 == ra or r0 == rb or r1 == rb or r2 == rb
         if not touches:
-            wp.atomic_add(crossings_out, 0, 1)
+            crossed_out[e, found] = f
+            found += 1
         t = t + query.t + 1.0e-6 * length
         if t >= length:
             return
