@@ -30,6 +30,9 @@ SEAM_FINISH = 3e-3  # [m]: sewn points within a stitch's length at the end are f
 GROWTH_SPEED = 0.05  # [m/s]: a body shrunk under cloth placed inside it grows back this fast (or over the sewing's closing)
 GROWTH_SHARE = 0.45  # a body shrinks at most this share of its inner thickness at a vertex (it must not turn inside out)
 LAYER_CLEARANCE = 2.0  # [cloth thicknesses]: a held layer moved out of a dressed one's way clears it by this much
+ZIP_REACH = 0.02  # [m]: a sewn point a settling leaves open by at most this much is zipped shut (_zip_seams)
+ZIP_SPEED = 0.02  # [m/s]: ... its particles moved to their middle this fast
+ZIP_HOLD = 0.1  # [s]: ... and held there this long while the cloth round them settles
 LAYER_REACH = 0.15  # [m]: cloth farther than this from a held layer is not judged against it (nor moved further)
 
 
@@ -53,6 +56,8 @@ class DressingReport:
         open_seams: seam springs still longer than the run's weld distance at the end (they stay springs in the run).
         unfinished: sewn points closed within the finish's distance but left as they were, because moving their
             particles together would have moved cloth through cloth (:func:`finish_seams_clear`).
+        zipped: sewn points a settling left open (beyond the weld distance, within ZIP_REACH) and closed by hand
+            (:func:`_zip_seams`).
     """
 
     seconds: float
@@ -68,6 +73,7 @@ class DressingReport:
     self_crossings: int = 0
     open_seams: int = 0
     unfinished: int = 0
+    zipped: int = 0
 
 
 def frozen_collider(collider, time: float = 0.0):
@@ -471,14 +477,76 @@ def settle(builder, seconds: float = 1.0, *, fps: float = 60.0, substeps: int = 
     return _still_run(builder, seconds, 0.0, True, fps, substeps, damping, device, solver_options)
 
 
+def _still_simulator(trial, fps, substeps, device, solver_options):
+    """The model of a dressing's or settling's `trial` builder and an implicit Euler :class:`Simulator` of it with
+    `solver_options` (strain limit 0.1 unless given), as the dressing was tuned."""
+    from .simulator import Simulator
+    from .solvers import make_solver
+
+    model = trial.finalize(device)
+    options = dict(solver_options or {})
+    options.setdefault("strain_limit", 0.1)
+    solver = make_solver("implicit_euler", model, **options)
+    if solver.strain_limiter is not None:
+        # the limiter sweeps as if there were no colliders, as the dressing was tuned: panels start in and round a body
+        # that grows back under them, the colliders pass pushes them out; held off the body's surfaces while they
+        # slide together, the shipped T-shirt dressed into a fold at its shoulder seam that self-collision then pushed
+        # at every frame of its walk (7-16 impulses a frame, none without)
+        solver.strain_limiter.colliders = False
+    collisions = solver.pass_named("self_collision")
+    if collisions is not None:
+        # the broad phase built at every step, as the dressing was tuned: the shipped T-shirt's armpit seams close to a
+        # stitch at its 2.5 cm edges by round-off luck (docs/garments.md, the Known limits entry on sewing), which
+        # other candidate orders lose
+        collisions.self_collision.keep_broad_phase = False
+    return model, Simulator(model, solver, fps=fps, substeps=substeps)
+
+
+def _zip_seams(builder, x: np.ndarray, pairs: np.ndarray, fps, substeps, damping, device,
+               solver_options) -> tuple[np.ndarray, int]:
+    """Close the sewn points that a settling leaves open beyond the weld distance, but by no more than
+    :data:`ZIP_REACH`, by hand: each of their particles (of seam `pairs`, at positions `x` [m]) is moved by a handle to
+    its point's middle at :data:`ZIP_SPEED`, and held there :data:`ZIP_HOLD`, while the cloth round it is simulated as
+    the settling was (gravity, the attachments, the colliders still, self-collision: cloth is pushed aside, not
+    crossed). A T-shirt at 3.2 cm edges kept a sleeve-hem pair 8 mm open against the panel compressed beside it, which
+    its seam springs could not pull in. Returns the positions (the zipped points' particles at their middles) and how
+    many points were zipped."""
+    from .model import Keyframe
+
+    gaps = np.linalg.norm(x[pairs[:, 0]] - x[pairs[:, 1]], axis=1)
+    roots = joined_roots(pairs, len(x))
+    widest = np.zeros(len(x))  # per sewn point (at its root), its widest pair
+    np.maximum.at(widest, roots[pairs[:, 0]], gaps)
+    points = np.flatnonzero((widest > WELD_DISTANCE) & (widest <= ZIP_REACH))
+    if not len(points):
+        return x, 0
+    members = np.unique(pairs[np.isin(roots[pairs[:, 0]], points)])
+    middle = np.zeros_like(x)
+    np.add.at(middle, roots[members], x[members])
+    middle /= np.maximum(np.bincount(roots[members], minlength=len(x)), 1)[:, None]
+    shift = middle[roots[members]] - x[members]
+    seconds = max(float(np.linalg.norm(shift, axis=1).max()) / ZIP_SPEED, 1.0 / fps)
+    trial = copy.deepcopy(builder)
+    trial.particle_positions[:] = x
+    trial.particle_velocities[:] = 0.0
+    trial.global_damping = damping
+    trial.colliders = [frozen_collider(c) for c in trial.colliders]
+    trial.handles = []  # their particles stay pinned where they are
+    for p, d in zip(members, shift):
+        trial.add_handle([int(p)], [Keyframe(0.0), Keyframe(seconds, tuple(float(c) for c in d))], name=f"zip{p}")
+    _, sim = _still_simulator(trial, fps, substeps, device, solver_options)
+    for _ in range(math.ceil((seconds + ZIP_HOLD) * fps)):
+        sim.step_frame()
+    y = np.asarray(sim.positions(), np.float64)
+    y[members] = middle[roots[members]]
+    return y, len(points)
+
+
 def _still_run(builder, seconds, closing, gravity, fps, substeps, damping, device, solver_options, moving=None,
                under=None) -> DressingReport:
     """Simulate a copy of `builder` against its colliders held still at t = 0 and write the end positions back
     (`moving`: a mask of the particles that may move, the others pinned where they are, those of layers the moving ones
     start on the wrong side of moved out of their way (`under`, see :func:`dress`); default all)."""
-    from .simulator import Simulator
-    from .solvers import make_solver
-
     seconds = check_number("dressing seconds", seconds, LIMITS["dressing_time"])
     damping = check_number("dressing damping", damping, LIMITS["global_damping"])
     if len(builder.particle_positions) == 0:
@@ -507,23 +575,7 @@ def _still_run(builder, seconds, closing, gravity, fps, substeps, damping, devic
     trial.particle_pinned[~moving] = 1
     layered_from = _move_layers(trial, moving, layers, 0.5 * closing * seconds, device)
     below = list(under) if under is not None else [layer.name for layer in layers if layer.under]
-    model = trial.finalize(device)
-    options = dict(solver_options or {})
-    options.setdefault("strain_limit", 0.1)
-    solver = make_solver("implicit_euler", model, **options)
-    if solver.strain_limiter is not None:
-        # the limiter sweeps as if there were no colliders, as the dressing was tuned: panels start in and round a body
-        # that grows back under them, the colliders pass pushes them out; held off the body's surfaces while they
-        # slide together, the shipped T-shirt dressed into a fold at its shoulder seam that self-collision then pushed
-        # at every frame of its walk (7-16 impulses a frame, none without)
-        solver.strain_limiter.colliders = False
-    collisions = solver.pass_named("self_collision")
-    if collisions is not None:
-        # the broad phase built at every step, as the dressing was tuned: the shipped T-shirt's armpit seams close to a
-        # stitch at its 2.5 cm edges by round-off luck (docs/garments.md, the Known limits entry on sewing), which
-        # other candidate orders lose
-        collisions.self_collision.keep_broad_phase = False
-    sim = Simulator(model, solver, fps=fps, substeps=substeps)
+    model, sim = _still_simulator(trial, fps, substeps, device, solver_options)
     frames = max(1, math.ceil(seconds * fps))
     # The seams close at a walking pace: their rest lengths shrink from the gaps they start at to zero over the first
     # `closing` of the run (a seam spring pulling a 20 cm gap shut in one step would tear the cloth beside it).
@@ -560,26 +612,31 @@ def _still_run(builder, seconds, closing, gravity, fps, substeps, damping, devic
             x, v, narrowest = y, np.asarray(sim.state.particle_qd.numpy(), np.float64), gap
     frames += extra
     free = (builder.particle_pinned == 0) & moving
-    finished, unfinished = 0.0, 0
+    finished, unfinished, zipped = 0.0, 0, 0
     if seam.any():
         # the stitches are finished, so that the run starts with them one point and welds them: a settling's too (one
         # with the contacts in the solve left one 0.34 mm open, and a T-shirt's at 2.0 and 3.5 cm edges two each, 1.0 and
         # 1.7 mm, beyond the run's weld distance: springs for the whole run)
-        x, finished, unfinished = finish_seams_clear(x, ends[free[ends[:, 0]] & free[ends[:, 1]]], builder.triangles,
-                                                     SEAM_FINISH, device)
+        free_pairs = ends[free[ends[:, 0]] & free[ends[:, 1]]]
+        x, finished, unfinished = finish_seams_clear(x, free_pairs, builder.triangles, SEAM_FINISH, device)
+        if closing == 0.0:  # the settling hands the run its start: what it leaves open is zipped shut
+            x, zipped = _zip_seams(builder, x, free_pairs, fps, substeps, damping, device, solver_options)
+            if zipped:
+                x, _, unfinished = finish_seams_clear(x, free_pairs, builder.triangles, SEAM_FINISH, device)
     builder.particle_positions[free] = x[free]
     builder.particle_velocities[:] = 0.0
     inside = sum(int(np.count_nonzero(mesh_depths(c, builder.particle_positions[moving], device=device) < 0.0))
                  for c in builder.colliders if _closed(c)) if closing > 0.0 else 0
     crossing = crossing_layers(builder, moving, below, device) if below else 0
     # (not the held layers moved aside; the solver's measure when the last frame is kept)
-    strain = float(stats.max_strain) if moving.all() and last else _max_strain(builder, x, moving)
+    strain = float(stats.max_strain) if moving.all() and last and not zipped else _max_strain(builder, x, moving)
     sewn = ends[moving[ends[:, 0]]]
     y = builder.particle_positions
     gaps = np.linalg.norm(y[sewn[:, 0]] - y[sewn[:, 1]], axis=1)
     return DressingReport(frames / fps, frames * substeps, float(gaps.max(initial=0.0)),
                           float(np.linalg.norm(v[moving], axis=1).max()), strain, finished, grown_from, inside, layered_from, crossing,
-                          self_crossings(builder, moving, device), int(np.count_nonzero(gaps > WELD_DISTANCE)), unfinished)
+                          self_crossings(builder, moving, device), int(np.count_nonzero(gaps > WELD_DISTANCE)), unfinished,
+                          zipped)
 
 
 def _max_strain(builder, x: np.ndarray, particles: np.ndarray) -> float:

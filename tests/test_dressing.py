@@ -382,16 +382,21 @@ def sewn_row(gaps: list, stiffnesses: list):
 def test_settling_ends_with_the_points_the_run_welds_joined():
     """Check a settling ends with every sewn point closed within the run's weld distance (WELD_DISTANCE) joined at its
     middle, so the run starts with it one point (its first frame's seam gap 0: a settling left the shipped T-shirt's
-    0.34 mm open), and leaves a wider one to its springs."""
+    0.34 mm open); one its springs leave open within ZIP_REACH zipped shut by hand and joined (a seam too weak to close
+    5 mm), and a wider one left to its springs."""
+    from cloth_warp.dressing import ZIP_REACH
     from cloth_warp.sewing import WELD_DISTANCE
 
     # the near seam open beyond the weld at the start (not welded while settling), pulled to within it
-    b, (near_pairs, wide_pairs) = sewn_row([1.5 * WELD_DISTANCE, 5.0 * WELD_DISTANCE], [0.05, 1e-4])
+    b, (near_pairs, weak_pairs, wide_pairs) = sewn_row([1.5 * WELD_DISTANCE, 5.0 * WELD_DISTANCE, 1.5 * ZIP_REACH],
+                                                       [0.05, 1e-4, 1e-4])
     report = settle(b, 0.1, solver_options={"strain_limit": None})
     y = b.particle_positions
-    for i, j in near_pairs:
+    for i, j in near_pairs + weak_pairs:
         np.testing.assert_array_equal(y[i], y[j])
-    assert min(np.linalg.norm(y[i] - y[j]) for i, j in wide_pairs) > WELD_DISTANCE
+    assert report.zipped == len(weak_pairs)
+    assert min(np.linalg.norm(y[i] - y[j]) for i, j in wide_pairs) > ZIP_REACH
+    assert report.open_seams == len(wide_pairs)
     assert 0.0 < report.finished_from < WELD_DISTANCE
 
 
