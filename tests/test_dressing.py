@@ -454,7 +454,8 @@ def test_self_crossings_counts_cloth_through_cloth_with_a_seam_one_vertex():
 
 def test_a_garment_handed_to_the_run_tangled_or_open_is_warned_of(caplog):
     """Check what a dressing hands the run that the run cannot undo is warned of, naming the key: cloth crossing itself
-    (a T-shirt at 2.6 cm edges: 3 edges through triangles after its settle) and seams left open (springs, not welded)."""
+    (a T-shirt at 2.6 cm edges had 3 edges through triangles after its settle, before the finish checked for crossings) and
+    seams left open (springs, not welded)."""
     from cloth_warp.scene import _warn_handed_over
 
     with caplog.at_level("WARNING", logger="cloth_warp"):
