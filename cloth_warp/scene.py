@@ -909,7 +909,8 @@ def _dressing(b, scene: Scene, stage: str, device):
 
 def _warn_handed_over(report, key: str) -> None:
     """Warn of what the dressing hands the run that the run cannot undo: cloth crossing itself (self-collision keeps a
-    tangle it starts with) and seams left open (springs for the whole run, not welded)."""
+    tangle it starts with), seams left open (springs for the whole run, not welded) and garment edges through the body
+    (or the body's through the garment)."""
     if report.self_crossings:
         log.warning("%s: the garments cross themselves (%d edges through triangles) where the run starts; self-collision "
                     "keeps such a tangle: try another dressing time, edge length or placement of the panels", key,
@@ -917,6 +918,10 @@ def _warn_handed_over(report, key: str) -> None:
     if report.open_seams:
         log.warning("%s: %d seam springs are still open (%.1f mm at most) where the run starts; they stay springs, not "
                     "welded: try a longer dressing or settle", key, report.open_seams, 1e3 * report.seam_gap)
+    if report.body_crossings:
+        log.warning("%s: the garments and the body cross (%d edges through triangles) where the run starts; contacts hold "
+                    "the garment's particles off the body, not its edges, which can span a crease of the body (an "
+                    "armpit): try a shorter edge length", key, report.body_crossings)
 
 
 def layer_order(scene: Scene) -> list[list[str]]:

@@ -529,6 +529,30 @@ def find_edge_crossings(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), edges:
 
 
 @wp.kernel(enable_backward=False)
+def count_edges_through_mesh(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), edges: wp.array(dtype=wp.vec2i),
+                             crossings_out: wp.array(dtype=wp.int32)):
+    """How many times the edges of another surface (`points`, `edges`) cross a triangle of `mesh` (two surfaces
+    intersect iff an edge of one crosses a triangle of the other): each edge is followed as a ray from end to end
+    through the mesh's BVH, up to EDGE_CROSSING_HITS triangles. One thread per edge; the count is added into
+    crossings_out[0]."""
+    e = wp.tid()
+    p = points[edges[e][0]]
+    length = wp.length(points[edges[e][1]] - p)
+    if length <= 0.0:
+        return
+    d = (points[edges[e][1]] - p) / length
+    t = float(0.0)
+    for _ in range(EDGE_CROSSING_HITS):
+        query = wp.mesh_query_ray(mesh, p + t * d, d, length - t)
+        if not query.result:
+            return
+        wp.atomic_add(crossings_out, 0, 1)
+        t = t + query.t + 1.0e-6 * length
+        if t >= length:
+            return
+
+
+@wp.kernel(enable_backward=False)
 def mesh_signed_distance(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), max_distance: float,
                          distance_out: wp.array(dtype=float)):
     """Signed distance [m] of each point to a closed mesh (negative inside), inside by the generalised winding number:

@@ -452,19 +452,63 @@ def test_self_crossings_counts_cloth_through_cloth_with_a_seam_one_vertex():
     assert self_crossings(sewn) == 0
 
 
+@pytest.mark.parametrize("turned", [False, True])
+def test_body_crossings_counts_garment_edges_spanning_the_body(turned):
+    """Check the dressing's count of garment/body crossings (kernels/collide.py count_edges_through_mesh, both ways):
+    a coarse cloth whose particles all lie outside a thin upright body, its edges spanning the body as a 3.5 cm T-shirt's
+    span an armpit, crosses it as often as the independent checker of tests/intersections.py finds (the body placed
+    by its pose, or turned into it about its own vertical axis); the body moved clear of it does not."""
+    import trimesh
+
+    from cloth_warp.dressing import body_crossings
+
+    def garment(centre, rotation=None):
+        b = cw.ModelBuilder()
+        grid = np.array([(x, 0.5, z) for z in (-0.2, 0.0, 0.2) for x in (-0.2, 0.0, 0.2)])
+        tris = [[0, 1, 4], [0, 4, 3], [1, 2, 5], [1, 5, 4], [3, 4, 7], [3, 7, 6], [4, 5, 8], [4, 8, 7]]
+        b.add_cloth_mesh(grid, tris, material="cotton")
+        box = trimesh.creation.box(extents=(0.02, 0.3, 0.3))
+        b.add_collider_mesh(box.vertices, box.faces, position=centre, rotation=rotation, name="body")
+        return b
+
+    quarter = cw.quat_from_axis_angle((0.0, 1.0, 0.0), 90.0)
+    # thin along x between the particles at x = 0 and 0.2 (or, turned a quarter, thin along z between z = 0 and 0.2)
+    centre, rotation = ((0.013, 0.51, 0.1), quarter) if turned else ((0.1, 0.51, 0.013), None)
+    b = garment(centre, rotation)
+    body = b.colliders[0]
+    position, q = body.pose_at(0.0)
+    world = np.asarray(body.vertices_at(0.0)) @ quat_to_matrix(q).T + np.asarray(position)
+    x = b.particle_positions
+    tris = np.asarray(b.triangles).reshape(-1, 3)
+    assert _penetration_free(b)
+    found = body_crossings(b)
+    assert found >= 4
+    assert found == len(crossing_pairs(x, tris, world, np.asarray(body.triangles)))
+    assert body_crossings(garment((0.5, 0.51, 0.5), rotation)) == 0
+
+
+def _penetration_free(b) -> bool:
+    """Whether no particle of the builder lies inside its closed mesh colliders."""
+    from cloth_warp.dressing import body_distance
+
+    return bool(body_distance(b.colliders, b.particle_positions).min() > 0.0)
+
+
 def test_a_garment_handed_to_the_run_tangled_or_open_is_warned_of(caplog):
     """Check what a dressing hands the run that the run cannot undo is warned of, naming the key: cloth crossing itself
-    (a T-shirt at 2.6 cm edges had 3 edges through triangles after its settle, before the finish checked for crossings) and
-    seams left open (springs, not welded)."""
+    (a T-shirt at 2.6 cm edges had 3 edges through triangles after its settle, before the finish checked for crossings),
+    seams left open (springs, not welded) and garment edges spanning the body through it."""
     from cloth_warp.scene import _warn_handed_over
 
     with caplog.at_level("WARNING", logger="cloth_warp"):
         _warn_handed_over(DressingReport(0.5, 60, 0.0, 0.0, 0.1), "dressing.settle")
         assert not caplog.records
-        _warn_handed_over(DressingReport(0.5, 60, 0.0046, 0.0, 0.1, self_crossings=3, open_seams=1), "dressing.settle")
+        _warn_handed_over(DressingReport(0.5, 60, 0.0046, 0.0, 0.1, self_crossings=3, open_seams=1, body_crossings=6),
+                          "dressing.settle")
     text = caplog.text
     assert "dressing.settle: the garments cross themselves (3 edges" in text
     assert "dressing.settle: 1 seam springs are still open (4.6 mm at most)" in text
+    assert "dressing.settle: the garments and the body cross (6 edges through triangles)" in text
 
 
 def test_a_dressing_that_diverges_stops_with_the_key_and_no_cache(tmp_path, monkeypatch, capsys):
