@@ -334,24 +334,34 @@ def crossing_pairs(x: np.ndarray, triangles: np.ndarray, roots: np.ndarray, devi
     """The (edge's first particle, edge's second particle, triangle) triples of a cloth (positions `x` [m], its
     `triangles`) whose edge crosses the triangle, the triangle touching neither end of the edge, a particle touching
     the triangles of every particle that shares its `roots` entry (a sewn point's: :func:`~cloth_warp.topology.joined_roots`)
-    (kernels/collide.py `find_edge_crossings`). Empty for cloth free of intersections."""
+    (:func:`_edge_crossings`). Empty for cloth free of intersections."""
+    tris = np.asarray(triangles, np.int64).reshape(-1, 3)
+    if len(tris) == 0:
+        return set()
+    roots = np.asarray(roots, np.int32)
+    edges, crossed = _edge_crossings(x, tris, roots, x, tris, roots, device)
+    e, k = np.nonzero(crossed >= 0)
+    return {(int(edges[i, 0]), int(edges[i, 1]), int(f)) for i, f in zip(e, crossed[e, k])}
+
+
+def _edge_crossings(x, triangles, roots, edge_points, edge_triangles, edge_roots, device):
+    """The edges of `edge_triangles` (at `edge_points`) and, per edge, the triangles of the mesh (`x`, `triangles`) it
+    crosses, touching neither of its ends (`edge_roots` against the mesh's `roots`), -1 padded (kernels/collide.py
+    `find_edge_crossings`): ((edges, 2), (edges, EDGE_CROSSING_HITS)) numpy arrays."""
     import warp as wp
 
     from .broadphase import unique_edges
     from .kernels import collide as kc
 
-    tris = np.asarray(triangles, np.int64).reshape(-1, 3)
-    if len(tris) == 0:
-        return set()
-    edges = unique_edges(tris)
-    mesh = _warp_mesh(x, tris, device)
+    edges = unique_edges(np.asarray(edge_triangles, np.int64))
+    mesh = _warp_mesh(x, triangles, device)
     crossed = wp.empty((len(edges), int(kc.EDGE_CROSSING_HITS)), dtype=wp.int32, device=mesh.device)
     wp.launch(kc.find_edge_crossings, dim=len(edges),
-              inputs=[mesh.id, mesh.points, wp.array(edges.astype(np.int32), dtype=wp.vec2i, device=mesh.device), mesh.indices,
-                      wp.array(np.asarray(roots, np.int32), dtype=wp.int32, device=mesh.device)], outputs=[crossed], device=mesh.device)
-    e, k = np.nonzero(crossed.numpy() >= 0)
-    faces = crossed.numpy()[e, k]
-    return {(int(edges[i, 0]), int(edges[i, 1]), int(f)) for i, f in zip(e, faces)}
+              inputs=[mesh.id, wp.array(np.asarray(edge_points, np.float32), dtype=wp.vec3, device=mesh.device),
+                      wp.array(edges.astype(np.int32), dtype=wp.vec2i, device=mesh.device), mesh.indices,
+                      wp.array(roots, dtype=wp.int32, device=mesh.device), wp.array(edge_roots, dtype=wp.int32, device=mesh.device)],
+              outputs=[crossed], device=mesh.device)
+    return edges, crossed.numpy()
 
 
 def self_crossings(builder, particles=None, device=None) -> int:
@@ -373,11 +383,7 @@ def body_crossings(builder, particles=None, device=None) -> int:
     crosses a triangle of its closed mesh colliders (the body, in its pose and shape at t = 0), or an edge of those a
     cloth triangle: 0 where the garment and the body do not intersect. Contacts hold particles off a body, not edges:
     an edge longer than a crease of the body is wide can span it through the body (a T-shirt at 3.5 cm edges at the
-    armpit) (kernels/collide.py `count_edges_through_mesh`, both ways)."""
-    import warp as wp
-
-    from .broadphase import unique_edges
-    from .kernels import collide as kc
+    armpit) (:func:`_edge_crossings`, both ways)."""
     from .model import quat_to_matrix
 
     tris = np.asarray(builder.triangles, np.int64).reshape(-1, 3)
@@ -393,15 +399,11 @@ def body_crossings(builder, particles=None, device=None) -> int:
         position, rotation = c.pose_at(0.0)
         body = np.asarray(c.vertices_at(0.0), np.float64) @ quat_to_matrix(rotation).T + np.asarray(position)
         body_tris = np.asarray(c.triangles, np.int64)
-        for (points, triangles), (other, other_tris) in (((x, tris), (body, body_tris)), ((body, body_tris), (x, tris))):
-            mesh = _warp_mesh(other, other_tris, device)
-            edges = unique_edges(triangles)
-            out = wp.zeros(1, dtype=wp.int32, device=mesh.device)
-            wp.launch(kc.count_edges_through_mesh, dim=len(edges),
-                      inputs=[mesh.id, wp.array(np.asarray(points, np.float32), dtype=wp.vec3, device=mesh.device),
-                              wp.array(edges.astype(np.int32), dtype=wp.vec2i, device=mesh.device)], outputs=[out],
-                      device=mesh.device)
-            count += int(out.numpy()[0])
+        cloth_roots = np.arange(len(x), dtype=np.int32)
+        body_roots = np.arange(len(x), len(x) + len(body), dtype=np.int32)  # (no end of one touches the other)
+        for mesh, edges_of in (((body, body_tris, body_roots), (x, tris, cloth_roots)),
+                               ((x, tris, cloth_roots), (body, body_tris, body_roots))):
+            count += int(np.count_nonzero(_edge_crossings(*mesh, *edges_of, device)[1] >= 0))
     return count
 
 

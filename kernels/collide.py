@@ -490,13 +490,14 @@ EDGE_CROSSING_HITS = wp.constant(8)  # the most triangles one edge's ray is foll
 @wp.kernel(enable_backward=False)
 def find_edge_crossings(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), edges: wp.array(dtype=wp.vec2i),
                         tri_indices: wp.array(dtype=wp.int32), vertex_root: wp.array(dtype=wp.int32),
-                        crossed_out: wp.array2d(dtype=wp.int32)):
-    """The triangles of a triangle mesh that each of its edges crosses, the triangle touching neither end of the edge
-    (a surface intersects itself iff one of its edges crosses one of its triangles): each edge is followed as a ray
-    from end to end through the mesh's BVH, up to EDGE_CROSSING_HITS triangles. A vertex touches a triangle when its
-    `vertex_root` is one of the triangle's vertices' (a sewn point's particles are one vertex of a garment: the
-    smallest particle it is sewn to; the vertex itself elsewhere). One thread per edge; crossed_out[e] (edges,
-    EDGE_CROSSING_HITS) gets the faces it crosses in the order met along it, -1 after the last."""
+                        edge_root: wp.array(dtype=wp.int32), crossed_out: wp.array2d(dtype=wp.int32)):
+    """The triangles of `mesh` (its vertex indices `tri_indices`) that each edge (of `points`: the mesh's own, or another
+    surface's) crosses, the triangle touching neither end of the edge (two surfaces, or one and itself, intersect iff
+    an edge of one crosses a triangle of the other): each edge is followed as a ray from end to end through the mesh's
+    BVH, up to EDGE_CROSSING_HITS triangles. An edge's end touches a triangle when its `edge_root` is one of the
+    triangle's vertices' `vertex_root` (a cloth's own edges: the same array, a sewn point's particles one vertex, the
+    smallest particle it is sewn to; another surface's: roots that match none). One thread per edge; crossed_out[e]
+    (edges, EDGE_CROSSING_HITS) gets the faces it crosses in the order met along it, -1 after the last."""
     e = wp.tid()
     for k in range(EDGE_CROSSING_HITS):
         crossed_out[e, k] = -1
@@ -507,8 +508,8 @@ def find_edge_crossings(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), edges:
     if length <= 0.0:
         return
     d = (points[b] - p) / length
-    ra = vertex_root[a]
-    rb = vertex_root[b]
+    ra = edge_root[a]
+    rb = edge_root[b]
     t = float(0.0)
     found = int(0)
     for _ in range(EDGE_CROSSING_HITS):
@@ -523,30 +524,6 @@ def find_edge_crossings(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), edges:
         if not touches:
             crossed_out[e, found] = f
             found += 1
-        t = t + query.t + 1.0e-6 * length
-        if t >= length:
-            return
-
-
-@wp.kernel(enable_backward=False)
-def count_edges_through_mesh(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), edges: wp.array(dtype=wp.vec2i),
-                             crossings_out: wp.array(dtype=wp.int32)):
-    """How many times the edges of another surface (`points`, `edges`) cross a triangle of `mesh` (two surfaces
-    intersect iff an edge of one crosses a triangle of the other): each edge is followed as a ray from end to end
-    through the mesh's BVH, up to EDGE_CROSSING_HITS triangles. One thread per edge; the count is added into
-    crossings_out[0]."""
-    e = wp.tid()
-    p = points[edges[e][0]]
-    length = wp.length(points[edges[e][1]] - p)
-    if length <= 0.0:
-        return
-    d = (points[edges[e][1]] - p) / length
-    t = float(0.0)
-    for _ in range(EDGE_CROSSING_HITS):
-        query = wp.mesh_query_ray(mesh, p + t * d, d, length - t)
-        if not query.result:
-            return
-        wp.atomic_add(crossings_out, 0, 1)
         t = t + query.t + 1.0e-6 * length
         if t >= length:
             return

@@ -418,7 +418,7 @@ def test_a_settling_goes_on_until_a_seam_open_at_its_end_closes():
 
 
 def test_self_crossings_counts_cloth_through_cloth_with_a_seam_one_vertex():
-    """Check the dressing's intersection count (kernels/collide.py count_edge_crossings): a square through another
+    """Check the dressing's intersection count (kernels/collide.py find_edge_crossings): a square through another
     crosses it (as the independent checker of tests/intersections.py finds: placed off the other's grid lines, as many
     edges through triangles within one, float32 against float64 near a triangle's edge), lifted clear of it does not,
     and a square sewn at right angles to another along a seam (the seam's particles coincide) is one surface, not a
@@ -454,7 +454,7 @@ def test_self_crossings_counts_cloth_through_cloth_with_a_seam_one_vertex():
 
 @pytest.mark.parametrize("turned", [False, True])
 def test_body_crossings_counts_garment_edges_spanning_the_body(turned):
-    """Check the dressing's count of garment/body crossings (kernels/collide.py count_edges_through_mesh, both ways):
+    """Check the dressing's count of garment/body crossings (kernels/collide.py find_edge_crossings, both ways):
     a coarse cloth whose particles all lie outside a thin upright body, its edges spanning the body as a 3.5 cm T-shirt's
     span an armpit, crosses it as often as the independent checker of tests/intersections.py finds (the body placed
     by its pose, or turned into it about its own vertical axis); the body moved clear of it does not."""
