@@ -313,13 +313,23 @@ class SelfCollision:
         buf = self.grid.vertex_face if kind == 0 else self.grid.edge_edge
         return buf.pairs, buf.count
 
-    def contact_candidates(self) -> list[tuple[wp.array, wp.array]]:
-        """Per pair kind, (pairs, device count): the close pairs of the last step either path ran (the capturable
-        path's lists; the host path copies its own there when :attr:`share_close_pairs`), empty before one ran. What is close at the end of a step
-        is close at the start of the next: the candidates of the next step's self-contacts in the implicit solve,
-        which checks their distance itself."""
+    def contact_candidates(self, x_start: wp.array, velocity: wp.array, dt: float) -> list[tuple[wp.array, wp.array]]:
+        """Per pair kind, (pairs, device count): the candidates of the implicit solve's self-contacts for the step from
+        x_start [m] at velocity [m/s] over dt [s] (which checks their distance itself): the capturable path's close
+        pairs with its registered broad phase kept, patched or built for the trajectories x_start + t velocity (as the
+        pass refreshes it for its own; the pass then keeps it unless the solve moved a particle beyond the margin).
+        Pairs close at the end of the last step (the pass's) missed a particle sliding onto a triangle it did not
+        reach then; a run's first step, or a frame run again with grown buffers, had none (the T-shirt's first step
+        carried two armhole pairs from 5 mm to 1.6 mm apart, and the pass after the solve stretched a spring to
+        14.8 %)."""
         f = self._fixed_buffers()
+        self._refresh_fixed(x_start, velocity, dt, self._fixed_pad() if self.keep_broad_phase else 0.5 * self.thickness)
         return [(f.close[kind], f.close_count[kind]) for kind in KINDS]
+
+    def _fixed_pad(self) -> float:
+        """[m] The capturable path's boxes grow by this (and the margin) around their trajectories: half the close reach,
+        so that two elements coming within that reach of each other have overlapping boxes."""
+        return 0.5 * max(self.thickness, self.close_reach())
 
     def _keep_close_pairs(self):
         """The host path's close pairs into the capturable path's lists (:meth:`contact_candidates`)."""
@@ -478,7 +488,7 @@ class SelfCollision:
         if self.keep_broad_phase:
             # boxes grown by half the close reach (plus the margin): two elements that come within that reach of each other
             # in a step whose trajectories are within the margin of the registered ones have overlapping registered boxes
-            pad = 0.5 * max(h_c, self.close_reach())
+            pad = self._fixed_pad()
             # kept while every trajectory stays within the margin of its registered one, across the steps too
             self._refresh_fixed(x_start, f.vbar0, dt, pad)
         else:

@@ -519,7 +519,13 @@ class SolverImplicitEuler(SolverBase):
         membrane elements and plate stencils also scatter into."""
         m = self.model
         dev = m.device
-        candidates = [sc.contact_candidates() for sc, *_ in self._self_collisions]
+        candidates = []
+        for sc, _, _, first in self._self_collisions:  # (batched worlds: each world's slice of the particles)
+            n = sc.model.particle_count
+            x, v = state_in.particle_q, state_in.particle_qd
+            if n != m.particle_count:
+                x, v = x[first:first + n], v[first:first + n]
+            candidates.append(sc.contact_candidates(x, v, dt))
         capacity = sum(pairs.shape[0] for world in candidates for pairs, _ in world)
         if self._self_contact_elements is None or self._self_contact_elements[0].shape[0] != capacity:
             self._self_contact_elements = (wp.zeros(capacity, dtype=wp.vec4i, device=dev), wp.zeros(capacity, dtype=wp.vec4, device=dev),
