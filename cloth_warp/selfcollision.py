@@ -271,6 +271,7 @@ class SelfCollision:
             for kind in KINDS:
                 count = min(int(f.close_count[kind].numpy()[0]), f.close[kind].shape[0])
                 out[f"close{kind}"] = f.close[kind].numpy()[:count].astype(np.int32).reshape(count, 2)
+            out["unprimed"] = int(f.unprimed.numpy()[0])
             # and the trajectories they were registered for, with the elements' boxes a patch tests against: the next
             # step keeps them as the run it continues does
             out.update({key: a.numpy().copy() for key, a in f.registered(self.grid).items()})
@@ -290,6 +291,7 @@ class SelfCollision:
                 if count:
                     wp.copy(f.close[kind], wp.array(pairs[:count], dtype=wp.vec2i, device=self.model.device), count=count)
                 f.close_count[kind].fill_(count)
+            f.unprimed.fill_(int(state.get("unprimed", 0)))  # (checkpoints from before it was kept: found when saved)
             if "registration" in state:  # (checkpoints from before the broad phase was kept across steps: built again)
                 for key, a in f.registered(self.grid).items():
                     a.assign(np.asarray(state[key], np.float32).reshape(a.numpy().shape))
@@ -314,17 +316,24 @@ class SelfCollision:
         return buf.pairs, buf.count
 
     def contact_candidates(self, x_start: wp.array, velocity: wp.array, dt: float) -> list[tuple[wp.array, wp.array]]:
-        """Per pair kind, (pairs, device count): the candidates of the implicit solve's self-contacts for the step from
-        x_start [m] at velocity [m/s] over dt [s] (which checks their distance itself): the capturable path's close
-        pairs with its registered broad phase kept, patched or built for the trajectories x_start + t velocity (as the
-        pass refreshes it for its own; the pass then keeps it unless the solve moved a particle beyond the margin).
-        Pairs close at the end of the last step (the pass's) missed a particle sliding onto a triangle it did not
-        reach then; a run's first step, or a frame run again with grown buffers, had none (the T-shirt's first step
-        carried two armhole pairs from 5 mm to 1.6 mm apart, and the pass after the solve stretched a spring to
-        14.8 %)."""
+        """Per pair kind, (pairs, device count): the close pairs of the last step either path ran (the capturable
+        path's lists; the host path copies its own there when :attr:`share_close_pairs`). What is close at the end of a
+        step is close at the start of the next: the candidates of the next step's self-contacts in the implicit solve,
+        which checks their distance itself. Before any step ran (a run's first step; a frame run again from such a
+        start or with grown buffers), the close pairs of the trajectories x_start [m] + t velocity [m/s], t in [0, dt]
+        [s], are found first (:meth:`_prime_fixed`; a device-side branch: a recorded frame replays it only then).
+        Without them the T-shirt's first step carried two armhole pairs from 5 mm to 1.6 mm apart and the pass after
+        the solve stretched a spring to 14.8 %, and a cloth lying on a cloth left its first frame at 65-107 mm/s."""
         f = self._fixed_buffers()
-        self._refresh_fixed(x_start, velocity, dt, self._fixed_pad() if self.keep_broad_phase else 0.5 * self.thickness)
+        wp.capture_if(f.unprimed, on_true=self._prime_fixed, x_start=x_start, velocity=velocity, dt=dt)
         return [(f.close[kind], f.close_count[kind]) for kind in KINDS]
+
+    def _prime_fixed(self, x_start, velocity, dt):
+        """The close pairs of the trajectories x_start + t velocity, by a broad phase built for them and then forgotten
+        (the step's pass builds its own, as it would have)."""
+        self._build_fixed(x_start, velocity, dt, self._fixed_pad())
+        self._fixed.registration.zero_()
+        self._fixed.unprimed.zero_()
 
     def _fixed_pad(self) -> float:
         """[m] The capturable path's boxes grow by this (and the margin) around their trajectories: half the close reach,
@@ -340,6 +349,7 @@ class SelfCollision:
             if count:
                 wp.copy(f.close[kind], pairs, count=count)
             f.close_count[kind].fill_(count)
+        f.unprimed.zero_()
 
     def close_reach(self) -> float:
         """Distance [m] (beyond what their vertices travel in the step) within which candidate pairs are kept as close:
@@ -525,6 +535,7 @@ class SelfCollision:
         wp.copy(f.resolved, f.vbar)
         self._resolved = (x_start, float(dt), f.resolved)
         wp.launch(ksc.finish_step, dim=n, inputs=[x_start, f.vbar, f.vbar0, v_end, dt], outputs=[x_out, v_out], device=dev)
+        f.unprimed.zero_()  # its close pairs: the next step's candidates
 
     def _sweep_fixed(self, x_start, dt, pad, tolerance, separation, first: bool, weight):
         """One CCD sweep of the capturable path (the body of its ``capture_while`` loop after the first): the
@@ -934,7 +945,8 @@ class _FixedBuffers:
             grid.fixed_reference = wp.zeros(n, dtype=wp.vec3, device=dev)
         # what a step carries to the next (the registered broad phase: its trajectories, the elements' boxes a patch tests
         # against, its close pairs), each with its copy as the frame started (SelfCollision.save_frame_start)
-        carried = [*self.registered(grid).values(), *self.close, *self.close_count]
+        self.unprimed = wp.ones(1, dtype=wp.int32, device=dev)  # 1 until close pairs were found (SelfCollision.contact_candidates)
+        carried = [*self.registered(grid).values(), *self.close, *self.close_count, self.unprimed]
         self.carried = [(a, wp.empty_like(a)) for a in carried]
 
     def registered(self, grid: SelfCollisionGrid) -> dict:
