@@ -84,7 +84,8 @@ DIAGNOSTICS = {  # per-frame custom attributes: name -> (USD type name, descript
     "seamGap": ("float", "largest distance between sewn particles at the end of the frame [m] (0 without seams)"),
 }
 # per-frame diagnostic attribute <- collision counter (cloth_warp.collision / cloth_warp.selfcollision)
-COUNTER_DIAGNOSTICS = {"colliderContacts": "collider_contacts", "colliderCcd": "collider_ccd", "selfProximity": "self_proximity",
+COUNTER_DIAGNOSTICS = {"colliderContacts": "collider_contacts", "colliderCcd": "collider_ccd", "colliderSamples": "collider_samples",
+                       "selfProximity": "self_proximity",
                        "selfCcd": "self_ccd", "selfSweeps": "self_sweeps", "impactZones": "impact_zones", "selfUnresolved": "unresolved"}
 # per-frame diagnostic attribute <- the strain limiter's report (FrameReport.counters)
 STRAIN_LIMIT_DIAGNOSTICS = {"strainExcessStructural": "strain_excess_structural", "strainExcessShear": "strain_excess_shear",

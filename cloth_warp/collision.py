@@ -27,7 +27,7 @@ from .records import record_values
 from .selfcollision import COUNTERS as SELF_COUNTERS
 from .selfcollision import SelfCollision
 
-COUNTERS = ("collider_contacts", "collider_ccd")
+COUNTERS = ("collider_contacts", "collider_ccd", "collider_samples")
 ALL_COUNTERS = COUNTERS + SELF_COUNTERS  # the counter names of both contact passes (frame diagnostics)
 
 
@@ -38,12 +38,15 @@ class ColliderPass(StepPass):
     pose to end pose) is traced for its first point within the collider's thickness; the end point is
     put back on the tangent plane there (offset by the thickness) with inelastic normal response and
     static/kinetic Coulomb friction, then pushed out along the surface normal if curvature still leaves
-    it inside. Only cloth vertices are tested (a collider's sharp edge can poke between vertices of a
-    coarse cloth). One launch, no host reads: capturable.
+    it inside. Then points of the cloth's edges and triangles (:func:`element_samples`) found inside a mesh collider
+    are moved out to a quarter of its thickness by their particles (kernels/collide.py `collide_element_samples`, SAMPLE_CLEARANCE):
+    the particles alone are held at the thickness, and a coarse cloth's edge between them spanned the mannequin's armpit
+    through the body (3.5 cm edges) or cut a shoulder (3.2 cm) while every particle was outside. Three launches, no
+    host reads: capturable.
 
     Report (:class:`~cloth_warp.diagnostics.ColliderReport`, summed over the steps since :meth:`reset_report`):
     contacts resolved and, of them, the ones only the continuous trace found (``ccd``: the end point alone was
-    clear, so a discrete test would have tunnelled).
+    clear, so a discrete test would have tunnelled); element samples pushed out (``samples``).
     """
 
     name = "colliders"
@@ -51,6 +54,16 @@ class ColliderPass(StepPass):
     def __init__(self, model: Model):
         self.model = model
         self.counts = wp.zeros(len(COUNTERS), dtype=wp.int32, device=model.device)
+        particles, weights = element_samples(model.tri_indices.numpy().reshape(-1, 3) if model.tri_count else np.zeros((0, 3), int))
+        self.sample_particles = wp.array(particles, dtype=wp.vec3i, device=model.device)
+        """Each element sample's particles, (S, 3) int32 (an edge's third -1)."""
+        self.sample_weights = wp.array(weights, dtype=wp.vec3, device=model.device)
+        """Each element sample's weights on its particles, (S, 3)."""
+        self.sample_sweeps = 4
+        """Rounds of the element samples per step: each moves a particle by the mean of its samples' pushes, so a sample
+        deeper than its neighbours takes a few (one left a triangle across a ridge crossing it)."""
+        self.samples_on = True
+        """Whether the element samples are kept out of the mesh colliders (in a recorded frame: as it was recorded)."""
         self.pinch = False
         """Whether a particle pinched between two facing surfaces is pushed out only to where it is as far from both
         (kernels/collide.py `pinch_height`), where the implicit solve lands it: set by a solver with the collider
@@ -69,10 +82,16 @@ class ColliderPass(StepPass):
 
     def read_report(self) -> ColliderReport:
         c = record_values(self.counts)
-        return ColliderReport(contacts=int(c[0]), ccd=int(c[1]))
+        return ColliderReport(contacts=int(c[0]), ccd=int(c[1]), samples=int(c[2]))
 
     def apply(self, x_start, x_end, v_end, control: Control, dt: float, x_out, v_out):
         m = self.model
+        dev = m.device
+        samples = self.samples_on and self.sample_particles.shape[0] > 0 and m.collider_count > 0
+        taped = x_end.requires_grad
+        # the particles' contacts into the outputs, or, before the samples when taped, into arrays of the step's own (the
+        # samples read them: a taped kernel's input is never overwritten)
+        x_mid, v_mid = (wp.empty_like(x_out), wp.empty_like(v_out)) if samples and taped else (x_out, v_out)
         wp.launch(
             kcol.collide_colliders,
             dim=m.particle_count,
@@ -80,9 +99,50 @@ class ColliderPass(StepPass):
                     m.collider_thickness,
                     m.collider_static_friction, m.collider_kinetic_friction, m.collider_mesh_max_distance,
                     control.collider_transform_start, control.collider_transform_end, x_start, x_end, v_end, dt, int(self.pinch)],
-            outputs=[x_out, v_out, self.counts],
-            device=m.device,
+            outputs=[x_mid, v_mid, self.counts],
+            device=dev,
         )
+        if not samples:
+            return
+        for sweep in range(self.sample_sweeps):
+            pushes = self._pushes(taped)
+            for a in pushes:
+                a.zero_()
+            wp.launch(kcol.collide_element_samples, dim=self.sample_particles.shape[0],
+                      inputs=[m.particle_pinned, m.collider_count, m.collider_shape, m.collider_size, m.collider_mesh,
+                              m.collider_deforming, m.collider_thickness, m.collider_mesh_max_distance, control.collider_transform_start,
+                              control.collider_transform_end, self.sample_particles, self.sample_weights, x_mid, v_mid, dt],
+                      outputs=[*pushes, self.counts], device=dev)
+            last = sweep == self.sample_sweeps - 1
+            x_next, v_next = (x_out, v_out) if last or not taped else (wp.empty_like(x_out), wp.empty_like(v_out))
+            wp.launch(kcol.apply_sample_pushes, dim=m.particle_count, inputs=[x_mid, v_mid, *pushes], outputs=[x_next, v_next],
+                      device=dev)
+            x_mid, v_mid = x_next, v_next
+
+    def _pushes(self, fresh: bool) -> tuple:
+        """Per particle: the summed position [m] and velocity [m/s] changes of its element samples and their count (the
+        pass's own arrays; a taped step's fresh)."""
+        n, dev = self.model.particle_count, self.model.device
+        if fresh or getattr(self, "_push_arrays", None) is None:
+            arrays = (wp.zeros(n, dtype=wp.vec3, device=dev, requires_grad=fresh), wp.zeros(n, dtype=wp.vec3, device=dev, requires_grad=fresh),
+                      wp.zeros(n, dtype=float, device=dev))
+            if fresh:
+                return arrays
+            self._push_arrays = arrays
+        return self._push_arrays
+
+
+def element_samples(tri_indices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The colliders pass's element samples of a triangle mesh (T, 3): one per edge (its particles and -1; weights 1/2,
+    1/2, 0: the kernel finds where along it it runs inside), then in every triangle its centroid and the three points
+    halfway from it to a corner (weights 1/3 each; 2/3, 1/6, 1/6 and their turns). Returns (particles (S, 3) int32,
+    weights (S, 3) float32)."""
+    tris = np.asarray(tri_indices, np.int64).reshape(-1, 3)
+    edges = np.unique(np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1), axis=0)
+    face_points = np.array([[2.0, 2.0, 2.0], [4.0, 1.0, 1.0], [1.0, 4.0, 1.0], [1.0, 1.0, 4.0]]) / 6.0
+    particles = np.concatenate([np.column_stack([edges, np.full(len(edges), -1)]), np.repeat(tris, len(face_points), axis=0)])
+    weights = np.concatenate([np.tile([0.5, 0.5, 0.0], (len(edges), 1)), np.tile(face_points, (len(tris), 1))])
+    return particles.astype(np.int32).reshape(-1, 3), weights.astype(np.float32).reshape(-1, 3)
 
 
 class SelfCollisionPass(StepPass):

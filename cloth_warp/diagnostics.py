@@ -112,14 +112,16 @@ class Diagnostics:
 
 @dataclass(frozen=True)
 class ColliderReport:
-    """The collider pass over some steps: contacts resolved, and of them those only the continuous trace found."""
+    """The collider pass over some steps: contacts resolved, and of them those only the continuous trace found; the
+    cloth's element samples (edge and triangle middles) pushed out of a collider."""
 
     contacts: int
     ccd: int
+    samples: int = 0
 
     def counters(self) -> dict:
         """As the frame diagnostics name them."""
-        return {"collider_contacts": self.contacts, "collider_ccd": self.ccd}
+        return {"collider_contacts": self.contacts, "collider_ccd": self.ccd, "collider_samples": self.samples}
 
 
 @dataclass(frozen=True)

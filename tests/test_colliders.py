@@ -184,7 +184,7 @@ def test_fast_particle_does_not_tunnel():
     assert x[1] == pytest.approx(0.001 + 0.003, abs=1e-6)
     assert np.allclose(x[[0, 2]], 0.25, atol=1e-6)
     assert abs(v[1]) < 1e-6
-    assert solver.read_pass_reports()["colliders"].counters() == {"collider_contacts": 1, "collider_ccd": 1}
+    assert solver.read_pass_reports()["colliders"].counters() == {"collider_contacts": 1, "collider_ccd": 1, "collider_samples": 0}
 
 
 def test_moving_collider_carries_particle():
@@ -459,3 +459,86 @@ substeps = 2
     assert x[:, 0].mean() - x0 == pytest.approx(0.3, abs=0.02)
     assert v[:, 0].mean() == pytest.approx(0.5, abs=0.02) and stats.max_strain < 0.05
     assert penetration_depths(m, x, 0.6).max() < 1e-5
+
+
+def _ridge_and_triangle(seed, pinned=False):
+    """A closed prism whose apex is a ridge along z (faces sloping 45 degrees down from it) and a cloth triangle whose
+    edge ab passes under the apex, through the prism, while all three particles lie clear of it by more than the
+    thickness (c above the apex); both turned about the vertical and moved at random. Returns the model, the prism's
+    world vertices and faces."""
+    from cloth_warp.model import quat_to_matrix
+    from cloth_warp.builder import quat_from_axis_angle
+
+    rng = np.random.default_rng(seed)
+    h, half = 0.1, 0.2
+    prism = np.array([[0, 0, -half], [0, 0, half], [-h, -h, -half], [-h, -h, half], [h, -h, -half], [h, -h, half]], float)
+    faces = np.array([[0, 1, 3], [0, 3, 2], [0, 4, 5], [0, 5, 1], [2, 3, 5], [2, 5, 4], [0, 2, 4], [1, 5, 3]])
+    mesh = trimesh.Trimesh(prism, faces, process=False)
+    trimesh.repair.fix_normals(mesh)
+    y = rng.uniform(-0.02, -0.01)
+    tri = np.array([[rng.uniform(-0.06, -0.045), y, -0.02], [rng.uniform(0.045, 0.06), y, -0.02], [0.0, 0.03, 0.04]])
+    q = quat_from_axis_angle((0.0, 1.0, 0.0), rng.uniform(0.0, 360.0))
+    move = rng.uniform(-0.5, 0.5, 3)
+    turn = quat_to_matrix(q)
+    b = cw.ModelBuilder()
+    b.add_cloth_mesh(tri @ turn.T + move, [[0, 1, 2]], material="cotton")
+    if pinned:
+        b.particle_pinned[0] = True
+    b.add_collider_mesh(mesh.vertices, mesh.faces, position=tuple(move), rotation=q, name="ridge", thickness=0.004)
+    return b.finalize("cpu"), np.asarray(mesh.vertices) @ turn.T + move, np.asarray(mesh.faces)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("pinned", [False, True])
+def test_element_samples_push_an_edge_out_of_a_mesh_ridge_its_particles_clear(seed, pinned):
+    """Check the colliders pass's element samples (cloth_warp/collision.py `element_samples`, kernels/collide.py
+    `collide_element_samples`): a triangle whose edge passes through a mesh ridge while its particles are clear of it
+    by more than the thickness (the independent checker of tests/intersections.py finds the crossing, and the particle
+    contacts alone leave it) comes out of one pass clear of the ridge: no crossing, every sample point outside by at
+    least a twentieth of the thickness (pushed to a quarter: the means of a particle's samples' pushes get most of it),
+    the particles moved out of the ridge, most of the approach of the edge's middle stopped, the
+    third particle moved less (its share of the triangle's samples), a pinned particle not at all. Samples at fixed points of
+    the edge missed the ridge when it crossed between them (the stretch inside a 90-degree ridge 9 mm under it is 17 mm
+    long): the edge's sample is where it runs inside."""
+    from intersections import crossing_pairs
+
+    from cloth_warp.collision import ColliderPass, element_samples
+
+    m, prism, faces = _ridge_and_triangle(seed, pinned)
+    tris = m.tri_indices.numpy().reshape(-1, 3)
+    x0 = m.particle_q.numpy().astype(np.float64)
+    assert crossing_pairs(x0, tris, prism, faces)
+    v = np.zeros_like(x0)
+    v[:2] = (0.0, -0.3, 0.0)  # moving down, into the ridge
+    dt = 0.01
+    control = m.control()
+    x_start = wp.array((x0 - dt * v).astype(np.float32), dtype=wp.vec3)
+    x_end, v_end = wp.array(x0.astype(np.float32), dtype=wp.vec3), wp.array(v.astype(np.float32), dtype=wp.vec3)
+    results = {}
+    for on in (False, True):
+        p = ColliderPass(m)
+        p.samples_on = on
+        x_out, v_out = wp.zeros_like(x_end), wp.zeros_like(v_end)
+        p.apply(x_start, x_end, v_end, control, dt, x_out, v_out)
+        results[on] = (x_out.numpy().astype(np.float64), v_out.numpy().astype(np.float64), p.read_report())
+    x_off, _, report_off = results[False]
+    assert report_off.contacts == 0 and report_off.samples == 0 and np.allclose(x_off, x0)  # the particles are clear
+    x, v_new, report = results[True]
+    assert report.samples > 0
+    assert not crossing_pairs(x, tris, prism, faces)
+    particles, weights = element_samples(tris)
+    points = np.einsum("sk,skd->sd", weights.astype(np.float64), x[np.maximum(particles, 0)])
+    normals = np.cross(prism[faces[:, 1]] - prism[faces[:, 0]], prism[faces[:, 2]] - prism[faces[:, 0]])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    # the prism is convex: a point's largest height over its faces' planes is at most its distance outside
+    clearance = np.einsum("fd,sfd->sf", normals, points[:, None, :] - prism[faces[:, 0]][None]).max(axis=1)
+    assert clearance.min() > 0.05 * 0.004
+    moved = x - x0
+    assert not pinned or np.allclose(moved[0], 0.0)
+    assert np.linalg.norm(moved[2]) < 0.5 * np.linalg.norm(moved[:2], axis=1).max()  # (a share of the triangle's samples)
+    assert np.linalg.norm(moved[:2], axis=1).max() > 0.004
+    up = moved[np.argmax(np.linalg.norm(moved, axis=1))]
+    up /= np.linalg.norm(up)
+    assert up[1] > 0.5  # out of the ridge, not along it
+    before, after = v[:2].mean(axis=0) @ up, v_new[:2].mean(axis=0) @ up  # the edge's middle's approach
+    assert before < -0.2 and after > 0.25 * before  # (92-100 % of it removed: shared with the triangle's samples)
