@@ -20,6 +20,7 @@ import numpy as np
 import warp as wp
 
 from .diagnostics import ColliderReport, SelfCollisionReport
+from .graphs import device_while
 from .kernels import collide as kcol
 from .model import Control, Model
 from .passes import StepPass
@@ -38,11 +39,13 @@ class ColliderPass(StepPass):
     pose to end pose) is traced for its first point within the collider's thickness; the end point is
     put back on the tangent plane there (offset by the thickness) with inelastic normal response and
     static/kinetic Coulomb friction, then pushed out along the surface normal if curvature still leaves
-    it inside. Then points of the cloth's edges and triangles (:func:`element_samples`) found inside a mesh collider
-    are moved out to a quarter of its thickness by their particles (kernels/collide.py `collide_element_samples`, SAMPLE_CLEARANCE):
-    the particles alone are held at the thickness, and a coarse cloth's edge between them spanned the mannequin's armpit
-    through the body (3.5 cm edges) or cut a shoulder (3.2 cm) while every particle was outside. Three launches, no
-    host reads: capturable.
+    it inside. Then the cloth's edges and triangles (:func:`sampled_elements`) are kept out of mesh colliders: each
+    element's sample found inside (an edge: the middle of the stretch it runs inside; a triangle: its point nearest
+    the surface near its centroid) is moved out to a quarter of the thickness by its particles (kernels/collide.py
+    `collide_element_samples`, SAMPLE_CLEARANCE), in rounds while one pushed (at most :attr:`sample_rounds`): the
+    particles alone are held at the thickness, and a coarse cloth's edges between them spanned the mannequin's armpit
+    through the body (3.5 cm edges) or cut a shoulder (3.2 cm) while every particle was outside. No host reads:
+    capturable.
 
     Report (:class:`~cloth_warp.diagnostics.ColliderReport`, summed over the steps since :meth:`reset_report`):
     contacts resolved and, of them, the ones only the continuous trace found (``ccd``: the end point alone was
@@ -54,16 +57,16 @@ class ColliderPass(StepPass):
     def __init__(self, model: Model):
         self.model = model
         self.counts = wp.zeros(len(COUNTERS), dtype=wp.int32, device=model.device)
-        particles, weights = element_samples(model.tri_indices.numpy().reshape(-1, 3) if model.tri_count else np.zeros((0, 3), int))
-        self.sample_particles = wp.array(particles, dtype=wp.vec3i, device=model.device)
-        """Each element sample's particles, (S, 3) int32 (an edge's third -1)."""
-        self.sample_weights = wp.array(weights, dtype=wp.vec3, device=model.device)
-        """Each element sample's weights on its particles, (S, 3)."""
-        self.sample_sweeps = 4
-        """Rounds of the element samples per step: each moves a particle by the mean of its samples' pushes, so a sample
-        deeper than its neighbours takes a few (one left a triangle across a ridge crossing it)."""
+        self.elements = wp.array(sampled_elements(model.tri_indices.numpy().reshape(-1, 3) if model.tri_count else np.zeros((0, 3), int)),
+                                 dtype=wp.vec3i, device=model.device)
+        """The elements whose samples are kept out of mesh colliders: every edge (its particles and -1), then every
+        triangle; (S, 3) int32."""
+        self.sample_rounds = 4
+        """Most rounds of the element samples per step (more only while the last pushed one): each moves a particle by
+        the weighted mean of its samples' pushes, so a sample deeper than its neighbours can take a few."""
         self.samples_on = True
         """Whether the element samples are kept out of the mesh colliders (in a recorded frame: as it was recorded)."""
+        self._loop = wp.zeros(3, dtype=wp.int32, device=model.device)  # the rounds' loop state (kernels/collide.py next_sample_round)
         self.pinch = False
         """Whether a particle pinched between two facing surfaces is pushed out only to where it is as far from both
         (kernels/collide.py `pinch_height`), where the implicit solve lands it: set by a solver with the collider
@@ -87,7 +90,7 @@ class ColliderPass(StepPass):
     def apply(self, x_start, x_end, v_end, control: Control, dt: float, x_out, v_out):
         m = self.model
         dev = m.device
-        samples = self.samples_on and self.sample_particles.shape[0] > 0 and m.collider_count > 0
+        samples = self.samples_on and self.elements.shape[0] > 0 and m.collider_count > 0
         taped = x_end.requires_grad
         # the particles' contacts into the outputs, or, before the samples when taped, into arrays of the step's own (the
         # samples read them: a taped kernel's input is never overwritten)
@@ -104,20 +107,33 @@ class ColliderPass(StepPass):
         )
         if not samples:
             return
-        for sweep in range(self.sample_sweeps):
-            pushes = self._pushes(taped)
-            for a in pushes:
-                a.zero_()
-            wp.launch(kcol.collide_element_samples, dim=self.sample_particles.shape[0],
-                      inputs=[m.particle_pinned, m.collider_count, m.collider_shape, m.collider_size, m.collider_mesh,
-                              m.collider_deforming, m.collider_thickness, m.collider_mesh_max_distance, control.collider_transform_start,
-                              control.collider_transform_end, self.sample_particles, self.sample_weights, x_mid, v_mid, dt],
-                      outputs=[*pushes, self.counts], device=dev)
-            last = sweep == self.sample_sweeps - 1
-            x_next, v_next = (x_out, v_out) if last or not taped else (wp.empty_like(x_out), wp.empty_like(v_out))
-            wp.launch(kcol.apply_sample_pushes, dim=m.particle_count, inputs=[x_mid, v_mid, *pushes], outputs=[x_next, v_next],
-                      device=dev)
-            x_mid, v_mid = x_next, v_next
+        if taped:  # every round, each into arrays of its own
+            for k in range(self.sample_rounds):
+                last = k == self.sample_rounds - 1
+                x_next, v_next = (x_out, v_out) if last else (wp.empty_like(x_out), wp.empty_like(v_out))
+                self._sample_round(control, dt, x_mid, v_mid, x_next, v_next, fresh=True)
+                x_mid, v_mid = x_next, v_next
+            return
+        self._loop.zero_()  # in place on the outputs: the first round, then more while the last pushed a sample
+        self._sample_round(control, dt, x_out, v_out, x_out, v_out)
+        device_while(self._loop, self._sample_round, control=control, dt=dt, x=x_out, v=v_out, x_next=x_out, v_next=v_out)
+
+    def _sample_round(self, control: Control, dt: float, x, v, x_next, v_next, fresh: bool = False):
+        """One round of the element samples from (x, v) into (x_next, v_next) (the same arrays but when taped), and the
+        rounds' loop state."""
+        m = self.model
+        dev = m.device
+        pushes = self._pushes(fresh)
+        for a in pushes:
+            a.zero_()
+        wp.launch(kcol.collide_element_samples, dim=self.elements.shape[0],
+                  inputs=[m.particle_pinned, m.collider_count, m.collider_shape, m.collider_mesh, m.collider_deforming,
+                          m.collider_thickness, m.collider_mesh_max_distance, control.collider_transform_start,
+                          control.collider_transform_end, self.elements, x, v, dt],
+                  outputs=[*pushes, self.counts, self._loop[2:3]], device=dev)
+        wp.launch(kcol.apply_sample_pushes, dim=m.particle_count, inputs=[x, v, *pushes], outputs=[x_next, v_next], device=dev)
+        if not fresh:
+            wp.launch(kcol.next_sample_round, dim=1, inputs=[self.sample_rounds], outputs=[self._loop], device=dev)
 
     def _pushes(self, fresh: bool) -> tuple:
         """Per particle: the summed position [m] and velocity [m/s] changes of its element samples and their count (the
@@ -132,17 +148,12 @@ class ColliderPass(StepPass):
         return self._push_arrays
 
 
-def element_samples(tri_indices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The colliders pass's element samples of a triangle mesh (T, 3): one per edge (its particles and -1; weights 1/2,
-    1/2, 0: the kernel finds where along it it runs inside), then in every triangle its centroid and the three points
-    halfway from it to a corner (weights 1/3 each; 2/3, 1/6, 1/6 and their turns). Returns (particles (S, 3) int32,
-    weights (S, 3) float32)."""
+def sampled_elements(tri_indices: np.ndarray) -> np.ndarray:
+    """The elements of a triangle mesh (T, 3) whose samples the colliders pass keeps out of mesh colliders: every edge
+    once (its particles and -1), then every triangle. (S, 3) int32."""
     tris = np.asarray(tri_indices, np.int64).reshape(-1, 3)
     edges = np.unique(np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1), axis=0)
-    face_points = np.array([[2.0, 2.0, 2.0], [4.0, 1.0, 1.0], [1.0, 4.0, 1.0], [1.0, 1.0, 4.0]]) / 6.0
-    particles = np.concatenate([np.column_stack([edges, np.full(len(edges), -1)]), np.repeat(tris, len(face_points), axis=0)])
-    weights = np.concatenate([np.tile([0.5, 0.5, 0.0], (len(edges), 1)), np.tile(face_points, (len(tris), 1))])
-    return particles.astype(np.int32).reshape(-1, 3), weights.astype(np.float32).reshape(-1, 3)
+    return np.concatenate([np.column_stack([edges, np.full(len(edges), -1)]), tris]).astype(np.int32).reshape(-1, 3)
 
 
 class SelfCollisionPass(StepPass):

@@ -22,6 +22,8 @@ speeds only shrink, tangential speeds only shrink.
 
 import warp as wp
 
+from .selfcollide import closest_point_triangle
+
 SHAPE_PLANE = wp.constant(0)
 SHAPE_SPHERE = wp.constant(1)
 SHAPE_CAPSULE = wp.constant(2)
@@ -423,43 +425,52 @@ def edge_inside_middle(mesh: wp.uint64, a: wp.vec3, b: wp.vec3):
     return int(1), 0.5 * (enter.t + length - leave.t) / length
 
 
+@wp.func
+def sample_distance(mesh: wp.uint64, reach: float, p: wp.vec3):
+    """Signed distance [m] of the local point p to the mesh and the outward normal there, or (reach, 0) when the surface
+    is farther than `reach` [m] (a short search: the samples only look for elements cutting into the surface)."""
+    query = wp.mesh_query_point_sign_normal(mesh, p, reach, 1.0e-3)
+    if not query.result:
+        return reach, wp.vec3(0.0)
+    return shape_distance(SHAPE_MESH, wp.vec3(0.0), mesh, reach, p)
+
+
 @wp.kernel
 def collide_element_samples(
     # Model
     particle_pinned: wp.array(dtype=wp.int32),
     collider_count: int,
     collider_shape: wp.array(dtype=wp.int32),
-    collider_size: wp.array(dtype=wp.vec3),
     collider_mesh: wp.array(dtype=wp.uint64),
     collider_deforming: wp.array(dtype=wp.int32),
     collider_thickness: wp.array(dtype=float),
     mesh_max_distance: float,
     collider_transform_start: wp.array(dtype=wp.transform),
     collider_transform_end: wp.array(dtype=wp.transform),
-    # the samples: each an element's particles (an edge's third -1) and its weights
-    sample_particles: wp.array(dtype=wp.vec3i),
-    sample_weights: wp.array(dtype=wp.vec3),
+    # the elements: an edge's two particles and -1, or a triangle's three
+    elements: wp.array(dtype=wp.vec3i),
     # State: the particles' end of step (after the particle contacts), their end velocities
     x_end: wp.array(dtype=wp.vec3),
     v_end: wp.array(dtype=wp.vec3),
     dt: float,
-    # outputs: per particle, the weighted sums of the samples' position and velocity changes and the weights
+    # outputs: per particle, the weighted sums of the samples' position and velocity changes and the weights; whether any
+    # sample pushed (the rounds' loop flag)
     dx_out: wp.array(dtype=wp.vec3),
     dv_out: wp.array(dtype=wp.vec3),
     pushes_out: wp.array(dtype=float),
     counts_out: wp.array(dtype=wp.int32),
+    pushed_out: wp.array(dtype=wp.int32),
 ):
-    """Each sample p = sum w_k x_k of an element inside a mesh collider is moved out to SAMPLE_CLEARANCE x its thickness
-    along the surface normal n, by the least change of its free particles (dx_k = w_k delta n / sum w_j^2 over the free
-    ones), and its end velocity relative to the surface loses its approaching normal part the same way (inelastic, no
-    friction: the particles' own contacts carry that). An edge's sample is the middle of the stretch it runs inside the
-    mesh (`edge_inside_middle`: a ridge that crosses it anywhere), else its middle; a triangle's, its own point. Each
-    collider on the element as it is; changes summed per particle, each weighted by its length, with the weights
-    (`apply_sample_pushes` takes their weighted mean: a particle follows mostly its deepest sample, where the plain mean
-    of a triangle's shallower samples' pushes left an edge across a ridge after four rounds)."""
+    """Each element's sample inside a mesh collider is moved out to SAMPLE_CLEARANCE x its thickness along the surface
+    normal n, by the least change of its free particles (dx_k = w_k delta n / sum w_j^2 over the free ones), and its
+    end velocity relative to the surface loses its approaching normal part the same way (inelastic, no friction: the
+    particles' own contacts carry that). An edge's sample is the middle of the stretch it runs inside the mesh
+    (`edge_inside_middle`: a ridge that crosses it anywhere); a triangle's, the deeper of its centroid and the point of
+    it nearest to the surface point nearest the centroid (a body's corner poking through it there) when the centroid is
+    within half the thickness (only surfaces within twice the thickness are sought: a short search). Changes summed per particle, each weighted by its length, with the weights
+    (`apply_sample_pushes` takes their weighted mean: a particle follows mostly its deepest sample)."""
     s = wp.tid()
-    idx = sample_particles[s]
-    w0 = sample_weights[s]
+    idx = elements[s]
     inv_dt = 1.0 / dt
     for c in range(collider_count):
         if collider_shape[c] == SHAPE_MESH:  # (see SAMPLE_CLEARANCE)
@@ -467,38 +478,67 @@ def collide_element_samples(
             t_start = collider_transform_start[c]
             t_end = collider_transform_end[c]
             to_local = wp.transform_inverse(t_end)
-            w = w0
+            reach = 2.0 * collider_thickness[c]
+            a = wp.transform_point(to_local, x_end[idx[0]])
+            b = wp.transform_point(to_local, x_end[idx[1]])
+            w = wp.vec3(0.0)
+            dist = reach
+            nl = wp.vec3(0.0)
             if idx[2] < 0:
-                crossing, along = edge_inside_middle(mesh, wp.transform_point(to_local, x_end[idx[0]]),
-                                                     wp.transform_point(to_local, x_end[idx[1]]))
+                crossing, along = edge_inside_middle(mesh, a, b)
                 if crossing != 0:
                     w = wp.vec3(1.0 - along, along, 0.0)
-            free = wp.vec3(0.0)
-            p = wp.vec3(0.0)
-            v = wp.vec3(0.0)
-            for k in range(3):
-                if idx[k] >= 0:
-                    p = p + w[k] * x_end[idx[k]]
-                    v = v + w[k] * v_end[idx[k]]
-                    if particle_pinned[idx[k]] == 0:
-                        free[k] = w[k]
-            norm = wp.dot(free, free)
-            pe = wp.transform_point(to_local, p)
-            dist, nl = shape_distance(SHAPE_MESH, collider_size[c], mesh, mesh_max_distance, pe)
-            if norm > 0.0 and dist < 0.0:
-                n = wp.transform_vector(t_end, nl)
-                moved = (SAMPLE_CLEARANCE * collider_thickness[c] - dist) * n
-                u = surface_velocity(collider_deforming[c], mesh, mesh_max_distance, t_start, t_end, pe, inv_dt)
-                stopped = wp.max(-wp.dot(v - u, n), 0.0) * n
+                    dist, nl = sample_distance(mesh, mesh_max_distance, a + along * (b - a))  # (inside: however deep)
+            else:
+                cl = wp.transform_point(to_local, x_end[idx[2]])
+                w = wp.vec3(1.0 / 3.0)
+                dist, nl = sample_distance(mesh, reach, (a + b + cl) / 3.0)
+                if dist < 0.5 * collider_thickness[c]:  # (farther, its triangle is clear: sagging no more than that)
+                    w2 = closest_point_triangle((a + b + cl) / 3.0 - dist * nl, a, b, cl)
+                    dist2, nl2 = sample_distance(mesh, reach, w2[0] * a + w2[1] * b + w2[2] * cl)
+                    if dist2 < dist:
+                        w = w2
+                        dist = dist2
+                        nl = nl2
+            if dist < 0.0:
+                free = wp.vec3(0.0)
+                v = wp.vec3(0.0)
                 for k in range(3):
-                    if free[k] > 0.0:
-                        # weighted by its length: a particle takes mostly its deepest sample's push
-                        push = (free[k] / norm) * moved
-                        weight = wp.length(push)
-                        wp.atomic_add(dx_out, idx[k], weight * push)
-                        wp.atomic_add(dv_out, idx[k], (weight * free[k] / norm) * stopped)
-                        wp.atomic_add(pushes_out, idx[k], weight)
-                wp.atomic_add(counts_out, COUNT_COLLIDER_SAMPLES, 1)
+                    if idx[k] >= 0:
+                        v = v + w[k] * v_end[idx[k]]
+                        if particle_pinned[idx[k]] == 0:
+                            free[k] = w[k]
+                norm = wp.dot(free, free)
+                if norm > 0.0:
+                    n = wp.transform_vector(t_end, nl)
+                    moved = (SAMPLE_CLEARANCE * collider_thickness[c] - dist) * n
+                    pl = w[0] * a + w[1] * b
+                    if idx[2] >= 0:
+                        pl = pl + w[2] * wp.transform_point(to_local, x_end[idx[2]])
+                    u = surface_velocity(collider_deforming[c], mesh, mesh_max_distance, t_start, t_end, pl, inv_dt)
+                    stopped = wp.max(-wp.dot(v - u, n), 0.0) * n
+                    for k in range(3):
+                        if free[k] > 0.0:
+                            # weighted by its length: a particle takes mostly its deepest sample's push
+                            push = (free[k] / norm) * moved
+                            weight = wp.length(push)
+                            wp.atomic_add(dx_out, idx[k], weight * push)
+                            wp.atomic_add(dv_out, idx[k], (weight * free[k] / norm) * stopped)
+                            wp.atomic_add(pushes_out, idx[k], weight)
+                    wp.atomic_add(counts_out, COUNT_COLLIDER_SAMPLES, 1)
+                    pushed_out[0] = 1
+
+
+@wp.kernel
+def next_sample_round(rounds: int, loop: wp.array(dtype=wp.int32)):
+    """After a round of the element samples: loop[1] counts it; loop[0] says whether another runs (this one pushed a
+    sample, loop[2], and fewer than `rounds` ran); loop[2] is cleared for the next."""
+    loop[1] = loop[1] + 1
+    more = int(0)
+    if loop[2] != 0 and loop[1] < rounds:
+        more = 1
+    loop[0] = more
+    loop[2] = 0
 
 
 @wp.kernel

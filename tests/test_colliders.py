@@ -502,7 +502,7 @@ def test_element_samples_push_an_edge_out_of_a_mesh_ridge_its_particles_clear(se
     long): the edge's sample is where it runs inside."""
     from intersections import crossing_pairs
 
-    from cloth_warp.collision import ColliderPass, element_samples
+    from cloth_warp.collision import ColliderPass
 
     m, prism, faces = _ridge_and_triangle(seed, pinned)
     tris = m.tri_indices.numpy().reshape(-1, 3)
@@ -526,8 +526,8 @@ def test_element_samples_push_an_edge_out_of_a_mesh_ridge_its_particles_clear(se
     x, v_new, report = results[True]
     assert report.samples > 0
     assert not crossing_pairs(x, tris, prism, faces)
-    particles, weights = element_samples(tris)
-    points = np.einsum("sk,skd->sd", weights.astype(np.float64), x[np.maximum(particles, 0)])
+    points = np.concatenate([(x[tris[:, [0, 1, 1]]] + x[tris[:, [1, 2, 0]]]).reshape(-1, 3) / 2.0,
+                             np.linspace(0.0, 1.0, 41)[:, None] * (x[1] - x[0]) + x[0]])  # edge middles; the crossing edge
     normals = np.cross(prism[faces[:, 1]] - prism[faces[:, 0]], prism[faces[:, 2]] - prism[faces[:, 0]])
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     # the prism is convex: a point's largest height over its faces' planes is at most its distance outside
