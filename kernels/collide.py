@@ -405,6 +405,9 @@ def collide_colliders(
 # the ball, whose 8.8 cm diagonals sag 3.9 mm and cut the ball at 19 samples a step, never rested with them (8-108 mm/s
 # after 4 s). Samples as contact elements in the solve would rest both.
 SAMPLE_CLEARANCE = wp.constant(0.25)
+# Steps down the surface's normal within a triangle whose centroid lies within half the thickness of a mesh collider
+# (`collide_element_samples`): a corner of the body poking through the triangle beside its centroid is found in a few.
+SAMPLE_DESCENT_STEPS = wp.constant(3)
 
 
 @wp.func
@@ -465,9 +468,10 @@ def collide_element_samples(
     normal n, by the least change of its free particles (dx_k = w_k delta n / sum w_j^2 over the free ones), and its
     end velocity relative to the surface loses its approaching normal part the same way (inelastic, no friction: the
     particles' own contacts carry that). An edge's sample is the middle of the stretch it runs inside the mesh
-    (`edge_inside_middle`: a ridge that crosses it anywhere); a triangle's, the deeper of its centroid and the point of
-    it nearest to the surface point nearest the centroid (a body's corner poking through it there) when the centroid is
-    within half the thickness (only surfaces within twice the thickness are sought: a short search). Changes summed per particle, each weighted by its length, with the weights
+    (`edge_inside_middle`: a ridge that crosses it anywhere); a triangle's, the deepest of its centroid and, when that
+    lies within half the thickness, SAMPLE_DESCENT_STEPS points stepping down the surface's normal within the triangle
+    (a body's corner poking through it beside the centroid); only surfaces within twice the thickness are sought (a
+    short search). Changes summed per particle, each weighted by its length, with the weights
     (`apply_sample_pushes` takes their weighted mean: a particle follows mostly its deepest sample)."""
     s = wp.tid()
     idx = elements[s]
@@ -494,12 +498,20 @@ def collide_element_samples(
                 w = wp.vec3(1.0 / 3.0)
                 dist, nl = sample_distance(mesh, reach, (a + b + cl) / 3.0)
                 if dist < 0.5 * collider_thickness[c]:  # (farther, its triangle is clear: sagging no more than that)
-                    w2 = closest_point_triangle((a + b + cl) / 3.0 - dist * nl, a, b, cl)
-                    dist2, nl2 = sample_distance(mesh, reach, w2[0] * a + w2[1] * b + w2[2] * cl)
-                    if dist2 < dist:
-                        w = w2
-                        dist = dist2
-                        nl = nl2
+                    # down the surface's normal within the triangle (projected steps of the thickness): to where a
+                    # body's corner poking through it is deepest
+                    p = (a + b + cl) / 3.0
+                    n_p = nl
+                    for _step in range(SAMPLE_DESCENT_STEPS):
+                        w2 = closest_point_triangle(p - collider_thickness[c] * n_p, a, b, cl)
+                        p = w2[0] * a + w2[1] * b + w2[2] * cl
+                        dist2, n_p = sample_distance(mesh, reach, p)
+                        if dist2 < dist:
+                            w = w2
+                            dist = dist2
+                            nl = n_p
+                        if dist2 >= reach:
+                            break
             if dist < 0.0:
                 free = wp.vec3(0.0)
                 v = wp.vec3(0.0)
