@@ -54,17 +54,34 @@ def usd_error_text(exc: BaseException) -> str:
     if not notes:  # USD gave no reason
         return "USD cannot read the layer (corrupt or truncated?)"
     msg = re.sub(r"pxrInternal_v\w+?__pxrReserved__::", "", notes[0]).strip()
-    m = re.search(r":(\d+):(\d+): parse error matching .*? at '(.*?)'(?: in <(.*?)>)?", msg, re.S)
+    m = re.search(r"(\S*?):(\d+):(\d+): parse error matching .*? at '(.*?)'(?: in <(.*?)>)?", msg, re.S)
     if m:
-        where = f" in <{m.group(4)}>" if m.group(4) else ""
-        cut = " (the file ends early: truncated?)" if m.group(3) == "" else ""
-        return f"USD text parse error at line {m.group(1)}, column {m.group(2)}{where}{cut}"
+        where = f" in <{m.group(5)}>" if m.group(5) else ""
+        cut = ""
+        if m.group(4) == "":
+            cut = " (the file ends early: truncated?)"
+        elif _last_line(m.group(1)) == int(m.group(2)):  # cut inside a token of its last line
+            cut = " (the error is on the file's last line: truncated?)"
+        elif _open_brackets(m.group(1)):  # cut inside a block: the parser names the block's start
+            cut = " (the file ends inside an open bracket: truncated?)"
+        return f"USD text parse error at line {m.group(2)}, column {m.group(3)}{where}{cut}"
     m = re.match(r"(\S*?):(\d+):(\d+): (.*)", msg, re.S)  # "/abs/path.usda:4:2: Expected } at '...'"
     if m:
         cut = " (the error is on the file's last line: truncated?)" if _last_line(m.group(1)) == int(m.group(2)) else ""
         msg = f"USD text error at line {m.group(2)}, column {m.group(3)}: {m.group(4)}{cut}"
     msg = " ".join(msg.split())
     return msg if len(msg) <= 300 else msg[:297] + "..."
+
+
+def _open_brackets(path: str) -> bool:
+    """Whether a text file ends with brackets left open (outside quoted strings): a file cut short."""
+    try:
+        with open(path, "rb") as f:
+            text = f.read().decode("utf-8", "replace")
+    except OSError:
+        return False
+    text = re.sub(r'"(?:[^"\\\n]|\\.)*"', "", text)  # (an unclosed string at the end is left: its brackets count)
+    return sum(text.count(c) for c in "([{") > sum(text.count(c) for c in ")]}")
 
 
 def _last_line(path: str) -> int | None:

@@ -463,7 +463,8 @@ def collide_element_samples(
     pushed_out: wp.array(dtype=wp.int32),
 ):
     """Each element's sample inside a mesh collider is moved out to SAMPLE_CLEARANCE x its thickness along the surface
-    normal n, by the least change of its free particles (dx_k = w_k delta n / sum w_j^2 over the free ones), and its
+    normal n, by the least change of its particles (dx_k = w_k delta n / sum w_j^2; an element with a pinned or attached
+    particle has no sample), and its
     end velocity relative to the surface loses its approaching normal part the same way (inelastic, no friction: the
     particles' own contacts carry that). An edge's sample is the middle of the stretch it runs inside the mesh
     (`edge_inside_middle`: a ridge that crosses it anywhere); a triangle's, the deepest of its centroid and, when that
@@ -473,6 +474,10 @@ def collide_element_samples(
     (`apply_sample_pushes` takes their weighted mean: a particle follows mostly its deepest sample)."""
     s = wp.tid()
     idx = elements[s]
+    for k in range(3):
+        if idx[k] >= 0 and particle_pinned[idx[k]] != 0:
+            return  # (pinned or attached: where the user puts it, often on the body; pushed by the free ones alone, an
+            # element of an attached strap on a keyframed body threw them out at 77 m/s)
     inv_dt = 1.0 / dt
     for c in range(collider_count):
         if collider_shape[c] == SHAPE_MESH:  # (see SAMPLE_CLEARANCE)
@@ -542,15 +547,15 @@ def collide_element_samples(
 
 
 @wp.kernel
-def next_sample_round(rounds: int, loop: wp.array(dtype=wp.int32)):
-    """After a round of the element samples: loop[1] counts it; loop[0] says whether another runs (this one pushed a
-    sample, loop[2], and fewer than `rounds` ran); loop[2] is cleared for the next."""
-    loop[1] = loop[1] + 1
+def next_sample_round(rounds: int, loop_out: wp.array(dtype=wp.int32)):
+    """After a round of the element samples: loop_out[1] counts it; loop_out[0] says whether another runs (this one
+    pushed a sample, loop_out[2], and fewer than `rounds` ran); loop_out[2] is cleared for the next."""
+    loop_out[1] = loop_out[1] + 1
     more = int(0)
-    if loop[2] != 0 and loop[1] < rounds:
+    if loop_out[2] != 0 and loop_out[1] < rounds:
         more = 1
-    loop[0] = more
-    loop[2] = 0
+    loop_out[0] = more
+    loop_out[2] = 0
 
 
 @wp.kernel

@@ -497,7 +497,8 @@ def test_element_samples_push_an_edge_out_of_a_mesh_ridge_its_particles_clear(se
     contacts alone leave it) comes out of one pass clear of the ridge: no crossing, every sample point outside by at
     least a twentieth of the thickness (pushed to a quarter: the means of a particle's samples' pushes get most of it),
     the particles moved out of the ridge, most of the approach of the edge's middle stopped, the
-    third particle moved less (its share of the triangle's samples), a pinned particle not at all. Samples at fixed points of
+    third particle moved less (its share of the triangle's samples). With a particle pinned (or attached to a body) the
+    element has no sample: an attached strap's elements pushed by their free particles alone were thrown out at 77 m/s. Samples at fixed points of
     the edge missed the ridge when it crossed between them (the stretch inside a 90-degree ridge 9 mm under it is 17 mm
     long): the edge's sample is where it runs inside."""
     from intersections import crossing_pairs
@@ -524,6 +525,9 @@ def test_element_samples_push_an_edge_out_of_a_mesh_ridge_its_particles_clear(se
     x_off, _, report_off = results[False]
     assert report_off.contacts == 0 and report_off.samples == 0 and np.allclose(x_off, x0)  # the particles are clear
     x, v_new, report = results[True]
+    if pinned:  # an element with a pinned (or attached) particle has no sample: it goes where the user puts it
+        assert report.samples == 0 and np.allclose(x, x0)
+        return
     assert report.samples > 0
     assert not crossing_pairs(x, tris, prism, faces)
     points = np.concatenate([(x[tris[:, [0, 1, 1]]] + x[tris[:, [1, 2, 0]]]).reshape(-1, 3) / 2.0,
@@ -534,7 +538,6 @@ def test_element_samples_push_an_edge_out_of_a_mesh_ridge_its_particles_clear(se
     clearance = np.einsum("fd,sfd->sf", normals, points[:, None, :] - prism[faces[:, 0]][None]).max(axis=1)
     assert clearance.min() > 0.05 * 0.004
     moved = x - x0
-    assert not pinned or np.allclose(moved[0], 0.0)
     assert np.linalg.norm(moved[2]) < 0.5 * np.linalg.norm(moved[:2], axis=1).max()  # (a share of the triangle's samples)
     assert np.linalg.norm(moved[:2], axis=1).max() > 0.004
     up = moved[np.argmax(np.linalg.norm(moved, axis=1))]
