@@ -40,12 +40,12 @@ class ColliderPass(StepPass):
     put back on the tangent plane there (offset by the thickness) with inelastic normal response and
     static/kinetic Coulomb friction, then pushed out along the surface normal if curvature still leaves
     it inside. Then the cloth's edges and triangles (:func:`sampled_elements`) are kept out of mesh colliders: each
-    element's sample found inside (an edge: the middle of the stretch it runs inside; a triangle: its point nearest
-    the surface near its centroid) is moved out to a quarter of the thickness by its particles (kernels/collide.py
-    `collide_element_samples`, SAMPLE_CLEARANCE), in rounds while one pushed (at most :attr:`sample_rounds`): the
-    particles alone are held at the thickness, and a coarse cloth's edges between them spanned the mannequin's armpit
-    through the body (3.5 cm edges) or cut a shoulder (3.2 cm) while every particle was outside. No host reads:
-    capturable.
+    element's sample found inside (an edge: the middle of the stretch it runs inside; a triangle: its centroid, or a
+    point over a corner of the surface poking through it) is moved out to a quarter of the thickness by its particles
+    (kernels/collide.py `collide_element_samples`, SAMPLE_CLEARANCE), in rounds while one pushed (at most
+    :attr:`sample_rounds`): the particles alone are held at the thickness, and a coarse cloth's edges between them
+    spanned the mannequin's armpit through the body (3.5 cm edges) or cut a shoulder (3.2 cm) while every particle was
+    outside. Elements with a pinned or attached particle have none. No host reads: capturable.
 
     Report (:class:`~cloth_warp.diagnostics.ColliderReport`, summed over the steps since :meth:`reset_report`):
     contacts resolved and, of them, the ones only the continuous trace found (``ccd``: the end point alone was
@@ -57,8 +57,8 @@ class ColliderPass(StepPass):
     def __init__(self, model: Model):
         self.model = model
         self.counts = wp.zeros(len(COUNTERS), dtype=wp.int32, device=model.device)
-        self.elements = wp.array(sampled_elements(model.tri_indices.numpy().reshape(-1, 3) if model.tri_count else np.zeros((0, 3), int)),
-                                 dtype=wp.vec3i, device=model.device)
+        tris = model.tri_indices.numpy().reshape(-1, 3) if model.tri_count else np.zeros((0, 3), int)
+        self.elements = wp.array(sampled_elements(tris), dtype=wp.vec3i, device=model.device)
         """The elements whose samples are kept out of mesh colliders: every edge (its particles and -1), then every
         triangle; (S, 3) int32."""
         self.sample_rounds = 4
@@ -66,7 +66,8 @@ class ColliderPass(StepPass):
         the weighted mean of its samples' pushes, so a sample deeper than its neighbours can take a few."""
         self.samples_on = True
         """Whether the element samples are kept out of the mesh colliders (in a recorded frame: as it was recorded)."""
-        self._loop = wp.zeros(3, dtype=wp.int32, device=model.device)  # the rounds' loop state (kernels/collide.py next_sample_round)
+        self._loop = wp.zeros(3, dtype=wp.int32, device=model.device)  # the rounds' loop state (kernels/collide.py)
+        self._push_arrays = None  # (see _pushes)
         self.pinch = False
         """Whether a particle pinched between two facing surfaces is pushed out only to where it is as far from both
         (kernels/collide.py `pinch_height`), where the implicit solve lands it: set by a solver with the collider
@@ -136,10 +137,10 @@ class ColliderPass(StepPass):
             wp.launch(kcol.next_sample_round, dim=1, inputs=[self.sample_rounds], outputs=[self._loop], device=dev)
 
     def _pushes(self, fresh: bool) -> tuple:
-        """Per particle: the summed position [m] and velocity [m/s] changes of its element samples and their count (the
-        pass's own arrays; a taped step's fresh)."""
+        """Per particle: the weighted sums of its element samples' position [m] and velocity [m/s] changes and of their
+        weights (the pass's own arrays; a taped step's fresh)."""
         n, dev = self.model.particle_count, self.model.device
-        if fresh or getattr(self, "_push_arrays", None) is None:
+        if fresh or self._push_arrays is None:
             arrays = (wp.zeros(n, dtype=wp.vec3, device=dev, requires_grad=fresh), wp.zeros(n, dtype=wp.vec3, device=dev, requires_grad=fresh),
                       wp.zeros(n, dtype=float, device=dev))
             if fresh:

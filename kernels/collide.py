@@ -395,7 +395,7 @@ def collide_colliders(
 
 
 # The colliders pass's element samples (points in the cloth's edges and triangles, cloth_warp/collision.py
-# `element_samples`) found inside a mesh collider are pushed out to this fraction of its thickness. The particles are
+# `sampled_elements`) found inside a mesh collider are pushed out to this fraction of its thickness. The particles are
 # held at the thickness; an edge or a triangle between them sags toward a convex surface by about L^2 / (8 R) (1.6 mm
 # for a 2.5 cm edge on a 5 cm arm, 3.8 mm for 3.5 cm on 4 cm), and a body mesh's ridge or corner pokes through it
 # between its particles (the 3.5 cm T-shirt: a 15 cm shoulder edge through a garment triangle, a shoulder corner 0.3 mm
@@ -405,7 +405,6 @@ def collide_colliders(
 # the ball, whose 8.8 cm diagonals sag 3.9 mm and cut the ball at 19 samples a step, never rested with them (8-108 mm/s
 # after 4 s). Samples as contact elements in the solve would rest both.
 SAMPLE_CLEARANCE = wp.constant(0.25)
-
 
 
 @wp.func
@@ -463,21 +462,23 @@ def collide_element_samples(
     pushed_out: wp.array(dtype=wp.int32),
 ):
     """Each element's sample inside a mesh collider is moved out to SAMPLE_CLEARANCE x its thickness along the surface
-    normal n, by the least change of its particles (dx_k = w_k delta n / sum w_j^2; an element with a pinned or attached
-    particle has no sample), and its
-    end velocity relative to the surface loses its approaching normal part the same way (inelastic, no friction: the
-    particles' own contacts carry that). An edge's sample is the middle of the stretch it runs inside the mesh
-    (`edge_inside_middle`: a ridge that crosses it anywhere); a triangle's, the deepest of its centroid and, when that
-    lies within half the thickness, the point over a corner of the surface's nearest face that pokes through it (the
-    3.5 cm T-shirt's shoulder pole, 3-4.5 mm from a triangle's centroid and 0.04-0.18 mm through it: searches down the
-    distance within the triangle passed beside it, the stretch inside being a fraction of a millimetre across); only surfaces within twice the thickness are sought (a short search). Changes summed per particle, each weighted by its length, with the weights
-    (`apply_sample_pushes` takes their weighted mean: a particle follows mostly its deepest sample)."""
+    normal n by the least change of its particles (dx_k = w_k delta n / sum w_j^2; an element with a pinned or attached
+    particle has no sample), and its end velocity relative to the surface loses its approaching normal part the same way
+    (inelastic, no friction: the particles' own contacts carry that). An edge's sample is the middle of the stretch it
+    runs inside the mesh (`edge_inside_middle`: a ridge that crosses it anywhere). A triangle's is its centroid or, when
+    that lies within half the thickness, the point over a corner of the surface's nearest face poking through it,
+    whichever is deeper (the 3.5 cm T-shirt's shoulder pole, 3-4.5 mm from a triangle's centroid and 0.04-0.18 mm
+    through it: searches down the distance within the triangle passed beside it, the stretch inside being a fraction of
+    a millimetre across); only surfaces within twice the thickness of the centroid are sought (a short search). Changes
+    are summed per particle, each weighted by its length, with the weights (`apply_sample_pushes` takes their weighted
+    mean: a particle follows mostly its deepest sample)."""
     s = wp.tid()
     idx = elements[s]
     for k in range(3):
         if idx[k] >= 0 and particle_pinned[idx[k]] != 0:
-            return  # (pinned or attached: where the user puts it, often on the body; pushed by the free ones alone, an
-            # element of an attached strap on a keyframed body threw them out at 77 m/s)
+            # pinned or attached: where the user puts it, often on the body (pushed by its free particles alone, an
+            # attached strap's element on a keyframed body threw them out at 77 m/s)
+            return
     inv_dt = 1.0 / dt
     for c in range(collider_count):
         if collider_shape[c] == SHAPE_MESH:  # (see SAMPLE_CLEARANCE)
@@ -510,7 +511,8 @@ def collide_element_samples(
                         if wp.dot(out, nl) < 0.0:
                             out = -out
                         for k in range(3):
-                            corner = wp.mesh_eval_position(mesh, query.face, wp.where(k == 0, 1.0, 0.0), wp.where(k == 1, 1.0, 0.0))
+                            corner = wp.mesh_eval_position(mesh, query.face, wp.where(k == 0, 1.0, 0.0),
+                                                           wp.where(k == 1, 1.0, 0.0))
                             height = wp.dot(corner - a, out)
                             wk = closest_point_triangle(corner, a, b, cl)
                             if height > 0.0 and -height < dist and wp.min(wk) > FACE_INTERIOR:
@@ -518,14 +520,11 @@ def collide_element_samples(
                                 dist = -height
                                 nl = out
             if dist < 0.0:
-                free = wp.vec3(0.0)
                 v = wp.vec3(0.0)
                 for k in range(3):
                     if idx[k] >= 0:
                         v = v + w[k] * v_end[idx[k]]
-                        if particle_pinned[idx[k]] == 0:
-                            free[k] = w[k]
-                norm = wp.dot(free, free)
+                norm = wp.dot(w, w)
                 if norm > 0.0:
                     n = wp.transform_vector(t_end, nl)
                     moved = (SAMPLE_CLEARANCE * collider_thickness[c] - dist) * n
@@ -535,12 +534,12 @@ def collide_element_samples(
                     u = surface_velocity(collider_deforming[c], mesh, mesh_max_distance, t_start, t_end, pl, inv_dt)
                     stopped = wp.max(-wp.dot(v - u, n), 0.0) * n
                     for k in range(3):
-                        if free[k] > 0.0:
+                        if idx[k] >= 0 and w[k] > 0.0:
                             # weighted by its length: a particle takes mostly its deepest sample's push
-                            push = (free[k] / norm) * moved
+                            push = (w[k] / norm) * moved
                             weight = wp.length(push)
                             wp.atomic_add(dx_out, idx[k], weight * push)
-                            wp.atomic_add(dv_out, idx[k], (weight * free[k] / norm) * stopped)
+                            wp.atomic_add(dv_out, idx[k], (weight * w[k] / norm) * stopped)
                             wp.atomic_add(pushes_out, idx[k], weight)
                     wp.atomic_add(counts_out, COUNT_COLLIDER_SAMPLES, 1)
                     pushed_out[0] = 1
