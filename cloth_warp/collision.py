@@ -22,6 +22,7 @@ import warp as wp
 from .diagnostics import ColliderReport, SelfCollisionReport
 from .graphs import device_while
 from .kernels import collide as kcol
+from .kernels import selfcollide as ksc
 from .model import Control, Model
 from .passes import StepPass
 from .records import record_values
@@ -76,7 +77,7 @@ class ColliderPass(StepPass):
 
     @property
     def kernel_modules(self) -> tuple:
-        return (kcol,)
+        return (kcol, ksc)  # (the element samples' pushes are applied as self-collision's velocity changes are)
 
     def reset_report(self):
         self.counts.zero_()
@@ -132,7 +133,9 @@ class ColliderPass(StepPass):
                           m.collider_thickness, m.collider_mesh_max_distance, control.collider_transform_start,
                           control.collider_transform_end, self.elements, x, v, dt],
                   outputs=[*pushes, self.counts, self._loop[2:3]], device=dev)
-        wp.launch(kcol.apply_sample_pushes, dim=m.particle_count, inputs=[x, v, *pushes], outputs=[x_next, v_next], device=dev)
+        dx, dv, weights = pushes  # each particle moved by the weighted mean of its samples' pushes
+        wp.launch(ksc.apply_velocity_changes, dim=m.particle_count, inputs=[x, dx, weights], outputs=[x_next], device=dev)
+        wp.launch(ksc.apply_velocity_changes, dim=m.particle_count, inputs=[v, dv, weights], outputs=[v_next], device=dev)
         if not fresh:
             wp.launch(kcol.next_sample_round, dim=1, inputs=[self.sample_rounds], outputs=[self._loop], device=dev)
 

@@ -113,7 +113,7 @@ class Diagnostics:
 @dataclass(frozen=True)
 class ColliderReport:
     """The collider pass over some steps: contacts resolved, and of them those only the continuous trace found; the
-    cloth's element samples (edge and triangle middles) pushed out of a collider."""
+    cloth's element samples (points of its edges and triangles) pushed out of a mesh collider."""
 
     contacts: int
     ccd: int

@@ -59,7 +59,8 @@ class DressingReport:
         zipped: sewn points a settling left open (beyond the weld distance, within ZIP_REACH) and closed by hand
             (:func:`_zip_seams`).
         body_crossings: edges of the dressed cloth through a triangle of the body, and the other way, at the end
-            (:func:`body_crossings`; should be 0: the run's contacts hold particles, not edges, off the body).
+            (:func:`body_crossings`; should be 0: the dressing's contacts hold particles, not edges, off the body; the
+            run's also push out edges and triangles found inside it, from its first step).
     """
 
     seconds: float

@@ -919,9 +919,10 @@ def _warn_handed_over(report, key: str) -> None:
         log.warning("%s: %d seam springs are still open (%.1f mm at most) where the run starts; they stay springs, not "
                     "welded: try a longer dressing or settle", key, report.open_seams, 1e3 * report.seam_gap)
     if report.body_crossings:
-        log.warning("%s: the garments and the body cross (%d edges through triangles) where the run starts; contacts hold "
-                    "the garment's particles off the body, not its edges, which can span a crease of the body (an "
-                    "armpit): try a shorter edge length", key, report.body_crossings)
+        log.warning("%s: the garments and the body cross (%d edges through triangles) where the run starts; the "
+                    "dressing holds the garment's particles off the body, not its edges, which can span a crease of the "
+                    "body (an armpit), and the run's first frame shows that: try a shorter edge length", key,
+                    report.body_crossings)
 
 
 def layer_order(scene: Scene) -> list[list[str]]:

@@ -425,16 +425,6 @@ def edge_inside_middle(mesh: wp.uint64, a: wp.vec3, b: wp.vec3):
     return int(1), 0.5 * (enter.t + length - leave.t) / length
 
 
-@wp.func
-def sample_distance(mesh: wp.uint64, reach: float, p: wp.vec3):
-    """Signed distance [m] of the local point p to the mesh and the outward normal there, or (reach, 0) when the surface
-    is farther than `reach` [m] (a short search: the samples only look for elements cutting into the surface)."""
-    query = wp.mesh_query_point_sign_normal(mesh, p, reach, 1.0e-3)
-    if not query.result:
-        return reach, wp.vec3(0.0)
-    return shape_distance(SHAPE_MESH, wp.vec3(0.0), mesh, reach, p)
-
-
 @wp.kernel
 def collide_element_samples(
     # Model
@@ -470,8 +460,8 @@ def collide_element_samples(
     whichever is deeper (the 3.5 cm T-shirt's shoulder pole, 3-4.5 mm from a triangle's centroid and 0.04-0.18 mm
     through it: searches down the distance within the triangle passed beside it, the stretch inside being a fraction of
     a millimetre across); only surfaces within twice the thickness of the centroid are sought (a short search). Changes
-    are summed per particle, each weighted by its length, with the weights (`apply_sample_pushes` takes their weighted
-    mean: a particle follows mostly its deepest sample)."""
+    are summed per particle, each weighted by its length, with the weights (kernels/selfcollide.py
+    `apply_velocity_changes` takes their weighted mean: a particle follows mostly its deepest sample)."""
     s = wp.tid()
     idx = elements[s]
     for k in range(3):
@@ -496,11 +486,11 @@ def collide_element_samples(
                 crossing, along = edge_inside_middle(mesh, a, b)
                 if crossing != 0:
                     w = wp.vec3(1.0 - along, along, 0.0)
-                    dist, nl = sample_distance(mesh, mesh_max_distance, a + along * (b - a))  # (inside: however deep)
+                    dist, nl = shape_distance(SHAPE_MESH, wp.vec3(0.0), mesh, mesh_max_distance, a + along * (b - a))  # (however deep)
             else:
                 cl = wp.transform_point(to_local, x_end[idx[2]])
                 w = wp.vec3(1.0 / 3.0)
-                dist, nl = sample_distance(mesh, reach, (a + b + cl) / 3.0)
+                dist, nl = shape_distance(SHAPE_MESH, wp.vec3(0.0), mesh, reach, (a + b + cl) / 3.0)  # (reach: none nearer)
                 if dist < 0.5 * collider_thickness[c]:  # (farther, its triangle is clear: sagging no more than that)
                     # a corner of the surface's face nearest the centroid poking through the triangle: beyond its plane
                     # (outward: the surface's normal there), over its inside
@@ -555,22 +545,6 @@ def next_sample_round(rounds: int, loop_out: wp.array(dtype=wp.int32)):
         more = 1
     loop_out[0] = more
     loop_out[2] = 0
-
-
-@wp.kernel
-def apply_sample_pushes(x_end: wp.array(dtype=wp.vec3), v_end: wp.array(dtype=wp.vec3), dx: wp.array(dtype=wp.vec3),
-                        dv: wp.array(dtype=wp.vec3), pushes: wp.array(dtype=float),
-                        x_out: wp.array(dtype=wp.vec3), v_out: wp.array(dtype=wp.vec3)):
-    """Each particle moved by the weighted mean of its samples' pushes (`collide_element_samples`)."""
-    i = wp.tid()
-    x = x_end[i]
-    v = v_end[i]
-    c = pushes[i]
-    if c > 0.0:
-        x = x + dx[i] / c
-        v = v + dv[i] / c
-    x_out[i] = x
-    v_out[i] = v
 
 
 @wp.func
