@@ -8,13 +8,43 @@ import contextlib
 import warp as wp
 
 
+class _Bodies:
+    depth = 0  # device loop and branch bodies being run or recorded now (nested)
+
+
+def in_device_body() -> bool:
+    """Whether a :func:`device_while` or :func:`device_if` body is being run or recorded now. CUDA refuses to record an
+    allocation in such a body ("Conditional body graph contains an unsupported operation"), where the CPU runs it:
+    the tests fail every allocation made here on any device (tests/conftest.py), so the CPU suite catches it."""
+    return _Bodies.depth > 0
+
+
+def _body(body):
+    def run(**kwargs):
+        _Bodies.depth += 1
+        try:
+            body(**kwargs)
+        finally:
+            _Bodies.depth -= 1
+
+    return run
+
+
+def device_if(condition: wp.array, body, **kwargs) -> None:
+    """``body(**kwargs)`` if ``condition[0]`` is non-zero when the work reaches it (``wp.capture_if``: a branch node in a
+    graph, a host test eagerly). The body must not allocate (see :func:`in_device_body`)."""
+    wp.capture_if(condition[:1], on_true=_body(body), **kwargs)
+
+
 def device_while(condition: wp.array, body, **kwargs) -> None:
     """Run ``body(**kwargs)`` while ``condition[0]`` is non-zero; the body updates the condition on the device.
 
     Inside a graph capture this is ``wp.capture_while`` (a loop node, no host work at replay). Eagerly the host
     tests the condition before each pass: on the CPU through a zero-copy view of the array (Warp's eager
     ``capture_while`` copies it, a launch per pass), elsewhere through ``capture_while``'s pinned copy. Both run
-    the same kernels in the same order, so eager and replayed results are bit for bit the same."""
+    the same kernels in the same order, so eager and replayed results are bit for bit the same. The body must not
+    allocate (see :func:`in_device_body`)."""
+    body = _body(body)
     device = condition.device
     if device.is_capturing or not device.is_cpu:
         # a one-element view: eagerly, Warp copies the whole condition array into a one-element pinned buffer

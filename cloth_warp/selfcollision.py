@@ -45,7 +45,7 @@ import numpy as np
 import warp as wp
 
 from .broadphase import SelfCollisionGrid
-from .graphs import device_while
+from .graphs import device_if, device_while
 from .kernels import broadphase as kbp
 from .kernels import contact as kct
 from .kernels import selfcollide as ksc
@@ -325,7 +325,7 @@ class SelfCollision:
         Without them the T-shirt's first step carried two armhole pairs from 5 mm to 1.6 mm apart and the pass after
         the solve stretched a spring to 14.8 %, and a cloth lying on a cloth left its first frame at 65-107 mm/s."""
         f = self._fixed_buffers()
-        wp.capture_if(f.unprimed, on_true=self._prime_fixed, x_start=x_start, velocity=velocity, dt=dt)
+        device_if(f.unprimed, self._prime_fixed, x_start=x_start, velocity=velocity, dt=dt)
         return [(f.close[kind], f.close_count[kind]) for kind in KINDS]
 
     def _prime_fixed(self, x_start, velocity, dt):
@@ -572,8 +572,8 @@ class SelfCollision:
                               f.vbar, dt, tolerance, separation, f.dv, f.weight, f.scratch_counts],
                       outputs=[f.hits[kind], self.counts, f.zones], device=dev, record_tape=False)
         wp.launch(ksc.end_zone_detection, dim=1, inputs=[self.zone_iterations], outputs=[f.zones, self.counts], device=dev, record_tape=False)
-        wp.capture_if(f.zones[ksc.ZONE_MERGE:ksc.ZONE_MERGE + 1], on_true=self._merge_zones_fixed, x_start=x_start, dt=dt, pad=pad)
-        wp.capture_if(f.zones[ksc.ZONE_FINISH:ksc.ZONE_FINISH + 1], on_true=self._finish_zones_fixed)
+        device_if(f.zones[ksc.ZONE_MERGE:ksc.ZONE_MERGE + 1], self._merge_zones_fixed, x_start=x_start, dt=dt, pad=pad)
+        device_if(f.zones[ksc.ZONE_FINISH:ksc.ZONE_FINISH + 1], self._finish_zones_fixed)
 
     def _merge_zones_fixed(self, x_start, dt, pad):
         """The particles of the pairs the last detection flagged join zones (passes on the device to a fixed point),
@@ -664,8 +664,8 @@ class SelfCollision:
         wp.launch(kbp.patch_or_build, dim=1, inputs=[f.escaped, int(self.patch_limit), f.registration, dt, pad, self.margin,
                                                      self.close_reach()],
                   outputs=[f.rebuild, f.patch], device=dev, record_tape=False)
-        wp.capture_if(f.rebuild, on_true=self._build_fixed, x_start=x_start, velocity=vbar, dt=dt, pad=pad)
-        wp.capture_if(f.patch, on_true=self._patch_fixed, x_start=x_start, dt=dt, pad=pad)
+        device_if(f.rebuild, self._build_fixed, x_start=x_start, velocity=vbar, dt=dt, pad=pad)
+        device_if(f.patch, self._patch_fixed, x_start=x_start, dt=dt, pad=pad)
 
     def _patch_fixed(self, x_start, dt, pad):
         """The capturable path's patch (the host path's :meth:`SelfCollisionGrid.refresh` "patched", on the device):

@@ -1,5 +1,6 @@
 """Shared fixtures: the device list (cpu always, cuda:0 when present) and model helpers."""
 
+import contextlib
 import os
 
 import numpy as np
@@ -18,6 +19,35 @@ wp.init()
 wp.set_device("cpu")
 
 DEVICES = ["cpu"] + (["cuda:0"] if wp.is_cuda_available() else [])
+
+
+def _refused_in_device_bodies(name, allocate):
+    """`allocate` that fails inside a device loop or branch body: CUDA refuses to record an allocation there, so the
+    CPU suite must not let one pass (cloth_warp.graphs.in_device_body)."""
+    from cloth_warp.graphs import in_device_body
+
+    def guarded(*args, **kwargs):
+        if in_device_body():
+            raise AssertionError(f"wp.{name} inside a device loop or branch body (CUDA cannot record it): allocate before the loop")
+        return allocate(*args, **kwargs)
+
+    return guarded
+
+
+@contextlib.contextmanager
+def host_probe():
+    """A test's own host-side checks inside an eagerly run device body (never recorded): allocations allowed there."""
+    from cloth_warp import graphs
+
+    depth, graphs._Bodies.depth = graphs._Bodies.depth, 0
+    try:
+        yield
+    finally:
+        graphs._Bodies.depth = depth
+
+
+for _name in ("zeros", "zeros_like", "empty", "empty_like", "full", "full_like", "ones", "ones_like", "clone"):
+    setattr(wp, _name, _refused_in_device_bodies(_name, getattr(wp, _name)))
 
 
 def pytest_addoption(parser):

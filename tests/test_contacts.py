@@ -13,6 +13,7 @@ import cloth_warp as cw
 from cloth_warp.collision import collider_distance
 from cloth_warp.kernels import collide as kcol
 from cloth_warp.kernels import contact as kct
+from conftest import host_probe
 
 DT = 1.0 / 120.0
 THICKNESS = 0.01
@@ -1276,7 +1277,8 @@ def test_a_released_contact_the_re_solve_carries_into_the_collider_is_taken_back
         for c in range(m.collider_count):
             mine = collider[back] == c
             if mine.any():
-                taken_back_inside[0] += int((collider_distance(m, c, end[mine])[0] < thickness[c] * (1.0 - 1e-3)).sum())
+                with host_probe():
+                    taken_back_inside[0] += int((collider_distance(m, c, end[mine])[0] < thickness[c] * (1.0 - 1e-3)).sum())
         return dv
 
     def counted(dt, v0, rounds=None):
@@ -1291,7 +1293,8 @@ def test_a_released_contact_the_re_solve_carries_into_the_collider_is_taken_back
         for c in range(m.collider_count):
             mine = start["contacts"][let_go] == c
             if mine.any():
-                inside[0] += int((collider_distance(m, c, end[mine])[0] < thickness[c] * (1.0 - 1e-3)).sum())
+                with host_probe():
+                    inside[0] += int((collider_distance(m, c, end[mine])[0] < thickness[c] * (1.0 - 1e-3)).sum())
 
     solver.step, solver._check_release, solver._solve_with_contacts = stepped, counted, solved
     for _ in range(120):

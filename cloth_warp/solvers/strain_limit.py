@@ -311,11 +311,12 @@ class StrainLimiter(StepPass):
         x = state_out.particle_q
         wp.copy(x, x_in)
         self._begin(x)
-        device_while(self._loop, self._sweep_in_place, x=x)
+        welded = self._buffer("welded") if self.point_members is not None else None  # (not in the loop: CUDA refuses it)
+        device_while(self._loop, self._sweep_in_place, x=x, welded=welded)
         self._finish(x)
         wp.launch(kc.correct_velocity, dim=m.particle_count, inputs=[x_in, x, v_in, dt], outputs=[state_out.particle_qd], device=m.device)
 
-    def _sweep_in_place(self, x):
+    def _sweep_in_place(self, x, welded):
         m = self.model
         self._touch_colliders(x)
         if self.attachment_count:
@@ -330,8 +331,7 @@ class StrainLimiter(StepPass):
                 outputs=[x],
                 device=m.device,
             )
-        if self.point_members is not None:
-            welded = self._buffer("welded")
+        if welded is not None:
             wp.launch(kc.weld_limited_points, dim=m.particle_count,
                       inputs=[self.point_members, m.particle_mass, m.particle_pinned, x, m.particle_world, self.worlds, self._loop],
                       outputs=[welded], device=m.device)
