@@ -25,7 +25,7 @@ from .collide import CONTACT_BAND, mesh_surface_velocity, pinch_height, shape_di
 from .implicit import (ADMITTED, COUNT_CONTACTS, COUNT_SELF_CONTACTS, COUNT_SIZE, RELEASE_FLAG, RELEASE_ROUNDS, RELEASE_SIZE,
                        SLIP_ALLOWANCE, filtered_block_inverse, is_pinched)
 from .worlds import particle_world_of, world_slot
-from .selfcollide import NORMAL_EPS, add_impulse, inverse_mass_weight, pair_indices, start_weights, weighted_sum
+from .selfcollide import NORMAL_EPS, add_impulse, inverse_mass_weight, pair_indices, start_weights, vertex_face_weights, weighted_sum
 
 wp.set_module_options({"enable_backward": False})
 
@@ -34,6 +34,8 @@ wp.set_module_options({"enable_backward": False})
 SELF_CLEARANCE = wp.constant(0.05)
 # An edge-edge pair whose nearest points have a weight this small is nearest at an edge's end (eval_self_contacts).
 EDGE_END = wp.constant(1.0e-4)
+# [m] two faces' distances to a point within this are one contact's (keeps_nearest_feature keeps the lower-numbered face)
+FEATURE_TIE = wp.constant(1.0e-6)
 # A candidate pair that started beyond the self-contacts' rest distance by more than this fraction of the clearance and
 # whose solved end points are inside it by as much becomes an element within the step (admit_self_contacts); one that
 # starts within it, a vertex nearest inside a face, is an element from the step's start, with no force there
@@ -444,6 +446,49 @@ def at_edge_end(kind: int, alpha: wp.vec4):
 
 
 @wp.func
+def zero_weight_count(alpha: wp.vec4):
+    """How many of a vertex-face pair's face weights are zero (to EDGE_END): 0 nearest inside the face, 1 at an edge,
+    2 at a corner."""
+    count = int(0)
+    for j in range(3):
+        if -alpha[j] <= EDGE_END:
+            count += 1
+    return count
+
+
+@wp.func
+def keeps_nearest_feature(pair: wp.vec2i, idx: wp.vec4i, alpha: wp.vec4, d: float, ring_offsets: wp.array(dtype=wp.int32),
+                          ring_faces: wp.array(dtype=wp.int32), tri_indices: wp.array2d(dtype=wp.int32),
+                          edge_indices: wp.array2d(dtype=wp.int32), particle_point_root: wp.array(dtype=wp.int32),
+                          particle_offset: int, x0: wp.array(dtype=wp.vec3)):
+    """Whether vertex-face pair `pair` (its solved particles `idx`, weights `alpha` and distance d [m] at x0) keeps its
+    contact. A point nearest at a face's edge or corner may be as near, or nearer, to another face at that edge or
+    corner: one contact met once from each (an element each: twice or six times as stiff, and as much friction, where
+    a cloth sliding over a cloth crossed an edge). The pair keeps it where no face round its nearest edge's or
+    corner's vertices (`ring_offsets`, `ring_faces`: per particle its faces, the model's numbering) is nearer by more
+    than FEATURE_TIE, and none as near has the point nearest inside it or a lower number (a pair nearest inside its
+    face always keeps its contact)."""
+    zeros = zero_weight_count(alpha)
+    if zeros == 0 or zeros == 3:
+        return True
+    f = pair[0]
+    p = x0[idx[3]]
+    for j in range(3):
+        if -alpha[j] > EDGE_END:  # a vertex of the nearest edge or corner
+            u = tri_indices[f, j]
+            for k in range(ring_offsets[u], ring_offsets[u + 1]):
+                g = ring_faces[k]
+                if g != f:
+                    other = solved_pair(wp.vec2i(g, pair[1]), 0, tri_indices, edge_indices, particle_point_root, particle_offset)
+                    if other[0] != idx[3] and other[1] != idx[3] and other[2] != idx[3]:
+                        beta = vertex_face_weights(x0, other)
+                        d_g = wp.length(weighted_sum(beta, x0[other[0]], x0[other[1]], x0[other[2]], p))
+                        if d_g < d - FEATURE_TIE or (d_g <= d + FEATURE_TIE and (g < f or zero_weight_count(beta) == 0)):
+                            return False
+    return True
+
+
+@wp.func
 def nearest_inside(kind: int, alpha: wp.vec4):
     """Whether a pair is a vertex-face one (kind 0) nearest inside its face, not at its edge."""
     return kind == 0 and wp.min(wp.min(-alpha[0], -alpha[1]), -alpha[2]) > EDGE_END
@@ -512,6 +557,8 @@ def eval_self_contacts(
     kind: int,
     tri_indices: wp.array2d(dtype=wp.int32),
     edge_indices: wp.array2d(dtype=wp.int32),
+    ring_offsets: wp.array(dtype=wp.int32),
+    ring_faces: wp.array(dtype=wp.int32),
     particle_pinned: wp.array(dtype=wp.int32),
     particle_point_root: wp.array(dtype=wp.int32),
     # State in
@@ -563,7 +610,9 @@ def eval_self_contacts(
     beyond r, to fall g h^2 into the cloth in the next step (0.64 mm at 1/120 s) and be thrown back out. Pairs nearest
     at a face's edge are left out (their normal leans off the face's: such elements held a cloth sliding down a cloth
     on a 30 deg incline), and edge-edge pairs (near an edge's end, a vertex's contact again: with them a layered
-    outfit held still kept a hip particle swinging at up to 0.9 mm/s, 0.1 without). With `friction_in_solve`,
+    outfit held still kept a hip particle swinging at up to 0.9 mm/s, 0.1 without). A vertex-face pair nearest at an
+    edge or corner of its face whose contact another face there holds gets nothing (`keeps_nearest_feature`: each
+    particle's faces in `ring_offsets`, `ring_faces`). With `friction_in_solve`,
     its Coulomb friction (coefficient `friction`) enters the system as well (see `self_contact_friction_terms`).
     Batched worlds: `pairs`, `tri_indices` and `edge_indices` are one world's (its own model's), its particles from
     `particle_offset` on in the batch's arrays; the element is counted in its world's counters. Each
@@ -585,6 +634,9 @@ def eval_self_contacts(
     gap = weighted_sum(alpha, x0[idx[0]], x0[idx[1]], x0[idx[2]], x0[idx[3]])
     d = wp.length(gap)
     if d <= NORMAL_EPS:
+        return
+    if kind == 0 and not keeps_nearest_feature(pairs[tid], idx, alpha, d, ring_offsets, ring_faces, tri_indices, edge_indices,
+                                               particle_point_root, particle_offset, x0):
         return
     n = gap / d
     v_rel = weighted_sum(alpha, v0[idx[0]], v0[idx[1]], v0[idx[2]], v0[idx[3]])

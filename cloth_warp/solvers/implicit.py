@@ -18,7 +18,7 @@ from .. import reductions
 from ..reductions import launch_reduction
 from ..selfcollision import inverse_masses
 from ..sewing import point_masses, solve_roots, welded_view
-from ..topology import sewn_point_roots
+from ..topology import particle_triangles, sewn_point_roots
 from ..worlds import world_ranges
 from ..kernels import forces as kf
 from ..kernels import constraints as kc
@@ -266,6 +266,10 @@ class SolverImplicitEuler(SolverBase):
         for sc, *_ in self._self_collisions:
             sc.share_close_pairs = True
             sc.proximity_reach = PROXIMITY_REACH_UNDER_SOLVE
+        # per world, each particle's triangles (CSR), so that a contact nearest at an edge or corner is one element
+        self._triangle_rings = [tuple(wp.array(a, dtype=wp.int32, device=model.device)
+                                      for a in particle_triangles(tris.numpy(), sc.model.particle_count))
+                                for sc, tris, _, _ in self._self_collisions]
         if "solve" in (collider_contacts, self_contacts):
             self.kernel_modules = (ki, kct)
         self.contact_margin = float(contact_margin)
@@ -539,10 +543,10 @@ class SolverImplicitEuler(SolverBase):
         self.self_contact_admissible_count.zero_()
         inv_mass = self._self_contact_inverse_masses()
         el = self._self_contact_elements
-        for (sc, tris, stiffness, first), world in zip(self._self_collisions, candidates):  # world after world (batched)
+        for (sc, tris, stiffness, first), rings, world in zip(self._self_collisions, self._triangle_rings, candidates):  # (batched: per world)
             for kind, (pairs, count) in enumerate(world):
                 wp.launch(kct.eval_self_contacts, dim=pairs.shape[0],
-                          inputs=[count, pairs, kind, tris, sc.edge_indices, m.particle_pinned, self.particle_point_root,
+                          inputs=[count, pairs, kind, tris, sc.edge_indices, *rings, m.particle_pinned, self.particle_point_root,
                                   state_in.particle_q,
                                   state_in.particle_qd, self._self_contact_distance(), stiffness, dt, self._gravity_norm,
                                   capacity,
