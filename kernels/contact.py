@@ -635,9 +635,6 @@ def eval_self_contacts(
     d = wp.length(gap)
     if d <= NORMAL_EPS:
         return
-    if kind == 0 and not keeps_nearest_feature(pairs[tid], idx, alpha, d, ring_offsets, ring_faces, tri_indices, edge_indices,
-                                               particle_point_root, particle_offset, x0):
-        return
     n = gap / d
     v_rel = weighted_sum(alpha, v0[idx[0]], v0[idx[1]], v0[idx[2]], v0[idx[3]])
     v_n = wp.dot(n, v_rel)
@@ -645,6 +642,10 @@ def eval_self_contacts(
     resting_beyond = d < rest_distance + admit_depth(rest_distance) and nearest_inside(kind, alpha)  # force-free element
     if leaving or not (d < rest_distance or resting_beyond):
         if leaving or admissible(kind, x0, idx, gap, d, rest_distance):
+            if kind == 0:  # (tested only for the pairs kept either way: it looks at up to two vertices' faces)
+                if not keeps_nearest_feature(pairs[tid], idx, alpha, d, ring_offsets, ring_faces, tri_indices, edge_indices,
+                                             particle_point_root, particle_offset, x0):
+                    return
             slot = wp.atomic_add(admissible_count_out, 0, 1)
             if slot < capacity:
                 admissible_indices_out[slot] = idx
@@ -654,6 +655,10 @@ def eval_self_contacts(
                 admissible_coefficient_out[slot] = coefficient
                 admissible_admitted_out[slot] = 0
         return
+    if kind == 0:
+        if not keeps_nearest_feature(pairs[tid], idx, alpha, d, ring_offsets, ring_faces, tri_indices, edge_indices,
+                                     particle_point_root, particle_offset, x0):
+            return
     e = wp.atomic_add(element_count_out, 0, 1)
     if e >= capacity:
         return
