@@ -34,7 +34,8 @@ wp.set_module_options({"enable_backward": False})
 SELF_CLEARANCE = wp.constant(0.05)
 # An edge-edge pair whose nearest points have a weight this small is nearest at an edge's end (eval_self_contacts).
 EDGE_END = wp.constant(1.0e-4)
-# [m] two faces' distances to a point within this are one contact's (keeps_nearest_feature keeps the lower-numbered face)
+# [m] two faces' distances to a point within this are one contact's (keeps_nearest_feature: the face with the point
+# nearest inside it keeps it, else the lower-numbered)
 FEATURE_TIE = wp.constant(1.0e-6)
 # A candidate pair that started beyond the self-contacts' rest distance by more than this fraction of the clearance and
 # whose solved end points are inside it by as much becomes an element within the step (admit_self_contacts); one that
