@@ -641,25 +641,23 @@ def eval_self_contacts(
     v_n = wp.dot(n, v_rel)
     leaving = leaves_contact(d, v_n, rest_distance, dt, gravity)
     resting_beyond = d < rest_distance + admit_depth(rest_distance) and nearest_inside(kind, alpha)  # force-free element
-    if leaving or not (d < rest_distance or resting_beyond):
-        if leaving or admissible(kind, x0, idx, gap, d, rest_distance):
-            if kind == 0:  # (tested only for the pairs kept either way: it looks at up to two vertices' faces)
-                if not keeps_nearest_feature(pairs[tid], idx, alpha, d, ring_offsets, ring_faces, tri_indices, edge_indices,
-                                             particle_point_root, particle_offset, x0):
-                    return
-            slot = wp.atomic_add(admissible_count_out, 0, 1)
-            if slot < capacity:
-                admissible_indices_out[slot] = idx
-                admissible_weights_out[slot] = alpha
-                admissible_gap_out[slot] = gap
-                admissible_stiffness_out[slot] = stiffness
-                admissible_coefficient_out[slot] = coefficient
-                admissible_admitted_out[slot] = 0
+    keep_admissible = leaving or not (d < rest_distance or resting_beyond)  # (else an element)
+    if keep_admissible and not (leaving or admissible(kind, x0, idx, gap, d, rest_distance)):
         return
-    if kind == 0:
+    if kind == 0:  # (only for the pairs kept either way: it looks at up to two vertices' faces)
         if not keeps_nearest_feature(pairs[tid], idx, alpha, d, ring_offsets, ring_faces, tri_indices, edge_indices,
                                      particle_point_root, particle_offset, x0):
             return
+    if keep_admissible:
+        slot = wp.atomic_add(admissible_count_out, 0, 1)
+        if slot < capacity:
+            admissible_indices_out[slot] = idx
+            admissible_weights_out[slot] = alpha
+            admissible_gap_out[slot] = gap
+            admissible_stiffness_out[slot] = stiffness
+            admissible_coefficient_out[slot] = coefficient
+            admissible_admitted_out[slot] = 0
+        return
     e = wp.atomic_add(element_count_out, 0, 1)
     if e >= capacity:
         return
