@@ -542,10 +542,8 @@ def _still_simulator(trial, fps, substeps, device, solver_options):
         # stitch at its 2.5 cm edges by round-off luck (docs/garments.md, the Known limits entry on sewing), which
         # other candidate orders lose
         collisions.self_collision.keep_broad_phase = False
-    # (the colliders pass keeps the cloth's elements out of the body here too: without its element samples the 3.5 cm
-    # T-shirt's settle handed the run 17 edges across the body; they were off here while, with them, the shipped
-    # T-shirt came out of its settle fluttering at its right armpit, 16.8 mm/s held still, which ended once a
-    # self-contact nearest at an edge or corner was one element: 0.59 mm/s)
+    # (the colliders pass keeps the cloth's elements out of the body here as in the run: docs/garments.md, "The
+    # dressing keeps the elements out of the body")
     return model, Simulator(model, solver, fps=fps, substeps=substeps)
 
 
