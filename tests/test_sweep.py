@@ -41,6 +41,19 @@ def test_params_split_at_top_level_commas_and_runs_are_the_product():
     assert [exit_class(c) for c in (0, 2, 3, 130, -9, 1)] == ["ok", "bad_input", "diverged", "interrupted", "killed", "error"]
 
 
+def _saved_frames(partials) -> int:
+    """Frames (the initial state counts as one) in the first readable one of a run's partial caches; 0 if none is readable."""
+    from cloth_warp.cache import CacheReader
+
+    for path in partials:
+        try:
+            r = CacheReader(path)
+            return r.end_frame - r.start_frame + 1
+        except Exception:
+            continue
+    return 0
+
+
 def _frames(cache):
     from cloth_warp.cache import CacheReader
 
@@ -96,6 +109,31 @@ def _wait_for(predicate, timeout=120.0):
     raise AssertionError("timed out")
 
 
+def _stopped_once(folder, command: str, saved, timeout=120.0) -> list[int]:
+    """Pids of the processes running `command` into `folder`, left stopped (SIGSTOP) at the first look at which
+    `saved()` holds. Each look is taken with them stopped, so it reads no file while it is written and the run
+    cannot end between the look and the kill (a short run on a busy machine did, and no look ever found it)."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        pids = _processes(str(folder), command)
+        stopped = [pid for pid in pids if _signal(pid, signal.SIGSTOP)]
+        if stopped and saved():
+            return stopped
+        for pid in stopped:
+            _signal(pid, signal.SIGCONT)
+        time.sleep(0.02)
+    raise AssertionError("timed out")
+
+
+def _signal(pid: int, sig) -> bool:
+    """Send `sig` to `pid`; False if the process has ended."""
+    try:
+        os.kill(pid, sig)
+        return True
+    except ProcessLookupError:
+        return False
+
+
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="finds the run's process in /proc")
 def test_a_killed_run_is_retried_once_from_its_saved_frames(tmp_path):
     """Check a run whose process is killed (SIGKILL, as the memory killer would) once it has saved frames: the manifest
@@ -112,7 +150,7 @@ def test_a_killed_run_is_retried_once_from_its_saved_frames(tmp_path):
     partial = out / "runs" / "run-0000"
     from cloth_warp.runner import can_resume
 
-    pids = _wait_for(lambda: partial.exists() and can_resume(partial / "cache.usdc") and _processes(str(partial)))  # frames saved
+    pids = _stopped_once(partial, "cloth_warp run", lambda: can_resume(partial / "cache.usdc"))  # frames saved
     for pid in pids:
         os.kill(pid, signal.SIGKILL)
     thread.join(timeout=300)
@@ -202,8 +240,7 @@ def test_a_killed_batch_is_run_again_whole(tmp_path):
     thread = threading.Thread(target=lambda: (seen.append(run_sweep(sweep, out, workers=1)), done.set()))
     thread.start()
     first = out / "runs" / "run-0000"
-    pids = _wait_for(lambda: first.exists() and list(first.glob("cache.partial-*")) and _processes(str(first), "cloth_warp.sweep"))
-    time.sleep(1.0)
+    pids = _stopped_once(first, "cloth_warp.sweep", lambda: _saved_frames(first.glob("cache.partial-*")) > 1)
     for pid in pids:
         os.kill(pid, signal.SIGKILL)
     thread.join(timeout=300)
