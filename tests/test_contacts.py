@@ -1236,28 +1236,46 @@ def reversed_slides(solver, v0) -> int:
     return int((sliding & ((slip * fi).sum(axis=1) > 0.0)).sum())
 
 
+def reversed_self_slides(solver, v0) -> int:
+    """Self-contact elements left sliding (a kinetic impulse, no damper) whose solved relative slip runs along their
+    friction impulse: the kinetic impulse reversed them."""
+    count = int(solver.self_contact_count.numpy()[0])
+    if count == 0:
+        return 0
+    idx, alpha, normal, _overlap, d, fi = (a.numpy()[:count] for a in solver._self_contact_elements[:6])
+    v = v0.numpy() + solver.dv.numpy()
+    rel = (alpha[:, :, None] * v[idx]).sum(axis=1)
+    slip = rel - (rel * normal).sum(axis=1, keepdims=True) * normal
+    sliding = (d == 0.0) & (np.linalg.norm(fi, axis=1) > 0.0)
+    return int((sliding & ((slip * fi).sum(axis=1) > 0.0)).sum())
+
+
 @pytest.mark.parametrize("scene,resolution,seed", [("drape_sphere", 24, 0), ("pile", 16, 1)])
 def test_a_slide_its_kinetic_impulse_reverses_sticks_again(scene, resolution, seed):
     """Check, on the drape over the ball and the pile (everything in the solve) over their first 2 s, that no contact the
     release check let slide ends a check that had a round left with its solved slip reversed by its kinetic impulse:
     it sticks again (a damper from that solve's normal impulse) and the step is solved again. Left sliding, the cloth
     round it took an impulse the contact did not need, and such contacts went from stick to slide and back every step
-    (a dress held still: 60 particles in a period-two cycle at 5-7 mm/s). Measured without the rule: 89 and 95 such checks."""
+    (a dress held still: 60 particles in a period-two cycle at 5-7 mm/s). Measured without the rule: 89 and 95 such checks.
+    The same for the self-contact elements (`slide_self_contacts`; without the rule, in the layered outfit held still a
+    20 Hz stick-slip cycle between its garments): measured without it, 388 and 75 such checks."""
     m, solver, sim = everything_in_the_solve(scene, resolution, seed)
     check = solver._check_release
-    reversed_left, rounds_left = [0], [0]
+    reversed_left, self_reversed_left, rounds_left = [0], [0], [0]
 
     def counted(dt, v0, rounds=None):
         check(dt, v0, rounds)
         if int(solver.release.numpy()[1]) < (solver.contact_release_rounds if rounds is None else rounds):  # (RELEASE_ROUNDS)
             rounds_left[0] += 1
             reversed_left[0] += reversed_slides(solver, v0) > 0
+            self_reversed_left[0] += reversed_self_slides(solver, v0) > 0
 
     solver._check_release = counted
     for _ in range(120):
         sim.step_frame()
     assert rounds_left[0] > 100
     assert reversed_left[0] == 0
+    assert self_reversed_left[0] == 0
 
 
 def test_the_default_rounds_let_a_stick_slide_stick_contact_end_its_step_stuck():
@@ -1504,10 +1522,12 @@ def test_cloth_draped_over_a_ball_comes_to_rest_with_friction_in_the_solve(resol
     assert (sim.solver.contact_collider.numpy() == 0).sum() > resolution  # resting on the ball
 
 
-def cloth_on_cloth_incline(theta, mu, friction):
+def cloth_on_cloth_incline(theta, mu, friction, offset=0.0):
     """A 0.15 m cotton square (6^2) lying on a 0.3 m one (8^2) on a plane tilted by theta [deg] (plane friction 1.5:
     the lower cloth holds), the layers in contact at the solve's spacing, cloth friction mu; both contacts and their
-    friction (`friction`) in the solve. Returns the simulator, the upper cloth's particles and the downhill direction."""
+    friction (`friction`) in the solve. The upper square's centre lies `offset` [m] downhill of the lower's (its
+    vertices over other points of the lower cloth's cells). Returns the simulator, the upper cloth's particles and the
+    downhill direction."""
     th = math.radians(theta)
     normal = np.array([-math.sin(th), math.cos(th), 0.0])
     downhill = np.array([-math.cos(th), -math.sin(th), 0.0])
@@ -1520,7 +1540,7 @@ def cloth_on_cloth_incline(theta, mu, friction):
                      position=tuple(normal * lower_height + 0.15 * downhill - 0.15 * across))
     upper_height = lower_height + CLOTH_THICKNESS * (1 + float(kct.SELF_CLEARANCE))
     upper = b.add_cloth_grid(resolution=(6, 6), size=(0.15, 0.15), material="cotton", rotation=frame,
-                             position=tuple(normal * upper_height + 0.075 * downhill - 0.075 * across))
+                             position=tuple(normal * upper_height + (0.075 + offset) * downhill - 0.075 * across))
     b.enable_self_collision(thickness=CLOTH_THICKNESS, friction=mu)
     m = b.finalize("cpu")
     solver = cw.SolverImplicitEuler(m, collider_contacts="solve", self_contacts="solve", contact_friction=friction,
@@ -1533,29 +1553,41 @@ def test_cloth_on_cloth_sticks_or_slides_by_coulomb_with_friction_in_the_solve(t
     """Check the self-contacts' friction in the solve on a cloth lying on a cloth on an incline, cloth friction 0.3: at
     10 deg (tan = 0.18 < 0.3) the upper cloth stays put once settled (moved 0.01 mm over frames 10-60, measured; with
     the friction after the solve it slid 10 cm in 1 s); at 30 deg (tan = 0.58) it slides down the lower cloth at
-    g (sin - mu cos) = 2.36 m/s^2 in every frame from 6 on (the first frames settle the layers; measured: 2.30-2.42).
+    g (sin - mu cos) = 2.36 m/s^2, from five places on the lower cloth (its vertices over other points of the lower
+    cells): over frames 6-16, each run's median frame within 1.5 % and its mean within 2.5 %, and 85 % of all frames
+    within 5 % (measured: medians -0.3 to +0.2 %, means -1.7 to +0.7 %, 50 of 55 frames). A frame can still snag
+    where a vertex passes over a vertex of the lower cloth (docs/contacts-in-the-solve.md, "A slid self-contact that
+    its kinetic impulse reversed sticks again": measured from 11 places, 7 of 121 frames beyond 5 %, one at -128 %).
     A particle crossing an edge of the lower cloth used to snag for a frame (0.62 and 1.32 m/s^2 in two frames): it
     was an element for each face at the edge, as stiff and with as much friction as two contacts; a contact nearest at
-    an edge or corner is one element now (kernels/contact.py keeps_nearest_feature). A damper the solve pushes past the static bound slides within the step (kernels/contact.py slide_self_contacts):
-    without that, a pair starting from rest only sped up by the load's ratio to the bound per step and the cloth
-    reached 0.15 m/s after 10 frames instead of 0.28 (with the friction after the solve: 0.72, too fast)."""
+    an edge or corner is one element now (kernels/contact.py keeps_nearest_feature). A damper the solve pushes past the
+    static bound slides within the step (kernels/contact.py slide_self_contacts): without that, a pair starting from
+    rest only sped up by the load's ratio to the bound per step and the cloth reached 0.15 m/s after 10 frames instead
+    of 0.28 (with the friction after the solve: 0.72, too fast)."""
     mu = 0.3
-    sim, upper, downhill = cloth_on_cloth_incline(theta, mu, "solve")
-    speeds, travel = {}, {}
-    x0 = sim.positions()[upper]
-    for frame in range(1, 61 if theta < 20 else 17):
-        sim.step_frame()
-        x = sim.positions()[upper]
-        speeds[frame] = float(sim.state.particle_qd.numpy()[upper].mean(axis=0) @ downhill)
-        travel[frame] = float((x - x0).mean(axis=0) @ downhill)
     if theta < 20:
-        assert abs(travel[60] - travel[10]) < 1e-4 and abs(speeds[60]) < 1e-4
-    else:
-        a = 9.81 * (math.sin(math.radians(theta)) - mu * math.cos(math.radians(theta)))
+        sim, upper, downhill = cloth_on_cloth_incline(theta, mu, "solve")
+        x0 = sim.positions()[upper]
+        travel = {}
+        for frame in range(1, 61):
+            sim.step_frame()
+            travel[frame] = float((sim.positions()[upper] - x0).mean(axis=0) @ downhill)
+        assert abs(travel[60] - travel[10]) < 1e-4 and abs(float(sim.state.particle_qd.numpy()[upper].mean(axis=0) @ downhill)) < 1e-4
+        return
+    a = 9.81 * (math.sin(math.radians(theta)) - mu * math.cos(math.radians(theta)))
+    within = []
+    for offset in (0.0, -0.006, -0.014, -0.022, -0.030):  # (uphill: the upper cloth stays on the lower over the frames)
+        sim, upper, downhill = cloth_on_cloth_incline(theta, mu, "solve", offset)
+        speeds = {}
+        for frame in range(1, 17):
+            sim.step_frame()
+            speeds[frame] = float(sim.state.particle_qd.numpy()[upper].mean(axis=0) @ downhill)
         rates = [(speeds[k + 1] - speeds[k]) * 60 for k in range(5, 16)]
-        assert max(abs(rate / a - 1.0) for rate in rates) < 0.05, rates
-        assert (speeds[16] - speeds[5]) * 60 / 11 == pytest.approx(a, rel=0.01)
+        assert float(np.median(rates)) == pytest.approx(a, rel=0.015), (offset, rates)
+        assert (speeds[16] - speeds[5]) * 60 / 11 == pytest.approx(a, rel=0.025), (offset, rates)
         assert speeds[6] > 0.25 * a * 6 / 60  # started within the first frames
+        within += [abs(rate / a - 1.0) < 0.05 for rate in rates]
+    assert sum(within) >= 0.85 * len(within)
 
 
 def cloth_resting_on_cloth(seed):
