@@ -492,7 +492,7 @@ def keeps_nearest_feature(pair: wp.vec2i, idx: wp.vec4i, alpha: wp.vec4, d: floa
 @wp.func
 def nearest_inside(kind: int, alpha: wp.vec4):
     """Whether a pair is a vertex-face one (kind 0) nearest inside its face, not at its edge."""
-    return kind == 0 and wp.min(wp.min(-alpha[0], -alpha[1]), -alpha[2]) > EDGE_END
+    return kind == 0 and zero_weight_count(alpha) == 0
 
 
 @wp.func

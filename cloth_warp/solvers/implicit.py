@@ -18,7 +18,7 @@ from .. import reductions
 from ..reductions import launch_reduction
 from ..selfcollision import inverse_masses
 from ..sewing import point_masses, solve_roots, welded_view
-from ..topology import particle_triangles, sewn_point_roots
+from ..topology import sewn_point_roots
 from ..worlds import world_ranges
 from ..kernels import forces as kf
 from ..kernels import constraints as kc
@@ -266,10 +266,8 @@ class SolverImplicitEuler(SolverBase):
         for sc, *_ in self._self_collisions:
             sc.share_close_pairs = True
             sc.proximity_reach = PROXIMITY_REACH_UNDER_SOLVE
-        # per world, each particle's triangles (CSR), so that a contact nearest at an edge or corner is one element
-        self._triangle_rings = [tuple(wp.array(a, dtype=wp.int32, device=model.device)
-                                      for a in particle_triangles(tris.numpy(), sc.model.particle_count))
-                                for sc, tris, _, _ in self._self_collisions]
+        # per world, each particle's triangles (its model's CSR), so that a contact nearest at an edge or corner is one element
+        self._triangle_rings = [(sc.model.particle_tri_offsets, sc.model.particle_tri_ids) for sc, *_ in self._self_collisions]
         if "solve" in (collider_contacts, self_contacts):
             self.kernel_modules = (ki, kct)
         self.contact_margin = float(contact_margin)
