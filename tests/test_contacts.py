@@ -1504,6 +1504,36 @@ def test_cloth_draped_over_a_ball_comes_to_rest_with_friction_in_the_solve(resol
     assert (sim.solver.contact_collider.numpy() == 0).sum() > resolution  # resting on the ball
 
 
+@wp.kernel
+def _friction_load_overlaps(cases: wp.array(dtype=wp.vec4), stiffness: float, dt: float, gravity: float, stick_speed: float,
+                            out: wp.array(dtype=float)):
+    i = wp.tid()
+    c = cases[i]  # overlap [m], start normal velocity [m/s], start slip [m/s], inverse mass weight [1/kg]
+    out[i] = kct.friction_load_overlap(c[0], c[1], c[2], stiffness, c[3], dt, gravity, stick_speed)
+
+
+def test_a_sliding_self_contact_that_fell_in_is_bounded_in_friction_by_what_it_delivers():
+    """kernels/contact.py friction_load_overlap on one pair (k = 1470 N/m, h = 1/120 s, sliding at 0.5 m/s): one that
+    fell in within the last step (v_n0 = -o / h) has its friction bounded by the impulse backward Euler's penalty
+    delivers to a free pair, lambda = h k (o - h v_n1), v_n1 = v_n0 + w lambda (solved here on its own); a cotton
+    particle of the incline tests (0.023 g) 0.5 mm in delivers less than ten layers' weight, which bounds it then
+    (1/300 of h k o). Resting pairs (slip 0) and pressed ones (sliding, their overlap not their approach) keep h k o:
+    with the bound on them too the T-shirt held still ended at 1.6 mm/s (0.41 without)."""
+    k, h, g = 1470.0, 1.0 / 120.0, 9.81
+    heavy, cotton = 3.0 / (h * h * k), 1.0 / 2.34375e-5  # inverse masses: h^2 k w = 3 (the penalty delivers less than h k o)
+    deep, pressed = 6e-3, 5e-6
+    cases = [(deep, -deep / h, 0.5, heavy), (5e-4, -5e-4 / h, 0.5, cotton), (5e-4, -5e-4 / h, 0.0, cotton),
+             (pressed, -1e-4, 0.5, cotton), (pressed, 0.0, 0.0, cotton)]
+    out = wp.zeros(len(cases), dtype=float, device="cpu")
+    wp.launch(_friction_load_overlaps, dim=len(cases), inputs=[wp.array(cases, dtype=wp.vec4, device="cpu"), k, h, g, 1e-4],
+              outputs=[out], device="cpu")
+    o_f = out.numpy()
+    impulse = np.linalg.solve([[1.0, h * h * k], [-heavy, 1.0]], [h * k * deep, -deep / h])[0]  # lambda, v_n1
+    assert h * k * o_f[0] == pytest.approx(impulse, rel=1e-4) and o_f[0] < 0.6 * deep
+    assert o_f[1] == pytest.approx(10.0 * g / (k * cotton), rel=1e-5) and o_f[1] < 5e-4 / 300  # ten layers' weight
+    assert list(o_f[2:]) == pytest.approx([5e-4, pressed, pressed], rel=1e-6)
+
+
 def cloth_on_cloth_incline(theta, mu, friction, offset=0.0):
     """A 0.15 m cotton square (6^2) lying on a 0.3 m one (8^2) on a plane tilted by theta [deg] (plane friction 1.5:
     the lower cloth holds), the layers in contact at the solve's spacing, cloth friction mu; both contacts and their
