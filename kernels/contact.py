@@ -442,6 +442,16 @@ def friction_load_overlap(overlap: float, v_n: float, slip: float, stiffness: fl
     return wp.min(overlap, wp.max(delivered, layers))
 
 
+@wp.kernel
+def eval_friction_load_overlaps(cases: wp.array(dtype=wp.vec4), stiffness: float, dt: float, gravity: float,
+                                stick_speed: float, friction_overlap_out: wp.array(dtype=float)):
+    """`friction_load_overlap` of each case (overlap [m], start normal velocity [m/s], start slip [m/s], inverse mass
+    weight [1/kg]), for checks of the rule on its own."""
+    i = wp.tid()
+    c = cases[i]
+    friction_overlap_out[i] = friction_load_overlap(c[0], c[1], c[2], stiffness, c[3], dt, gravity, stick_speed)
+
+
 @wp.func
 def solved_pair(pair: wp.vec2i, kind: int, tri_indices: wp.array2d(dtype=wp.int32), edge_indices: wp.array2d(dtype=wp.int32),
                 particle_point_root: wp.array(dtype=wp.int32), particle_offset: int):

@@ -1504,14 +1504,6 @@ def test_cloth_draped_over_a_ball_comes_to_rest_with_friction_in_the_solve(resol
     assert (sim.solver.contact_collider.numpy() == 0).sum() > resolution  # resting on the ball
 
 
-@wp.kernel
-def _friction_load_overlaps(cases: wp.array(dtype=wp.vec4), stiffness: float, dt: float, gravity: float, stick_speed: float,
-                            out: wp.array(dtype=float)):
-    i = wp.tid()
-    c = cases[i]  # overlap [m], start normal velocity [m/s], start slip [m/s], inverse mass weight [1/kg]
-    out[i] = kct.friction_load_overlap(c[0], c[1], c[2], stiffness, c[3], dt, gravity, stick_speed)
-
-
 def test_a_sliding_self_contact_that_fell_in_is_bounded_in_friction_by_what_it_delivers():
     """kernels/contact.py friction_load_overlap on one pair (k = 1470 N/m, h = 1/120 s, sliding at 0.5 m/s): one that
     fell in within the last step (v_n0 = -o / h) has its friction bounded by the impulse backward Euler's penalty
@@ -1525,7 +1517,7 @@ def test_a_sliding_self_contact_that_fell_in_is_bounded_in_friction_by_what_it_d
     cases = [(deep, -deep / h, 0.5, heavy), (5e-4, -5e-4 / h, 0.5, cotton), (5e-4, -5e-4 / h, 0.0, cotton),
              (pressed, -1e-4, 0.5, cotton), (pressed, 0.0, 0.0, cotton)]
     out = wp.zeros(len(cases), dtype=float, device="cpu")
-    wp.launch(_friction_load_overlaps, dim=len(cases), inputs=[wp.array(cases, dtype=wp.vec4, device="cpu"), k, h, g, 1e-4],
+    wp.launch(kct.eval_friction_load_overlaps, dim=len(cases), inputs=[wp.array(cases, dtype=wp.vec4, device="cpu"), k, h, g, 1e-4],
               outputs=[out], device="cpu")
     o_f = out.numpy()
     impulse = np.linalg.solve([[1.0, h * h * k], [-heavy, 1.0]], [h * k * deep, -deep / h])[0]  # lambda, v_n1
