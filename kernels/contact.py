@@ -437,7 +437,8 @@ def friction_load_overlap(overlap: float, v_n: float, slip: float, stiffness: fl
     fall-in test alone (docs/contacts-in-the-solve.md, "A deep self-contact's friction")."""
     if overlap <= 0.0 or mass_weight <= 0.0 or slip <= FRICTION_LOAD_SLIP * stick_speed or -dt * v_n < 0.5 * overlap:
         return overlap
-    delivered = wp.max(overlap - dt * v_n, 0.0) / (1.0 + dt * dt * stiffness * mass_weight) + wp.max(overlap + dt * v_n, 0.0)
+    # (fell in: -h v_n0 >= o / 2 > 0, so o - h v_n0 > 0)
+    delivered = (overlap - dt * v_n) / (1.0 + dt * dt * stiffness * mass_weight) + wp.max(overlap + dt * v_n, 0.0)
     layers = FRICTION_LOAD_LAYERS * gravity / (stiffness * mass_weight)
     return wp.min(overlap, wp.max(delivered, layers))
 

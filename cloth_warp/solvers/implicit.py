@@ -392,7 +392,8 @@ class SolverImplicitEuler(SolverBase):
         # self-contact elements in the solve (kernels/contact.py eval_self_contacts; capacity: the candidates')
         self.self_contact_count = wp.zeros(1, dtype=wp.int32, device=dev)
         self._gathered_inv_mass = None  # batched worlds: the worlds' self-collision inverse masses in one array
-        self._self_contact_elements = None  # (indices, weights, normals, overlaps, friction masses, friction impulses, stiffness, h^2 k), capacity: the candidates'
+        # (friction overlaps: the part of each overlap that bounds its friction, kernels/contact.py friction_load_overlap)
+        self._self_contact_elements = None  # (indices, weights, normals, friction overlaps, friction masses, friction impulses, stiffness, h^2 k), capacity: the candidates'
         self._self_contacts_on = False  # whether the step being solved has self-contact elements
         # the pairs beyond the elements' rest distance the contact checks may admit (kernels/contact.py admit_self_contacts):
         # (indices, weights, start gaps, stiffness, h^2 k, admitted), capacity: the candidates'
