@@ -14,6 +14,11 @@ Run:  python benchmarks/bench_rest.py                         (30 runs, ~4-6 min
       python benchmarks/bench_rest.py --extended              (and 30 more, other seeds: 60 runs)
       python benchmarks/bench_rest.py --ref HEAD~1            (and the revision before: ~12 min)
       python benchmarks/bench_rest.py --runs 12 --set solver.tolerance=1e-4
+      python benchmarks/bench_rest.py --extended --against benchmarks/results/bench_rest_self_restick.json
+
+A tree is compared with another on the same runs, paired (`--ref`, or `--against` a recorded .json): a change to the
+contacts reshuffles which runs rest, so the count at rest is judged by McNemar's exact p on the runs at rest in one
+tree only, not by its difference alone (docs/contacts-in-the-solve.md, "The rest set counts a rate").
 """
 
 from __future__ import annotations
@@ -52,6 +57,8 @@ def parse_args(argv=None):
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="scene override (TOML value), repeatable")
     p.add_argument("--jobs", type=int, default=2, help="runs at a time (one process each)")
     p.add_argument("--ref", metavar="REV", default=None, help="also run git revision REV (a temporary worktree)")
+    p.add_argument("--against", metavar="JSON", default=None,
+                   help="a recorded result (this benchmark's .json, the same runs) to pair this tree's runs with")
     p.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "bench_rest.md"))
     p.add_argument("--one", nargs=3, metavar=("SCENE", "RES", "SEED"), help=argparse.SUPPRESS)
     return p.parse_args(argv)
@@ -109,6 +116,33 @@ def summary(rows: list[dict]) -> str:
             f"{sum(r['iterations'] for r in rows):.0f} CG iterations and {sum(r['ms'] for r in rows):.0f} ms per frame in sum")
 
 
+def exact_two_sided_p(a: int, b: int) -> float:
+    """The exact two-sided p of McNemar's test: the chance, under equal odds, of a split of a + b discordant runs at least
+    as uneven as a : b."""
+    n, k = a + b, min(a, b)
+    return 1.0 if n == 0 else min(1.0, 2.0 * sum(math.comb(n, i) for i in range(k + 1)) / 2.0 ** n)
+
+
+def paired_comparison(new: list[dict], ref: list[dict], ref_name: str) -> list[str]:
+    """Two trees' results on the same runs, paired: the runs at rest in one tree only, McNemar's exact p, and how many
+    such runs two trees whose runs rest independently at their rates would have. Each change to the contacts reshuffles
+    which runs rest (2026-12-01: the recorded pairs split near that count), so the count at rest is a rate with a
+    binomial spread, and a difference is judged by p, not by its sign."""
+    rest_new = [r["speed"] <= REST for r in new]
+    rest_ref = [r["speed"] <= REST for r in ref]
+    only_new = sum(a and not b for a, b in zip(rest_new, rest_ref))
+    only_ref = sum(b and not a for a, b in zip(rest_new, rest_ref))
+    n = len(new)
+    rate = (sum(rest_new) + sum(rest_ref)) / (2 * n)
+    log_ratio = [math.log(max(a["speed"], 1e-9) / max(b["speed"], 1e-9)) for a, b in zip(new, ref)]
+    mean = sum(log_ratio) / n
+    spread = math.sqrt(sum((x - mean) ** 2 for x in log_ratio) / max(n - 1, 1) / n)
+    return [f"Paired against {ref_name}: {sum(rest_new)} against {sum(rest_ref)} of {n} at rest; at rest in this tree only "
+            f"{only_new}, in {ref_name} only {only_ref} (McNemar's exact two-sided p = {exact_two_sided_p(only_new, only_ref):.2f}; "
+            f"independent runs at these rates would split {2 * n * rate * (1 - rate):.1f}); speed ratio, geometric mean "
+            f"{math.exp(mean):.2f} (x/ {math.exp(2 * spread):.2f} for two standard errors)."]
+
+
 def main(argv=None) -> int:
     args = parse_args(argv)
     if args.one:
@@ -149,6 +183,14 @@ def main(argv=None) -> int:
     if len(runs) > len(RUNS):  # each set on its own
         for name, part in (("the first set", slice(0, len(RUNS))), ("the second set", slice(len(RUNS), None))):
             lines.append(f"On {name}: this tree {summary(new[part])}" + (f"; `{args.ref}` {summary(ref[part])}." if ref else "."))
+    if ref:
+        lines += [""] + paired_comparison(new, ref, f"`{args.ref}`")
+    if args.against:
+        recorded = json.loads(pathlib.Path(args.against).read_text())
+        by_run = {tuple(spec): row for spec, row in zip(recorded["runs"], recorded["new"])}
+        pairs = [(row, by_run[tuple(spec)]) for spec, row in zip(runs, new) if tuple(spec) in by_run]
+        if pairs:
+            lines += [""] + paired_comparison([a for a, _ in pairs], [b for _, b in pairs], f"`{pathlib.Path(args.against).name}`")
     write_results(args.out, lines, {"command": command.strip(), "runs": [list(s) for s in runs], "new": new, "ref": ref})
     return 0
 
