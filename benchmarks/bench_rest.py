@@ -125,7 +125,7 @@ def exact_two_sided_p(a: int, b: int) -> float:
 
 def paired_comparison(new: list[dict], ref: list[dict], ref_name: str) -> list[str]:
     """Two trees' results on the same runs, paired: the runs at rest in one tree only, McNemar's exact p, and how many
-    such runs two trees whose runs rest independently at their rates would have. Each change to the contacts reshuffles
+    such runs two trees whose runs rest independently at their pooled rate would have. Each change to the contacts reshuffles
     which runs rest (2026-12-01: the recorded pairs split near that count), so the count at rest is a rate with a
     binomial spread, and a difference is judged by p, not by its sign."""
     rest_new = [r["speed"] <= REST for r in new]
@@ -139,7 +139,7 @@ def paired_comparison(new: list[dict], ref: list[dict], ref_name: str) -> list[s
     spread = math.sqrt(sum((x - mean) ** 2 for x in log_ratio) / max(n - 1, 1) / n)
     return [f"Paired against {ref_name}: {sum(rest_new)} against {sum(rest_ref)} of {n} at rest; at rest in this tree only "
             f"{only_new}, in {ref_name} only {only_ref} (McNemar's exact two-sided p = {exact_two_sided_p(only_new, only_ref):.2f}; "
-            f"independent runs at these rates would split {2 * n * rate * (1 - rate):.1f}); speed ratio, geometric mean "
+            f"independent runs at the pooled rate would split {2 * n * rate * (1 - rate):.1f}); speed ratio, geometric mean "
             f"{math.exp(mean):.2f} (x/ {math.exp(2 * spread):.2f} for two standard errors)."]
 
 
