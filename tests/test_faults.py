@@ -282,6 +282,36 @@ def test_two_runs_on_one_output(tmp_path):
     assert reader.metadata["status"] == "interrupted" and reader.frame_count == reader.metadata["frames_written"] >= 3
 
 
+def test_a_ctrl_c_while_the_command_line_loads_exits_130_without_a_traceback(monkeypatch, capsys):
+    """Check the command (`python -m cloth_warp`, the `cloth-warp` script) interrupted while its modules load, before
+    its handlers are in place, says so and exits 130: the interrupt raised by the import of cloth_warp.cli here. (It
+    left a traceback and exit -2 in a full suite run on a loaded machine: test_ctrl_c_at_any_moment[0.3].)"""
+    import builtins
+    import importlib
+
+    command_module = importlib.import_module("cloth_warp.__main__")
+    real_import = builtins.__import__
+
+    def interrupted(name, globals=None, locals=None, fromlist=(), level=0):
+        if (name, level) in (("cli", 1), ("cloth_warp.cli", 0)):
+            raise KeyboardInterrupt
+        return real_import(name, globals, locals, fromlist, level)
+
+    def leave(code):
+        raise SystemExit(code)
+
+    monkeypatch.setattr(builtins, "__import__", interrupted)
+    monkeypatch.setattr(command_module.os, "_exit", leave)
+    handler = signal.getsignal(signal.SIGINT)
+    try:
+        with pytest.raises(SystemExit) as leaving:
+            command_module.command()
+    finally:
+        signal.signal(signal.SIGINT, handler)
+    assert leaving.value.code == 130
+    assert capsys.readouterr().err == "cloth-warp: interrupted\n"
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("delay", [0.3, 0.8, 1.2, 1.6, 4.0])
 def test_ctrl_c_at_any_moment(tmp_path, delay):
