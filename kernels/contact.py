@@ -23,7 +23,7 @@ import warp as wp
 
 from .collide import CONTACT_BAND, mesh_surface_velocity, pinch_height, shape_distance, surface_velocity, world_distance
 from .implicit import (ADMITTED, COUNT_CONTACTS, COUNT_SELF_CONTACTS, COUNT_SIZE, RELEASE_FLAG, RELEASE_ROUNDS, RELEASE_SIZE,
-                       SLIP_ALLOWANCE, filtered_block_inverse, is_pinched)
+                       SLIP_ALLOWANCE, filtered_block_inverse, is_pinched, stick_damper)
 from .worlds import particle_world_of, world_slot
 from .selfcollide import NORMAL_EPS, add_impulse, inverse_mass_weight, pair_indices, start_weights, vertex_face_weights, weighted_sum
 
@@ -417,7 +417,7 @@ def self_contact_friction_terms(v_t: wp.vec3, impulse: float, mass_weight: float
     if speed > bound * mass_weight:
         j = (-bound / speed) * v_t
         return wp.vec4(0.0, j[0], j[1], j[2])
-    return wp.vec4(bound / wp.max(stick_speed, speed), 0.0, 0.0, 0.0)
+    return wp.vec4(stick_damper(bound, speed, stick_speed), 0.0, 0.0, 0.0)
 
 
 @wp.func
@@ -834,7 +834,7 @@ def slide_self_contacts(
     v_t0 = v_start - wp.dot(v_start, n) * n
     if d <= 0.0:  # sliding
         if wp.dot(slip, j) > 0.0:  # reversed by its kinetic impulse: it sticks again
-            d = bound / wp.max(stick_speed, wp.length(v_t0))
+            d = stick_damper(bound, wp.length(v_t0), stick_speed)
             for r in range(4):
                 wp.atomic_add(rhs_out, idx[r], -alpha[r] * (j + d * v_t0))
             element_friction_mass_out[e] = d

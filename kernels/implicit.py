@@ -1388,6 +1388,14 @@ def filter_contact_preconditioner(
 
 
 @wp.func
+def stick_damper(bound: float, speed: float, stick_speed: float):
+    """A held contact's tangential damper mass d = `bound` / max(eps, |v_T|) [kg] (`bound` = mu lambda [kg m/s], `speed`
+    = |v_T| its tangential speed at the step's start [m/s], eps = `stick_speed`): the collider contacts' and the
+    self-contact elements' static friction in the solve."""
+    return bound / wp.max(stick_speed, speed)
+
+
+@wp.func
 def hold_contact(i: int, n: wp.vec3, tangential: wp.vec3, bound: float, stick_speed: float, precond_free: wp.array(dtype=wp.mat33),
                  rhs_out: wp.array(dtype=wp.vec3), effective_mass_out: wp.array(dtype=float), friction_mass_out: wp.array(dtype=float),
                  friction_impulse_out: wp.array(dtype=wp.vec3), precond_out: wp.array(dtype=wp.mat33)):
@@ -1395,7 +1403,7 @@ def hold_contact(i: int, n: wp.vec3, tangential: wp.vec3, bound: float, stick_sp
     v_T = `tangential` its tangential velocity relative to the surface at the step's start, eps = `stick_speed`): A += d T,
     b -= d v_T, its preconditioner block the filtered damped block's inverse (`eval_contact_friction_terms`); nothing
     added when d is 0."""
-    d = bound / wp.max(stick_speed, wp.length(tangential))
+    d = stick_damper(bound, wp.length(tangential), stick_speed)
     if d <= 0.0:
         return
     stick = -d * tangential
