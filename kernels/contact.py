@@ -156,6 +156,8 @@ def eval_collider_contacts(
     particle_world: wp.array(dtype=wp.int32),
     worlds: int,
     contact_impulse: wp.array(dtype=float),
+    particle_mass: wp.array(dtype=float),
+    load_speed: float,
     # outputs
     contact_collider_out: wp.array(dtype=wp.int32),
     contact_normal_out: wp.array(dtype=wp.vec3),
@@ -172,9 +174,13 @@ def eval_collider_contacts(
     thickness (zero without a contact). With `hold_band` (forward steps), a particle within the band above the landing
     height that is not predicted to pass the thickness (moved by its last step's velocity change, `dv_previous`, where
     its world has one, else by gravity) is not pulled down onto it in one step: it keeps its height when its contact
-    bore no load in the last step (`contact_impulse`), and settles at SETTLE_SPEED when it did. The cloth often holds
-    such a particle up: pulled down every step, it was found pulling, released and the step solved again (and the warm
-    start around it was off); held at its height while loaded, the lower of two layers stayed bumpy.
+    bore no load in the last step, and settles at SETTLE_SPEED when it did (`contact_impulse` above `load_speed` [m/s]
+    times the particle's mass: the release check's threshold, below which an impulse is the solve's round-off). The
+    cloth often holds such a particle up: pulled down every step, it was found pulling, released and the step solved
+    again (and the warm start around it was off); held at its height while loaded, the lower of two layers stayed
+    bumpy. Settled on any positive impulse, a T-shirt's particle that the cloth round it held above its landing height
+    (impulses of 1.6e-9 and 1.7e-7 kg m/s in the steps before) was pulled down at 1 mm/s every 10-13 frames, and rose
+    again when released.
     `contact_height_out`: the height [m] above the surface the contact ends the step at, `landing_height`, or, for a
     particle pinched between that surface and one facing it closer than twice the thickness (`pinch_height`: an
     armpit's crease), the height at which it is as far from both, below the thickness; a pinched contact's normal,
@@ -189,7 +195,7 @@ def eval_collider_contacts(
     n, `contact_crease_out` (unit; zero on every other particle), z keeping it with the surface along it, so only the
     crease's line is free (the solve's filter S = I - n n^T - m m^T, kernels/implicit.py `contact_projector`)."""
     i = wp.tid()
-    pressed = contact_impulse[i] > 0.0  # (the last step's, read before this step's contacts replace it)
+    pressed = contact_impulse[i] > load_speed * particle_mass[i]  # (the last step's, read before this step's contacts replace it)
     contact_collider_out[i] = -1
     contact_normal_out[i] = wp.vec3(0.0)
     contact_velocity_out[i] = wp.vec3(0.0)

@@ -967,7 +967,8 @@ class SolverImplicitEuler(SolverBase):
                           m.collider_thickness, m.collider_static_friction, m.collider_kinetic_friction, m.collider_mesh_max_distance,
                           control.collider_transform_start, control.collider_transform_end, state_in.particle_q, state_in.particle_qd,
                           wp.vec3(*m.gravity), dt, self.contact_margin, int(not state_in.requires_grad), self.dv_previous,
-                          self.previous_ready if self.warm_start else self._disabled, m.particle_world, self.worlds, self.contact_impulse],
+                          self.previous_ready if self.warm_start else self._disabled, m.particle_world, self.worlds, self.contact_impulse,
+                          m.particle_mass, self.contact_release_fraction * self._gravity_norm * dt],
                   outputs=[self.contact_collider, self.contact_normal, self.contact_velocity, self.contact_dv,
                            self.contact_height, self.contact_crease, self.contact_facing, self.contact_counts], device=dev)
         wp.launch(ki.filter_contact_preconditioner, dim=m.particle_count,
