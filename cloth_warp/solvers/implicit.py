@@ -559,6 +559,12 @@ class SolverImplicitEuler(SolverBase):
         """|g| [m/s^2] of the model's gravity as it is now (a model change may set it)."""
         return float(np.linalg.norm(np.asarray(self.model.gravity, np.float64)))
 
+    def _release_speed(self, dt: float) -> float:
+        """The collider contacts' load threshold [m/s]: `contact_release_fraction` g h. An impulse below it times a
+        particle's mass is the solve's round-off: a contact pulling harder is released (`eval_contact_release`), one in
+        the band pressing harder settles (kernels/contact.py `eval_collider_contacts`)."""
+        return self.contact_release_fraction * self._gravity_norm * dt
+
     def _self_contact_distance(self) -> float:
         """The self-contact elements' rest distance r [m]: the cloth thickness and the solve's clearance."""
         return float(self.model.cloth_thickness) * (1.0 + float(kct.SELF_CLEARANCE))
@@ -968,7 +974,7 @@ class SolverImplicitEuler(SolverBase):
                           control.collider_transform_start, control.collider_transform_end, state_in.particle_q, state_in.particle_qd,
                           wp.vec3(*m.gravity), dt, self.contact_margin, int(not state_in.requires_grad), self.dv_previous,
                           self.previous_ready if self.warm_start else self._disabled, m.particle_world, self.worlds, self.contact_impulse,
-                          m.particle_mass, self.contact_release_fraction * self._gravity_norm * dt],
+                          m.particle_mass, self._release_speed(dt)],
                   outputs=[self.contact_collider, self.contact_normal, self.contact_velocity, self.contact_dv,
                            self.contact_height, self.contact_crease, self.contact_facing, self.contact_counts], device=dev)
         wp.launch(ki.filter_contact_preconditioner, dim=m.particle_count,
@@ -1049,7 +1055,7 @@ class SolverImplicitEuler(SolverBase):
         wp.launch(ki.eval_contact_release, dim=m.particle_count,
                   inputs=[*self._product_args(), m.particle_mass, m.particle_pin_stiffness, m.particle_pinned, self.system_block,
                           self.bend_vector, self.drag_vector, self.membrane_block, self.plate_product, self.dv,
-                          self.precond_free, m.global_damping, dt, self.contact_release_fraction * self._gravity_norm * dt,
+                          self.precond_free, m.global_damping, dt, self._release_speed(dt),
                           rounds, v0, self.contact_velocity, self.contact_height, m.collider_thickness,
                           m.collider_static_friction,
                           m.collider_kinetic_friction, self.contact_stick_speed, m.particle_world, self.worlds],
