@@ -12,6 +12,8 @@ thousand unknowns (the shipped 32^2 pile, 3267) take seconds; a 48^2 drape (7203
 Run:  python benchmarks/bench_contact_spectrum.py                          (the pile at frame 35: falling and folding)
       python benchmarks/bench_contact_spectrum.py --frame 250               (at rest)
       python benchmarks/bench_contact_spectrum.py --modes pass solve+friction solve+self+friction --frame 63
+      python benchmarks/bench_contact_spectrum.py --scene drape_sphere --frame 40 --modes solve+self+friction --deflate 4 16 64
+                                                                        (deflated by the k slowest exact modes)
 """
 
 from __future__ import annotations
@@ -35,6 +37,8 @@ def parse_args(argv=None):
     p.add_argument("--frame", type=int, default=35, help="the frame whose first solve is read out (0-based)")
     p.add_argument("--modes", nargs="+", default=["pass", "solve+friction", "solve+self+friction"], choices=list(MODES))
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="scene override (TOML value), repeatable")
+    p.add_argument("--deflate", type=int, nargs="*", default=[], metavar="K",
+                   help="also PCG deflated by the K slowest exact eigenvectors of the preconditioned system (each K)")
     p.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "bench_contact_spectrum.md"))
     return p.parse_args(argv)
 
@@ -143,16 +147,18 @@ def filtered_inverse_blocks(a: np.ndarray, blocks: np.ndarray, normal: np.ndarra
     return out
 
 
-def spectrum(a: np.ndarray, blocks: np.ndarray, normal: np.ndarray) -> dict:
-    """The non-zero eigenvalues of P^1/2 A P^1/2 (P the block-diagonal preconditioner): bounds, count above 2, the
-    three largest and whether each mode's largest part is on a collider contact."""
+def spectrum(a: np.ndarray, blocks: np.ndarray, normal: np.ndarray, r0: np.ndarray, stop: float, deflate: list[int]) -> dict:
+    """The non-zero eigenvalues of P^1/2 A P^1/2 (P the block-diagonal preconditioner): bounds, how many lie below
+    1e-3 and 1e-2 and above 2, the three largest and whether each mode's largest part is on a collider contact; and for each k in
+    `deflate` the iterations of PCG from r0 to `stop` deflated by the k smallest non-zero modes (`deflated_pcg`)."""
     n = blocks.shape[0]
     p = np.zeros_like(a)
     for i in range(n):
         p[3 * i:3 * i + 3, 3 * i:3 * i + 3] = 0.5 * (blocks[i] + blocks[i].T)
     w, v = np.linalg.eigh(p)
     half = v @ np.diag(np.sqrt(np.maximum(w, 0.0))) @ v.T
-    values, vectors = np.linalg.eigh(half @ a @ half)
+    b = half @ a @ half
+    values, vectors = np.linalg.eigh(b)
     keep = np.abs(values) > 1e-9 * np.abs(values).max()
     nonzero = values[keep]
     top = np.argsort(np.where(keep, values, -np.inf))[-3:][::-1]
@@ -161,8 +167,41 @@ def spectrum(a: np.ndarray, blocks: np.ndarray, normal: np.ndarray) -> dict:
         mode = (half @ vectors[:, k]).reshape(n, 3)
         i = int(np.argmax(np.linalg.norm(mode, axis=1)))
         on_contact.append(bool(normal[i] @ normal[i] > 0.0))
+    slowest = np.flatnonzero(keep)[np.argsort(values[keep])]
+    deflated = {k: deflated_pcg(a, blocks, half @ vectors[:, slowest[:k]], r0.copy(), stop) for k in deflate}
     return {"smallest": float(nonzero.min()), "largest": float(nonzero.max()), "above_2": int((nonzero > 2.0).sum()),
-            "top": [float(values[k]) for k in top], "top_on_contact": on_contact}
+            "below_1e-3": int((nonzero < 1e-3).sum()), "below_1e-2": int((nonzero < 1e-2).sum()),
+            "top": [float(values[k]) for k in top], "top_on_contact": on_contact, "deflated": deflated}
+
+
+def deflated_pcg(a: np.ndarray, blocks: np.ndarray, z: np.ndarray, r: np.ndarray, stop: float, cap: int = 5000) -> int:
+    """`pcg` deflated by the columns of z (Saad, Yeung, Erhel and Guyomarc'h 2000): the start takes the answer's part
+    in span(z), x0 = z E^-1 z^T r (E = z^T A z), and every preconditioned residual is projected by I - z E^-1 (A z)^T,
+    keeping the search A-orthogonal to z. With no columns it is `pcg`."""
+    n = blocks.shape[0]
+    az = a @ z
+    e = z.T @ az
+
+    def project(v):
+        return v - z @ np.linalg.solve(e, az.T @ v) if z.shape[1] else v
+
+    def precondition(v):
+        return project(np.einsum("nij,nj->ni", blocks, v.reshape(n, 3)).reshape(-1))
+
+    if z.shape[1]:
+        r = r - az @ np.linalg.solve(e, z.T @ r)
+    w = precondition(r)
+    p, rw = w.copy(), r @ w
+    for k in range(cap):
+        q = a @ p
+        alpha = rw / (p @ q)
+        r = r - alpha * q
+        if np.linalg.norm(r) <= stop:
+            return k + 1
+        w = precondition(r)
+        rw_next = r @ w
+        p, rw = w + (rw_next / rw) * p, rw_next
+    return cap
 
 
 def main(argv=None) -> int:
@@ -181,7 +220,7 @@ def main(argv=None) -> int:
                "start": s["start"], "run": s["iterations"], "numpy": pcg(s["a"], s["blocks"], s["r0"].copy(), s["stop"]),
                "filtered_inverse": pcg(s["a"], filtered_inverse_blocks(s["a"], s["blocks"], s["normal"], s["crease"]), s["r0"].copy(),
                                        s["stop"]),
-               **spectrum(s["a"], s["blocks"], s["normal"])}
+               **spectrum(s["a"], s["blocks"], s["normal"], s["r0"], s["stop"], args.deflate)}
         rows.append(row)
         print(row, flush=True)
     command = ("python benchmarks/bench_contact_spectrum.py " + " ".join(sys.argv[1:] if argv is None else argv)).strip()
@@ -192,12 +231,14 @@ def main(argv=None) -> int:
              "with the same start and stop, as run and with every contact's preconditioner block the filtered block's inverse. "
              "Spectrum: the non-zero eigenvalues of P^1/2 (S A S) P^1/2.", "",
              "| mode | particles | collider contacts in the solve | start (relative residual) | CG its in the run | numpy | numpy, filtered-inverse "
-             "blocks | smallest eigenvalue | largest | eigenvalues > 2 | three largest (on a contact?) |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+             "blocks | smallest eigenvalue | below 1e-3 | below 1e-2 | largest | eigenvalues > 2 | three largest (on a contact?) | "
+             "deflated by the k slowest modes (k: its) |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---|"]
     for r in rows:
         top = ", ".join(f"{v:.2f}{' (c)' if c else ''}" for v, c in zip(r["top"], r["top_on_contact"]))
         lines.append(f"| {r['mode']} | {r['particles']} | {r['contacts']} | {r['start']:.2f} | {r['run']} | {r['numpy']} | "
-                     f"{r['filtered_inverse']} | {r['smallest']:.2e} | {r['largest']:.2f} | {r['above_2']} | {top} |")
+                     f"{r['filtered_inverse']} | {r['smallest']:.2e} | {r['below_1e-3']} | {r['below_1e-2']} | {r['largest']:.2f} | "
+                     f"{r['above_2']} | {top} | {', '.join(f'{k}: {v}' for k, v in r['deflated'].items()) or '-'} |")
     write_results(args.out, lines, {"command": command, "rows": rows})
     return 0
 
