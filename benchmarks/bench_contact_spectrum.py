@@ -113,23 +113,7 @@ def read_system(scene_name: str, mode: str, frame: int, overrides: dict) -> dict
 
 def pcg(a: np.ndarray, blocks: np.ndarray, r: np.ndarray, stop: float, cap: int = 5000) -> int:
     """Block-preconditioned CG iterations from residual r (zero correction) until |r| <= stop."""
-    n = blocks.shape[0]
-
-    def precondition(v):
-        return np.einsum("nij,nj->ni", blocks, v.reshape(n, 3)).reshape(-1)
-
-    z = precondition(r)
-    p, rz = z.copy(), r @ z
-    for k in range(cap):
-        q = a @ p
-        alpha = rz / (p @ q)
-        r = r - alpha * q
-        if np.linalg.norm(r) <= stop:
-            return k + 1
-        z = precondition(r)
-        rz_next = r @ z
-        p, rz = z + (rz_next / rz) * p, rz_next
-    return cap
+    return deflated_pcg(a, blocks, np.zeros((r.size, 0)), r, stop, cap)
 
 
 def projector(normal: np.ndarray, crease: np.ndarray) -> np.ndarray:
@@ -183,7 +167,7 @@ def deflated_pcg(a: np.ndarray, blocks: np.ndarray, z: np.ndarray, r: np.ndarray
     e = z.T @ az
 
     def project(v):
-        return v - z @ np.linalg.solve(e, az.T @ v) if z.shape[1] else v
+        return v - z @ np.linalg.solve(e, az.T @ v) if z.shape[1] else v  # (no columns: nothing to project)
 
     def precondition(v):
         return project(np.einsum("nij,nj->ni", blocks, v.reshape(n, 3)).reshape(-1))
