@@ -4,6 +4,7 @@ import json
 import pathlib
 import shutil
 import subprocess
+import types
 
 import numpy as np
 import pytest
@@ -350,6 +351,43 @@ def test_round_colliders_are_written_as_fine_meshes(tmp_path):
     np.testing.assert_allclose(np.linalg.norm(v, axis=1), 0.25, atol=1e-6)
     centroid = np.linalg.norm(v[tris].mean(axis=1), axis=1)
     assert 0.25 - centroid.min() <= ROUND_SAGITTA
+
+
+@pytest.mark.parametrize("shape,radius,height", [("sphere", 0.05, 0.0), ("capsule", 0.1, 0.3), ("capsule", 0.6, 0.2),
+                                                   ("capsule", 0.02, 0.1), ("cylinder", 0.15, 0.2), ("cylinder", 0.9, 0.05)])
+def test_round_collider_meshes_stay_within_the_sagitta(shape, radius, height):
+    """Check a round collider's written mesh (axis Z, centred): closed, its vertices on the exact surface (a capsule's
+    within `radius` of its axis segment of length `height`, the caps excluded as UsdGeom.Capsule's height is; a
+    cylinder's on its side circle or its caps' centres at +-height/2), its extent the shape's, and no point of any
+    facet (sampled on a barycentric grid: a facet's deepest point is inside it, not at its centroid) more than
+    ROUND_SAGITTA inside the round surface (trimesh's capsule with a sphere's segment count sat 0.6 mm in)."""
+    import trimesh
+
+    from cloth_warp.cache import ROUND_SAGITTA, round_collider_mesh
+
+    v, tris = round_collider_mesh(types.SimpleNamespace(shape=shape, radius=radius, height=height))
+    v = v.astype(np.float64)
+    assert trimesh.Trimesh(v, tris, process=True).is_watertight
+    k = 12
+    weights = np.array([(a / k, b / k, 1.0 - (a + b) / k) for a in range(k + 1) for b in range(k + 1 - a)])
+    samples = np.einsum("sk,tkd->tsd", weights, v[tris]).reshape(-1, 3)
+    axis = np.array([0.0, 0.0, 1.0])
+    if shape == "cylinder":
+        radial = np.linalg.norm(v[:, :2], axis=1)
+        np.testing.assert_allclose(np.abs(v[:, 2]), height / 2, atol=1e-6)
+        assert np.all((np.abs(radial - radius) < 1e-6) | (radial < 1e-6))
+        side = samples[np.abs(samples[:, 2]) < height / 2 - 1e-6]  # (the caps are flat: exact)
+        depth = radius - np.linalg.norm(side[:, :2], axis=1)
+    else:
+        half = height / 2
+
+        def distance(p):  # to the axis segment (a sphere's: its centre)
+            return np.linalg.norm(p - np.clip(p[:, 2:3], -half, half) * axis, axis=1)
+
+        np.testing.assert_allclose(distance(v), radius, atol=1e-6)
+        np.testing.assert_allclose([v[:, 2].min(), v[:, 2].max()], [-half - radius, half + radius], atol=1e-6)
+        depth = radius - distance(samples)
+    assert 0.0 < depth.max() <= ROUND_SAGITTA
 
 
 def test_cusick_disc_has_uvs(tmp_path):
