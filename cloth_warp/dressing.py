@@ -61,6 +61,8 @@ class DressingReport:
         body_crossings: edges of the dressed cloth through a triangle of the body, and the other way, at the end
             (:func:`body_crossings`; should be 0: the dressing's contacts hold particles, not edges, off the body; the
             run's also push out edges and triangles found inside it, from its first step).
+        element_samples: whether the colliders pass kept the cloth's edges and triangles out of the body, as in the
+            run (False: the dressing diverged with them and was run again with the particles' contacts alone).
     """
 
     seconds: float
@@ -78,6 +80,7 @@ class DressingReport:
     unfinished: int = 0
     zipped: int = 0
     body_crossings: int = 0
+    element_samples: bool = True
 
 
 def frozen_collider(collider, time: float = 0.0):
@@ -520,9 +523,10 @@ def settle(builder, seconds: float = 1.0, *, fps: float = 60.0, substeps: int = 
     return _still_run(builder, seconds, 0.0, True, fps, substeps, damping, device, solver_options)
 
 
-def _still_simulator(trial, fps, substeps, device, solver_options):
+def _still_simulator(trial, fps, substeps, device, solver_options, samples: bool = True):
     """The model of a dressing's or settling's `trial` builder and an implicit Euler :class:`Simulator` of it with
-    `solver_options` (strain limit 0.1 unless given), as the dressing was tuned."""
+    `solver_options` (strain limit 0.1 unless given), as the dressing was tuned; without `samples`, its colliders pass
+    keeps the particles alone out of the body (no element samples)."""
     from .simulator import Simulator
     from .solvers import make_solver
 
@@ -544,18 +548,21 @@ def _still_simulator(trial, fps, substeps, device, solver_options):
         collisions.self_collision.keep_broad_phase = False
     # (the colliders pass keeps the cloth's elements out of the body here as in the run: docs/garments.md, "The
     # dressing keeps the elements out of the body")
+    colliders = solver.pass_named("colliders")
+    if colliders is not None and not samples:
+        colliders.samples_on = False
     return model, Simulator(model, solver, fps=fps, substeps=substeps)
 
 
 def _zip_seams(builder, x: np.ndarray, pairs: np.ndarray, fps, substeps, damping, device,
-               solver_options) -> tuple[np.ndarray, int]:
+               solver_options, samples: bool = True) -> tuple[np.ndarray, int]:
     """Close the sewn points that a settling leaves open beyond the weld distance, but by no more than
     :data:`ZIP_REACH`, by hand: each of their particles (of seam `pairs`, at positions `x` [m]) is moved by a handle to
     its point's middle at :data:`ZIP_SPEED`, and held there :data:`ZIP_HOLD`, while the cloth round it is simulated as
     the settling was (gravity, the attachments, the colliders still, self-collision: cloth is pushed aside, not
     crossed). A T-shirt at 3.2 cm edges kept a sleeve-hem pair 8 mm open against the panel compressed beside it, which
     its seam springs could not pull in. Returns the positions (the zipped points' particles at their middles) and how
-    many points were zipped."""
+    many points were zipped (`samples`: the colliders pass's element samples, as in :func:`_still_simulator`)."""
     from .model import Keyframe
 
     gaps = np.linalg.norm(x[pairs[:, 0]] - x[pairs[:, 1]], axis=1)
@@ -579,7 +586,7 @@ def _zip_seams(builder, x: np.ndarray, pairs: np.ndarray, fps, substeps, damping
     trial.handles = []  # their particles stay pinned where they are
     for p, d in zip(members, shift):
         trial.add_handle([int(p)], [Keyframe(0.0), Keyframe(seconds, tuple(float(c) for c in d))], name=f"zip{p}")
-    _, sim = _still_simulator(trial, fps, substeps, device, solver_options)
+    _, sim = _still_simulator(trial, fps, substeps, device, solver_options, samples)
     for _ in range(math.ceil((seconds + ZIP_HOLD) * fps)):
         sim.step_frame()
     y = np.asarray(sim.positions(), np.float64)
@@ -591,7 +598,26 @@ def _still_run(builder, seconds, closing, gravity, fps, substeps, damping, devic
                under=None) -> DressingReport:
     """Simulate a copy of `builder` against its colliders held still at t = 0 and write the end positions back
     (`moving`: a mask of the particles that may move, the others pinned where they are, those of layers the moving ones
-    start on the wrong side of moved out of their way (`under`, see :func:`dress`); default all)."""
+    start on the wrong side of moved out of their way (`under`, see :func:`dress`); default all). Where it diverges
+    with the colliders pass's element samples, it is run again with the particles' contacts alone (the report's
+    `element_samples` False); where that diverges too, the first divergence is raised: the T-shirt at 2.6 cm edges,
+    caught at an armpit while its edges were pushed out of the body, tore there (strain 1.5 at 1.4 s) and dresses
+    without them (docs/garments.md, "The dressing's element samples give way where they tear a garment")."""
+    from .solvers import SimulationDiverged
+
+    args = (builder, seconds, closing, gravity, fps, substeps, damping, device, solver_options, moving, under)
+    try:
+        return _still_pass(*args, samples=True)
+    except SimulationDiverged as first:
+        try:
+            return _still_pass(*args, samples=False)
+        except SimulationDiverged:
+            raise first from None
+
+
+def _still_pass(builder, seconds, closing, gravity, fps, substeps, damping, device, solver_options, moving, under,
+                samples: bool) -> DressingReport:
+    """One :func:`_still_run`, the colliders pass's element samples on or off (`samples`)."""
     seconds = check_number("dressing seconds", seconds, LIMITS["dressing_time"])
     damping = check_number("dressing damping", damping, LIMITS["global_damping"])
     if len(builder.particle_positions) == 0:
@@ -620,7 +646,7 @@ def _still_run(builder, seconds, closing, gravity, fps, substeps, damping, devic
     trial.particle_pinned[~moving] = 1
     layered_from = _move_layers(trial, moving, layers, 0.5 * closing * seconds, device)
     below = list(under) if under is not None else [layer.name for layer in layers if layer.under]
-    model, sim = _still_simulator(trial, fps, substeps, device, solver_options)
+    model, sim = _still_simulator(trial, fps, substeps, device, solver_options, samples)
     frames = max(1, math.ceil(seconds * fps))
     # The seams close at a walking pace: their rest lengths shrink from the gaps they start at to zero over the first
     # `closing` of the run (a seam spring pulling a 20 cm gap shut in one step would tear the cloth beside it).
@@ -665,7 +691,7 @@ def _still_run(builder, seconds, closing, gravity, fps, substeps, damping, devic
         free_pairs = ends[free[ends[:, 0]] & free[ends[:, 1]]]
         x, finished, unfinished = finish_seams_clear(x, free_pairs, builder.triangles, SEAM_FINISH, device)
         if closing == 0.0:  # the settling hands the run its start: what it leaves open is zipped shut
-            x, zipped = _zip_seams(builder, x, free_pairs, fps, substeps, damping, device, solver_options)
+            x, zipped = _zip_seams(builder, x, free_pairs, fps, substeps, damping, device, solver_options, samples)
             if zipped:
                 x, _, unfinished = finish_seams_clear(x, free_pairs, builder.triangles, SEAM_FINISH, device)
     builder.particle_positions[free] = x[free]
@@ -681,7 +707,7 @@ def _still_run(builder, seconds, closing, gravity, fps, substeps, damping, devic
     return DressingReport(frames / fps, frames * substeps, float(gaps.max(initial=0.0)),
                           float(np.linalg.norm(v[moving], axis=1).max()), strain, finished, grown_from, inside, layered_from, crossing,
                           self_crossings(builder, moving, device), int(np.count_nonzero(gaps > WELD_DISTANCE)), unfinished,
-                          zipped, body_crossings(builder, moving, device))
+                          zipped, body_crossings(builder, moving, device), samples)
 
 
 def _max_strain(builder, x: np.ndarray, particles: np.ndarray) -> float:

@@ -531,6 +531,36 @@ def test_a_dressing_that_diverges_stops_with_the_key_and_no_cache(tmp_path, monk
     assert not out.exists() and not list(tmp_path.iterdir())
 
 
+@pytest.mark.parametrize("second_diverges", [False, True])
+def test_a_dressing_that_diverges_with_element_samples_is_run_again_without_them(monkeypatch, second_diverges):
+    """A dressing or settle that diverges with the colliders pass's element samples (the T-shirt at 2.6 cm edges tore
+    at an armpit, strain 1.5) is run again with the particles' contacts alone, and says so in its report; where that
+    diverges too, the first divergence is what the caller sees."""
+    from cloth_warp import dressing
+    from cloth_warp.solvers import SimulationDiverged
+
+    calls = []
+
+    def one_pass(*args, samples):
+        calls.append(samples)
+        if samples or second_diverges:
+            raise SimulationDiverged(time=1.4, dt=1.0 / 120.0, max_strain=1.5, reason=f"strain 1.5 (samples {samples})",
+                                     suggested_dt=1.0 / 240.0, frame=84)
+        return dressing.DressingReport(1.0, 120, 0.0, 0.0, 0.1, element_samples=samples)
+
+    monkeypatch.setattr(dressing, "_still_pass", one_pass)
+    b = cw.ModelBuilder()
+    b.add_cloth_grid(resolution=(2, 2), size=(0.1, 0.1))
+    for run in (lambda: dressing.dress(b, 0.5), lambda: dressing.settle(b, 0.5)):
+        calls.clear()
+        if second_diverges:
+            with pytest.raises(SimulationDiverged, match="samples True"):
+                run()
+        else:
+            assert run().element_samples is False
+        assert calls == [True, False]
+
+
 def _tube_into_the_hips(shift: float):
     """A 1.19 m round cotton tube (two panels, sides open 4-6 cm) round the hips, moved `shift` [m] along x: its side
     cuts into the pelvis."""
