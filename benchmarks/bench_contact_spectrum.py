@@ -141,8 +141,7 @@ def spectrum(a: np.ndarray, blocks: np.ndarray, normal: np.ndarray, r0: np.ndarr
         p[3 * i:3 * i + 3, 3 * i:3 * i + 3] = 0.5 * (blocks[i] + blocks[i].T)
     w, v = np.linalg.eigh(p)
     half = v @ np.diag(np.sqrt(np.maximum(w, 0.0))) @ v.T
-    b = half @ a @ half
-    values, vectors = np.linalg.eigh(b)
+    values, vectors = np.linalg.eigh(half @ a @ half)
     keep = np.abs(values) > 1e-9 * np.abs(values).max()
     nonzero = values[keep]
     top = np.argsort(np.where(keep, values, -np.inf))[-3:][::-1]

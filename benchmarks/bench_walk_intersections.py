@@ -8,7 +8,7 @@ frame, the largest strain and the widest seam gap of the run's summary, and the 
 Issue 18's target: no crossing in any frame, strain within the limit.
 
 Run:  python benchmarks/bench_walk_intersections.py                               (the three walks, 180 frames each)
-      python benchmarks/bench_walk_intersections.py --scenes tshirt_walk --frames 60 --set garments[0].edge_length=0.03
+      python benchmarks/bench_walk_intersections.py --scenes tshirt_walk --frames 60 --set cloth.edge_length=0.03
 """
 
 from __future__ import annotations

@@ -2,6 +2,7 @@
 (patterns.Wrap), seams closed in a dressing phase, a sewn garment one vertex per seam point to self-collision and in
 the cache, nothing inside the body or crossing it."""
 
+import copy
 import json
 import math
 import pathlib
@@ -559,6 +560,19 @@ def test_a_dressing_that_diverges_with_element_samples_is_run_again_without_them
         else:
             assert run().element_samples is False
         assert calls == [True, False]
+
+
+def test_a_dressing_without_element_samples_turns_the_colliders_pass_samples_off():
+    """The retry's simulator (`samples` False) keeps the particles alone out of the body: its colliders pass has its
+    element samples off; the first try's has them on, as the run's."""
+    from cloth_warp import dressing
+
+    b = cw.ModelBuilder()
+    b.add_cloth_grid(resolution=(2, 2), size=(0.1, 0.1), position=(0.0, 0.5, 0.0))
+    b.add_sphere((0.0, 0.3, 0.0), 0.1, name="ball")
+    for samples in (True, False):
+        _, sim = dressing._still_simulator(copy.deepcopy(b), 60.0, 2, "cpu", None, samples)
+        assert sim.solver.pass_named("colliders").samples_on is samples
 
 
 def _tube_into_the_hips(shift: float):
