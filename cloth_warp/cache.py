@@ -83,6 +83,7 @@ DIAGNOSTICS = {  # per-frame custom attributes: name -> (USD type name, descript
     "strainLimitSweeps": ("int", "strain-limit sweeps run in the frame's steps (summed)"),
     "strainLimitMissed": ("int", "steps whose strain limiting stopped at its cap above its tolerance (should be 0)"),
     "seamGap": ("float", "largest distance between sewn particles at the end of the frame [m] (0 without seams)"),
+    "attachmentGap": ("float", "largest distance between an attached particle and its point on the body at the end of the frame [m]"),
 }
 # per-frame diagnostic attribute <- collision counter (cloth_warp.collision / cloth_warp.selfcollision)
 COUNTER_DIAGNOSTICS = {"colliderContacts": "collider_contacts", "colliderCcd": "collider_ccd", "colliderSamples": "collider_samples",

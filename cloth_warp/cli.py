@@ -156,6 +156,8 @@ def format_summary(s: dict) -> str:
                 lines.append(f"              after {c['solve_self_contacts']} contact elements held inside the implicit solve")
         if s.get("seam_gap") is not None:
             lines.append(f"  seams       sewn points at most {1e3 * s['seam_gap']:.2f} mm apart in any frame")
+        if s.get("attachment_gap") is not None:
+            lines.append(f"  attached    particles at most {1e3 * s['attachment_gap']:.3f} mm from their points on the body in any frame")
         if s.get("drape_coefficient") is not None:
             lines.append(f"  drape       Cusick drape coefficient {s['drape_coefficient']:.3f}")
     lines.append(f"  cache       {s['output']} (frames {s['start_frame']}..{s['end_frame']}, "

@@ -103,6 +103,15 @@ class Attachment:
         return local @ quat_to_matrix(q).T + p
 
 
+def attachment_gap(model, positions, time: float) -> float:
+    """The largest distance [m] between any attached particle at `positions` ((n, 3)) and its target on its collider's
+    surface at `time` [s] (0 without attachments): how far attachments drift from the body they are bound to."""
+    x = np.asarray(positions, np.float64)
+    gaps = [np.linalg.norm(x[a.particles] - a.targets(model.colliders[a.collider], time), axis=1).max()
+            for a in model.attachments if len(a.particles)]
+    return float(max(gaps, default=0.0))
+
+
 def interpolate_keyframes(keyframes: list[Keyframe], time: float) -> tuple[np.ndarray, np.ndarray]:
     """(translation [m], quaternion (x, y, z, w)) at `time` [s]: linear / slerp between keyframes, held
     before the first and after the last."""

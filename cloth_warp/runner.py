@@ -23,6 +23,7 @@ from .cache import COUNTER_DIAGNOSTICS, STRAIN_LIMIT_DIAGNOSTICS
 from .collision import ALL_COUNTERS as COLLISION_COUNTERS
 from .diagnostics import SOLVE_CONTACT_COUNTERS
 from .profiling import stage
+from .model import attachment_gap
 from .sewing import seam_ends, seam_gap
 from .scene import Scene, SceneError, build_model, build_solver, build_wind, load_scene
 
@@ -311,6 +312,7 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
         max_strain, dt_min, dt_max, iterations, rejected, contacts = 0.0, math.inf, 0.0, [], 0, {}
         resumed_limit: list[dict] = []  # the per-frame diagnostics of frames copied from an earlier run
         seams, worst_seam = seam_ends(model), 0.0  # the sewn particle pairs; the widest any opened [m]
+        worst_attachment = 0.0  # the farthest any attached particle was from its point on the body [m]
         # From the writer's partial file on, a Ctrl-C is held until the loop's handlers below can close or drop it
         # (one between the writer and the loop once left the partial file behind under a loaded full suite).
         with DeferredSignals() as opening:
@@ -335,6 +337,8 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
                 with DeferredSignals(raise_after=True):
                     writer.write(q, qd, diag, checkpoint=source[2] if k == source[1] - 1 else None)
                 max_strain = max(max_strain, float(diag.get("maxStrain") or 0.0))
+                worst_seam = max(worst_seam, float(diag.get("seamGap") or 0.0))
+                worst_attachment = max(worst_attachment, float(diag.get("attachmentGap") or 0.0))
                 if k > 0:
                     resumed_limit.append(diag)
             first = summary["frames"] = summary["resumed_frames"] = source[1] - 1
@@ -354,6 +358,9 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
             if len(seams):
                 diag["seamGap"] = seam_gap(model, q, seams)
                 worst_seam = max(worst_seam, diag["seamGap"])
+            if model.attachments:
+                diag["attachmentGap"] = attachment_gap(model, q, sim.time)
+                worst_attachment = max(worst_attachment, diag["attachmentGap"])
             # a frame is written whole: Ctrl-C waits for it (one inside numpy's zip writer of the checkpoint turned
             # into a ValueError, exit 1 with a traceback instead of 130)
             with stage("cache"), DeferredSignals() as held:
@@ -406,6 +413,8 @@ def run_scene(scene, overrides: dict | None = None, *, output=None, frames: int 
             )
             if len(seams):
                 summary["seam_gap"] = worst_seam
+            if model.attachments:
+                summary["attachment_gap"] = worst_attachment
             info = {k: summary[k] for k in ("frames", "wall_s", "max_strain", "compile_s", "drape_coefficient", "message", "diagnosis")
                     if k in summary}
             try:

@@ -104,20 +104,49 @@ def test_attach_needs_a_mesh_collider_of_the_builder():
         b.attach(strip.select("edge:top"), ball)
 
 
+SCARF = ('[cloth]\ngrid = { resolution = [4, 10], size = [0.1, 0.4] }\nposition = [-0.05, 0.95, 0.16]\nname = "scarf"\n'
+         '[[colliders]]\ntype = "mannequin"\nmotion = "walk"\nname = "body"\n'
+         '[[attachments]]\nselect = "edge:top"\ncollider = "body"\noffset = 0.005\n'
+         '[solver]\nintegrator = "implicit_euler"\nsubsteps = 2\n[output]\nframes = 15\nfps = 60\n')
+
+
 def test_a_scene_attaches_a_cloth_to_a_walking_mannequin(tmp_path):
     """Check [[attachments]] in a scene: a scarf's top edge bound to a walking mannequin's chest (put onto its surface,
     offset 0.005 m) follows it to 1e-4 m in every frame of 0.25 s."""
     from cloth_warp.scene import build_model, build_solver, load_scene
 
     path = tmp_path / "scarf.toml"
-    path.write_text(
-        '[cloth]\ngrid = { resolution = [4, 10], size = [0.1, 0.4] }\nposition = [-0.05, 0.95, 0.16]\nname = "scarf"\n'
-        '[[colliders]]\ntype = "mannequin"\nmotion = "walk"\nname = "body"\n'
-        '[[attachments]]\nselect = "edge:top"\ncollider = "body"\noffset = 0.005\n'
-        '[solver]\nintegrator = "implicit_euler"\nsubsteps = 2\n[output]\nframes = 15\nfps = 60\n')
+    path.write_text(SCARF)
     scene = load_scene(path)
     model = build_model(scene, "cpu")
     assert len(model.attachments) == 1 and len(model.attachments[0].particles) == 5
     sim = cw.Simulator(model, build_solver(scene, model), fps=FPS, substeps=2)
     errors = follow_errors(sim, model, model.attachments[0].particles, 15)
     assert errors.max() < 1e-4, errors.max()
+
+
+def test_a_run_records_how_far_attachments_drift_in_every_frame(tmp_path):
+    """Check a run's cache holds, per frame, the largest distance of an attached particle from its point on the body
+    (`attachmentGap`, recomputed here from the cache's positions and the model's bindings), its summary the largest,
+    and that the measure sees a particle moved off its point."""
+    from cloth_warp.cache import CacheReader
+    from cloth_warp.model import attachment_gap
+    from cloth_warp.runner import run_scene
+    from cloth_warp.scene import build_model, load_scene
+
+    path = tmp_path / "scarf.toml"
+    path.write_text(SCARF)
+    out = tmp_path / "scarf.usdc"
+    summary = run_scene(path, output=out, frames=8)
+    assert summary["status"] == "complete" and 0.0 < summary["attachment_gap"] < 1e-4
+    model = build_model(load_scene(path), "cpu")
+    r = CacheReader(out)
+    times, gaps = r.diagnostics()["attachmentGap"]
+    assert len(gaps) == 8 and summary["attachment_gap"] == pytest.approx(max(gaps), rel=1e-6)
+    for tc, gap in zip(times, gaps):
+        assert gap == pytest.approx(attachment_gap(model, r.points(int(tc)), (tc - r.start_frame) / FPS), rel=1e-4, abs=1e-9)
+    x = r.points(r.end_frame).astype(np.float64)
+    attached = model.attachments[0].particles
+    x[attached[2]] += [0.0, 0.003, 0.004]  # 5 mm off
+    assert attachment_gap(model, x, 8 / FPS) == pytest.approx(0.005, abs=1e-4)
+    assert attachment_gap(model, r.points(r.start_frame), 0.0) < 1e-6
