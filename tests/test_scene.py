@@ -292,6 +292,85 @@ def test_skirt_walk_scene_dresses_the_mannequin_and_walks(tmp_path):
     assert np.ptp(x[:, waist, 1].mean(axis=1)) > 1e-3  # the walk's bob carries the waistband
 
 
+def _write_dcc_body(path, seconds: float, fps: float = 30.0, start: int = 1001):
+    """The mannequin's walk written as a DCC exports a character's point cache: z up, centimetres, time codes from
+    `start` at `fps`, the mesh under a translated transform. Returns the sample times [s] and the y-up vertices [m]."""
+    from pxr import Gf, Sdf, Usd, UsdGeom, Vt
+
+    from cloth_warp.mannequin import Mannequin
+
+    body = Mannequin(1.75)
+    times, cache = body.point_cache("walk", seconds, fps)
+    stage = Usd.Stage.Open(Sdf.Layer.CreateNew(str(path)))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+    stage.SetTimeCodesPerSecond(fps)
+    stage.SetStartTimeCode(start)
+    stage.SetEndTimeCode(start + len(times) - 1)
+    rig = UsdGeom.Xform.Define(stage, "/Character")
+    shift = np.array([12.0, -7.0, 3.0])  # cm, z up
+    rig.AddTranslateOp().Set(Gf.Vec3d(*shift))
+    stage.SetDefaultPrim(rig.GetPrim())
+    mesh = UsdGeom.Mesh.Define(stage, "/Character/skin")
+    mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(body.triangles), 3, np.int32)))
+    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(np.ascontiguousarray(body.triangles.reshape(-1), np.int32)))
+    points = mesh.CreatePointsAttr()
+    for k, x in enumerate(cache):
+        z_up = np.stack([x[:, 0], -x[:, 2], x[:, 1]], axis=1) * 100.0 - shift
+        points.Set(Vt.Vec3fArray.FromNumpy(z_up.astype(np.float32)), start + k)
+    stage.GetRootLayer().Save()
+    return times, cache
+
+
+@pytest.mark.slow
+def test_a_garment_is_sewn_onto_a_users_body_from_a_dcc_point_cache(tmp_path):
+    """Check a skirt (the shipped pattern, coarser here) sewn onto a body read from a USD point cache written as a DCC
+    writes one (z up, centimetres, time codes from 1001 at 30 fps, under a translated transform; placed y-up by the
+    collider's rotation) with its waistband attached: the body in the run's cache is the walk at each frame's time
+    (linear between the 30 fps samples, to 0.1 mm), the seams are closed, the waistband stays on the body to 1e-4 m
+    and rides with it, and no edge of the skirt crosses the body or the body the skirt in any frame."""
+    from intersections import crossing_pairs
+    from pxr import Usd, UsdGeom
+
+    frames = 12
+    times, walk = _write_dcc_body(tmp_path / "body.usdc", seconds=(frames + 2) / 60.0)
+    pattern = (ROOT / "scenes" / "patterns" / "skirt_specification.json").as_posix()
+    (tmp_path / "skirt.toml").write_text(
+        f'[cloth]\npattern = "{pattern}"\nedge_length = 0.04\nname = "skirt"\n'
+        '[[cloth.wraps]]\npanels = ["front", "back"]\n'
+        '[dressing]\nseconds = 1.0\nsettle = 0.5\n'
+        '[[attachments]]\nbox = { min = [-0.4, 0.995, -0.4], max = [0.4, 1.02, 0.4] }\ncollider = "body"\n'
+        '[[colliders]]\ntype = "mesh"\nmesh = "body.usdc"\ndeforming = true\nname = "body"\nfriction = 0.5\n'
+        'rotation = { axis = [1.0, 0.0, 0.0], angle = -90.0 }\n'
+        '[collision]\nself_collision = true\n'
+        '[solver]\nintegrator = "implicit_euler"\nsubsteps = 2\ncollider_contacts = "solve"\ntolerance = 1e-4\n'
+        f'[output]\nframes = {frames}\nfps = 60\n')
+    out = tmp_path / "skirt.usdc"
+    summary = run_scene(tmp_path / "skirt.toml", output=out)
+    assert summary["status"] == "complete" and summary["max_strain"] <= 0.101
+    assert summary["seam_gap"] < 1e-3 and summary["attachment_gap"] < 1e-4
+    stage = Usd.Stage.Open(str(out))
+    body = UsdGeom.Mesh(stage.GetPrimAtPath("/World/colliders/body"))
+    body_tris = np.asarray(body.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3)
+    skirt_tris = np.asarray(UsdGeom.Mesh(stage.GetPrimAtPath("/World/skirt")).GetFaceVertexIndicesAttr().Get()).reshape(-1, 3)
+    r, x = _positions(out)
+
+    def body_at(tc):  # world space: the cache writes the collider's local points under its pose
+        m = np.asarray(UsdGeom.Xformable(body).ComputeLocalToWorldTransform(tc), float)
+        return np.asarray(body.GetPointsAttr().Get(tc), float) @ m[:3, :3] + m[3, :3]
+
+    b0 = body_at(r.start_frame)  # (the reader reorders vertices: match them)
+    match = np.concatenate([np.linalg.norm(b0[i:i + 512, None] - walk[0][None], axis=2).argmin(1) for i in range(0, len(b0), 512)])
+    assert len(np.unique(match)) == len(b0) == len(walk[0])
+    for f in range(len(x)):
+        b = body_at(r.start_frame + f)
+        k, w = divmod(f, 2)  # (60 fps frames, 30 fps samples)
+        np.testing.assert_allclose(b, ((1.0 - 0.5 * w) * walk[k] + 0.5 * w * walk[k + 1])[match], atol=1e-4)
+        assert not crossing_pairs(x[f], skirt_tris, b, body_tris), f"frame {f}"
+    waist = x[0, :, 1] > 0.995
+    assert waist.sum() > 10 and np.ptp(x[:, waist, 1].mean(axis=1)) > 1e-4  # the walk's bob carries the waistband
+
+
 @pytest.mark.slow
 def test_panel_skirt_scene_sews_its_inline_pattern_onto_the_walking_mannequin(tmp_path):
     """Check the shipped skirt whose pattern is written in the scene ([[cloth.panels]], [[cloth.stitches]]; coarser
