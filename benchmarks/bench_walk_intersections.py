@@ -88,7 +88,8 @@ def main(argv=None) -> int:
             run_s = time.perf_counter() - t
             row = {"scene": name, "frames": summary["frames"], "status": summary["status"], "run_s": run_s, "ms_per_frame": summary.get("ms_per_frame"),
                    "max_strain": summary["max_strain"], "seam_gap_mm": 1e3 * summary.get("seam_gap", 0.0),
-                   "attachment_gap_mm": None if summary.get("attachment_gap") is None else 1e3 * summary["attachment_gap"], **check(out)}
+                   "attachment_gap_mm": None if summary.get("attachment_gap") is None else 1e3 * summary["attachment_gap"],
+                   "strain_limit": summary.get("strain_limit"), **check(out)}
         rows.append(row)
         print(row, flush=True)
     command = ("python benchmarks/bench_walk_intersections.py " + " ".join(sys.argv[1:] if argv is None else argv)).strip()
@@ -98,12 +99,17 @@ def main(argv=None) -> int:
              "Every frame of each run's cache (its first frame, the dressed garments, included) checked with "
              "`tests/intersections.py`: garment against body, garment against garment, garment against itself. Run time "
              "includes the dressing and the settle.", "",
-             "| scene | garments | frames checked | run [s] | ms/frame | largest strain | widest seam gap [mm] | attachments off the body [mm] | "
-             "frames crossing the body | garments crossing each other | garments crossing themselves |",
-             "|---|---|---:|---:|---:|---:|---:|---:|---|---|---|"]
+             "| scene | garments | frames checked | run [s] | ms/frame | largest strain | limit missed in frames (sweeps a step, most / cap) | "
+             "widest seam gap [mm] | attachments off the body [mm] | frames crossing the body | garments crossing each other | "
+             "garments crossing themselves |",
+             "|---|---|---:|---:|---:|---:|---|---:|---:|---|---|---|"]
     for r in rows:
         kinds = " | ".join(", ".join(map(str, r[k])) or "none" for k in ("crossing_body", "crossing_garments", "crossing_self"))
+        limit = r["strain_limit"] or {}
+        sweeps = (limit.get("sweeps_per_step") or {}).get("max")
+        missed = f"{limit.get('missed_frames', 0)} ({sweeps} / {limit.get('max_sweeps')})" if limit else "no limiter"
         lines.append(f"| {r['scene']} | {', '.join(r['garments'])} | {r['checked_frames']} | {r['run_s']:.0f} | {r['ms_per_frame'] or 0:.0f} | {r['max_strain']:.4f} | "
+                     f"{missed} | "
                      f"{r['seam_gap_mm']:.3f} | {'none attached' if r['attachment_gap_mm'] is None else format(r['attachment_gap_mm'], '.5f')} | {kinds} |")
     from reports import write_results
 
