@@ -41,13 +41,18 @@ class ClothRef:
     """A cloth added to a builder: its particle range and named selections.
 
     Selections return global particle indices. Grid names: "corners", "corner:<bottom|top>_<left|right>",
-    "edge:<bottom|top|left|right>" (bottom is grid row 0, left is column 0, in the grid's own frame).
+    "edge:<bottom|top|left|right>" (bottom is grid row 0, left is column 0, in the grid's own frame). A garment's
+    (:meth:`ModelBuilder.add_cloth_pattern`): "edge:<label>" (every pattern edge with that GarmentCode label, e.g. a
+    waistband's "waist"), "edge:<panel>:<index>" (one edge of a panel, counted from 0 in its edges' order) and
+    "panel:<panel>" (a whole panel).
     """
 
     builder: ModelBuilder
     name: str
     particle_start: int
     topology: ClothTopology
+    pattern_mesh: object = None  # a garment's PatternMesh (cloth_warp.patterns), None for other cloths
+    seams: np.ndarray | None = None  # a garment's seam springs' particle pairs (s, 2), None for other cloths
 
     @property
     def particle_count(self) -> int:
@@ -65,8 +70,10 @@ class ClothRef:
     def select(self, name: str) -> np.ndarray:
         """Global indices of a named selection (see class docstring)."""
         shape = self.topology.grid_shape
+        if shape is None and self.pattern_mesh is not None:
+            return self._select_pattern(name, self.pattern_mesh)
         if shape is None:
-            raise ValueError(f"cloth {self.name!r} is a mesh: named selections {name!r} need a grid; use select_box or a vertex mask")
+            raise ValueError(f"cloth {self.name!r} is a mesh: named selections {name!r} need a grid or a pattern; use select_box or a vertex mask")
         nx, ny = shape
 
         def vid(i, j):
@@ -93,6 +100,25 @@ class ClothRef:
             return self.indices(edges[which])
         allowed = ["corners"] + [f"corner:{c}" for c in corners] + [f"edge:{e}" for e in edges]
         raise ValueError(f"unknown selection {name!r}; allowed: {', '.join(allowed)}")
+
+    def _select_pattern(self, name: str, mesh) -> np.ndarray:
+        """A garment's named selection (see the class docstring): its pattern mesh's vertices, as particles."""
+        kind, _, which = name.partition(":")
+        labels = sorted({label for label in mesh.edge_labels.values() if label})
+        vertices = None
+        if kind == "panel" and which in mesh.panel_names:
+            vertices = np.flatnonzero(mesh.panel == mesh.panel_names.index(which))
+        elif kind == "edge" and which in labels:
+            vertices = np.concatenate([mesh.edge_vertices[key] for key, label in mesh.edge_labels.items() if label == which])
+        elif kind == "edge":
+            panel, _, index = which.rpartition(":")
+            if index.isdigit() and (panel, int(index)) in mesh.edge_vertices:
+                vertices = mesh.edge_vertices[(panel, int(index))]
+        if vertices is None:
+            allowed = [f"edge:{label}" for label in labels] + [f"panel:{p}" for p in mesh.panel_names] + ["edge:<panel>:<index>"]
+            raise ValueError(f"unknown selection {name!r} on garment {self.name!r}; allowed: {', '.join(allowed)}")
+        r2p = self.topology.render_to_particle
+        return self.indices(np.unique(vertices if r2p is None else r2p[vertices]))
 
     def select_box(self, lower, upper) -> np.ndarray:
         """Global indices of particles whose initial world position lies inside an axis-aligned box [m]."""

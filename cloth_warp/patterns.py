@@ -416,6 +416,7 @@ class PatternMesh:
         seams: (s, 2) vertex pairs to sew, one pair per matching point of each stitch (a pair per stitch end too).
         outline: per panel, its outline's vertex indices in order (the loop of its edges' samples).
         edge_vertices: (panel name, edge index) -> that edge's vertex indices from its start to its end.
+        edge_labels: (panel name, edge index) -> the edge's GarmentCode label ("" when none).
     """
 
     vertices: np.ndarray
@@ -426,6 +427,7 @@ class PatternMesh:
     seams: np.ndarray
     outline: list = field(default_factory=list)
     edge_vertices: dict = field(default_factory=dict)
+    edge_labels: dict = field(default_factory=dict)
 
 
 def edge_segments(pattern: Pattern, edge_length: float) -> dict:
@@ -500,7 +502,7 @@ def mesh_pattern(pattern: Pattern, edge_length: float, min_angle: float = 25.0, 
             wrap_of[name] = w
     segments = edge_segments(pattern, edge_length)
     area = math.sqrt(3.0) / 4.0 * edge_length**2
-    vertices, uvs, tris, panel_of, outline, edge_vertices = [], [], [], [], [], {}
+    vertices, uvs, tris, panel_of, outline, edge_vertices, edge_labels = [], [], [], [], [], {}, {}
     offset = 0
     names = list(pattern.panels)
     for index, name in enumerate(names):
@@ -534,6 +536,7 @@ def mesh_pattern(pattern: Pattern, edge_length: float, min_angle: float = 25.0, 
         outline.append(np.arange(n) + offset)
         for k, (start, count) in enumerate(spans):
             edge_vertices[(name, k)] = (np.arange(start, start + count + 1) % n) + offset
+            edge_labels[(name, k)] = panel.edges[k].label
         offset += len(pts2d)
     x = np.concatenate(vertices)
     seams = []
@@ -543,4 +546,5 @@ def mesh_pattern(pattern: Pattern, edge_length: float, min_angle: float = 25.0, 
     triangles = np.concatenate(tris).astype(np.int32)
     _check_apart(x, triangles, np.concatenate(panel_of), names, edge_length, outline)
     return PatternMesh(x, np.concatenate(uvs), triangles, np.concatenate(panel_of), names,
-                       np.concatenate(seams).astype(np.int32) if seams else np.zeros((0, 2), np.int32), outline, edge_vertices)
+                       np.concatenate(seams).astype(np.int32) if seams else np.zeros((0, 2), np.int32), outline, edge_vertices,
+                       edge_labels)

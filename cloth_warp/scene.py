@@ -100,7 +100,8 @@ COLLIDER_REQUIRED = {"sphere": ("radius",), "capsule": ("radius", "height"), "bo
                      "mesh": ("mesh",)}
 SELECTION = {
     "select": Key("str", None, 'named selection of a grid: "corners", "corner:top_left" (top_right, bottom_left, '
-                  'bottom_right), "edge:top" (bottom, left, right)'),
+                  'bottom_right), "edge:top" (bottom, left, right); of a pattern: "edge:<label>" (the edges with that label, '
+                  'e.g. "edge:waist"), "edge:<panel>:<index>", "panel:<panel>"'),
     "indices": Key("ints", None, "particle indices of the cloth (after seam welding)", L["index"]),
     "box": {"min": Key("vec3", None, "lower corner of an axis-aligned box around initial positions", L["position"]),
             "max": Key("vec3", None, "upper corner", L["position"])},

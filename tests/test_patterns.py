@@ -174,6 +174,36 @@ def test_a_pattern_sews_into_a_garment():
     np.testing.assert_allclose(np.unique(np.round(corner_uv, 9), axis=0), np.unique(np.round(mesh.uvs, 9), axis=0))
 
 
+def test_a_garments_edges_and_panels_are_named_selections(tmp_path):
+    """Check a garment's named selections pick its pattern's particles: "edge:<label>" every edge with that label (the
+    waist of both panels), "edge:<panel>:<index>" one edge, "panel:<panel>" a panel; an unknown name lists the allowed
+    ones; and a scene's pins take them by name ("edge:waist": the particles on the waist, none else)."""
+    import cloth_warp as cw
+    from cloth_warp.scene import load_scene, scene_selection
+
+    b = cw.ModelBuilder()
+    skirt = b.add_cloth_pattern(skirt_spec(), edge_length=0.04, name="skirt")
+    mesh = skirt.pattern_mesh
+    front, back = mesh.edge_vertices[("front", 3)], mesh.edge_vertices[("back", 3)]
+    np.testing.assert_array_equal(skirt.select("edge:waist"), skirt.indices(np.union1d(front, back)))
+    np.testing.assert_array_equal(skirt.select("edge:front:3"), skirt.indices(np.sort(front)))
+    np.testing.assert_array_equal(skirt.select("edge:back:1"), skirt.indices(np.sort(mesh.edge_vertices[("back", 1)])))
+    np.testing.assert_array_equal(skirt.select("panel:back"), skirt.indices(np.flatnonzero(mesh.panel == 1)))
+    assert len(skirt.select("panel:front")) + len(skirt.select("panel:back")) == skirt.particle_count
+    y = b.particle_positions[skirt.select("edge:waist"), 1]
+    assert np.ptp(y) < 0.05 and y.min() > b.particle_positions[skirt.select("panel:front"), 1].max() - 0.05  # the top
+    for bad in ("edge:belt", "edge:front:4", "panel:sleeve", "edge:top", "corners"):
+        with pytest.raises(ValueError, match="allowed: edge:waist, panel:front, panel:back, edge:<panel>:<index>"):
+            skirt.select(bad)
+    import json
+
+    (tmp_path / "skirt_specification.json").write_text(json.dumps(skirt_spec()))
+    (tmp_path / "skirt.toml").write_text('[cloth]\npattern = "skirt_specification.json"\nedge_length = 0.04\n'
+                                         '[[pins]]\nselect = "edge:waist"\n')
+    scene = load_scene(tmp_path / "skirt.toml")
+    np.testing.assert_array_equal(scene_selection(scene, scene.data["pins"][0], "pins[0]"), np.union1d(front, back))
+
+
 def test_a_scene_sews_a_pattern_next_to_a_walking_mannequin(tmp_path):
     """Check a scene file with cloth.pattern (a GarmentCode specification beside it) and a mannequin collider that
     walks runs to completion: the garment is one cloth with its panels' UVs in the cache, the body a deforming mesh
