@@ -22,8 +22,8 @@ from . import profiling
 from .cache import COUNTER_DIAGNOSTICS, STRAIN_LIMIT_DIAGNOSTICS
 from .collision import ALL_COUNTERS as COLLISION_COUNTERS
 from .diagnostics import SOLVE_CONTACT_COUNTERS
-from .profiling import stage
 from .model import attachment_gap
+from .profiling import stage
 from .sewing import seam_ends, seam_gap
 from .scene import Scene, SceneError, build_model, build_solver, build_wind, load_scene
 
