@@ -318,6 +318,9 @@ SCHEMA: dict = {
         "velocity_tolerance": Key("float", 0.0, "contacts in the solve, cloth near rest (tolerance x its RMS speed below "
                                   "this): the RMS velocity error [m/s] the step's last solve goes on to (0: none; 1e-5 rests "
                                   "a drape's ringing edge, at a cost)", L["velocity_tolerance"]),
+        "self_contact_stiffening": Key("bool", False, "self-contacts in the solve: stiffen the elements whose load holds "
+                                       "them near the self-collision pass's reach, so that the pass does not push them "
+                                       "out every step (layers pressed into soft contacts rest; see the README)"),
         "max_iterations": Key("int", 1000, "linear-solver iteration cap per step", L["iterations"]),
         "adaptive": Key("bool", False, "check every step and halve dt on divergence (grows back after good steps)"),
         "dt_min": Key("float", 1e-6, "adaptive floor: below it the run stops with a diagnosis", L["dt_min"]),
@@ -1096,7 +1099,8 @@ def solver_options(scene: Scene, implicit: bool) -> dict:
         opts.update(linear_solver=scene.get("solver.linear_solver"), tolerance=float(scene.get("solver.tolerance")),
                     max_iterations=int(scene.get("solver.max_iterations")), collider_contacts=scene.get("solver.collider_contacts"),
                     self_contacts=scene.get("solver.self_contacts"), contact_friction=scene.get("solver.contact_friction"),
-                    sewn_points=scene.get("solver.sewn_points"), velocity_tolerance=float(scene.get("solver.velocity_tolerance")))
+                    sewn_points=scene.get("solver.sewn_points"), velocity_tolerance=float(scene.get("solver.velocity_tolerance")),
+                    self_contact_stiffening=bool(scene.get("solver.self_contact_stiffening")))
     return opts
 
 

@@ -32,6 +32,10 @@ wp.set_module_options({"enable_backward": False})
 # Self-contacts in the solve hold elements this fraction of the cloth thickness apart beyond it, clear of the
 # self-collision pass's proximity band (the thickness), so that layers at rest leave the pass nothing to do.
 SELF_CLEARANCE = wp.constant(0.05)
+# A loaded self-contact element gives way by load / stiffness; one whose solved overlap would leave it inside the
+# self-collision pass's reach is stiffened for the next steps (a gain per particle, eval_self_contact_gain_targets):
+# at most this many times the model's self-collision stiffness, changed at most 2x a step.
+SELF_CONTACT_GAIN_MAX = wp.constant(32.0)
 # An edge-edge pair whose nearest points have a weight this small is nearest at an edge's end (eval_self_contacts).
 EDGE_END = wp.constant(1.0e-4)
 # [m] two faces' distances to a point within this are one contact's (keeps_nearest_feature: the face with the point
@@ -558,6 +562,16 @@ def store_element(e: int, idx: wp.vec4i, alpha: wp.vec4, n: wp.vec3, overlap: fl
 
 
 @wp.func
+def element_gain(idx: wp.vec4i, alpha: wp.vec4, gain: wp.array(dtype=float)):
+    """A self-contact element's stiffness gain: the largest of its particles' (those with a weight), at least 1."""
+    g = float(1.0)
+    for r in range(4):
+        if alpha[r] != 0.0:
+            g = wp.max(g, gain[idx[r]])
+    return g
+
+
+@wp.func
 def admit_depth(rest_distance: float):
     """How far [m] beyond the self-contacts' rest distance r an admissible pair starts, and inside it its solved end lies,
     for admission: SELF_ADMIT_DEPTH of the clearance (r = thickness (1 + SELF_CLEARANCE))."""
@@ -623,6 +637,7 @@ def eval_self_contacts(
     particle_world: wp.array(dtype=wp.int32),
     worlds: int,
     coefficient: float,
+    gain: wp.array(dtype=float),
     # outputs: the elements (appended) and their force, K v0 and diagonal blocks (accumulated per particle)
     element_indices_out: wp.array(dtype=wp.vec4i),
     element_weights_out: wp.array(dtype=wp.vec4),
@@ -660,6 +675,7 @@ def eval_self_contacts(
     edge or corner of its face whose contact another face there holds gets nothing (`keeps_nearest_feature`: each
     particle's faces in `ring_offsets`, `ring_faces`). With `friction_in_solve`,
     its Coulomb friction (coefficient `friction`) enters the system as well (see `self_contact_friction_terms`).
+    Its stiffness is k times the element's `gain` (`element_gain`, kept by eval_self_contact_gain_targets).
     Batched worlds: `pairs`, `tri_indices` and `edge_indices` are one world's (its own model's), its particles from
     `particle_offset` on in the batch's arrays; the element is counted in its world's counters. Each
     element keeps its k and `coefficient` h^2 k (its world's: the worlds' stiffness may differ) for the product and
@@ -677,6 +693,8 @@ def eval_self_contacts(
     alpha = start_weights(kind, x0, idx)
     if at_edge_end(kind, alpha):
         return
+    g = element_gain(idx, alpha, gain)
+    k = g * stiffness
     gap = weighted_sum(alpha, x0[idx[0]], x0[idx[1]], x0[idx[2]], x0[idx[3]])
     d = wp.length(gap)
     if d <= NORMAL_EPS:
@@ -699,8 +717,8 @@ def eval_self_contacts(
             admissible_indices_out[slot] = idx
             admissible_weights_out[slot] = alpha
             admissible_gap_out[slot] = gap
-            admissible_stiffness_out[slot] = stiffness
-            admissible_coefficient_out[slot] = coefficient
+            admissible_stiffness_out[slot] = k
+            admissible_coefficient_out[slot] = g * coefficient
             admissible_admitted_out[slot] = 0
         return
     e = wp.atomic_add(element_count_out, 0, 1)
@@ -713,20 +731,20 @@ def eval_self_contacts(
     if friction_in_solve != 0:
         w = inverse_mass_weight(alpha, idx, inv_mass)
         v_t = v_rel - v_n * n
-        friction_overlap = friction_load_overlap(overlap, v_n, wp.length(v_t), stiffness, w, dt, gravity, stick_speed)
-        terms = self_contact_friction_terms(v_t, dt * stiffness * friction_overlap, w, friction, stick_speed)
+        friction_overlap = friction_load_overlap(overlap, v_n, wp.length(v_t), k, w, dt, gravity, stick_speed)
+        terms = self_contact_friction_terms(v_t, dt * k * friction_overlap, w, friction, stick_speed)
         friction_mass = terms[0]
         slide = wp.vec3(terms[1], terms[2], terms[3])
-    store_element(e, idx, alpha, n, friction_overlap, friction_mass, slide, stiffness, coefficient, element_indices_out,
+    store_element(e, idx, alpha, n, friction_overlap, friction_mass, slide, k, g * coefficient, element_indices_out,
                   element_weights_out, element_normal_out, element_overlap_out, element_friction_mass_out,
                   element_friction_impulse_out, element_stiffness_out, element_coefficient_out)
     # the damper's b part, -d alpha_r v_T, and the slide's alpha_r J, as forces (b = h (f0 - h K v0))
     push = slide - friction_mass * (v_rel - v_n * n)
-    block = (dt * dt * stiffness) * wp.outer(n, n) + friction_mass * (wp.identity(n=3, dtype=float) - wp.outer(n, n))
+    block = (dt * dt * k) * wp.outer(n, n) + friction_mass * (wp.identity(n=3, dtype=float) - wp.outer(n, n))
     for r in range(4):
         a = alpha[r]
-        wp.atomic_add(force_out, idx[r], (a * stiffness * overlap) * n + (a / dt) * push)
-        wp.atomic_add(kv_out, idx[r], (a * stiffness * v_n) * n)
+        wp.atomic_add(force_out, idx[r], (a * k * overlap) * n + (a / dt) * push)
+        wp.atomic_add(kv_out, idx[r], (a * k * v_n) * n)
         wp.atomic_add(diag_out, idx[r], (a * a) * block)
     wp.atomic_add(counts_out, world_slot(particle_world_of(idx[0], particle_world, worlds), worlds, COUNT_SIZE) + COUNT_SELF_CONTACTS, 1)
 
@@ -857,6 +875,61 @@ def slide_self_contacts(
     element_friction_impulse_out[e] = j
     release_out[rb + RELEASE_FLAG] = 1
     release_out[RELEASE_FLAG] = 1
+
+
+@wp.kernel
+def eval_self_contact_gain_targets(
+    element_count: wp.array(dtype=wp.int32),
+    element_indices: wp.array(dtype=wp.vec4i),
+    element_weights: wp.array(dtype=wp.vec4),
+    element_normal: wp.array(dtype=wp.vec3),
+    gain: wp.array(dtype=float),
+    x0: wp.array(dtype=wp.vec3),
+    v0: wp.array(dtype=wp.vec3),
+    dv: wp.array(dtype=wp.vec3),
+    rest_distance: float,
+    held_overlap: float,
+    dt: float,
+    # output: per particle the largest gain its elements ask (atomic max; zeroed by update_self_contact_gains)
+    target_out: wp.array(dtype=float),
+):
+    """Each element's load, g k o at its solved end overlap o = r - n . (gap0 + h v_rel) [m] (`rest_distance` r, g its
+    gain), asks for each of its weighted particles the gain that would hold it at `held_overlap` [m]: g o /
+    held_overlap (update_self_contact_gains follows it). A loaded element gives way by load / stiffness; past the
+    self-collision pass's reach the pass pushed it out every step and the next solve pulled it back (a T-shirt's fold
+    at its armhole seam, held by the cloth's tension round it)."""
+    e = wp.tid()
+    if e >= element_count[0]:
+        return
+    idx = element_indices[e]
+    alpha = element_weights[e]
+    n = element_normal[e]
+    gap = weighted_sum(alpha, x0[idx[0]], x0[idx[1]], x0[idx[2]], x0[idx[3]])
+    overlap = rest_distance - wp.dot(n, gap + dt * pair_end_velocity(alpha, idx, v0, dv))
+    if overlap <= 0.0:
+        return
+    target = element_gain(idx, alpha, gain) * overlap / held_overlap
+    for r in range(4):
+        if alpha[r] != 0.0:
+            wp.atomic_max(target_out, idx[r], target)
+
+
+@wp.kernel
+def update_self_contact_gains(target: wp.array(dtype=float), gain: wp.array(dtype=float)):
+    """Each particle's self-contact gain g follows what its elements asked (eval_self_contact_gain_targets; none: 0)
+    with hysteresis: up to the target when it is above g (by at most 2x a step: a pair the dressing hands over deep is
+    not thrown apart in a step), halved while it is below g / 2, else kept, within [1, SELF_CONTACT_GAIN_MAX]. Followed
+    both ways every step, the gains and the loads they shift fed each other: layers pressed into soft contacts swung at
+    2-30 mm/s, depending on the held overlap, where the hysteresis lets them rest."""
+    i = wp.tid()
+    g = gain[i]
+    t = target[i]
+    if t > g:
+        g = wp.min(t, 2.0 * g)
+    elif t < 0.5 * g:
+        g = 0.5 * g
+    gain[i] = wp.clamp(g, 1.0, SELF_CONTACT_GAIN_MAX)
+    target[i] = 0.0
 
 
 @wp.kernel

@@ -13,6 +13,7 @@ import cloth_warp as cw
 from cloth_warp.collision import collider_distance
 from cloth_warp.kernels import collide as kcol
 from cloth_warp.kernels import contact as kct
+from cloth_warp.solvers.implicit import PROXIMITY_REACH_UNDER_SOLVE, SELF_CONTACT_GAIN_HOLD
 from cloth_warp.topology import particle_triangles
 from conftest import host_probe
 
@@ -790,9 +791,9 @@ def test_gradients_through_contacts_in_the_solve_match_finite_differences(collid
 CLOTH_THICKNESS = 0.004
 
 
-def layered_model(upper_height=0.012, shift=(0.0, 0.0)):
+def layered_model(upper_height=0.012, shift=(0.0, 0.0), stiffness=None):
     """A 0.2 m cotton square (6^2) dropped onto a 0.3 m one (8^2) lying on the ground, self-collision on (`shift` [m]:
-    the upper square's offset in x and z)."""
+    the upper square's offset in x and z; `stiffness` [N/m]: the self-contacts', default the cloth's)."""
     b = cw.ModelBuilder()
     flat = cw.quat_from_axis_angle((1, 0, 0), -90.0)
     lower = b.add_cloth_grid(resolution=(8, 8), size=(0.3, 0.3), material="cotton", position=(-0.15, THICKNESS * (1 + kct.CLEARANCE), 0.15),
@@ -800,7 +801,7 @@ def layered_model(upper_height=0.012, shift=(0.0, 0.0)):
     upper = b.add_cloth_grid(resolution=(6, 6), size=(0.2, 0.2), material="cotton",
                              position=(-0.1 + shift[0], THICKNESS + upper_height, 0.1 + shift[1]), rotation=flat)
     b.add_ground(thickness=THICKNESS, friction=0.5)
-    b.enable_self_collision(thickness=CLOTH_THICKNESS)
+    b.enable_self_collision(thickness=CLOTH_THICKNESS, stiffness=stiffness)
     return b.finalize("cpu"), lower, upper
 
 
@@ -824,6 +825,51 @@ def test_layers_rest_at_the_thickness_with_self_contacts_in_the_solve(friction):
     report = sim.frame_report
     assert report.solves.self_contacts > 0
     assert report.passes["self_collision"].counters()["self_proximity"] == 0 == report.passes["self_collision"].counters()["self_ccd"]
+
+
+@pytest.mark.parametrize("stiffness", [0.25, 0.05])
+def test_layers_pressed_into_soft_contacts_are_held_clear_of_the_pass(stiffness):
+    """Check a cloth resting on another whose self-contacts are soft (`stiffness` [N/m], 0.25 and 0.05: the upper
+    layer's weight would press linear elements 2-4 mm into their rest distance r) comes to rest with every pair held
+    outside the self-collision pass's reach (0.75 t): the elements' gains (kernels/contact.py
+    eval_self_contact_gain_targets) stiffen the loaded pairs until their load is held SELF_CONTACT_GAIN_HOLD of the way
+    from r to the reach (measured 3.51 / 3.44 mm apart at the closest for t = 4 mm, gains up to 5.1 / 21.7), at rest
+    (0.007 / 0.001 mm/s), with no proximity impulse. With linear elements (gain 1) the pass pushed 840 / 1988 pairs a
+    frame and the solve pulled them back: 4.6 / 8.9 mm/s after 2 s, the layers 2.24 / 0.03 mm apart at the closest."""
+    m, lower, upper = layered_model(stiffness=stiffness)
+    solver = cw.SolverImplicitEuler(m, collider_contacts="solve", self_contacts="solve", contact_friction="solve",
+                                    self_contact_stiffening=True)
+    sim = cw.Simulator(m, solver, fps=60, substeps=2)
+    for _ in range(100):
+        stats = sim.step_frame()
+    r = CLOTH_THICKNESS * (1 + float(kct.SELF_CLEARANCE))
+    reach = PROXIMITY_REACH_UNDER_SOLVE * CLOTH_THICKNESS
+    y = sim.positions()[:, 1]
+    assert y[upper.indices()].min() - y[lower.indices()].max() > r - SELF_CONTACT_GAIN_HOLD * (r - reach) - 1e-5
+    assert y[upper.indices()].mean() - y[lower.indices()].mean() < r
+    assert stats.max_speed < 1e-4
+    assert sim.frame_report.passes["self_collision"].counters()["self_proximity"] == 0
+    gain = solver.self_contact_gain.numpy()
+    assert 1.0 < gain.max() <= float(kct.SELF_CONTACT_GAIN_MAX)
+    assert (gain[lower.indices()] > 1.0).any() and (gain[upper.indices()] > 1.0).any()
+    # off (the default), the same layers: the pass pushes loaded pairs out every step, the gains stay 1
+    m, lower, upper = layered_model(stiffness=stiffness)
+    solver = cw.SolverImplicitEuler(m, collider_contacts="solve", self_contacts="solve", contact_friction="solve")
+    sim = cw.Simulator(m, solver, fps=60, substeps=2)
+    for _ in range(100):
+        sim.step_frame()
+    assert sim.frame_report.passes["self_collision"].counters()["self_proximity"] > 0
+    assert (solver.self_contact_gain.numpy() == 1.0).all()
+
+
+def test_self_contact_stiffening_is_a_scene_key_and_off_by_default():
+    """Check `solver.self_contact_stiffening` reaches implicit Euler's options, off unless a scene turns it on."""
+    from cloth_warp.runner import find_scene
+    from cloth_warp.scene import load_scene, solver_options
+
+    assert solver_options(load_scene(find_scene("pile")), True)["self_contact_stiffening"] is False
+    on = load_scene(find_scene("pile"), {"solver.self_contact_stiffening": True})
+    assert solver_options(on, True)["self_contact_stiffening"] is True
 
 
 def landing_gaps(m, lower, upper, solver, frames=45):
@@ -1025,7 +1071,7 @@ def self_contact_elements(kind, pairs, tri, edges, x, v0, r, k, h, friction=0.0,
                       wp.zeros(n, dtype=wp.int32), wp.full(n, -1, dtype=wp.int32),
                       wp.array(x, dtype=wp.vec3),
                       wp.array(v0, dtype=wp.vec3), r, k, h, gravity, c, wp.array(inv_mass, dtype=float), friction, stick_speed,
-                      int(friction > 0.0), 0, wp.zeros(n, dtype=wp.int32), 1, h * h * k],
+                      int(friction > 0.0), 0, wp.zeros(n, dtype=wp.int32), 1, h * h * k, wp.ones(n, dtype=float)],
               outputs=out)
     return out
 

@@ -48,6 +48,10 @@ CONTACT_FRICTION = ("after", "solve")
 # distance by load / stiffness (a T-shirt held still: 25-28 particles 0.2-0.4 mm inside the thickness, which the pass
 # pushed out by 16 mm/s every step).
 PROXIMITY_REACH_UNDER_SOLVE = 0.75
+# A self-contact element whose load the solved step leaves deeper than this fraction of the way from its rest distance
+# to the pass's reach is stiffened until it is held there (a gain per particle, kernels/contact.py
+# eval_self_contact_gain_targets): the pass then has nothing to push.
+SELF_CONTACT_GAIN_HOLD = 0.75
 # Where a welded sewn point is kept one point: in the solve as one particle, or by the sewing pass after the step only.
 SEWN_POINTS = ("solve", "pass")
 
@@ -114,6 +118,13 @@ class SolverImplicitEuler(SolverBase):
             velocity error is within it [m/s] (kernels/implicit.py begin_linear_solve), changing no contact; 0 (the
             default): none. At rest the tolerance alone left ~5 um/s RMS of error, which fed a 6.7 Hz wave on the
             shipped drape's free edge; 1e-5 rests it, at a cost (docs/contacts-in-the-solve.md).
+        self_contact_stiffening: self-contacts in the solve, forward steps: a self-contact element whose load holds it
+            deeper than SELF_CONTACT_GAIN_HOLD of the way from its rest distance to the self-collision pass's reach is
+            stiffened for the next steps (a gain per particle, at most 32x, followed with hysteresis: kernels/contact.py
+            eval_self_contact_gain_targets, update_self_contact_gains), so that the pass has no loaded pair to push
+            out and the next solve to pull back. Off by default: it rests layers pressed into soft contacts (a cloth
+            on a cloth at 0.25 N/m: 4.6 mm/s and 840 impulses a frame without it), but it changes the shipped
+            garments' runs (docs/garments.md, "Self-contacts stiffened where they are loaded").
         strain_limit, strain_limit_iterations, collisions: see :class:`~cloth_warp.solvers.base.SolverBase`.
         collider_contacts: "pass" (collider contacts resolved after the step by the colliders pass only) or "solve"
             (also inside the solve, Baraff & Witkin's filter: a particle touching a collider at the start of the step
@@ -228,6 +239,7 @@ class SolverImplicitEuler(SolverBase):
         contact_check_tolerance: float | None = None,
         sewn_points: str = "solve",
         velocity_tolerance: float = 0.0,
+        self_contact_stiffening: bool = False,
     ):
         super().__init__(model, strain_limit=strain_limit, strain_limit_iterations=strain_limit_iterations,
                          strain_limit_tolerance=strain_limit_tolerance, collisions=collisions, collision_rounds=collision_rounds)
@@ -305,6 +317,7 @@ class SolverImplicitEuler(SolverBase):
         if not (math.isfinite(velocity_tolerance) and velocity_tolerance >= 0.0):
             raise ValueError(f"velocity_tolerance must be a speed >= 0 [m/s], got {velocity_tolerance!r}")
         self.velocity_tolerance = float(velocity_tolerance)
+        self.self_contact_stiffening = bool(self_contact_stiffening)
         n, s, t = model.particle_count, max(model.spring_count, 1), max(model.tri_count, 1)
         dev = model.device
         self.stiffness_block = wp.zeros(s, dtype=wp.mat33, device=dev)
@@ -391,6 +404,10 @@ class SolverImplicitEuler(SolverBase):
         self.seam_impulse = wp.zeros(m_sewn, dtype=float, device=dev)
         # self-contact elements in the solve (kernels/contact.py eval_self_contacts; capacity: the candidates')
         self.self_contact_count = wp.zeros(1, dtype=wp.int32, device=dev)
+        # per particle its self-contact elements' stiffness gain (1: the model's stiffness; kernels/contact.py
+        # eval_self_contact_gain_targets) and the gain its elements asked in the last step
+        self.self_contact_gain = wp.ones(n, dtype=float, device=dev)
+        self.self_contact_gain_target = wp.zeros(n, dtype=float, device=dev)
         self._gathered_inv_mass = None  # batched worlds: the worlds' self-collision inverse masses in one array
         # (friction overlaps: the part of each overlap that bounds its friction, kernels/contact.py friction_load_overlap)
         self._self_contact_elements = None  # (indices, weights, normals, friction overlaps, friction masses, friction impulses, stiffness, h^2 k), capacity: the candidates'
@@ -550,7 +567,7 @@ class SolverImplicitEuler(SolverBase):
                                   state_in.particle_qd, self._self_contact_distance(), stiffness, dt, self._gravity_norm,
                                   capacity,
                                   inv_mass, float(m.cloth_friction), self.contact_stick_speed, int(self.contact_friction == "solve"),
-                                  first, m.particle_world, self.worlds, dt * dt * stiffness],
+                                  first, m.particle_world, self.worlds, dt * dt * stiffness, self.self_contact_gain],
                           outputs=[*el[:6], self.self_contact_count, force, self.membrane_kv, self.membrane_diag, self.contact_counts,
                                    el[6], el[7], *self._self_contact_admissible, self.self_contact_admissible_count], device=dev)
 
@@ -578,6 +595,18 @@ class SolverImplicitEuler(SolverBase):
                           rounds, self.model.particle_world, self.worlds],
                   outputs=[ad[5], *el[:6], self.self_contact_count, self.rhs, self.contact_counts, el[6], el[7], self.release],
                   device=self.model.device)
+
+    def _update_self_contact_gains(self, state_in: State, dv: wp.array, dt: float):
+        """The next step's gains (kernels/contact.py eval_self_contact_gain_targets, update_self_contact_gains): each
+        element's load held SELF_CONTACT_GAIN_HOLD of the way from its rest distance to the self-collision pass's reach."""
+        el = self._self_contact_elements
+        headroom = self._self_contact_distance() - PROXIMITY_REACH_UNDER_SOLVE * float(self.model.cloth_thickness)
+        wp.launch(kct.eval_self_contact_gain_targets, dim=el[0].shape[0],
+                  inputs=[self.self_contact_count, *el[:3], self.self_contact_gain, state_in.particle_q, state_in.particle_qd, dv,
+                          self._self_contact_distance(), SELF_CONTACT_GAIN_HOLD * headroom, dt],
+                  outputs=[self.self_contact_gain_target], device=self.model.device)
+        wp.launch(kct.update_self_contact_gains, dim=self.model.particle_count, inputs=[self.self_contact_gain_target],
+                  outputs=[self.self_contact_gain], device=self.model.device)
 
     def _self_contact_inverse_masses(self) -> wp.array:
         """The self-collision passes' inverse masses [1/kg] in the model's particle order: one world's own array, or the
@@ -851,12 +880,13 @@ class SolverImplicitEuler(SolverBase):
             self_contacts=int(r[ki.RECORD_SELF_CONTACTS]))
 
     def carried_arrays(self) -> list:
-        """The warm start, and the contacts' last normal impulses (their next friction)."""
-        return [self.dv_previous, self.previous_ready, self.contact_impulse]
+        """The warm start, the contacts' last normal impulses (their next friction) and the self-contacts' gains."""
+        return [self.dv_previous, self.previous_ready, self.contact_impulse, self.self_contact_gain]
 
     def forget_world(self, world: int, particles: slice) -> None:
         self.dv_previous[particles].zero_()
         self.contact_impulse[particles].zero_()
+        self.self_contact_gain[particles].fill_(1.0)
         self.previous_ready[world : world + 1].zero_()
 
     # -- checkpoints --------------------------------------------------------------------------
@@ -868,6 +898,7 @@ class SolverImplicitEuler(SolverBase):
         out["previous_ready"] = self.previous_ready.numpy().copy()  # per world (a batch's held worlds have none)
         out["dv_previous"] = self.dv_previous.numpy().copy()
         out["contact_impulse"] = self.contact_impulse.numpy().copy()
+        out["self_contact_gain"] = self.self_contact_gain.numpy().copy()
         return out
 
     def restore_state(self, state: dict) -> None:
@@ -881,6 +912,9 @@ class SolverImplicitEuler(SolverBase):
             self.previous_ready.fill_(int(bool(state["has_previous"])))
         if "contact_impulse" in state:  # (checkpoints written before friction was in the solve: none)
             self.contact_impulse.assign(np.asarray(state["contact_impulse"], np.float32).reshape(self.model.particle_count))
+        gain = state.get("self_contact_gain")  # (checkpoints written before the gains: none)
+        self.self_contact_gain.assign(np.ones(self.model.particle_count, np.float32) if gain is None
+                                      else np.asarray(gain, np.float32).reshape(self.model.particle_count))
 
     # -- the step ----------------------------------------------------------------------------
     def solve(self, state_in: State, control: Control, dt: float) -> wp.array:
@@ -926,6 +960,8 @@ class SolverImplicitEuler(SolverBase):
             self._apply_contact_friction(state_in)
         if self._self_contacts_on:
             self._apply_self_contact_friction(state_in, dt)
+            if self.self_contact_stiffening:
+                self._update_self_contact_gains(state_in, dv, dt)
         return dv
 
     def _self_contacts_in_solve(self, state_in: State) -> bool:
