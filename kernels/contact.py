@@ -915,21 +915,22 @@ def eval_self_contact_gain_targets(
 
 
 @wp.kernel
-def update_self_contact_gains(target: wp.array(dtype=float), gain: wp.array(dtype=float)):
-    """Each particle's self-contact gain g follows what its elements asked (eval_self_contact_gain_targets; none: 0)
-    with hysteresis: up to the target when it is above g (by at most 2x a step: a pair the dressing hands over deep is
-    not thrown apart in a step), halved while it is below g / 2, else kept, within [1, SELF_CONTACT_GAIN_MAX]. Followed
-    both ways every step, the gains and the loads they shift fed each other: layers pressed into soft contacts swung at
-    2-30 mm/s, depending on the held overlap, where the hysteresis lets them rest."""
+def update_self_contact_gains(target_out: wp.array(dtype=float), gain_out: wp.array(dtype=float)):
+    """Each particle's self-contact gain g (in place in `gain_out`) follows what its elements asked (`target_out`,
+    eval_self_contact_gain_targets; none: 0; zeroed here for the next step) with hysteresis: up to the target when it is
+    above g (by at most 2x a step: a pair the dressing hands over deep is not thrown apart in a step), halved while it
+    is below g / 2, else kept, within [1, SELF_CONTACT_GAIN_MAX]. Followed both ways every step, the gains and the
+    loads they shift fed each other: layers pressed into soft contacts swung at 2-33 mm/s, depending on the held
+    overlap, where the hysteresis lets them rest."""
     i = wp.tid()
-    g = gain[i]
-    t = target[i]
+    g = gain_out[i]
+    t = target_out[i]
     if t > g:
         g = wp.min(t, 2.0 * g)
     elif t < 0.5 * g:
         g = 0.5 * g
-    gain[i] = wp.clamp(g, 1.0, SELF_CONTACT_GAIN_MAX)
-    target[i] = 0.0
+    gain_out[i] = wp.clamp(g, 1.0, SELF_CONTACT_GAIN_MAX)
+    target_out[i] = 0.0  # (each thread reads and writes its own particle's)
 
 
 @wp.kernel

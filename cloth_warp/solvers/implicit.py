@@ -605,8 +605,8 @@ class SolverImplicitEuler(SolverBase):
                   inputs=[self.self_contact_count, *el[:3], self.self_contact_gain, state_in.particle_q, state_in.particle_qd, dv,
                           self._self_contact_distance(), SELF_CONTACT_GAIN_HOLD * headroom, dt],
                   outputs=[self.self_contact_gain_target], device=self.model.device)
-        wp.launch(kct.update_self_contact_gains, dim=self.model.particle_count, inputs=[self.self_contact_gain_target],
-                  outputs=[self.self_contact_gain], device=self.model.device)
+        wp.launch(kct.update_self_contact_gains, dim=self.model.particle_count,
+                  outputs=[self.self_contact_gain_target, self.self_contact_gain], device=self.model.device)
 
     def _self_contact_inverse_masses(self) -> wp.array:
         """The self-collision passes' inverse masses [1/kg] in the model's particle order: one world's own array, or the
