@@ -32,9 +32,9 @@ wp.set_module_options({"enable_backward": False})
 # Self-contacts in the solve hold elements this fraction of the cloth thickness apart beyond it, clear of the
 # self-collision pass's proximity band (the thickness), so that layers at rest leave the pass nothing to do.
 SELF_CLEARANCE = wp.constant(0.05)
-# A loaded self-contact element gives way by load / stiffness; one whose solved overlap would leave it inside the
-# self-collision pass's reach is stiffened for the next steps (a gain per particle, eval_self_contact_gain_targets):
-# at most this many times the model's self-collision stiffness, changed at most 2x a step.
+# A loaded self-contact element gives way by load / stiffness; with the solver's self_contact_stiffening, one whose load
+# holds it near the self-collision pass's reach is stiffened for the next steps (a gain per particle,
+# eval_self_contact_gain_targets): at most this many times the model's self-collision stiffness, changed at most 2x a step.
 SELF_CONTACT_GAIN_MAX = wp.constant(32.0)
 # An edge-edge pair whose nearest points have a weight this small is nearest at an edge's end (eval_self_contacts).
 EDGE_END = wp.constant(1.0e-4)
