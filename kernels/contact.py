@@ -693,8 +693,6 @@ def eval_self_contacts(
     alpha = start_weights(kind, x0, idx)
     if at_edge_end(kind, alpha):
         return
-    g = element_gain(idx, alpha, gain)
-    k = g * stiffness
     gap = weighted_sum(alpha, x0[idx[0]], x0[idx[1]], x0[idx[2]], x0[idx[3]])
     d = wp.length(gap)
     if d <= NORMAL_EPS:
@@ -711,6 +709,8 @@ def eval_self_contacts(
         if not keeps_nearest_feature(pairs[tid], idx, alpha, d, ring_offsets, ring_faces, tri_indices, edge_indices,
                                      particle_point_root, particle_offset, x0):
             return
+    g = element_gain(idx, alpha, gain)  # (for the pairs kept either way)
+    k = g * stiffness
     if keep_admissible:
         slot = wp.atomic_add(admissible_count_out, 0, 1)
         if slot < capacity:

@@ -600,10 +600,11 @@ class SolverImplicitEuler(SolverBase):
         """The next step's gains (kernels/contact.py eval_self_contact_gain_targets, update_self_contact_gains): each
         element's load held SELF_CONTACT_GAIN_HOLD of the way from its rest distance to the self-collision pass's reach."""
         el = self._self_contact_elements
-        headroom = self._self_contact_distance() - PROXIMITY_REACH_UNDER_SOLVE * float(self.model.cloth_thickness)
+        r = self._self_contact_distance()
+        headroom = r - PROXIMITY_REACH_UNDER_SOLVE * float(self.model.cloth_thickness)
         wp.launch(kct.eval_self_contact_gain_targets, dim=el[0].shape[0],
                   inputs=[self.self_contact_count, *el[:3], self.self_contact_gain, state_in.particle_q, state_in.particle_qd, dv,
-                          self._self_contact_distance(), SELF_CONTACT_GAIN_HOLD * headroom, dt],
+                          r, SELF_CONTACT_GAIN_HOLD * headroom, dt],
                   outputs=[self.self_contact_gain_target], device=self.model.device)
         wp.launch(kct.update_self_contact_gains, dim=self.model.particle_count,
                   outputs=[self.self_contact_gain_target, self.self_contact_gain], device=self.model.device)
