@@ -1047,15 +1047,18 @@ def test_self_contact_friction_in_the_solve_is_a_damper_or_the_kinetic_impulse(r
     assert {(kind, damped, creeping) for kind in (0, 1) for damped, creeping in ((True, False), (True, True), (False, True))} <= branches
 
 
-def self_contact_element(kind, pair, tri, edges, x, v0, r, k, h, friction=0.0, stick_speed=1e-4, mass=None, gravity=9.81):
+def self_contact_element(kind, pair, tri, edges, x, v0, r, k, h, friction=0.0, stick_speed=1e-4, mass=None, gravity=9.81,
+                         gain=None):
     """Build one self-contact element (kernels/contact.py eval_self_contacts) for the pair of 4 particles at x, v0;
-    with `friction` > 0 its friction is in the solve; `gravity` |g| [m/s^2]. Returns the kernel's outputs: indices,
-    weights, normal, overlap, friction mass, friction impulse, count, force, K v0, diagonal blocks, counters, k and
-    h^2 k, then the admissible pair's arrays and count (a pair beyond r the contact checks may admit)."""
-    return self_contact_elements(kind, [pair], tri, edges, x, v0, r, k, h, friction, stick_speed, mass, gravity)
+    with `friction` > 0 its friction is in the solve; `gravity` |g| [m/s^2]; `gain` the particles' stiffness gains
+    (default 1). Returns the kernel's outputs: indices, weights, normal, overlap, friction mass, friction impulse, count,
+    force, K v0, diagonal blocks, counters, k and h^2 k, then the admissible pair's arrays and count (a pair beyond r
+    the contact checks may admit)."""
+    return self_contact_elements(kind, [pair], tri, edges, x, v0, r, k, h, friction, stick_speed, mass, gravity, gain)
 
 
-def self_contact_elements(kind, pairs, tri, edges, x, v0, r, k, h, friction=0.0, stick_speed=1e-4, mass=None, gravity=9.81):
+def self_contact_elements(kind, pairs, tri, edges, x, v0, r, k, h, friction=0.0, stick_speed=1e-4, mass=None, gravity=9.81,
+                          gain=None):
     """:func:`self_contact_element` for every candidate pair in `pairs` (their particles among x's)."""
     c, n = len(pairs), len(x)
     out = [wp.zeros(c, dtype=wp.vec4i), wp.zeros(c, dtype=wp.vec4), wp.zeros(c, dtype=wp.vec3), wp.zeros(c, dtype=float),
@@ -1071,7 +1074,8 @@ def self_contact_elements(kind, pairs, tri, edges, x, v0, r, k, h, friction=0.0,
                       wp.zeros(n, dtype=wp.int32), wp.full(n, -1, dtype=wp.int32),
                       wp.array(x, dtype=wp.vec3),
                       wp.array(v0, dtype=wp.vec3), r, k, h, gravity, c, wp.array(inv_mass, dtype=float), friction, stick_speed,
-                      int(friction > 0.0), 0, wp.zeros(n, dtype=wp.int32), 1, h * h * k, wp.ones(n, dtype=float)],
+                      int(friction > 0.0), 0, wp.zeros(n, dtype=wp.int32), 1, h * h * k,
+                      wp.array(np.ones(n) if gain is None else gain, dtype=float)],
               outputs=out)
     return out
 
@@ -1079,6 +1083,26 @@ def self_contact_elements(kind, pairs, tri, edges, x, v0, r, k, h, friction=0.0,
 def closing(kind, pair, tri, edges, x, v0, r, k, h):
     """v0, or -v0 where the pair at x would leave the contact within the step at v0 (no element: `leaves_contact`)."""
     return v0 if int(self_contact_element(kind, pair, tri, edges, x, v0, r, k, h)[6].numpy()[0]) == 1 else -v0
+
+
+@pytest.mark.parametrize("friction", [0.0, 0.3])
+def test_a_stiffened_self_contact_element_is_the_element_of_its_gain_times_k(friction):
+    """Check an element whose particles carry stiffness gains (kernels/contact.py element_gain) is, in every output, the
+    element of stiffness g k with g the largest gain among its weighted particles: force, K v0, diagonal blocks (the
+    matrix), its stored k and h^2 k (the product and the friction), its friction terms; a particle outside the pair
+    changes nothing. Scaled in the force only, a stiffened element would push harder than its matrix says."""
+    tri = np.array([[0, 1, 2]], np.int32)
+    edges = np.zeros((1, 2), np.int32)
+    r, k, h = 0.0042, 100.0, 1.0 / 120.0
+    x = np.array([[0.0, 0.0, 0.0], [0.02, 0.0, 0.0], [0.0, 0.02, 0.0], [0.006, 0.005, 0.5 * r], [0.1, 0.1, 0.1]])
+    v0 = np.array([[0.0, 0.0, 0.0], [0.001, 0.0, 0.0], [0.0, 0.0, 0.0], [0.004, -0.002, -0.003], [0.0, 0.0, 0.0]])
+    gained = self_contact_element(0, (0, 3), tri, edges, x, v0, r, k, h, friction=friction, gain=[2.5, 1.0, 1.5, 1.0, 10.0])
+    plain = self_contact_element(0, (0, 3), tri, edges, x, v0, r, 2.5 * k, h, friction=friction)
+    assert int(gained[6].numpy()[0]) == 1 == int(plain[6].numpy()[0])
+    for a, b in zip(gained[:13], plain[:13]):
+        np.testing.assert_allclose(a.numpy(), b.numpy(), rtol=1e-5, atol=1e-12)
+    assert gained[11].numpy()[0] == pytest.approx(2.5 * k)
+    assert np.abs(gained[7].numpy()).max() > 0.0
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
