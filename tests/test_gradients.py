@@ -50,7 +50,7 @@ SOLVERS = {
 # orders of magnitude (stretch springs ~50 N/m, bend triples ~1e-5 N m^2).
 KINDS = {
     "initial_position": (lambda model, state0, control: state0.particle_q, 1e-4, False),
-    "initial_velocity": (lambda model, state0, control: state0.particle_qd, 1e-2, False),
+    "initial_velocity": (lambda model, state0, control: state0.particle_qd, 5e-2, False),
     "stiffness_field": (lambda model, state0, control: model.spring_stiffness, 0.1, True),
     "damping_field": (lambda model, state0, control: model.spring_damping, 0.1, True),
     "mass": (lambda model, state0, control: model.particle_mass, 0.1, True),
