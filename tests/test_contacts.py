@@ -786,7 +786,7 @@ def test_gradients_through_contacts_in_the_solve_match_finite_differences(collid
         # the stiffness's loss change is ~1e-4 of the loss: float32 noise. In the crease the adjoint is 0.6 % (one
         # machine) and 1.3 % (an AMD EPYC) below the difference, and not by noise: there the difference at relative steps
         # of 1.25, 2.5 and 5 % was 4.871, 4.859 and 4.819e-6, a smooth cubic towards 4.875e-6 against the adjoint's 4.812e-6
-        # (the pinch frame's turn with the positions is not on the tape; left alone): 2 % there
+        # (not traced: both sides are planes, so the pinch frame itself is fixed; left alone): 2 % there
         tolerance = (2e-2 if collider == "crease" else 1e-2) if kind == "stiffness" else 2e-3
         assert fd > 0.0 and abs(ad - fd) <= tolerance * fd, (kind, cases)
 
