@@ -141,11 +141,11 @@ def _warp_mesh(vertices, triangles, device, winding: bool = False):
                    support_winding_number=winding)
 
 
-def growing_collider(collider, depth: float, seconds: float, device=None):
+def growing_collider(collider, depth: float, seconds: float, device=None, start: float = 0.0):
     """A still mesh `collider` (:func:`frozen_collider`) that starts shrunk `depth` [m] (plus twice its thickness)
     inward along its vertex normals (at most :data:`GROWTH_SHARE` of its inner thickness at a vertex, so thin parts
-    stay the right way out) and grows back to its shape at :data:`GROWTH_SPEED`, within `seconds`, as a point cache
-    (the contacts then push cloth out with the surface's velocity)."""
+    stay the right way out), stays so until `start` [s] and grows back to its shape at :data:`GROWTH_SPEED`, within
+    `seconds`, as a point cache (the contacts then push cloth out with the surface's velocity)."""
     import trimesh
     import warp as wp
 
@@ -173,7 +173,7 @@ def growing_collider(collider, depth: float, seconds: float, device=None):
     shrink = np.minimum(depth + 2.0 * collider.thickness, GROWTH_SHARE * inner)
     grow = min(max(seconds, 1e-3), float(shrink.max()) / GROWTH_SPEED)
     return dataclasses.replace(collider, point_cache=np.stack([v - shrink[:, None] * normals, v]),
-                               point_cache_times=np.array([0.0, grow]))
+                               point_cache_times=np.array([start, start + grow]))
 
 
 def body_distance(colliders, points: np.ndarray, time: float = 0.0, device=None) -> np.ndarray:
@@ -293,11 +293,11 @@ def _clearance(trial) -> float:
     return LAYER_CLEARANCE * float(trial.cloth_thickness)
 
 
-def _move_layers(trial, moving: np.ndarray, layers: list[_Layer], seconds: float, device) -> float:
+def _move_layers(trial, moving: np.ndarray, layers: list[_Layer], seconds: float, device, start: float = 0.0) -> float:
     """Move `layers` (:func:`_misplaced_layers`) out of the dressed cloth's way in `trial`: a layer under it is pulled
-    in along its normals by the depth plus :data:`LAYER_CLEARANCE` thicknesses (as far as :func:`_layer_room` lets it)
-    and moved back out by one handle a particle over the first `seconds` [s] (at :data:`GROWTH_SPEED` if that is
-    sooner): its pinned particles push the dressed cloth out as a growing body does. A layer over it (dressed later,
+    in along its normals by the depth plus :data:`LAYER_CLEARANCE` thicknesses (as far as :func:`_layer_room` lets it),
+    held there until `start` [s] and moved back out by one handle a particle within `seconds` [s] (at
+    :data:`GROWTH_SPEED` if that is sooner): its pinned particles push the dressed cloth out as a growing body does. A layer over it (dressed later,
     from where the builder has it) is pushed out as far and left there. Returns the depth [m] (0: no layer)."""
     from .model import Keyframe
 
@@ -318,7 +318,8 @@ def _move_layers(trial, moving: np.ndarray, layers: list[_Layer], seconds: float
             grow = min(max(seconds, 1e-3), float(shift.max()) / GROWTH_SPEED)
             for p, d, n in zip(layer.indices, shift, layer.normals):
                 if d > 0.0:
-                    trial.add_handle([int(p)], [Keyframe(0.0), Keyframe(grow, tuple(float(c) for c in d * n))], name=f"layer{p}")
+                    trial.add_handle([int(p)], [Keyframe(0.0), Keyframe(start), Keyframe(start + grow, tuple(float(c) for c in d * n))],
+                                     name=f"layer{p}")
     return max((layer.depth for layer in layers), default=0.0)
 
 
@@ -628,7 +629,7 @@ def _still_pass(builder, seconds, closing, gravity, fps, substeps, damping, devi
     trial.global_damping = damping
     trial.colliders = [frozen_collider(c) for c in trial.colliders]
     moving = np.ones(len(builder.particle_positions), bool) if moving is None else np.asarray(moving, bool)
-    grown_from, layers = 0.0, []
+    grown_from, layers, start = 0.0, [], 0.0
     if closing > 0.0:  # sewing: panels slide into place (a sleeve cap over the shoulder) without friction
         trial.colliders = [dataclasses.replace(c, static_friction=0.0, kinetic_friction=0.0) for c in trial.colliders]
         if trial.self_collision and not moving.all():  # held layers it starts on the wrong side of (moved aside below)
@@ -636,15 +637,21 @@ def _still_pass(builder, seconds, closing, gravity, fps, substeps, damping, devi
         # room the layers under it need beyond the body's: the body starts that much shrunk too
         room = max((float(np.max(layer.depth + _clearance(trial) - _layer_room(trial, layer, device)))
                     for layer in layers if layer.under), default=0.0)
+        # With a layer pulled in under it, the layer and the body grow back once its seams are closed (or over the
+        # run's last half closing, at the latest): growing back while the seams closed, the skirt's side seam at the
+        # waist came out between an overskirt's two open corners there and held them 5 mm apart
+        # (tests/test_dressing.py, layers placed into each other); the body waits too, not to push the dressed cloth
+        # into the layer still pulled in.
+        start = min(closing, 1.0 - 0.5 * closing) * seconds if any(layer.under for layer in layers) else 0.0
         for k, c in enumerate(trial.colliders):  # a closed body cloth starts inside grows back under it
             if _closed(c):
                 depth = -float(mesh_depths(c, builder.particle_positions[moving], device=device).min(initial=0.0))
                 if max(depth, room) > 0.0:
-                    trial.colliders[k] = growing_collider(c, max(depth, room), 0.5 * closing * seconds, device)
+                    trial.colliders[k] = growing_collider(c, max(depth, room), 0.5 * closing * seconds, device, start)
                     grown_from = max(grown_from, depth)
     trial.handles = []  # their particles stay pinned where they start
     trial.particle_pinned[~moving] = 1
-    layered_from = _move_layers(trial, moving, layers, 0.5 * closing * seconds, device)
+    layered_from = _move_layers(trial, moving, layers, 0.5 * closing * seconds, device, start)
     below = list(under) if under is not None else [layer.name for layer in layers if layer.under]
     model, sim = _still_simulator(trial, fps, substeps, device, solver_options, samples)
     frames = max(1, math.ceil(seconds * fps))
