@@ -1396,13 +1396,14 @@ def stick_damper(bound: float, speed: float, stick_speed: float):
 
 
 @wp.func
-def hold_contact(i: int, n: wp.vec3, tangential: wp.vec3, bound: float, stick_speed: float, precond_free: wp.array(dtype=wp.mat33),
-                 rhs_out: wp.array(dtype=wp.vec3), effective_mass_out: wp.array(dtype=float), friction_mass_out: wp.array(dtype=float),
-                 friction_impulse_out: wp.array(dtype=wp.vec3), precond_out: wp.array(dtype=wp.mat33)):
+def hold_contact(i: int, n: wp.vec3, m: wp.vec3, tangential: wp.vec3, bound: float, stick_speed: float,
+                 precond_free: wp.array(dtype=wp.mat33), rhs_out: wp.array(dtype=wp.vec3), effective_mass_out: wp.array(dtype=float),
+                 friction_mass_out: wp.array(dtype=float), friction_impulse_out: wp.array(dtype=wp.vec3),
+                 precond_out: wp.array(dtype=wp.mat33)):
     """Contact i held by a tangential damper of mass d = `bound` / max(eps, |v_T|) [kg] (`bound` = mu_s lambda [kg m/s],
     v_T = `tangential` its tangential velocity relative to the surface at the step's start, eps = `stick_speed`): A += d T,
-    b -= d v_T, its preconditioner block the filtered damped block's inverse (`eval_contact_friction_terms`); nothing
-    added when d is 0."""
+    b -= d v_T, its preconditioner block the filtered damped block's inverse (`eval_contact_friction_terms`; filtered
+    along its crease direction m too, zero for most); nothing added when d is 0."""
     d = stick_damper(bound, wp.length(tangential), stick_speed)
     if d <= 0.0:
         return
@@ -1411,8 +1412,7 @@ def hold_contact(i: int, n: wp.vec3, tangential: wp.vec3, bound: float, stick_sp
     friction_impulse_out[i] = stick
     rhs_out[i] = rhs_out[i] + stick
     effective_mass_out[i] = effective_mass_out[i] + d
-    precond_out[i] = filtered_block_inverse(wp.inverse(precond_free[i]) + d * (wp.identity(n=3, dtype=float) - wp.outer(n, n)), n,
-                                            wp.vec3(0.0))
+    precond_out[i] = filtered_block_inverse(wp.inverse(precond_free[i]) + d * (wp.identity(n=3, dtype=float) - wp.outer(n, n)), n, m)
 
 
 @wp.kernel(enable_backward=False)
@@ -1529,20 +1529,25 @@ def eval_contact_release(
                           tri_corner_weights, membrane_offsets, membrane_ids, membrane_vertices, system_block, bend_vector, drag_vector,
                           membrane_block, plate_product, m_eff, dv, dt)
     impulse = wp.dot(n, a_dv - rhs_out[i])  # (the friction terms are tangential: no part of it)
-    if is_pinched(contact_height[i], collider_thickness[contact_collider_out[i]]):
-        contact_impulse_out[i] = 0.0  # pinched: held, frictionless
-        m = contact_crease_out[i]
-        if (wp.dot(m, a_dv - rhs_out[i]) < -release_impulse * particle_mass[i] and wp.dot(m, m) > 0.0
-                and release_out[rb + RELEASE_ROUNDS] < max_rounds):
-            # in a crease, held off the facing side by pulling towards it: the cloth leaves the crease (along m, away
-            # from that side), so the crease direction is let go and the step solved again
-            contact_dv_out[i] = contact_dv_out[i] - wp.dot(contact_dv_out[i], m) * m
-            contact_crease_out[i] = wp.vec3(0.0)
-            precond_out[i] = filtered_block_inverse(wp.inverse(precond_free[i]), n, wp.vec3(0.0))
-            release_out[rb + RELEASE_FLAG] = 1
-            release_out[RELEASE_FLAG] = 1
-        return
+    pinched = is_pinched(contact_height[i], collider_thickness[contact_collider_out[i]])
     contact_impulse_out[i] = impulse
+    if pinched:
+        contact_impulse_out[i] = 0.0  # pinched: held, frictionless
+    m = contact_crease_out[i]
+    if (wp.dot(m, a_dv - rhs_out[i]) < -release_impulse * particle_mass[i] and wp.dot(m, m) > 0.0
+            and release_out[rb + RELEASE_ROUNDS] < max_rounds):
+        # in a crease (pinched, or held on one face and found inside the collider by another: admit_collider_contacts),
+        # held off the facing side by pulling towards it: the cloth leaves the crease (along m, away from that side),
+        # so the crease direction is let go and the step solved again
+        contact_dv_out[i] = contact_dv_out[i] - wp.dot(contact_dv_out[i], m) * m
+        contact_crease_out[i] = wp.vec3(0.0)
+        precond_out[i] = filtered_block_inverse(wp.inverse(precond_free[i]) + friction_mass_out[i] * (wp.identity(n=3, dtype=float) - wp.outer(n, n)),
+                                                n, wp.vec3(0.0))
+        release_out[rb + RELEASE_FLAG] = 1
+        release_out[RELEASE_FLAG] = 1
+        return
+    if pinched:
+        return
     d = friction_mass_out[i]
     if d > 0.0 and release_out[rb + RELEASE_ROUNDS] < max_rounds:
         # a sticking contact that static friction cannot hold (its damper past the bound, or no push left to hold
@@ -1560,7 +1565,7 @@ def eval_contact_release(
             effective_mass_out[i] = effective_mass_out[i] - d
             friction_mass_out[i] = 0.0
             friction_impulse_out[i] = slide
-            precond_out[i] = filtered_block_inverse(wp.inverse(precond_free[i]), n, wp.vec3(0.0))
+            precond_out[i] = filtered_block_inverse(wp.inverse(precond_free[i]), n, contact_crease_out[i])
             release_out[rb + RELEASE_FLAG] = 1
             release_out[RELEASE_FLAG] = 1
         return
@@ -1574,7 +1579,7 @@ def eval_contact_release(
             # solve's normal impulse, as eval_contact_friction_terms makes one), solved again
             # (a kinetic impulse means mu_s >= mu_k > 0 and lambda > 0: the damper's mass is positive)
             rhs_out[i] = rhs_out[i] - fi
-            hold_contact(i, n, tangential_part(n, rel), collider_static_friction[c] * impulse, stick_speed, precond_free, rhs_out,
+            hold_contact(i, n, contact_crease_out[i], tangential_part(n, rel), collider_static_friction[c] * impulse, stick_speed, precond_free, rhs_out,
                          effective_mass_out, friction_mass_out, friction_impulse_out, precond_out)
             release_out[rb + RELEASE_FLAG] = 1
             release_out[RELEASE_FLAG] = 1
@@ -1590,6 +1595,7 @@ def eval_contact_release(
         friction_mass_out[i] = 0.0
         contact_collider_out[i] = -1
         contact_normal_out[i] = wp.vec3(0.0)
+        contact_crease_out[i] = wp.vec3(0.0)
         contact_dv_out[i] = wp.vec3(0.0)
         contact_impulse_out[i] = 0.0
         precond_out[i] = precond_free[i]
@@ -1684,7 +1690,7 @@ def eval_contact_friction_terms(
         friction_impulse_out[i] = slide
         rhs_out[i] = rhs_out[i] + slide
         return
-    hold_contact(i, n, tangential, collider_static_friction[c] * impulse, stick_speed, precond_free, rhs_out, effective_mass_out,
+    hold_contact(i, n, wp.vec3(0.0), tangential, collider_static_friction[c] * impulse, stick_speed, precond_free, rhs_out, effective_mass_out,
                  friction_mass_out, friction_impulse_out, precond_out)
 
 

@@ -1453,6 +1453,65 @@ def test_a_released_contact_the_re_solve_carries_into_the_collider_is_taken_back
     assert taken_back_inside[0] == 0
 
 
+def test_a_contact_whose_solve_ends_inside_by_another_face_is_held_along_that_face_too():
+    """Check admit_collider_contacts in a concave part of a mesh collider (a floor, y = 0 for x < 0, meeting a 30 deg
+    ramp at x = 0; thickness 1 cm): a contact held on the floor 1.2 cm from the ramp (not pinched: no ramp above it)
+    whose solve carries it to the ramp's foot, 0.87 cm from the ramp, is held along the ramp normal's part orthogonal to
+    its own, (-1, 0, 0), moving with the surface along it (its prescribed change takes its 0.3 m/s towards the ramp
+    off), and the step is flagged to be solved again; a contact released in the step whose free re-solve ends there is
+    taken back (not to be released again in the step) with the same crease; one held, or released, ending on the open
+    floor is left as it is; a free particle carried into the floor is admitted as before."""
+    t = 0.01
+    s30, c30 = 0.5, math.sqrt(3.0) / 2.0
+    v = np.array([[-0.4, 0.0, -0.2], [-0.4, 0.0, 0.2], [0.0, 0.0, -0.2], [0.0, 0.0, 0.2], [0.3 * c30, 0.3 * s30, -0.2],
+                  [0.3 * c30, 0.3 * s30, 0.2]])
+    tris = np.array([[0, 1, 2], [2, 1, 3], [2, 3, 4], [4, 3, 5]])
+    b = cw.ModelBuilder()
+    h = t * (1.0 + float(kct.CLEARANCE))
+    starts = [(-0.012, h, 0.0), (-0.2, h, 0.0), (-0.012, h, 0.0), (-0.2, h, 0.0), (-0.3, 0.02, 0.0)]
+    particles(b, starts)
+    b.add_collider_mesh(v, tris, thickness=t)
+    m = b.finalize("cpu")
+    control = m.control()
+    m.update_control(control, DT, DT, force=True)
+    n = len(starts)
+    up = (0.0, 1.0, 0.0)
+    v0 = np.array([[0.3, 0.0, 0.0]] * 4 + [[0.0, 0.0, 0.0]], np.float32)
+    move = np.array([[0.012, 0.0, 0.0]] * 4 + [[0.0, -0.015, 0.0]]) / DT - v0  # dv: ends 1-2 at the foot, 5 in the floor
+    collider = wp.array([0, 0, -1, -1, -1], dtype=wp.int32)
+    normal = wp.array([up, up, (0, 0, 0), (0, 0, 0), (0, 0, 0)], dtype=wp.vec3)
+    released = wp.array([0, 0, 1, 1, 0], dtype=wp.int32)
+    z = np.array([[-0.0, 0.0, 0.0]] * 5, np.float32)
+    dv_out = wp.array(z, dtype=wp.vec3)
+    height = wp.array([h, h, 0.0, 0.0, 0.0], dtype=float)
+    crease = wp.zeros(n, dtype=wp.vec3)
+    eye = np.tile(np.eye(3, dtype=np.float32), (n, 1, 1))
+    precond, precond_free = wp.array(eye, dtype=wp.mat33), wp.array(eye, dtype=wp.mat33)
+    release = wp.zeros(int(kct.RELEASE_SIZE) * 2, dtype=wp.int32)
+    counts = wp.zeros(int(kct.COUNT_SIZE) * 2, dtype=wp.int32)
+    wp.launch(kct.admit_collider_contacts, dim=n,
+              inputs=[m.particle_pinned, m.collider_count, m.collider_shape, m.collider_size, m.collider_mesh, m.collider_deforming,
+                      m.collider_thickness, m.collider_mesh_max_distance, control.collider_transform_start,
+                      control.collider_transform_end, wp.array(starts, dtype=wp.vec3), wp.array(v0, dtype=wp.vec3),
+                      wp.array(move.astype(np.float32), dtype=wp.vec3), DT, 4, m.particle_world, 1,
+                      wp.array([up] * n, dtype=wp.vec3), wp.zeros(n, dtype=wp.vec3), wp.zeros(n, dtype=float)],
+              outputs=[collider, normal, wp.zeros(n, dtype=wp.vec3), dv_out, height, crease, precond, precond_free, release, released,
+                       counts])
+    m_dir = crease.numpy()
+    np.testing.assert_allclose(m_dir[[0, 2]], [[-1.0, 0.0, 0.0]] * 2, atol=1e-5)
+    np.testing.assert_array_equal(m_dir[[1, 3, 4]], 0.0)
+    np.testing.assert_allclose(dv_out.numpy()[[0, 2]], [[-0.3, 0.0, 0.0]] * 2, atol=1e-5)  # v0 along m taken off
+    assert list(collider.numpy()) == [0, 0, 0, -1, 0] and list(released.numpy()) == [0, 0, -1, 1, int(kct.ADMITTED)]
+    np.testing.assert_allclose(normal.numpy()[:3], [up] * 3)
+    np.testing.assert_allclose(normal.numpy()[4], up, atol=1e-6)
+    assert release.numpy()[int(kct.RELEASE_FLAG)] == 1
+    p = precond.numpy()
+    for i in (0, 2):  # filtered along both held directions
+        np.testing.assert_allclose(p[i] @ [0.0, 1.0, 0.0], 0.0, atol=1e-6)
+        np.testing.assert_allclose(p[i] @ [1.0, 0.0, 0.0], 0.0, atol=1e-6)
+    np.testing.assert_array_equal(p[[1, 3]], eye[[1, 3]])
+
+
 @pytest.mark.parametrize("scene,resolution,seed", [("drape_sphere", 24, 0), ("pile", 16, 1), ("sphere_shot", 24, 0)])
 def test_a_particle_the_solve_carries_into_a_collider_becomes_a_contact(scene, resolution, seed):
     """Check, over the first 2 s of the drape over the ball, the pile and the ball shot through a hanging sheet (a

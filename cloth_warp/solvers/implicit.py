@@ -1106,10 +1106,11 @@ class SolverImplicitEuler(SolverBase):
                       inputs=[m.particle_pinned, m.collider_count, m.collider_shape, m.collider_size, m.collider_mesh,
                               m.collider_deforming, m.collider_thickness, m.collider_mesh_max_distance,
                               c.collider_transform_start, c.collider_transform_end, self._contact_x0, v0, self.dv, dt, rounds,
-                              m.particle_world, self.worlds],
+                              m.particle_world, self.worlds, self.contact_released_normal, self.contact_released_dv,
+                              self.contact_friction_mass],
                       outputs=[self.contact_collider, self.contact_normal, self.contact_velocity, self.contact_dv,
-                               self.contact_height, self.precond, self.precond_free, self.release, self.contact_released,
-                               self.contact_counts],
+                               self.contact_height, self.contact_crease, self.precond, self.precond_free, self.release,
+                               self.contact_released, self.contact_counts],
                       device=m.device)
         if self._self_contacts_on and rounds > 0:  # (same rounds and flag as the collider contacts'; none left: no change)
             self._admit_self_contacts(dt, v0, rounds)
