@@ -297,8 +297,9 @@ def _move_layers(trial, moving: np.ndarray, layers: list[_Layer], seconds: float
     """Move `layers` (:func:`_misplaced_layers`) out of the dressed cloth's way in `trial`: a layer under it is pulled
     in along its normals by the depth plus :data:`LAYER_CLEARANCE` thicknesses (as far as :func:`_layer_room` lets it),
     held there until `start` [s] and moved back out by one handle a particle within `seconds` [s] (at
-    :data:`GROWTH_SPEED` if that is sooner): its pinned particles push the dressed cloth out as a growing body does. A layer over it (dressed later,
-    from where the builder has it) is pushed out as far and left there. Returns the depth [m] (0: no layer)."""
+    :data:`GROWTH_SPEED` if that is sooner): its pinned particles push the dressed cloth out as a growing body does. A
+    layer over it (dressed later, from where the builder has it) is pushed out as far and left there. Returns the depth
+    [m] (0: no layer)."""
     from .model import Keyframe
 
     names = [ref.name for ref, _, _ in trial.cloths if moving[ref.indices()].any()]

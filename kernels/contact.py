@@ -329,8 +329,8 @@ def admit_collider_contacts(
     contact in a crease is: `eval_collider_contacts`), moving with the surface along it, and the step solved again; and
     a contact released in the step whose free re-solve ends it inside the collider is taken back (`released_out` -1,
     as `eval_contact_release` takes one back that ends below the thickness along the released normal, which misses a
-    concave part; held along n_e's part too, as above). Without these the cloth there was released, carried 1.0-1.5 mm from the body by the free re-solve,
-    and pushed out 2.6-2.8 mm by the colliders pass every frame (docs/garments.md)."""
+    concave part; held along n_e's part too, as above). Without these the cloth there was released, carried 1.0-1.5 mm
+    from the body by the free re-solve, and pushed out 2.6-2.8 mm by the colliders pass every frame (docs/garments.md)."""
     i = wp.tid()
     if particle_pinned[i] != 0:
         return
