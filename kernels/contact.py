@@ -23,7 +23,8 @@ import warp as wp
 
 from .collide import CONTACT_BAND, mesh_surface_velocity, pinch_height, shape_distance, surface_velocity, world_distance
 from .implicit import (ADMITTED, COUNT_CONTACTS, COUNT_SELF_CONTACTS, COUNT_SIZE, RELEASE_FLAG, RELEASE_ROUNDS, RELEASE_SIZE,
-                       SLIP_ALLOWANCE, filtered_block_inverse, is_pinched, stick_damper)
+                       SLIP_ALLOWANCE, contact_block_inverse, filtered_block_inverse, is_pinched, stick_damper,
+                       take_back_contact)
 from .worlds import particle_world_of, world_slot
 from .selfcollide import NORMAL_EPS, add_impulse, inverse_mass_weight, pair_indices, start_weights, vertex_face_weights, weighted_sum
 
@@ -357,8 +358,7 @@ def admit_collider_contacts(
             return
         contact_crease_out[i] = m
         contact_dv_out[i] = contact_dv_out[i] + crease_velocity_change(m, contact_velocity_out[i], v0[i])
-        precond_out[i] = filtered_block_inverse(wp.inverse(precond_free_out[i])
-                                                + friction_mass[i] * (wp.identity(n=3, dtype=float) - wp.outer(n, n)), n, m)
+        precond_out[i] = contact_block_inverse(precond_free_out[i], friction_mass[i], n, m)
         release_out[rb + RELEASE_FLAG] = 1
         release_out[RELEASE_FLAG] = 1
         return
@@ -369,14 +369,9 @@ def admit_collider_contacts(
         if d_end < collider_thickness[c] * (1.0 - CONTACT_BAND):
             nr = released_normal[i]
             m = crease_direction(nr, n_end)
-            contact_collider_out[i] = c
-            contact_normal_out[i] = nr
-            contact_crease_out[i] = m
-            contact_dv_out[i] = released_dv[i] + crease_velocity_change(m, contact_velocity_out[i], v0[i])
-            precond_out[i] = filtered_block_inverse(wp.inverse(precond_free_out[i]), nr, m)
-            released_out[i] = -1
-            release_out[rb + RELEASE_FLAG] = 1
-            release_out[RELEASE_FLAG] = 1
+            take_back_contact(i, c, nr, m, released_dv[i] + crease_velocity_change(m, contact_velocity_out[i], v0[i]),
+                              precond_free_out[i], rb, contact_collider_out, contact_normal_out, contact_crease_out, contact_dv_out,
+                              precond_out, released_out, release_out)
         return
     if r != 0:
         return

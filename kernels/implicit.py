@@ -1396,6 +1396,33 @@ def stick_damper(bound: float, speed: float, stick_speed: float):
 
 
 @wp.func
+def contact_block_inverse(free_block_inverse: wp.mat33, friction_mass: float, n: wp.vec3, m: wp.vec3):
+    """A collider contact's preconditioner block [1/kg]: the inverse of its free block (`free_block_inverse`, A_ii^-1)
+    plus its friction damper d T (`friction_mass` d [kg], T = I - n n^T; 0 without one), filtered along its normal n
+    and crease direction m (zero for most): `filtered_block_inverse`."""
+    return filtered_block_inverse(wp.inverse(free_block_inverse) + friction_mass * (wp.identity(n=3, dtype=float) - wp.outer(n, n)), n, m)
+
+
+@wp.func
+def take_back_contact(i: int, c: int, n: wp.vec3, m: wp.vec3, z: wp.vec3, free_block_inverse: wp.mat33, rb: int,
+                      contact_collider_out: wp.array(dtype=wp.int32), contact_normal_out: wp.array(dtype=wp.vec3),
+                      contact_crease_out: wp.array(dtype=wp.vec3), contact_dv_out: wp.array(dtype=wp.vec3),
+                      precond_out: wp.array(dtype=wp.mat33), released_out: wp.array(dtype=wp.int32),
+                      release_out: wp.array(dtype=wp.int32)):
+    """A contact released in the step made a contact of collider c again (normal n, crease direction m, prescribed
+    change z; frictionless in the solve), not to be released again in the step (`released_out` -1), and the step flagged
+    to be solved again (world slot `rb`): `eval_contact_release`, kernels/contact.py `admit_collider_contacts`."""
+    contact_collider_out[i] = c
+    contact_normal_out[i] = n
+    contact_crease_out[i] = m
+    contact_dv_out[i] = z
+    precond_out[i] = filtered_block_inverse(wp.inverse(free_block_inverse), n, m)
+    released_out[i] = -1
+    release_out[rb + RELEASE_FLAG] = 1
+    release_out[RELEASE_FLAG] = 1
+
+
+@wp.func
 def hold_contact(i: int, n: wp.vec3, m: wp.vec3, tangential: wp.vec3, bound: float, stick_speed: float,
                  precond_free: wp.array(dtype=wp.mat33), rhs_out: wp.array(dtype=wp.vec3), effective_mass_out: wp.array(dtype=float),
                  friction_mass_out: wp.array(dtype=float), friction_impulse_out: wp.array(dtype=wp.vec3),
@@ -1412,7 +1439,7 @@ def hold_contact(i: int, n: wp.vec3, m: wp.vec3, tangential: wp.vec3, bound: flo
     friction_impulse_out[i] = stick
     rhs_out[i] = rhs_out[i] + stick
     effective_mass_out[i] = effective_mass_out[i] + d
-    precond_out[i] = filtered_block_inverse(wp.inverse(precond_free[i]) + d * (wp.identity(n=3, dtype=float) - wp.outer(n, n)), n, m)
+    precond_out[i] = contact_block_inverse(precond_free[i], d, n, m)
 
 
 @wp.kernel(enable_backward=False)
@@ -1516,13 +1543,8 @@ def eval_contact_release(
             # contact is back (frictionless in the solve: friction after it, from the measured impulse), solved again
             end_height = contact_height[i] - dt * wp.dot(z - dv[i], nr)
             if end_height < collider_thickness[c]:
-                contact_collider_out[i] = c
-                contact_normal_out[i] = nr
-                contact_dv_out[i] = z
-                precond_out[i] = filtered_block_inverse(wp.inverse(precond_free[i]), nr, wp.vec3(0.0))
-                released_out[i] = -1
-                release_out[rb + RELEASE_FLAG] = 1
-                release_out[RELEASE_FLAG] = 1
+                take_back_contact(i, c, nr, wp.vec3(0.0), z, precond_free[i], rb, contact_collider_out, contact_normal_out,
+                                  contact_crease_out, contact_dv_out, precond_out, released_out, release_out)
         return
     m_eff = effective_mass(i, particle_mass, particle_pin_stiffness, global_damping, dt)
     a_dv = system_product(i, spring_offsets, spring_ids, spring_role, spring_indices, spring_middle, tri_offsets, tri_ids, tri_indices,
@@ -1541,8 +1563,7 @@ def eval_contact_release(
         # so the crease direction is let go and the step solved again
         contact_dv_out[i] = contact_dv_out[i] - wp.dot(contact_dv_out[i], m) * m
         contact_crease_out[i] = wp.vec3(0.0)
-        precond_out[i] = filtered_block_inverse(wp.inverse(precond_free[i]) + friction_mass_out[i] * (wp.identity(n=3, dtype=float) - wp.outer(n, n)),
-                                                n, wp.vec3(0.0))
+        precond_out[i] = contact_block_inverse(precond_free[i], friction_mass_out[i], n, wp.vec3(0.0))
         release_out[rb + RELEASE_FLAG] = 1
         release_out[RELEASE_FLAG] = 1
         return
