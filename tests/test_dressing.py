@@ -699,6 +699,8 @@ def test_layers_placed_into_each_other_are_dressed_apart_in_their_order(tmp_path
     body, b, skirt, over = _crossed_layers(tmp_path, z)
     assert len(_layer_crossings(b, skirt, over)) > 50
     placed = b.particle_positions[over.indices()].copy()
+    move_layers, starts = dressing._move_layers, []
+    monkeypatch.setattr(dressing, "_move_layers", lambda *args: starts.append(args[-1]) or move_layers(*args))
     first = dress(b, 1.0, garments=["skirt"])
     assert first.layered_from > 0.01 and first.seam_gap < 1e-3 and first.max_strain < 0.11
     np.testing.assert_array_equal(b.particle_positions[over.indices()], placed)
@@ -707,6 +709,8 @@ def test_layers_placed_into_each_other_are_dressed_apart_in_their_order(tmp_path
     assert second.layered_from > 0.005 and second.crossing == 0 and second.inside == 0
     assert second.seam_gap < 1e-3 and second.max_strain < 0.11
     np.testing.assert_array_equal(b.particle_positions[skirt.indices()], dressed)
+    # the overskirt held over the skirt is pushed out and left; the skirt under the overskirt waits for its seams
+    assert starts[0] == 0.0 and starts[-1] == pytest.approx(0.6)
     assert not _layer_crossings(b, skirt, over)
     x = b.particle_positions
     assert not crossing_pairs(x, b.triangles, body.rest_vertices, body.triangles)
