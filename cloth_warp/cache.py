@@ -15,7 +15,8 @@ A USD cache is what DCC tools (usdview, Houdini, Blender, Maya, Omniverse) play:
   ``displayColor``;
 * per-frame diagnostics as custom attributes on each cloth prim (``clothWarp:maxStrain``,
   ``clothWarp:dt`` [s], ``clothWarp:solverIterations``, ``clothWarp:solverResidual``,
-  ``clothWarp:colliderContacts``, ``clothWarp:colliderCcd``, ``clothWarp:colliderSamples`` and, with self-collision, ``clothWarp:selfProximity``,
+  ``clothWarp:colliderContacts``, ``clothWarp:colliderCcd``, ``clothWarp:colliderSamples``, with contacts in the implicit
+  solve ``solveContacts`` and ``solveSelfContacts``, and, with self-collision, ``clothWarp:selfProximity``,
   ``selfCcd``, ``selfSweeps``, ``impactZones``, ``selfUnresolved`` and, with strain limiting,
   ``strainExcessStructural``, ``strainExcessShear``, ``strainLimitSweeps``, ``strainLimitMissed`` and, for a sewn
   garment, ``seamGap`` [m]);
@@ -73,6 +74,8 @@ DIAGNOSTICS = {  # per-frame custom attributes: name -> (USD type name, descript
     "colliderContacts": ("int", "particle-collider contacts resolved in the frame's steps (summed)"),
     "colliderCcd": ("int", "of those, contacts only the continuous (swept) test found (summed)"),
     "colliderSamples": ("int", "cloth edge and triangle samples pushed out of mesh colliders in the frame's steps (summed)"),
+    "solveContacts": ("int", "particle-collider contacts held inside the implicit solve in the frame's steps (summed)"),
+    "solveSelfContacts": ("int", "cloth-cloth contact elements held inside the implicit solve in the frame's steps (summed)"),
     "selfProximity": ("int", "cloth-cloth repulsion impulses (proximity within the thickness) in the frame's steps"),
     "selfCcd": ("int", "cloth-cloth impacts found by continuous collision detection (summed over sweeps)"),
     "selfSweeps": ("int", "CCD sweeps with impulses run in the frame's steps"),
@@ -87,6 +90,7 @@ DIAGNOSTICS = {  # per-frame custom attributes: name -> (USD type name, descript
 }
 # per-frame diagnostic attribute <- collision counter (cloth_warp.collision / cloth_warp.selfcollision)
 COUNTER_DIAGNOSTICS = {"colliderContacts": "collider_contacts", "colliderCcd": "collider_ccd", "colliderSamples": "collider_samples",
+                       "solveContacts": "solve_contacts", "solveSelfContacts": "solve_self_contacts",
                        "selfProximity": "self_proximity", "selfCcd": "self_ccd", "selfSweeps": "self_sweeps",
                        "impactZones": "impact_zones", "selfUnresolved": "unresolved"}
 # per-frame diagnostic attribute <- the strain limiter's report (FrameReport.counters)

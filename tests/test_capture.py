@@ -9,6 +9,7 @@ import pytest
 from cloth_warp import reductions
 from cloth_warp.collision import SelfCollisionPass
 from cloth_warp.profiling import LaunchCounter
+from conftest import PASSES_ONLY
 from intersections import intersecting_pairs
 from test_checkpoint import make_sim
 
@@ -20,12 +21,13 @@ CONFIGS = {
     "handles": ("curtain", {"cloth.grid.resolution": [8, 10]}, 30),
     "moving_collider": ("sphere_shot", {"cloth.grid.resolution": [10, 10]}, 8),
     "gusty_wind": ("flag", {"cloth.grid.resolution": [9, 6]}, 8),
-    "static_colliders": ("tablecloth", {"cloth.grid.resolution": [12, 9]}, 20),
+    "static_colliders": ("tablecloth", {**PASSES_ONLY, "cloth.grid.resolution": [12, 9]}, 20),
     "explicit_colliders": ("incline", {"cloth.grid.resolution": [8, 8], "solver.integrator": "symplectic_euler", "solver.substeps": 96,
                                        "solver.strain_limit_iterations": 8}, 6),
-    "self_collision": ("pile", {"cloth.grid.resolution": [10, 10]}, 30),
+    "self_collision": ("pile", {**PASSES_ONLY, "cloth.grid.resolution": [10, 10]}, 30),
     "twist": ("twist", {"cloth.grid.resolution": [6, 16]}, 12),
-    "contacts_in_solve": ("pile", {"cloth.grid.resolution": [12, 12], "solver.collider_contacts": "solve", "solver.self_contacts": "solve"}, 40),
+    "contacts_in_solve": ("pile", {"cloth.grid.resolution": [12, 12], "solver.collider_contacts": "solve", "solver.self_contacts": "solve",
+                                   "solver.contact_friction": "after"}, 40),
 }
 
 
@@ -94,7 +96,7 @@ def test_overflowing_buffers_grow_and_the_frame_equals_an_uncaptured_run():
         p.set_recordable(True)
         sim.solver.passes = tuple(p if q.name == p.name else q for q in sim.solver.passes)
 
-    overrides = {"cloth.grid.resolution": [12, 12]}
+    overrides = {**PASSES_ONLY, "cloth.grid.resolution": [12, 12]}
     sim, captured = run("pile", overrides, 30, True, small)
     plain, uncaptured = run("pile", overrides, 30, False, small)
     assert sim.capture and sim.reruns >= 1 and plain.reruns == sim.reruns

@@ -9,6 +9,7 @@ import pytest
 
 import cloth_warp as cw
 from cloth_warp.scene import build_model, build_solver, build_wind, load_scene
+from conftest import PASSES_ONLY
 
 SCENES = pathlib.Path(__file__).resolve().parents[1] / "scenes"
 
@@ -95,7 +96,7 @@ def test_restored_run_is_bit_identical(config):
 def test_self_collision_restore_is_bit_identical():
     """Check the pile (self-collision, ground) resumes bit for bit after layers have met, broad-phase capacities and
     per-frame counters included."""
-    overrides = {"cloth.grid.resolution": [10, 10]}
+    overrides = {**PASSES_ONLY, "cloth.grid.resolution": [10, 10]}
     n, k = 30, 22
     straight = make_sim("pile", overrides)
     infos = []
@@ -155,7 +156,7 @@ def test_restore_refuses_another_scene():
 @pytest.mark.slow
 @pytest.mark.parametrize("name, overrides, n, k", [
     ("twist", {"cloth.grid.resolution": [6, 20]}, 45, 35),
-    ("drape_sphere", {"cloth.grid.resolution": [16, 16]}, 40, 30),
+    ("drape_sphere", {**PASSES_ONLY, "cloth.grid.resolution": [16, 16]}, 40, 30),
 ])
 def test_restored_run_is_bit_identical_slow(name, overrides, n, k):
     """As test_restored_run_is_bit_identical on handles turning a strip into self-contact, and on a drape over a ball."""

@@ -280,14 +280,18 @@ COLLIDER_SCENES = ["drape_sphere", "tablecloth", "incline", "sphere_shot"]
 @pytest.mark.parametrize("name", COLLIDER_SCENES)
 def test_collider_scenes_run_without_penetration(name, tmp_path):
     """Check each shipped collider scene (coarsened, a few frames) writes a cache with its colliders in which no
-    free vertex is deeper inside a collider than its thickness (1e-5 m float slack) in any frame."""
+    free vertex is deeper inside a collider than its thickness (1e-5 m float slack) in any frame, and counts its
+    contacts, per frame too, where they were resolved: after the step (the colliders pass) or inside the implicit solve
+    (the drape over the ball and the tablecloth as shipped)."""
     from cloth_warp.runner import find_scene
     from cloth_warp.scene import build_model, load_scene
 
     overrides = {"cloth.grid.resolution": [16, 16]}
     scene = load_scene(find_scene(name), overrides)
     summary = cw.run_scene(scene, output=tmp_path / f"{name}.usdc", frames=12)
-    assert summary["status"] == "complete" and summary["contacts"]["collider_contacts"] > 0
+    in_solve = scene.get("solver.collider_contacts") == "solve"
+    counter, diagnostic = ("solve_contacts", "solveContacts") if in_solve else ("collider_contacts", "colliderContacts")
+    assert summary["status"] == "complete" and summary["contacts"][counter] > 0
     reader = cw.CacheReader(tmp_path / f"{name}.usdc")
     assert [c["shape"] for c in reader.colliders] == [c["type"] for c in scene.data["colliders"]]
     model = build_model(scene, "cpu")
@@ -295,7 +299,7 @@ def test_collider_scenes_run_without_penetration(name, tmp_path):
         t = (frame - reader.start_frame) / reader.fps
         depth = penetration_depths(model, reader.points(frame), t)
         assert depth.max() < 1e-5, (name, frame, depth)
-    assert reader.diagnostics()["colliderContacts"][1].max() > 0
+    assert reader.diagnostics()[diagnostic][1].max() > 0
 
 
 def test_dropped_cloth_comes_to_rest():
@@ -320,19 +324,20 @@ def test_dropped_cloth_comes_to_rest():
 
 @pytest.mark.slow
 def test_cloth_draped_over_sphere_comes_to_rest():
-    """Check the drape_sphere scene (16^2, self-collision off, solver as shipped) comes to rest on the ball and
-    the ground: max speed < 1 mm/s after 4 s (measured 0.25 mm/s). Before warm-started solves had to cut their
-    starting residual (SolverImplicitEuler.warm_start_reduction), a solve stopped as soon as the previous dv
-    was within tolerance, and that delay sustained a ~6 Hz limit cycle of the free edges at 29 mm/s."""
+    """Check the drape_sphere scene (16^2, self-collision off, solver as shipped: the contacts and their friction in the
+    solve) comes to rest on the ball and the ground: max speed < 1 mm/s over the last 20 frames of 5 s (measured 0.64
+    mm/s; 1.49 over frames 221-240, 0.27 at solver.tolerance 1e-4; with the contacts after the solve, 0.25 after 4 s).
+    Before warm-started solves had to cut their starting residual (SolverImplicitEuler.warm_start_reduction), a solve
+    stopped as soon as the previous dv was within tolerance, and that delay sustained a ~6 Hz limit cycle of the free
+    edges at 29 mm/s."""
     from cloth_warp.scene import build_model, build_solver, load_scene
 
     scene = load_scene(pathlib.Path(__file__).resolve().parent.parent / "scenes" / "drape_sphere.toml",
                        {"cloth.grid.resolution": [16, 16], "collision.self_collision": False})
     m = build_model(scene, "cpu")
     sim = cw.Simulator(m, build_solver(scene, m), fps=60, substeps=2)
-    for _ in range(240):
-        stats = sim.step_frame()
-    assert stats.max_speed < 1e-3, stats
+    speeds = [sim.step_frame().max_speed for _ in range(300)]
+    assert max(speeds[-20:]) < 1e-3, speeds[-20:]
     assert penetration_depths(m, sim.positions()).max() < 1e-5
     # draped, not slid off: the cap rests on the ball, the corners on the ground
     on_ball, on_ground = (int((collider_distance(m, k, sim.positions())[0] < 0.006).sum()) for k in range(2))

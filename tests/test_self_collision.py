@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import warp as wp
 from intersections import intersecting_pairs
+from conftest import PASSES_ONLY
 
 import cloth_warp as cw
 from cloth_warp.kernels import broadphase as kb
@@ -315,9 +316,10 @@ def run_and_check(name, overrides, frames):
 
 @pytest.mark.slow
 def test_pile_scene_never_self_intersects():
-    """Check the pile scene (coarsened to 20^2, the first 1.2 s: it falls over and folds onto itself) has
+    """Check the pile scene with the passes after the step alone (coarsened to 20^2, the first 1.2 s: it falls over and
+    folds onto itself) has
     no intersecting triangle pair in any frame and the layers touched (repulsions and CCD impacts)."""
-    _, _, totals = run_and_check("pile", {"cloth.grid.resolution": [20, 20]}, 72)
+    _, _, totals = run_and_check("pile", {**PASSES_ONLY, "cloth.grid.resolution": [20, 20]}, 72)
     assert totals["self_proximity"] > 1000 and totals["self_ccd"] > 0
 
 
@@ -331,9 +333,9 @@ def test_twist_scene_never_self_intersects():
 
 @pytest.mark.slow
 def test_drape_sphere_scene_never_self_intersects():
-    """Check the drape over a sphere (coarsened to 20^2, 1.5 s: the corners fold onto the floor) stays
-    intersection-free and outside both colliders in every frame."""
-    run_and_check("drape_sphere", {"cloth.grid.resolution": [20, 20]}, 90)
+    """Check the drape over a sphere with the passes after the step alone (coarsened to 20^2, 1.5 s: the corners fold
+    onto the floor) stays intersection-free and outside both colliders in every frame."""
+    run_and_check("drape_sphere", {**PASSES_ONLY, "cloth.grid.resolution": [20, 20]}, 90)
 
 
 @pytest.mark.slow
@@ -355,9 +357,8 @@ def test_cusick_scene_drapes_without_intersections(tmp_path):
 @pytest.mark.slow
 @pytest.mark.parametrize("name,resolution,frames", [("pile", 20, 72), ("drape_sphere", 20, 90)])
 def test_contacts_in_the_solve_never_self_intersect(name, resolution, frames):
-    """Check the pile and the drape over a sphere with the collider contacts and the self-contacts in the implicit solve
-    (coarsened, the first 1.2-1.5 s) have no intersecting triangle pair and no particle inside a collider in any frame:
-    the passes after the solve remain the guarantee; and the solve held self-contacts."""
-    _, _, totals = run_and_check(name, {"cloth.grid.resolution": [resolution, resolution], "solver.collider_contacts": "solve",
-                                        "solver.self_contacts": "solve"}, frames)
+    """Check the pile and the drape over a sphere as shipped, the collider contacts, the self-contacts and their friction
+    in the implicit solve (coarsened, the first 1.2-1.5 s), have no intersecting triangle pair and no particle inside a
+    collider in any frame: the passes after the solve remain the guarantee; and the solve held self-contacts."""
+    _, _, totals = run_and_check(name, {"cloth.grid.resolution": [resolution, resolution]}, frames)
     assert totals["solve_self_contacts"] > 0 and totals["solve_contacts"] > 0
