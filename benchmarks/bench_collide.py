@@ -42,10 +42,11 @@ def measure(size: int, frames: int, warmup: int, device: str = "cpu") -> dict:
     import warp as wp
 
     import cloth_warp as cw
-    from cloth_warp.scene import build_model, build_solver, load_scene
+    from cloth_warp.scene import PASSES_ONLY, build_model, build_solver, load_scene
 
-    # collider contact alone (bench_selfcollide.py measures self-collision)
-    scene = load_scene(ROOT / "scenes" / "drape_sphere.toml", {"cloth.grid.resolution": [size, size], "collision.self_collision": False})
+    # collider contact alone (bench_selfcollide.py measures self-collision), by the colliders pass after the step
+    scene = load_scene(ROOT / "scenes" / "drape_sphere.toml", {**PASSES_ONLY, "cloth.grid.resolution": [size, size],
+                                                               "collision.self_collision": False})
     model = build_model(scene, device)
     solver = build_solver(scene, model)
     sim = cw.Simulator(model, solver, fps=60, substeps=2)

@@ -67,9 +67,9 @@ def measure(scene_name: str, size: int, frames: int, warmup: int, scale_thicknes
     import warp as wp
 
     import cloth_warp as cw
-    from cloth_warp.scene import build_model, build_solver, load_scene
+    from cloth_warp.scene import PASSES_ONLY, build_model, build_solver, load_scene
 
-    overrides = {"cloth.grid.resolution": [size, size], **SCENES[scene_name]}
+    overrides = {**PASSES_ONLY, "cloth.grid.resolution": [size, size], **SCENES[scene_name]}  # (the self-collision pass's work)
     scene = load_scene(ROOT / "scenes" / f"{scene_name}.toml", overrides)
     if scale_thickness:
         overrides["collision.thickness"] = float(scene.get("collision.thickness")) * 32.0 / size

@@ -84,6 +84,9 @@ COLLIDER_CONTACTS = ("pass", "solve")
 CONTACT_FRICTION = ("after", "solve")
 # The same names as cloth_warp.solvers.implicit.SEWN_POINTS (a test compares).
 SEWN_POINTS = ("solve", "pass")
+PASSES_ONLY = {"solver.collider_contacts": "pass", "solver.self_contacts": "pass", "solver.contact_friction": "after"}
+"""Scene overrides that resolve contacts after the implicit step only, by the colliders and self-collision passes (the
+solver's default; the shipped pile, drape over the ball and tablecloth ask for the solve)."""
 # The same names as cloth_warp.solvers.SOLVERS (kept here so validation does not import Warp; a test compares).
 INTEGRATORS = ("implicit_euler", "symplectic_euler", "explicit_euler", "midpoint", "rk4")
 PRESETS = tuple(MATERIAL_PRESETS)

@@ -20,9 +20,9 @@ wp.set_device("cpu")
 
 DEVICES = ["cpu"] + (["cuda:0"] if wp.is_cuda_available() else [])
 
-# Scene overrides for contacts resolved after the implicit step only (the colliders and self-collision passes): the
-# shipped pile, drape over the ball and tablecloth resolve theirs in the solve, and tests of the passes on them ask for this.
-PASSES_ONLY = {"solver.collider_contacts": "pass", "solver.self_contacts": "pass", "solver.contact_friction": "after"}
+# the shipped pile, drape over the ball and tablecloth resolve their contacts in the solve: tests of the passes on them
+# ask for the passes alone
+from cloth_warp.scene import PASSES_ONLY  # noqa: E402,F401
 
 
 def _refused_in_device_bodies(name, allocate):
