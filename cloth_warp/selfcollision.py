@@ -328,6 +328,12 @@ class SelfCollision:
         device_if(f.unprimed, self._prime_fixed, x_start=x_start, velocity=velocity, dt=dt)
         return [(f.close[kind], f.close_count[kind]) for kind in KINDS]
 
+    def forget_close_pairs(self):
+        """Let the next :meth:`contact_candidates` find the close pairs of its own start, not the last step's: a taped
+        step's self-contacts, so that its element set is a function of its start alone (a rollout run again from a
+        checkpoint, or again from another start, gets the elements its start has)."""
+        self._fixed_buffers().unprimed.fill_(1)
+
     def _prime_fixed(self, x_start, velocity, dt):
         """The close pairs of the trajectories x_start + t velocity, by a broad phase built for them and then forgotten
         (the step's pass builds its own, as it would have)."""

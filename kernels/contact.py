@@ -844,6 +844,49 @@ def scatter_self_contact_product(
 
 
 @wp.func
+def element_kind(alpha: wp.vec4):
+    """A self-contact element's pair kind from its weights: vertex-face (0: the vertex last, weight 1) or edge-edge (1:
+    the second edge's weights negative)."""
+    if alpha[3] > 0.0:
+        return 0
+    return 1
+
+
+@wp.kernel(enable_backward=True)
+def eval_residual_self_contacts(
+    element_count: wp.array(dtype=wp.int32),
+    element_indices: wp.array(dtype=wp.vec4i),
+    element_weights: wp.array(dtype=wp.vec4),
+    element_stiffness: wp.array(dtype=float),
+    rest_distance: float,
+    x0: wp.array(dtype=wp.vec3),
+    v0: wp.array(dtype=wp.vec3),
+    dv: wp.array(dtype=wp.vec3),
+    dt: float,
+    # output (accumulated)
+    r_out: wp.array(dtype=wp.vec3),
+):
+    """A taped step's self-contact elements' part of r = b - A dv [kg m/s], the element set held fixed (frictionless):
+    h k alpha_r ((r - d)+ n - h n (n . q)), q = sum alpha_s (v0_s + dv_s), with the weights alpha, the distance d and the
+    normal n evaluated from x0 as eval_self_contacts evaluates them (the closest points of the pair: differentiable in x0
+    through them), k the element's stiffness, r the rest distance [m], h = `dt` [s]."""
+    e = wp.tid()
+    if e >= element_count[0]:
+        return
+    idx = element_indices[e]
+    alpha = start_weights(element_kind(element_weights[e]), x0, idx)
+    gap = weighted_sum(alpha, x0[idx[0]], x0[idx[1]], x0[idx[2]], x0[idx[3]])
+    d = wp.length(gap)
+    if d <= NORMAL_EPS:
+        return
+    n = gap / d
+    q = weighted_sum(alpha, v0[idx[0]] + dv[idx[0]], v0[idx[1]] + dv[idx[1]], v0[idx[2]] + dv[idx[2]], v0[idx[3]] + dv[idx[3]])
+    c = (dt * element_stiffness[e]) * (wp.max(rest_distance - d, 0.0) - dt * wp.dot(n, q)) * n
+    for k in range(4):
+        wp.atomic_add(r_out, idx[k], alpha[k] * c)
+
+
+@wp.func
 def pair_end_velocity(alpha: wp.vec4, idx: wp.vec4i, v0: wp.array(dtype=wp.vec3), dv: wp.array(dtype=wp.vec3)):
     """A self-contact pair's relative velocity [m/s] at the step's end, sum_r alpha_r (v0_r + dv_r)."""
     return weighted_sum(alpha, v0[idx[0]] + dv[idx[0]], v0[idx[1]] + dv[idx[1]], v0[idx[2]] + dv[idx[2]], v0[idx[3]] + dv[idx[3]])

@@ -193,7 +193,10 @@ class SolverImplicitEuler(SolverBase):
     its normals, surface velocities and prescribed velocity changes are evaluated again on the tape
     (kernels/contact.py eval_contact_constraints): dv = S dv_solved + z, r = S (b - A dv), the transposed system is
     filtered alike, and friction acts on the tape with lambda = -n . (b - A dv) (whether a contact sticks is held
-    fixed too). The unrolled reference has no contact filter.
+    fixed too). With ``self_contacts="solve"`` (adjoint only) a taped step's self-contact elements are those of its own
+    start (none admitted within the step), frictionless, held fixed: their part of r on the tape with their weights,
+    distances and normals from x0 (kernels/contact.py eval_residual_self_contacts), their blocks in the transposed
+    system. The unrolled reference has no contact filter and no elements.
     """
 
     replay_loops: bool = True
@@ -545,6 +548,8 @@ class SolverImplicitEuler(SolverBase):
             x, v = state_in.particle_q, state_in.particle_qd
             if n != m.particle_count:
                 x, v = x[first:first + n], v[first:first + n]
+            if state_in.requires_grad:  # a taped step's elements: those of its own start (forget_close_pairs)
+                sc.forget_close_pairs()
             candidates.append(sc.contact_candidates(x, v, dt))
         capacity = sum(pairs.shape[0] for world in candidates for pairs, _ in world)
         if self._self_contact_elements is None or self._self_contact_elements[0].shape[0] != capacity:
@@ -566,7 +571,8 @@ class SolverImplicitEuler(SolverBase):
                                   state_in.particle_q,
                                   state_in.particle_qd, self._self_contact_distance(), stiffness, dt, self._gravity_norm,
                                   capacity,
-                                  inv_mass, float(m.cloth_friction), self.contact_stick_speed, int(self.contact_friction == "solve"),
+                                  inv_mass, float(m.cloth_friction), self.contact_stick_speed,
+                                  int(self.contact_friction == "solve" and not state_in.requires_grad),
                                   first, m.particle_world, self.worlds, dt * dt * stiffness, self.self_contact_gain],
                           outputs=[*el[:6], self.self_contact_count, force, self.membrane_kv, self.membrane_diag, self.contact_counts,
                                    el[6], el[7], *self._self_contact_admissible, self.self_contact_admissible_count], device=dev)
@@ -959,15 +965,16 @@ class SolverImplicitEuler(SolverBase):
                       device=m.device)
         if contacts and not state_in.requires_grad:  # a taped step's friction is on the tape (_taped_velocity_change)
             self._apply_contact_friction(state_in)
-        if self._self_contacts_on:
+        if self._self_contacts_on and not state_in.requires_grad:  # (a taped step's elements: frictionless, their gains kept)
             self._apply_self_contact_friction(state_in, dt)
             if self.self_contact_stiffening:
                 self._update_self_contact_gains(state_in, dv, dt)
         return dv
 
     def _self_contacts_in_solve(self, state_in: State) -> bool:
-        """Whether this step has self-contact elements in its system: forward steps with self-collision on."""
-        return bool(self._self_collisions) and not state_in.requires_grad
+        """Whether this step has self-contact elements in its system: forward steps with self-collision on, and taped steps
+        differentiated by the adjoint (their element set held fixed, frictionless: `_taped_self_contacts`)."""
+        return bool(self._self_collisions) and (not state_in.requires_grad or self.differentiation == "adjoint")
 
     def _contacts_in_solve(self, state_in: State) -> bool:
         """Whether this step constrains collider contacts in its solve: forward steps, and taped steps differentiated
@@ -1112,9 +1119,10 @@ class SolverImplicitEuler(SolverBase):
                                self.contact_height, self.contact_crease, self.precond, self.precond_free, self.release,
                                self.contact_released, self.contact_counts],
                       device=m.device)
-        if self._self_contacts_on and rounds > 0:  # (same rounds and flag as the collider contacts'; none left: no change)
+        elements_change = self._self_contacts_on and rounds > 0 and self._admit_colliders  # (forward steps: a taped step's are fixed)
+        if elements_change:  # (same rounds and flag as the collider contacts'; none left: no change)
             self._admit_self_contacts(dt, v0, rounds)
-        if self._self_contacts_on and rounds > 0 and self.contact_friction == "solve":
+        if elements_change and self.contact_friction == "solve":
             el = self._self_contact_elements
             wp.launch(kct.slide_self_contacts, dim=el[0].shape[0],
                       inputs=[self.self_contact_count, *el[:4], v0, self.dv, el[6],
@@ -1232,6 +1240,7 @@ class SolverImplicitEuler(SolverBase):
                 start = wp.zeros(m.particle_count, dtype=wp.vec3, device=m.device)
             else:
                 start = wp.clone(self.solve(state_in, control, dt), requires_grad=False)
+        elements = self._taped_self_contacts() if self.differentiation == "adjoint" and self._self_contacts_on else None
         dv = self._compose(state_in, control, dt, start)
         if self.differentiation == "unrolled":
             for _ in range(self.max_iterations):
@@ -1243,20 +1252,38 @@ class SolverImplicitEuler(SolverBase):
         contacts = self._taped_contacts(state_in, control, dt) if self._contacts_in_solve(state_in) else None
         if contacts is not None:
             dv = self._taped_launch(ki.constrain_contact_velocity_change, [contacts.normal, contacts.crease, contacts.dv, dv])
-        r = self.system_residual(state_in, control, dt, dv)
+        r = self._taped_residual(state_in, control, dt, dv, elements)
         if contacts is not None:
             r = self._taped_launch(ki.filter_contact_residual, [contacts.normal, contacts.crease, r])
         if tape is not None:
             normal = None if contacts is None else wp.clone(contacts.normal, requires_grad=False)
             crease = None if contacts is None else contacts.crease
-            tape.record_func(lambda dv=dv, r=r: self._adjoint_solve(state_in, control, dt, dv, r, normal, crease), [dv, r])
+            tape.record_func(lambda dv=dv, r=r: self._adjoint_solve(state_in, control, dt, dv, r, normal, crease, elements), [dv, r])
         if contacts is not None:  # friction from the contacts' impulses n . (A dv - b), evaluated after the adjoint's input
-            unfiltered = self.system_residual(state_in, control, dt, dv)
+            unfiltered = self._taped_residual(state_in, control, dt, dv, elements)
             dv = self._taped_launch(ki.eval_contact_friction, [m.particle_mass, contacts.collider, contacts.height, m.collider_thickness,
                                                                contacts.normal, contacts.velocity,
                                                                m.collider_static_friction, m.collider_kinetic_friction, state_in.particle_qd,
                                                                dv, unfiltered])
         return dv
+
+    def _taped_self_contacts(self) -> tuple:
+        """A taped step's self-contact elements, as its (untaped) solve held them: copies of their particles, weights,
+        normals, friction masses (zero: a taped step's elements are frictionless), stiffness and h^2 k, and their count,
+        for the residual on the tape and the adjoint's system (the element set held fixed)."""
+        el = self._self_contact_elements
+        return tuple(wp.clone(el[k], requires_grad=False) for k in (0, 1, 2, 4, 6, 7)) + (wp.clone(self.self_contact_count),)
+
+    def _taped_residual(self, state_in: State, control: Control, dt: float, dv: wp.array, elements: tuple | None) -> wp.array:
+        """r = b - A dv on the tape (`system_residual`), with a taped step's self-contact elements' part
+        (kernels/contact.py eval_residual_self_contacts: their weights, distances and normals from x0)."""
+        r = self.system_residual(state_in, control, dt, dv)
+        if elements is not None:
+            indices, weights, _, _, stiffness, _, count = elements
+            wp.launch(kct.eval_residual_self_contacts, dim=indices.shape[0],
+                      inputs=[count, indices, weights, stiffness, self._self_contact_distance(), state_in.particle_q,
+                              state_in.particle_qd, dv, dt], outputs=[r], device=self.model.device)
+        return r
 
     def _taped_launch(self, kernel, inputs: list) -> wp.array:
         """Launch a per-particle kernel with one vec3 output into a fresh taped array; returns it."""
@@ -1283,13 +1310,24 @@ class SolverImplicitEuler(SolverBase):
         return TapedContacts(collider, height, crease, normal, velocity, dv)
 
     def _adjoint_solve(self, state_in: State, control: Control, dt: float, dv: wp.array, residual: wp.array,
-                       contact_normal: wp.array | None = None, contact_crease: wp.array | None = None):
+                       contact_normal: wp.array | None = None, contact_crease: wp.array | None = None, elements: tuple | None = None):
         """Backward of one taped step: solve S A S lam = S dL/d(dv) and add lam to dL/dr (S: the pins' and, given
-        `contact_normal` and `contact_crease`, the step's collider contacts' filter)."""
+        `contact_normal` and `contact_crease`, the step's collider contacts' filter; A with the step's self-contact
+        `elements`, `_taped_self_contacts`, where it had them)."""
         m = self.model
         report = (wp.clone(self.loop), wp.clone(self.solve_status))  # the forward step's, kept as its report
         self._self_contacts_on = False
         self.assemble(state_in, control, dt)  # the step's blocks and preconditioner (overwritten since)
+        if elements is not None:  # the step's elements into the product's arrays (a loop graph reads them there)
+            el = self._self_contact_elements
+            if el is None or el[0].shape[0] != elements[0].shape[0]:
+                capacity = elements[0].shape[0]
+                el = self._self_contact_elements = tuple(wp.zeros(capacity, dtype=a.dtype, device=m.device) for a in (
+                    elements[0], elements[1], elements[2], elements[3], elements[3], elements[2], elements[4], elements[5]))
+            for k, a in zip((0, 1, 2, 4, 6, 7), elements[:6]):
+                wp.copy(el[k], a)
+            wp.copy(self.self_contact_count, elements[6])
+            self._self_contacts_on = True
         if contact_normal is None:
             self.contact_normal.zero_()
             self.contact_crease.zero_()
