@@ -687,6 +687,14 @@ def test_cusick_rim_holds_the_strain_limit_with_contacts_in_the_solve():
     assert stats.max_speed < 0.05
 
 
+def _taped_start(m, x, v):
+    """A start state of model m for a taped rollout at positions x [m] and velocities v [m/s]."""
+    s = m.state(requires_grad=True)
+    s.particle_q.assign(np.asarray(x, np.float32))
+    s.particle_qd.assign(np.asarray(v, np.float32))
+    return s
+
+
 def _fd(loss_at, eps):
     """Richardson-extrapolated central difference."""
     coarse = (loss_at(eps) - loss_at(-eps)) / (2.0 * eps)
@@ -733,10 +741,7 @@ def test_gradients_through_contacts_in_the_solve_match_finite_differences(collid
     loss = cw.PositionLoss({steps: x0 + np.array([0.05, 0.0, 0.02]) + rng.normal(scale=0.01, size=(n, 3))}, device="cpu")
 
     def state0(x=x0, v=v0):
-        s = m.state(requires_grad=True)
-        s.particle_q.assign(x.astype(np.float32))
-        s.particle_qd.assign(v.astype(np.float32))
-        return s
+        return _taped_start(m, x, v)
 
     s0 = state0()
     solver.reset_report()
@@ -826,10 +831,7 @@ def test_gradients_through_self_contact_elements_in_the_solve_match_finite_diffe
     loss = cw.PositionLoss({steps: x0 + np.array([0.05, 0.0, 0.02]) + rng.normal(scale=0.01, size=(n, 3))}, device="cpu")
 
     def state0(x=x0, v=v0):
-        s = m.state(requires_grad=True)
-        s.particle_q.assign(x.astype(np.float32))
-        s.particle_qd.assign(v.astype(np.float32))
-        return s
+        return _taped_start(m, x, v)
 
     rollout = cw.Rollout(m, solver, dt=DT, steps=steps)
     s0 = state0()
