@@ -87,6 +87,7 @@ SEWN_POINTS = ("solve", "pass")
 PASSES_ONLY = {"solver.collider_contacts": "pass", "solver.self_contacts": "pass", "solver.contact_friction": "after"}
 """Scene overrides that resolve contacts after the implicit step only, by the colliders and self-collision passes (the
 solver's default; the shipped pile, drape over the ball and tablecloth ask for the solve)."""
+PASSES_HINT = " ".join(f"--set {k}={v}" for k, v in PASSES_ONLY.items())
 # The same names as cloth_warp.solvers.SOLVERS (kept here so validation does not import Warp; a test compares).
 INTEGRATORS = ("implicit_euler", "symplectic_euler", "explicit_euler", "midpoint", "rk4")
 PRESETS = tuple(MATERIAL_PRESETS)
@@ -676,10 +677,11 @@ def _check_values(scene: Scene):
     for key in ("solver.collider_contacts", "solver.self_contacts"):
         if scene.get(key) == "solve" and (scene.get("solver.integrator") != "implicit_euler" or scene.get("solver.linear_solver") != "cg"):
             raise SceneError(f"{key}: \"solve\" needs solver.integrator = \"implicit_euler\" with "
-                             "solver.linear_solver = \"cg\" (the contacts are in its CG)")
+                             "solver.linear_solver = \"cg\" (the contacts are in its CG); with another solver resolve the "
+                             "contacts after the step: " + PASSES_HINT)
     if scene.get("solver.contact_friction") == "solve" and scene.get("solver.collider_contacts") != "solve":
         raise SceneError("solver.contact_friction: \"solve\" needs solver.collider_contacts = \"solve\" (the friction of the "
-                         "contacts in the solve)")
+                         "contacts in the solve); the contacts after the step alone: " + PASSES_HINT)
     if scene.get("solver.adaptive") and scene.get("solver.dt_min") >= dt:
         raise SceneError(f"solver.dt_min: {scene.get('solver.dt_min')!r} s must be below the step 1 / (output.fps x solver.substeps) "
                          f"= {dt:.4g} s, which the adaptive stepper halves down to it")
