@@ -886,6 +886,33 @@ def eval_residual_self_contacts(
         wp.atomic_add(r_out, idx[k], alpha[k] * c)
 
 
+@wp.kernel(enable_backward=True)
+def eval_self_contact_geometry(
+    element_count: wp.array(dtype=wp.int32),
+    element_indices: wp.array(dtype=wp.vec4i),
+    element_weights: wp.array(dtype=wp.vec4),
+    rest_distance: float,
+    x0: wp.array(dtype=wp.vec3),
+    # outputs
+    weights_out: wp.array(dtype=wp.vec4),
+    normal_out: wp.array(dtype=wp.vec3),
+    overlap_out: wp.array(dtype=float),
+):
+    """A taped step's self-contact elements' weights, unit normals and overlaps (r - d)+ [m] at x0, as eval_self_contacts
+    evaluates them (differentiable in x0; the element set held fixed): what their friction on the tape reads."""
+    e = wp.tid()
+    if e >= element_count[0]:
+        return
+    idx = element_indices[e]
+    alpha = start_weights(element_kind(element_weights[e]), x0, idx)
+    gap = weighted_sum(alpha, x0[idx[0]], x0[idx[1]], x0[idx[2]], x0[idx[3]])
+    d = wp.length(gap)
+    weights_out[e] = alpha
+    if d > NORMAL_EPS:
+        normal_out[e] = gap / d
+        overlap_out[e] = wp.max(rest_distance - d, 0.0)
+
+
 @wp.func
 def pair_end_velocity(alpha: wp.vec4, idx: wp.vec4i, v0: wp.array(dtype=wp.vec3), dv: wp.array(dtype=wp.vec3)):
     """A self-contact pair's relative velocity [m/s] at the step's end, sum_r alpha_r (v0_r + dv_r)."""
@@ -1103,7 +1130,7 @@ def admit_self_contacts(
     release_out[RELEASE_FLAG] = 1
 
 
-@wp.kernel
+@wp.kernel(enable_backward=True)  # (a taped step's, on the tape: SolverImplicitEuler._taped_self_contact_friction)
 def eval_self_contact_friction(
     element_count: wp.array(dtype=wp.int32),
     element_indices: wp.array(dtype=wp.vec4i),

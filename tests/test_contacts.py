@@ -798,12 +798,15 @@ def test_gradients_through_contacts_in_the_solve_match_finite_differences(collid
 
 def test_gradients_through_self_contact_elements_in_the_solve_match_finite_differences():
     """Check the adjoint through a taped step's self-contact elements (kernels/contact.py eval_residual_self_contacts: the
-    element set the step's solve held, frictionless, their weights, distances and normals from x0 on the tape, their
-    blocks in the transposed system): a 3^2 cloth resting 0.1 mm inside the elements' rest distance on a 4^2 one lying on
-    the ground (collider contacts in the solve too), 8 implicit steps, a position loss; the directional derivatives along
-    the gradient in the initial velocities and positions match central differences within 0.2 % (measured 0.005 % and
-    0.02 %; with the elements left out of the residual on the tape, 1.6 % and 0.5 % off; the velocity step 1 cm/s: at 1
-    mm/s the difference is float32 noise, 0.6 % off), every perturbed run holding
+    element set the step's solve held, frictionless in the solve, their weights, distances and normals from x0 on the
+    tape, their blocks in the transposed system; their Coulomb friction after the solve on the tape,
+    eval_self_contact_geometry and eval_self_contact_friction): a 3^2 cloth resting 0.1 mm inside the elements' rest
+    distance on a 4^2 one lying on the ground (collider contacts in the solve too), 8 implicit steps, a position loss;
+    the directional derivatives along the gradient in the initial velocities and positions match central differences
+    within 0.2 % (measured 0.006 % and 0.075 %; without the friction on the tape, of that step, 0.005 % and 0.07 %; with
+    the elements left out of the residual on the tape, 18x and 19x off; with the friction's overlaps and normals held
+    fixed instead of from x0, the positions' 8x; the velocity step 1 cm/s: at 1 mm/s the difference is float32 noise,
+    0.6 % off), every perturbed run holding
     the same elements, and checkpointed segments (each taped step's elements found from its own start:
     `SelfCollision.forget_close_pairs`) give the one tape's gradient within 1e-5 of its largest entry (the adjoint's CG
     stops at its tolerance). (Sliding, the upper cloth's vertices cross the lower's edges within the steps and the element
@@ -854,7 +857,7 @@ def test_gradients_through_self_contact_elements_in_the_solve_match_finite_diffe
         return np.linalg.norm(grad), _fd(loss_at, eps)
 
     for kind, (ad, fd) in {"initial velocity": along(grads["v0"], 1e-2, lambda d: state0(v=v0 + d)),
-                           "initial position": along(grads["x0"], 3e-5, lambda d: state0(x=x0 + d))}.items():
+                           "initial position": along(grads["x0"], 1e-4, lambda d: state0(x=x0 + d))}.items():
         assert fd > 0.0 and abs(ad - fd) <= 2e-3 * fd, (kind, ad, fd)
     segmented = cw.Rollout(m, solver, dt=DT, steps=steps, checkpoint_every=3)
     s1 = state0()

@@ -194,9 +194,10 @@ class SolverImplicitEuler(SolverBase):
     (kernels/contact.py eval_contact_constraints): dv = S dv_solved + z, r = S (b - A dv), the transposed system is
     filtered alike, and friction acts on the tape with lambda = -n . (b - A dv) (whether a contact sticks is held
     fixed too). With ``self_contacts="solve"`` (adjoint only) a taped step's self-contact elements are those of its own
-    start (none admitted within the step), frictionless, held fixed: their part of r on the tape with their weights,
-    distances and normals from x0 (kernels/contact.py eval_residual_self_contacts), their blocks in the transposed
-    system. The unrolled reference has no contact filter and no elements.
+    start (none admitted within the step), frictionless in the solve, held fixed: their part of r on the tape with their
+    weights, distances and normals from x0 (kernels/contact.py eval_residual_self_contacts), their blocks in the
+    transposed system, their Coulomb friction after the solve on the tape (`_taped_self_contact_friction`). The unrolled
+    reference has no contact filter and no elements.
     """
 
     replay_loops: bool = True
@@ -1265,21 +1266,42 @@ class SolverImplicitEuler(SolverBase):
                                                                contacts.normal, contacts.velocity,
                                                                m.collider_static_friction, m.collider_kinetic_friction, state_in.particle_qd,
                                                                dv, unfiltered])
+        if elements is not None and float(m.cloth_friction) > 0.0:  # (after the collider contacts', as a forward step's)
+            dv = self._taped_self_contact_friction(state_in, dt, dv, elements)
         return dv
 
     def _taped_self_contacts(self) -> tuple:
-        """A taped step's self-contact elements, as its (untaped) solve held them: copies of their particles, weights,
-        normals, friction masses (zero: a taped step's elements are frictionless), stiffness and h^2 k, and their count,
-        for the residual on the tape and the adjoint's system (the element set held fixed)."""
-        el = self._self_contact_elements
-        return tuple(wp.clone(el[k], requires_grad=False) for k in (0, 1, 2, 4, 6, 7)) + (wp.clone(self.self_contact_count),)
+        """A taped step's self-contact elements, as its (untaped) solve held them: copies of their arrays (particles,
+        weights, normals, overlaps, friction masses and impulses, zero: a taped step's elements are frictionless in the
+        solve, stiffness, h^2 k) and of their count, for the residual and the friction on the tape and the adjoint's
+        system (the element set held fixed)."""
+        return tuple(wp.clone(a, requires_grad=False) for a in self._self_contact_elements) + (wp.clone(self.self_contact_count),)
+
+    def _taped_self_contact_friction(self, state_in: State, dt: float, dv: wp.array, elements: tuple) -> wp.array:
+        """Coulomb friction between the layers a taped step's elements hold, on the tape: as a forward step's friction
+        after the solve (kernels/contact.py eval_self_contact_friction, each element's impulse from its overlap and
+        solved normal velocity; averaged per particle), the elements' weights, normals and overlaps from x0
+        (eval_self_contact_geometry)."""
+        m = self.model
+        capacity = elements[0].shape[0]
+        weights, normal, overlap = (wp.zeros(capacity, dtype=t, device=m.device, requires_grad=True) for t in (wp.vec4, wp.vec3, float))
+        wp.launch(kct.eval_self_contact_geometry, dim=capacity,
+                  inputs=[elements[8], elements[0], elements[1], self._self_contact_distance(), state_in.particle_q],
+                  outputs=[weights, normal, overlap], device=m.device)
+        total = wp.zeros(m.particle_count, dtype=wp.vec3, device=m.device, requires_grad=True)
+        weight = wp.zeros(m.particle_count, dtype=float, device=m.device)
+        wp.launch(kct.eval_self_contact_friction, dim=capacity,
+                  inputs=[elements[8], elements[0], weights, normal, overlap, *elements[4:7], self._self_contact_inverse_masses(),
+                          state_in.particle_qd, dv, float(m.cloth_friction), dt, self.contact_stick_speed],
+                  outputs=[total, weight], device=m.device)
+        return self._taped_launch(ksc.apply_velocity_changes, [dv, total, weight])
 
     def _taped_residual(self, state_in: State, control: Control, dt: float, dv: wp.array, elements: tuple | None) -> wp.array:
         """r = b - A dv on the tape (`system_residual`), with a taped step's self-contact elements' part
         (kernels/contact.py eval_residual_self_contacts: their weights, distances and normals from x0)."""
         r = self.system_residual(state_in, control, dt, dv)
         if elements is not None:
-            indices, weights, _, _, stiffness, _, count = elements
+            indices, weights, stiffness, count = elements[0], elements[1], elements[6], elements[8]
             wp.launch(kct.eval_residual_self_contacts, dim=indices.shape[0],
                       inputs=[count, indices, weights, stiffness, self._self_contact_distance(), state_in.particle_q,
                               state_in.particle_qd, dv, dt], outputs=[r], device=self.model.device)
@@ -1321,12 +1343,10 @@ class SolverImplicitEuler(SolverBase):
         if elements is not None:  # the step's elements into the product's arrays (a loop graph reads them there)
             el = self._self_contact_elements
             if el is None or el[0].shape[0] != elements[0].shape[0]:
-                capacity = elements[0].shape[0]
-                el = self._self_contact_elements = tuple(wp.zeros(capacity, dtype=a.dtype, device=m.device) for a in (
-                    elements[0], elements[1], elements[2], elements[3], elements[3], elements[2], elements[4], elements[5]))
-            for k, a in zip((0, 1, 2, 4, 6, 7), elements[:6]):
-                wp.copy(el[k], a)
-            wp.copy(self.self_contact_count, elements[6])
+                el = self._self_contact_elements = tuple(wp.empty_like(a) for a in elements[:8])
+            for a, saved in zip(el, elements[:8]):
+                wp.copy(a, saved)
+            wp.copy(self.self_contact_count, elements[8])
             self._self_contacts_on = True
         if contact_normal is None:
             self.contact_normal.zero_()
