@@ -852,6 +852,15 @@ def element_kind(alpha: wp.vec4):
     return 1
 
 
+@wp.func
+def element_geometry(element_weights: wp.vec4, idx: wp.vec4i, x0: wp.array(dtype=wp.vec3)):
+    """A held self-contact element's weights alpha, gap sum_r alpha_r x0_r [m] and distance d [m] at x0, as
+    eval_self_contacts evaluates them (the pair's closest points: differentiable in x0 through them)."""
+    alpha = start_weights(element_kind(element_weights), x0, idx)
+    gap = weighted_sum(alpha, x0[idx[0]], x0[idx[1]], x0[idx[2]], x0[idx[3]])
+    return alpha, gap, wp.length(gap)
+
+
 @wp.kernel(enable_backward=True)
 def eval_residual_self_contacts(
     element_count: wp.array(dtype=wp.int32),
@@ -866,17 +875,15 @@ def eval_residual_self_contacts(
     # output (accumulated)
     r_out: wp.array(dtype=wp.vec3),
 ):
-    """A taped step's self-contact elements' part of r = b - A dv [kg m/s], the element set held fixed (frictionless):
-    h k alpha_r ((r - d)+ n - h n (n . q)), q = sum alpha_s (v0_s + dv_s), with the weights alpha, the distance d and the
-    normal n evaluated from x0 as eval_self_contacts evaluates them (the closest points of the pair: differentiable in x0
-    through them), k the element's stiffness, r the rest distance [m], h = `dt` [s]."""
+    """A taped step's self-contact elements' part of r = b - A dv [kg m/s], the element set held fixed (frictionless in
+    the solve): h k alpha_r ((r - d)+ n - h n (n . q)), q = sum alpha_s (v0_s + dv_s), with the weights alpha, the
+    distance d and the normal n from x0 (`element_geometry`), k the element's stiffness, r the rest distance [m], h = `dt`
+    [s]."""
     e = wp.tid()
     if e >= element_count[0]:
         return
     idx = element_indices[e]
-    alpha = start_weights(element_kind(element_weights[e]), x0, idx)
-    gap = weighted_sum(alpha, x0[idx[0]], x0[idx[1]], x0[idx[2]], x0[idx[3]])
-    d = wp.length(gap)
+    alpha, gap, d = element_geometry(element_weights[e], idx, x0)
     if d <= NORMAL_EPS:
         return
     n = gap / d
@@ -903,10 +910,7 @@ def eval_self_contact_geometry(
     e = wp.tid()
     if e >= element_count[0]:
         return
-    idx = element_indices[e]
-    alpha = start_weights(element_kind(element_weights[e]), x0, idx)
-    gap = weighted_sum(alpha, x0[idx[0]], x0[idx[1]], x0[idx[2]], x0[idx[3]])
-    d = wp.length(gap)
+    alpha, gap, d = element_geometry(element_weights[e], element_indices[e], x0)
     weights_out[e] = alpha
     if d > NORMAL_EPS:
         normal_out[e] = gap / d
