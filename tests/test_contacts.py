@@ -678,13 +678,37 @@ def test_cusick_rim_holds_the_strain_limit_with_contacts_in_the_solve():
     sim = make_sim("cusick", {"solver.collider_contacts": "solve"})
     for _ in range(120):
         stats = sim.step_frame()
+    assert limited_strain(sim).max() <= 0.11, limited_strain(sim).max()
+    assert stats.max_speed < 0.05
+
+
+def limited_strain(sim) -> np.ndarray:
+    """The strain l / L - 1 of each strain-limited spring of a simulation's model at its current positions."""
     m = sim.model
     x = sim.positions()
     ends = m.spring_indices.numpy().reshape(-1, 2)
-    limited = m.spring_limited.numpy() != 0
     strain = np.linalg.norm(x[ends[:, 0]] - x[ends[:, 1]], axis=1) / m.spring_rest_length.numpy() - 1.0
-    assert strain[limited].max() <= 0.11, strain[limited].max()
-    assert stats.max_speed < 0.05
+    return strain[m.spring_limited.numpy() != 0]
+
+
+@pytest.mark.slow
+def test_the_shipped_tablecloth_holds_the_strain_limit_over_the_table_edge():
+    """Check the shipped tablecloth (a 1.6 x 1.2 m cotton cloth dropped onto a table, as shipped: its collider contacts
+    and their friction in the solve) keeps every strain-limited spring within the 10 % limit + 1 % over the table's edge
+    after 2 s (measured 2.05 %) and is settling (under 1 cm/s: measured 4.0 mm/s at 2 s, 0.15 mm/s after 5 s), where with
+    the contacts after the step alone the ring of springs over the edge stays stretched (the limiter shortens them
+    through the table, the pass pushes their ends back out: measured 37.0 % and 149 springs above 11 % at 2 s)."""
+    from test_checkpoint import make_sim
+
+    from cloth_warp.scene import PASSES_ONLY
+
+    shipped, passes = make_sim("tablecloth", {}), make_sim("tablecloth", PASSES_ONLY)
+    for _ in range(120):
+        stats = shipped.step_frame()
+        passes.step_frame()
+    assert limited_strain(shipped).max() <= 0.11, limited_strain(shipped).max()
+    assert stats.max_speed < 1e-2, stats
+    assert limited_strain(passes).max() > 0.2, limited_strain(passes).max()
 
 
 def _taped_start(m, x, v):
