@@ -20,10 +20,6 @@ wp.set_device("cpu")
 
 DEVICES = ["cpu"] + (["cuda:0"] if wp.is_cuda_available() else [])
 
-# the shipped pile, drape over the ball and tablecloth resolve their contacts in the solve: tests of the passes on them
-# ask for the passes alone
-from cloth_warp.scene import PASSES_ONLY  # noqa: E402,F401
-
 
 def _refused_in_device_bodies(name, allocate):
     """`allocate` that fails inside a device loop or branch body: CUDA refuses to record an allocation there, so the

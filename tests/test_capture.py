@@ -9,7 +9,7 @@ import pytest
 from cloth_warp import reductions
 from cloth_warp.collision import SelfCollisionPass
 from cloth_warp.profiling import LaunchCounter
-from conftest import PASSES_ONLY
+from cloth_warp.scene import PASSES_ONLY
 from intersections import intersecting_pairs
 from test_checkpoint import make_sim
 

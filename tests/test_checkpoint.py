@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 
 import cloth_warp as cw
-from cloth_warp.scene import build_model, build_solver, build_wind, load_scene
-from conftest import PASSES_ONLY
+from cloth_warp.scene import PASSES_ONLY, build_model, build_solver, build_wind, load_scene
 
 SCENES = pathlib.Path(__file__).resolve().parents[1] / "scenes"
 

@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 import warp as wp
 from intersections import intersecting_pairs
-from conftest import PASSES_ONLY
 
 import cloth_warp as cw
 from cloth_warp.kernels import broadphase as kb
@@ -16,7 +15,7 @@ from cloth_warp.broadphase import SelfCollisionGrid, exclusive_scan, unique_edge
 from cloth_warp.collision import penetration_depths
 from cloth_warp.drape import drape_coefficient
 from cloth_warp.runner import find_scene
-from cloth_warp.scene import build_model, build_solver, load_scene
+from cloth_warp.scene import PASSES_ONLY, build_model, build_solver, load_scene
 from cloth_warp.topology import disc_mesh
 
 TRI = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])

@@ -5,11 +5,10 @@ import pytest
 import warp as wp
 
 from cloth_warp.runner import find_scene, load_kernels
-from cloth_warp.scene import build_model, build_solver, build_wind, load_scene
+from cloth_warp.scene import PASSES_ONLY, build_model, build_solver, build_wind, load_scene
 from cloth_warp.simulator import Simulator
 from cloth_warp.solvers.implicit import SolverImplicitEuler
 from cloth_warp.worlds import build_worlds, split_worlds
-from conftest import PASSES_ONLY
 
 FRAMES = 12
 
