@@ -14,6 +14,7 @@ Run:  python benchmarks/bench_rest.py                         (30 runs, ~4-6 min
       python benchmarks/bench_rest.py --extended              (and 30 more, other seeds: 60 runs)
       python benchmarks/bench_rest.py --ref HEAD~1            (and the revision before: ~12 min)
       python benchmarks/bench_rest.py --runs 12 --set solver.tolerance=1e-4
+      python benchmarks/bench_rest.py --fine                  (the pile and drape at 64^2, seeds 0-5: ~10 min)
       python benchmarks/bench_rest.py --extended --against benchmarks/results/bench_rest_self_restick.json
 
 A tree is compared with another on the same runs, paired (`--ref`, or `--against` a recorded .json): a change to the
@@ -43,6 +44,9 @@ RUNS = ([("pile", 32, s) for s in range(10)] + [("pile", 48, s) for s in range(2
 # a second set of 30 (2026-11-29): 32^2 piles seeds 20-39 and 40^2 drapes seeds 7-16. Equivalent trees' counts of runs
 # at rest moved by up to 3 on one set of 30 (README, Benchmarks); `--extended` runs both sets (60 runs)
 MORE_RUNS = [("pile", 32, s) for s in range(20, 40)] + [("drape_sphere", 40, s) for s in range(7, 17)]
+# issue 17's "finer resolutions" (2026-12-03, session 74): the shipped pile and drape over the ball at 64^2, seeds 0-5
+# (`--fine`, on its own: 12 runs, ~70-110 s each on one core)
+FINE_RUNS = [(scene, 64, s) for scene in ("pile", "drape_sphere") for s in range(6)]
 REST = 1.0e-3
 """[m/s] a run rests when the median of its last 20 frames' largest particle speed is at most this."""
 TAG = "BENCH_REST "
@@ -52,6 +56,7 @@ def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--runs", type=int, default=None, help="the first N runs of the set (default all)")
     p.add_argument("--extended", action="store_true", help=f"the set and {len(MORE_RUNS)} more runs (other seeds)")
+    p.add_argument("--fine", action="store_true", help=f"only the {len(FINE_RUNS)} runs at 64^2 (pile and drape, seeds 0-5)")
     p.add_argument("--frames", type=int, default=300)
     p.add_argument("--mode", default="solve+self+friction", help="bench_contacts.py's contact mode")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="scene override (TOML value), repeatable")
@@ -150,7 +155,7 @@ def main(argv=None) -> int:
         return 0
     from bench_step import make_worktree, remove_worktree
 
-    runs = (RUNS + MORE_RUNS if args.extended else RUNS)[:args.runs]
+    runs = (FINE_RUNS if args.fine else RUNS + MORE_RUNS if args.extended else RUNS)[:args.runs]
     tree = make_worktree(args.ref) if args.ref else None
     t0 = time.perf_counter()
     try:
@@ -180,7 +185,7 @@ def main(argv=None) -> int:
             row += f" {1e3 * ref[k]['speed']:.2f} | {ref[k]['iterations']:.0f} | {ref[k]['ms']:.1f} |"
         lines.append(row)
     lines += ["", f"This tree: {summary(new)}."] + ([f"`{args.ref}`: {summary(ref)}."] if ref else [])
-    if len(runs) > len(RUNS):  # each set on its own
+    if args.extended and len(runs) > len(RUNS):  # each set on its own
         for name, part in (("the first set", slice(0, len(RUNS))), ("the second set", slice(len(RUNS), None))):
             lines.append(f"On {name}: this tree {summary(new[part])}" + (f"; `{args.ref}` {summary(ref[part])}." if ref else "."))
     if ref:
