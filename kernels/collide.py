@@ -44,6 +44,9 @@ FACE_INTERIOR = wp.constant(1.0e-6)
 # The colliders pass resolves a particle that comes within this fraction of the thickness inside it (its contact band;
 # kernels/contact.py admit_collider_contacts admits into the solve the particles the pass would resolve).
 CONTACT_BAND = wp.constant(1.0e-3)
+# The colliders pass pushes a particle out of a mesh collider at most this many times (each from the face nearest to
+# it then: a concave crease's two sides, or three at a corner).
+END_PUSHES = wp.constant(3)
 
 # Indices into the counters array of a collision pass.
 COUNT_COLLIDER_CONTACTS = wp.constant(0)
@@ -284,7 +287,9 @@ def collide_colliders(
     start and the path crosses the solid, take the tangent plane at the first touch and push the end point
     onto it (offset by the thickness) with friction. Then, if the end point is within the thickness
     (resting and sliding contact, curved or concave surfaces), push it out along the surface normal
-    there. A particle that slides off an edge is therefore let go, not held up on the face's plane.
+    there; on a mesh, again from the face then nearest while it is still within the thickness (a concave crease's
+    other side: at most END_PUSHES pushes, those after the first along the normal alone), so that a second pass finds
+    nothing to push. A particle that slides off an edge is therefore let go, not held up on the face's plane.
     With `pinch` (the implicit solve's contacts in it), a particle pinched between two surfaces facing each other
     closer than twice the thickness (an armpit's crease, `pinch_height`) is pushed out only to where it is as far from
     both, where the solve lands it: pushed to the thickness, it would be pushed into the other, and back out of it by
@@ -373,21 +378,40 @@ def collide_colliders(
                 if end_dist0 >= thickness:
                     # the end point alone would not have seen this contact: a continuous (CCD) catch
                     wp.atomic_add(counts_out, COUNT_COLLIDER_CCD, 1)
-        dist_end, n_end = shape_distance(shape, size, mesh, mesh_max_distance, pe)
-        if dist_end < thickness:
-            n = wp.transform_vector(t_end, n_end)
-            height = thickness
-            if pinch != 0:
-                # pinched (a surface faces this one within twice the thickness): out only to where it is as far from
-                # both (less the tolerance: the solve lands it there, to rounding)
-                midway, _facing = pinch_height(collider_count, collider_shape, collider_size, collider_mesh, collider_deforming,
-                                               mesh_max_distance, collider_transform_end, xe, n, dist_end, thickness, 0.0)
-                height = wp.min(thickness, midway - tolerance)
-            if dist_end < height:
-                u = surface_velocity(deforming, mesh, mesh_max_distance, t_start, t_end, pe, inv_dt)
-                vbar, ve = contact_response((xe - xs) * inv_dt, ve, u, n, (height - dist_end) * inv_dt, mu_s, mu_k)
-                xe = xs + dt * vbar
-                touched = 1
+        # The end point within the thickness: pushed out along the normal at its nearest point. In a mesh's concave
+        # crease (a body's shoulder meeting its torso) that can leave it within the thickness of the other side's face:
+        # pushed again from there, up to END_PUSHES times, so that one pass leaves it clear of both and the next round
+        # has nothing left to push (a second round pushing it from the other face undid the strain limiter's work).
+        done = int(0)
+        for k in range(END_PUSHES):  # (a static loop, unrolled: the taped kernel's adjoint follows it)
+            if done == 0:
+                dist_end, n_end = shape_distance(shape, size, mesh, mesh_max_distance, pe)
+                pushed = int(0)
+                # (a push after the first only beyond the contact band: not the last one's rounding again)
+                if dist_end < thickness - float(wp.min(k, 1)) * tolerance:
+                    n = wp.transform_vector(t_end, n_end)
+                    height = thickness
+                    if pinch != 0:
+                        # pinched (a surface faces this one within twice the thickness): out only to where it is as far
+                        # from both (less the tolerance: the solve lands it there, to rounding)
+                        midway, _facing = pinch_height(collider_count, collider_shape, collider_size, collider_mesh,
+                                                       collider_deforming, mesh_max_distance, collider_transform_end, xe, n,
+                                                       dist_end, thickness, 0.0)
+                        height = wp.min(thickness, midway - tolerance)
+                    if dist_end < height:
+                        u = surface_velocity(deforming, mesh, mesh_max_distance, t_start, t_end, pe, inv_dt)
+                        vbar, ve = contact_response((xe - xs) * inv_dt, ve, u, n, (height - dist_end) * inv_dt, mu_s, mu_k)
+                        if k == 0:
+                            xe = xs + dt * vbar
+                        else:
+                            # out along this side's normal alone: its friction on the step's path would take back the
+                            # push out of the side before (the end velocity takes it)
+                            xe = xe + (height - dist_end) * n
+                        pe = wp.transform_point(wp.transform_inverse(t_end), xe)
+                        touched = 1
+                        pushed = 1
+                if pushed == 0 or shape != SHAPE_MESH:
+                    done = 1
         if touched != 0:
             wp.atomic_add(counts_out, COUNT_COLLIDER_CONTACTS, 1)
     x_out[i] = xe

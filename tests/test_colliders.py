@@ -550,3 +550,59 @@ def test_element_samples_push_an_edge_out_of_a_mesh_ridge_its_particles_clear(se
     assert up[1] > 0.5  # out of the ridge, not along it
     before, after = v[:2].mean(axis=0) @ up, v_new[:2].mean(axis=0) @ up  # the edge's middle's approach
     assert before < -0.2 and after > 0.25 * before  # (92-100 % of it removed: shared with the triangle's samples)
+
+
+DT_PASS = 1.0 / 120.0
+
+
+def _valley(angle: float, seed: int):
+    """An open mesh collider folded into a valley of interior `angle` [deg] (two 0.4 m x 0.2 m faces meeting along the
+    crease, solid behind them), turned and placed at random; returns (model, crease point, crease direction, the two
+    faces' outward normals)."""
+    rng = np.random.default_rng(seed)
+    half = math.radians(0.5 * angle)
+    wing_a, wing_b = np.array([math.sin(half), math.cos(half), 0.0]), np.array([-math.sin(half), math.cos(half), 0.0])
+    ridge = np.array([0.0, 0.0, 1.0])
+    verts = np.array([[0, 0, -0.2], [0, 0, 0.2], *(0.2 * wing_a + [[0, 0, -0.2], [0, 0, 0.2]]),
+                      *(0.2 * wing_b + [[0, 0, -0.2], [0, 0, 0.2]])])
+    faces = np.array([[0, 3, 2], [0, 1, 3], [0, 5, 1], [0, 4, 5]])
+    turn = trimesh.transformations.random_rotation_matrix(rng.random(3))[:3, :3]
+    move = rng.uniform(-0.5, 0.5, 3)
+    q = wp.quat_from_matrix(wp.mat33(*turn.ravel().tolist()))
+    b = cw.ModelBuilder()
+    normals = [np.cross(ridge, wing_a), np.cross(wing_b, ridge)]  # out of the solid, into the valley
+    for k in range(3):
+        b.add_particle(tuple(move))
+    b.add_collider_mesh(verts, faces, position=tuple(move), rotation=q, name="valley", thickness=0.004)
+    return b.finalize("cpu"), move, turn @ ridge, [turn @ n for n in normals]
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("angle", [100.0, 133.0, 160.0])
+def test_one_colliders_pass_clears_a_particle_of_both_sides_of_a_crease(angle, seed):
+    """Check the colliders pass at a mesh's concave crease (a body's shoulder meeting its torso): a particle within the
+    thickness of both sides ends one pass clear of both (to the contact band), wherever along the crease and whichever
+    side is the nearer, and a second pass moves it no further (the pass is idempotent: pushed from the nearer side
+    alone, a second round of the passes pushed it again from the other, undoing the strain limiter's work between)."""
+    from cloth_warp.collision import ColliderPass
+
+    m, apex, along, (n_a, n_b) = _valley(angle, seed)
+    t = 0.004
+    heights = [(0.6 * t, 0.65 * t), (0.65 * t, 0.6 * t), (0.9 * t, 0.9 * t)]  # over side a, side b
+    x = []
+    for k, (h_a, h_b) in enumerate(heights):  # the point at those heights over both planes, somewhere along the crease
+        lateral = np.linalg.solve(np.array([[n_a @ n_a, n_a @ n_b], [n_a @ n_b, n_b @ n_b]]), [h_a, h_b])
+        x.append(apex + (k - 1) * 0.05 * along + lateral[0] * n_a + lateral[1] * n_b)
+    x = np.array(x)
+    control = m.control()
+    m.update_control(control, DT_PASS, DT_PASS, force=True)
+    x_end = wp.array(x.astype(np.float32), dtype=wp.vec3)
+    v_end = wp.zeros_like(x_end)
+    p = ColliderPass(m)
+    once, v_once, twice, v_twice = (wp.zeros_like(x_end) for _ in range(4))
+    p.apply(x_end, x_end, v_end, control, DT_PASS, once, v_once)
+    p.apply(once, once, v_once, control, DT_PASS, twice, v_twice)
+    out = once.numpy().astype(np.float64)
+    for n in (n_a, n_b):
+        assert ((out - apex) @ n).min() >= t * (1.0 - 2.0e-3) - 1.0e-6
+    np.testing.assert_allclose(twice.numpy(), once.numpy(), atol=1.0e-6)
