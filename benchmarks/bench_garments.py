@@ -85,15 +85,17 @@ def run(scene_name: str, edge: float | None, frames: int, still: bool, device: s
         report = sim.frame_report
         iterations.append(report.iterations)
         counters = report.counters()
-        pass_work.append((report.passes["colliders"].contacts if "colliders" in report.passes else 0,
-                          counters.get("self_proximity", 0) + counters.get("self_ccd", 0)))
+        colliders = report.passes.get("colliders")
+        pass_work.append((colliders.contacts if colliders else 0, counters.get("self_proximity", 0) + counters.get("self_ccd", 0),
+                          colliders.samples if colliders else 0))
         speeds.append(stats.max_speed)
         strain = max(strain, stats.max_strain)
         gap = max(gap, seam_gap(model, sim.positions(), ends))
     out = {"scene": scene_name, "motion": "still" if still else "walk", "particles": model.particle_count, "build_s": build_s,
            "frames": frames, "ms_per_frame": statistics.median(ms), "cg_per_frame": statistics.mean(iterations),
            "max_strain": strain, "seam_gap_mm": 1e3 * gap,
-           "pass_contacts": statistics.mean(w[0] for w in pass_work[-TAIL:]), "self_impulses": statistics.mean(w[1] for w in pass_work[-TAIL:])}
+           "pass_contacts": statistics.mean(w[0] for w in pass_work[-TAIL:]), "self_impulses": statistics.mean(w[1] for w in pass_work[-TAIL:]),
+           "pass_samples": statistics.mean(w[2] for w in pass_work[-TAIL:])}
     if still:
         v = np.linalg.norm(sim.state.particle_qd.numpy(), axis=1)
         out.update(rest_speed_mm_s=1e3 * max(speeds[-TAIL:]), rest_speed_median_mm_s=1e3 * statistics.median(speeds[-TAIL:]),
@@ -116,7 +118,7 @@ def main(argv=None):
     lines = [f"# bench_garments ({args.device}, {edge}; Python {platform.python_version()})", "",
              "`python benchmarks/" + pathlib.Path(__file__).name + " " + " ".join(argv if argv is not None else sys.argv[1:]) + "`", "",
              "| scene | motion | particles | build (dress + settle) [s] | frames | ms/frame | CG it/frame | max strain | "
-             "widest seam gap [mm] | pass work a frame, last 20 frames: collider contacts / self impulses | "
+             "widest seam gap [mm] | pass work a frame, last 20 frames: collider contacts / self impulses / element samples | "
              "rest speed, last 20 frames: max / median [mm/s] |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
@@ -124,7 +126,8 @@ def main(argv=None):
                 if "rest_speed_mm_s" in r else "")
         lines.append(f"| {r['scene']} | {r['motion']} | {r['particles']} | {r['build_s']:.0f} | {r['frames']} | {r['ms_per_frame']:.0f} | "
                      f"{r['cg_per_frame']:.0f} | {r['max_strain']:.4f} | {r['seam_gap_mm']:.3f} | "
-                     f"{r.get('pass_contacts', float('nan')):.1f} / {r.get('self_impulses', float('nan')):.1f} | {rest} |")
+                     f"{r.get('pass_contacts', float('nan')):.1f} / {r.get('self_impulses', float('nan')):.1f} / "
+                     f"{r.get('pass_samples', float('nan')):.1f} | {rest} |")
     from reports import write_results
 
     write_results(args.out, lines + [""], rows)
