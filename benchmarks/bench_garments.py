@@ -9,8 +9,13 @@ with the body held still (`motion = "still"`,
 `--rest` frames after the settle), the largest particle speed over the last 20 frames (at rest means <= 1 mm/s, issue
 18's target) and where it is.
 
+With `--edges E1 E2 ...` the scenes run at each of those edge lengths, `--jobs` runs at a time, each in its own process,
+and the table ends with how many of the runs held still came to rest (issue 18's garments at other edge lengths: their
+end states are chaotic, so a count over edge lengths says more than one run).
+
 Run:  python benchmarks/bench_garments.py                                  (a few minutes on 2 cores)
       python benchmarks/bench_garments.py --scenes tshirt_walk --edge 0.012 --frames 30 --rest 0
+      python benchmarks/bench_garments.py --scenes tshirt_walk --frames 0 --edges 0.022 0.024 0.026 0.030 0.032 0.034
 """
 
 from __future__ import annotations
@@ -20,6 +25,7 @@ import json
 import pathlib
 import platform
 import statistics
+import subprocess
 import sys
 import time
 
@@ -33,6 +39,10 @@ def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scenes", nargs="+", default=["tshirt_walk", "dress_walk", "layered_walk"])
     p.add_argument("--edge", type=float, default=None, help="edge length of every garment [m] (default: the scene's)")
+    p.add_argument("--edges", type=float, nargs="+", default=None, metavar="E",
+                   help="run at each of these edge lengths [m] (instead of --edge), --jobs at a time")
+    p.add_argument("--jobs", type=int, default=2, help="with --edges: runs at a time (one process each)")
+    p.add_argument("--one", nargs=3, default=None, metavar=("SCENE", "EDGE", "MOTION"), help=argparse.SUPPRESS)
     p.add_argument("--frames", type=int, default=60, help="frames of the walk timed (0: skip the walk)")
     p.add_argument("--rest", type=int, default=300, help="frames in the still pose for the rest speed (0: skip)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
@@ -103,34 +113,92 @@ def run(scene_name: str, edge: float | None, frames: int, still: bool, device: s
     return out
 
 
+REST_SPEED = 1.0e-3  # [m/s] issue 18's target for a garment held still (the median of the last 20 frames' largest speed)
+
+
+def tasks_of(args) -> list[tuple[str, float | None, bool]]:
+    """(scene, edge length or None, held still) of every run, in the table's order."""
+    edges = args.edges if args.edges else [args.edge]
+    out = []
+    for edge in edges:
+        for name in args.scenes:
+            if args.frames:
+                out.append((name, edge, False))
+            if args.rest:
+                out.append((name, edge, True))
+    return out
+
+
+def run_in_processes(tasks: list, args) -> list[dict]:
+    """Each task in a process of its own (`--one`), `args.jobs` at a time; the results in the tasks' order."""
+    sets = [a for kv in args.set for a in ("--set", kv)]
+    queue, running, results = list(enumerate(tasks)), {}, {}
+    while queue or running:
+        while queue and len(running) < max(1, args.jobs):
+            k, (name, edge, still) = queue.pop(0)
+            cmd = [sys.executable, str(pathlib.Path(__file__).resolve()), "--one", name, "none" if edge is None else repr(edge),
+                   "still" if still else "walk", "--frames", str(args.frames), "--rest", str(args.rest), "--device", args.device, *sets]
+            running[k] = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, cwd=ROOT)
+        time.sleep(0.5)
+        for k, proc in list(running.items()):
+            if proc.poll() is not None:
+                lines = [ln for ln in proc.stdout.read().splitlines() if ln.startswith("{")]
+                if proc.returncode != 0 or not lines:
+                    raise RuntimeError(f"run {tasks[k]} failed (exit {proc.returncode})")
+                results[k] = json.loads(lines[-1])
+                print(lines[-1], flush=True)
+                del running[k]
+    return [results[k] for k in range(len(tasks))]
+
+
+def rest_summary(rows: list[dict]) -> str:
+    """How many of the runs held still came to rest, and the largest strain of all the runs."""
+    still = [r for r in rows if "rest_speed_median_mm_s" in r]
+    line = f"Largest strain at a frame's end over the {len(rows)} runs: {100 * max(r['max_strain'] for r in rows):.2f} %."
+    if still:
+        at_rest = sum(r["rest_speed_median_mm_s"] <= 1e3 * REST_SPEED for r in still)
+        line = (f"Held still: {at_rest} of {len(still)} at rest (the median of the last {TAIL} frames' largest speed at most "
+                f"{1e3 * REST_SPEED:g} mm/s). " + line)
+    return line
+
+
 def main(argv=None):
     args = parse_args(argv)
     sys.path.insert(0, str(ROOT))
-    rows = []
-    for name in args.scenes:
-        if args.frames:
-            rows.append(run(name, args.edge, args.frames, False, args.device, args.set))
+    if args.one:
+        name, edge, motion = args.one
+        print(json.dumps(run(name, None if edge == "none" else float(edge), args.rest if motion == "still" else args.frames,
+                             motion == "still", args.device, args.set)), flush=True)
+        return
+    tasks = tasks_of(args)
+    if args.edges:
+        rows = run_in_processes(tasks, args)
+    else:
+        rows = []
+        for name, edge, still in tasks:
+            rows.append(run(name, edge, args.rest if still else args.frames, still, args.device, args.set))
             print(json.dumps(rows[-1]), flush=True)
-        if args.rest:
-            rows.append(run(name, args.edge, args.rest, True, args.device, args.set))
-            print(json.dumps(rows[-1]), flush=True)
-    edge = f"{args.edge:g} m edges" if args.edge else "the scenes' edge lengths"
+    for row, (_, edge, _) in zip(rows, tasks):
+        row["edge"] = edge
+    edge = (f"edges {', '.join(f'{e:g}' for e in args.edges)} m" if args.edges else f"{args.edge:g} m edges" if args.edge
+            else "the scenes' edge lengths")
     lines = [f"# bench_garments ({args.device}, {edge}; Python {platform.python_version()})", "",
              "`python benchmarks/" + pathlib.Path(__file__).name + " " + " ".join(argv if argv is not None else sys.argv[1:]) + "`", "",
-             "| scene | motion | particles | build (dress + settle) [s] | frames | ms/frame | CG it/frame | max strain | "
+             "| scene | edge [m] | motion | particles | build (dress + settle) [s] | frames | ms/frame | CG it/frame | max strain | "
              "widest seam gap [mm] | pass work a frame, last 20 frames: collider contacts / self impulses / element samples | "
              "rest speed, last 20 frames: max / median [mm/s] |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         rest = (f"{r['rest_speed_mm_s']:.2f} / {r['rest_speed_median_mm_s']:.2f} (at {r['fastest_at']})"
                 if "rest_speed_mm_s" in r else "")
-        lines.append(f"| {r['scene']} | {r['motion']} | {r['particles']} | {r['build_s']:.0f} | {r['frames']} | {r['ms_per_frame']:.0f} | "
+        lines.append(f"| {r['scene']} | {'scene' if r['edge'] is None else format(r['edge'], 'g')} | {r['motion']} | {r['particles']} | "
+                     f"{r['build_s']:.0f} | {r['frames']} | {r['ms_per_frame']:.0f} | "
                      f"{r['cg_per_frame']:.0f} | {r['max_strain']:.4f} | {r['seam_gap_mm']:.3f} | "
                      f"{r.get('pass_contacts', float('nan')):.1f} / {r.get('self_impulses', float('nan')):.1f} / "
                      f"{r.get('pass_samples', float('nan')):.1f} | {rest} |")
     from reports import write_results
 
-    write_results(args.out, lines + [""], rows)
+    write_results(args.out, lines + ["", rest_summary(rows), ""], rows)
 
 
 if __name__ == "__main__":
