@@ -605,4 +605,5 @@ def test_one_colliders_pass_clears_a_particle_of_both_sides_of_a_crease(angle, s
     out = once.numpy().astype(np.float64)
     for n in (n_a, n_b):
         assert ((out - apex) @ n).min() >= t * (1.0 - 2.0e-3) - 1.0e-6
+    assert np.linalg.norm(out - x, axis=1).max() <= t  # out to the thickness, not thrown clear
     np.testing.assert_allclose(twice.numpy(), once.numpy(), atol=1.0e-6)
