@@ -25,7 +25,6 @@ import json
 import pathlib
 import platform
 import statistics
-import subprocess
 import sys
 import time
 
@@ -33,6 +32,7 @@ import numpy as np
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 TAIL = 20
+TAG = "BENCH_GARMENTS "  # a worker's (`--one`) result line
 
 
 def parse_args(argv=None):
@@ -129,26 +129,13 @@ def tasks_of(args) -> list[tuple[str, float | None, bool]]:
     return out
 
 
-def run_in_processes(tasks: list, args) -> list[dict]:
-    """Each task in a process of its own (`--one`), `args.jobs` at a time; the results in the tasks' order."""
+def worker(task: tuple, args) -> tuple:
+    """The worker process (argv, env, cwd) for one run (`--one`)."""
+    name, edge, still = task
     sets = [a for kv in args.set for a in ("--set", kv)]
-    queue, running, results = list(enumerate(tasks)), {}, {}
-    while queue or running:
-        while queue and len(running) < max(1, args.jobs):
-            k, (name, edge, still) = queue.pop(0)
-            cmd = [sys.executable, str(pathlib.Path(__file__).resolve()), "--one", name, "none" if edge is None else repr(edge),
-                   "still" if still else "walk", "--frames", str(args.frames), "--rest", str(args.rest), "--device", args.device, *sets]
-            running[k] = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, cwd=ROOT)
-        time.sleep(0.5)
-        for k, proc in list(running.items()):
-            if proc.poll() is not None:
-                lines = [ln for ln in proc.stdout.read().splitlines() if ln.startswith("{")]
-                if proc.returncode != 0 or not lines:
-                    raise RuntimeError(f"run {tasks[k]} failed (exit {proc.returncode})")
-                results[k] = json.loads(lines[-1])
-                print(lines[-1], flush=True)
-                del running[k]
-    return [results[k] for k in range(len(tasks))]
+    cmd = [sys.executable, str(pathlib.Path(__file__).resolve()), "--one", name, "none" if edge is None else repr(edge),
+           "still" if still else "walk", "--frames", str(args.frames), "--rest", str(args.rest), "--device", args.device, *sets]
+    return cmd, None, ROOT
 
 
 def rest_summary(rows: list[dict]) -> str:
@@ -167,12 +154,16 @@ def main(argv=None):
     sys.path.insert(0, str(ROOT))
     if args.one:
         name, edge, motion = args.one
-        print(json.dumps(run(name, None if edge == "none" else float(edge), args.rest if motion == "still" else args.frames,
-                             motion == "still", args.device, args.set)), flush=True)
+        print(TAG + json.dumps(run(name, None if edge == "none" else float(edge), args.rest if motion == "still" else args.frames,
+                                   motion == "still", args.device, args.set)), flush=True)
         return
     tasks = tasks_of(args)
     if args.edges:
-        rows = run_in_processes(tasks, args)
+        from reports import run_workers
+
+        rows = run_workers([worker(task, args) for task in tasks], args.jobs, TAG)
+        for row in rows:
+            print(json.dumps(row), flush=True)
     else:
         rows = []
         for name, edge, still in tasks:

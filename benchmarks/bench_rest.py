@@ -30,7 +30,6 @@ import math
 import os
 import pathlib
 import platform
-import subprocess
 import sys
 import time
 
@@ -84,34 +83,14 @@ def run_one(args) -> None:
     print(TAG + json.dumps({"speed": r["rest_speed_median"], "iterations": r["iterations"], "ms": r["ms_per_frame"]}), flush=True)
 
 
-def start(tree: pathlib.Path | None, spec, args) -> subprocess.Popen:
-    """A worker process for run `spec` in `tree` (None: this tree as installed)."""
+def worker(tree: pathlib.Path | None, spec, args) -> tuple:
+    """The worker process (argv, env, cwd) for run `spec` in `tree` (None: this tree as installed)."""
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     if tree is not None:
         env["PYTHONPATH"] = str(tree) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     cmd = [sys.executable, str(pathlib.Path(__file__).resolve()), "--one", *map(str, spec), "--frames", str(args.frames),
            "--mode", args.mode] + [a for kv in args.set for a in ("--set", kv)]
-    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env, cwd=tree or ROOT)
-
-
-def result(proc: subprocess.Popen) -> dict:
-    out, _ = proc.communicate()
-    for line in out.splitlines():
-        if line.startswith(TAG):
-            return json.loads(line[len(TAG):])
-    raise RuntimeError(f"a rest-set run exited without a result (code {proc.returncode})")
-
-
-def run_all(tasks: list, jobs: int) -> list[dict]:
-    """Run (tree, spec, args) tasks `jobs` at a time, in order; their results in the same order."""
-    results, running, queue = [None] * len(tasks), {}, list(enumerate(tasks))
-    while queue or running:
-        while queue and len(running) < jobs:
-            k, (tree, spec, args) = queue.pop(0)
-            running[k] = start(tree, spec, args)
-        k = next(iter(running))
-        results[k] = result(running.pop(k))
-    return results
+    return cmd, env, tree or ROOT
 
 
 def summary(rows: list[dict]) -> str:
@@ -154,13 +133,14 @@ def main(argv=None) -> int:
         run_one(args)
         return 0
     from bench_step import make_worktree, remove_worktree
+    from reports import run_workers
 
     runs = (FINE_RUNS if args.fine else RUNS + MORE_RUNS if args.extended else RUNS)[:args.runs]
     tree = make_worktree(args.ref) if args.ref else None
     t0 = time.perf_counter()
     try:
         trees = [None] + ([tree] if tree else [])
-        results = run_all([(t, spec, args) for spec in runs for t in trees], args.jobs)
+        results = run_workers([worker(t, spec, args) for spec in runs for t in trees], args.jobs, TAG)
     finally:
         if tree is not None:
             remove_worktree(tree)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import pathlib
+import subprocess
 
 
 def write_results(out, lines: list[str], numbers: dict) -> str:
@@ -16,3 +17,21 @@ def write_results(out, lines: list[str], numbers: dict) -> str:
     out.write_text(text)
     out.with_suffix(".json").write_text(json.dumps(numbers, indent=1))
     return text
+
+
+def run_workers(commands: list, jobs: int, tag: str) -> list[dict]:
+    """Run worker processes, `jobs` at a time, in order: each command (argv, env, cwd) prints its result as one line,
+    `tag` followed by JSON. Returns the results in the commands' order."""
+    results, running, queue = [None] * len(commands), {}, list(enumerate(commands))
+    while queue or running:
+        while queue and len(running) < max(1, jobs):
+            k, (argv, env, cwd) = queue.pop(0)
+            running[k] = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env, cwd=cwd)
+        k = next(iter(running))
+        proc = running.pop(k)
+        out, _ = proc.communicate()
+        found = [line[len(tag):] for line in out.splitlines() if line.startswith(tag)]
+        if not found:
+            raise RuntimeError(f"a worker ({' '.join(map(str, argv[2:]))}) exited without a result (code {proc.returncode})")
+        results[k] = json.loads(found[-1])
+    return results
