@@ -74,6 +74,11 @@ class ColliderPass(StepPass):
         (kernels/collide.py `pinch_height`), where the implicit solve lands it: set by a solver with the collider
         contacts in its solve. Without them the pass resolves each surface as it meets it, as the garments' dressing
         was tuned (dressed with the pinch, the shipped T-shirt started its run with an armpit seam 11 mm open)."""
+        self.sample_height: wp.array | None = None
+        """Per particle [m], set by a solver with the collider contacts in its solve: forward steps keep the height over a
+        mesh collider at which the element samples left each particle they pushed, until it moves away (kernels/collide.py
+        `hold_sample_heights`), so that the solve holds it there. None: not kept."""
+        self._sample_pushed = None  # per particle, whether a sample pushed it in this pass (int32)
 
     @property
     def kernel_modules(self) -> tuple:
@@ -116,9 +121,15 @@ class ColliderPass(StepPass):
                 self._sample_round(control, dt, x_mid, v_mid, x_next, v_next, fresh=True)
                 x_mid, v_mid = x_next, v_next
             return
+        self._pushed_marks().zero_()
         self._loop.zero_()  # in place on the outputs: the first round, then more while the last pushed a sample
         self._sample_round(control, dt, x_out, v_out, x_out, v_out)
         device_while(self._loop, self._sample_round, control=control, dt=dt, x=x_out, v=v_out, x_next=x_out, v_next=v_out)
+        if self.sample_height is not None:  # the heights the samples left their particles at, for the next step's solve
+            wp.launch(kcol.hold_sample_heights, dim=m.particle_count,
+                      inputs=[m.collider_count, m.collider_shape, m.collider_mesh, m.collider_thickness, m.collider_mesh_max_distance,
+                              control.collider_transform_end, x_out, self._sample_pushed],
+                      outputs=[self.sample_height], device=dev)
 
     def _sample_round(self, control: Control, dt: float, x, v, x_next, v_next, fresh: bool = False):
         """One round of the element samples from (x, v) into (x_next, v_next) (the same arrays but when taped), and the
@@ -132,12 +143,18 @@ class ColliderPass(StepPass):
                   inputs=[m.particle_pinned, m.collider_count, m.collider_shape, m.collider_mesh, m.collider_deforming,
                           m.collider_thickness, m.collider_mesh_max_distance, control.collider_transform_start,
                           control.collider_transform_end, self.elements, x, v, dt],
-                  outputs=[*pushes, self.counts, self._loop[2:3]], device=dev)
+                  outputs=[*pushes, self.counts, self._loop[2:3], self._pushed_marks()], device=dev)
         dx, dv, weights = pushes  # each particle moved by the weighted mean of its samples' pushes
         wp.launch(ksc.apply_velocity_changes, dim=m.particle_count, inputs=[x, dx, weights], outputs=[x_next], device=dev)
         wp.launch(ksc.apply_velocity_changes, dim=m.particle_count, inputs=[v, dv, weights], outputs=[v_next], device=dev)
         if not fresh:
             wp.launch(kcol.next_sample_round, dim=1, inputs=[self.sample_rounds], outputs=[self._loop], device=dev)
+
+    def _pushed_marks(self) -> wp.array:
+        """Per particle, whether an element sample pushed it in this pass (int32; kernels/collide.py `hold_sample_heights`)."""
+        if self._sample_pushed is None:
+            self._sample_pushed = wp.zeros(self.model.particle_count, dtype=wp.int32, device=self.model.device)
+        return self._sample_pushed
 
     def _pushes(self, fresh: bool) -> tuple:
         """Per particle: the weighted sums of its element samples' position [m] and velocity [m/s] changes and of their

@@ -325,6 +325,9 @@ SCHEMA: dict = {
         "self_contact_stiffening": Key("bool", False, "self-contacts in the solve: stiffen the elements whose load holds "
                                        "them near the self-collision pass's reach, so that the pass does not push them "
                                        "out every step (layers pressed into soft contacts rest; see the README)"),
+        "sample_holds": Key("bool", True, "collider contacts in the solve: a particle the colliders pass pushed out of a "
+                            "mesh collider because its edge or triangle cut the body keeps its height there as a contact "
+                            "(instead of sagging back for the pass to push again; see the README)"),
         "max_iterations": Key("int", 1000, "linear-solver iteration cap per step", L["iterations"]),
         "adaptive": Key("bool", False, "check every step and halve dt on divergence (grows back after good steps)"),
         "dt_min": Key("float", 1e-6, "adaptive floor: below it the run stops with a diagnosis", L["dt_min"]),
@@ -1105,7 +1108,8 @@ def solver_options(scene: Scene, implicit: bool) -> dict:
                     max_iterations=int(scene.get("solver.max_iterations")), collider_contacts=scene.get("solver.collider_contacts"),
                     self_contacts=scene.get("solver.self_contacts"), contact_friction=scene.get("solver.contact_friction"),
                     sewn_points=scene.get("solver.sewn_points"), velocity_tolerance=float(scene.get("solver.velocity_tolerance")),
-                    self_contact_stiffening=bool(scene.get("solver.self_contact_stiffening")))
+                    self_contact_stiffening=bool(scene.get("solver.self_contact_stiffening")),
+                    sample_holds=bool(scene.get("solver.sample_holds")))
     return opts
 
 

@@ -429,6 +429,12 @@ def collide_colliders(
 # the ball, whose 8.8 cm diagonals sag 3.9 mm and cut the ball at 19 samples a step, never rested with them (8-108 mm/s
 # after 4 s). Samples as contact elements in the solve would rest both.
 SAMPLE_CLEARANCE = wp.constant(0.25)
+# A particle the element samples pushed keeps the height over the mesh they left it at (`sample_height`) until it is
+# farther than that by this many thicknesses: the implicit solve with collider contacts in it holds such a particle
+# there as a contact (kernels/contact.py eval_collider_contacts) instead of letting the cloth carry it back to where its
+# element sagged into the body and the samples pushed again (a T-shirt's shoulder particle pushed 1.14 mm out every
+# other step; a coarse cloth over a faceted ball at 60-300 mm/s after 4 s).
+SAMPLE_HOLD_SLACK = wp.constant(0.5)
 
 
 @wp.func
@@ -474,6 +480,7 @@ def collide_element_samples(
     pushes_out: wp.array(dtype=float),
     counts_out: wp.array(dtype=wp.int32),
     pushed_out: wp.array(dtype=wp.int32),
+    sample_pushed_out: wp.array(dtype=wp.int32),
 ):
     """Each element's sample inside a mesh collider is moved out to SAMPLE_CLEARANCE x its thickness along the surface
     normal n by the least change of its particles (dx_k = w_k delta n / sum w_j^2; an element with a pinned or attached
@@ -485,7 +492,8 @@ def collide_element_samples(
     through it: searches down the distance within the triangle passed beside it, the stretch inside being a fraction of
     a millimetre across); only surfaces within twice the thickness of the centroid are sought (a short search). Changes
     are summed per particle, each weighted by its length, with the weights (kernels/selfcollide.py
-    `apply_velocity_changes` takes their weighted mean: a particle follows mostly its deepest sample)."""
+    `apply_velocity_changes` takes their weighted mean: a particle follows mostly its deepest sample). Each particle a
+    sample pushes is marked in `sample_pushed_out` (see SAMPLE_HOLD_SLACK)."""
     s = wp.tid()
     idx = elements[s]
     for k in range(3):
@@ -555,8 +563,44 @@ def collide_element_samples(
                             wp.atomic_add(dx_out, idx[k], weight * push)
                             wp.atomic_add(dv_out, idx[k], (weight * w[k] / norm) * stopped)
                             wp.atomic_add(pushes_out, idx[k], weight)
+                            sample_pushed_out[idx[k]] = 1
                     wp.atomic_add(counts_out, COUNT_COLLIDER_SAMPLES, 1)
                     pushed_out[0] = 1
+
+
+@wp.kernel(enable_backward=False)
+def hold_sample_heights(
+    collider_count: int,
+    collider_shape: wp.array(dtype=wp.int32),
+    collider_mesh: wp.array(dtype=wp.uint64),
+    collider_thickness: wp.array(dtype=float),
+    mesh_max_distance: float,
+    collider_transform_end: wp.array(dtype=wp.transform),
+    x: wp.array(dtype=wp.vec3),
+    sample_pushed: wp.array(dtype=wp.int32),
+    sample_height_out: wp.array(dtype=float),
+):
+    """Per particle, at `x` (the end of the step): one the element samples pushed (`sample_pushed`) keeps its height [m]
+    over the nearest mesh collider in `sample_height_out`; one they left alone keeps the height it has there until it
+    is farther from every mesh than that by SAMPLE_HOLD_SLACK thicknesses, then none (0)."""
+    i = wp.tid()
+    held = sample_height_out[i]
+    if sample_pushed[i] == 0 and held <= 0.0:
+        return
+    nearest = float(mesh_max_distance)
+    slack = float(0.0)
+    for c in range(collider_count):
+        if collider_shape[c] == SHAPE_MESH:
+            p = wp.transform_point(wp.transform_inverse(collider_transform_end[c]), x[i])
+            d, n = shape_distance(SHAPE_MESH, wp.vec3(0.0), collider_mesh[c], mesh_max_distance, p)
+            if d < nearest:
+                nearest = d
+                slack = SAMPLE_HOLD_SLACK * collider_thickness[c]
+    if sample_pushed[i] != 0:
+        if nearest > 0.0 and nearest < mesh_max_distance:
+            sample_height_out[i] = nearest
+    elif nearest > held + slack:
+        sample_height_out[i] = 0.0
 
 
 @wp.kernel

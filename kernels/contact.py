@@ -21,7 +21,7 @@ the filter itself belong to the solver; this module only finds the contacts.
 
 import warp as wp
 
-from .collide import CONTACT_BAND, mesh_surface_velocity, pinch_height, shape_distance, surface_velocity, world_distance
+from .collide import CONTACT_BAND, SAMPLE_HOLD_SLACK, SHAPE_MESH, mesh_surface_velocity, pinch_height, shape_distance, surface_velocity, world_distance
 from .implicit import (ADMITTED, COUNT_CONTACTS, COUNT_SELF_CONTACTS, COUNT_SIZE, RELEASE_FLAG, RELEASE_ROUNDS, RELEASE_SIZE,
                        SLIP_ALLOWANCE, contact_block_inverse, filtered_block_inverse, is_pinched, stick_damper,
                        take_back_contact)
@@ -163,6 +163,7 @@ def eval_collider_contacts(
     contact_impulse: wp.array(dtype=float),
     particle_mass: wp.array(dtype=float),
     load_speed: float,
+    sample_height: wp.array(dtype=float),
     # outputs
     contact_collider_out: wp.array(dtype=wp.int32),
     contact_normal_out: wp.array(dtype=wp.vec3),
@@ -186,6 +187,12 @@ def eval_collider_contacts(
     bumpy. Settled on any positive impulse, a T-shirt's particle that the cloth round it held above its landing height
     (impulses of 1.6e-9 and 1.7e-7 kg m/s in the steps before) was pulled down at 1 mm/s every 10-13 frames, and rose
     again when released.
+    A particle the colliders pass's element samples pushed out of a mesh collider (forward steps: `sample_height`
+    [m], the height over the mesh they left it at, 0 for none; kernels/collide.py SAMPLE_HOLD_SLACK) is in the band of
+    a mesh up to that height and SAMPLE_HOLD_SLACK thicknesses, and keeps its height there, loaded or not: its element,
+    not the particle, touches the surface. Landed or settled, the
+    cloth carried it back to where its edge or triangle sagged into the body, and the samples, which the solve does not
+    see, pushed it out again (a T-shirt's shoulder particle moved 1.14 mm every other step: 48 mm/s held still).
     `contact_height_out`: the height [m] above the surface the contact ends the step at, `landing_height`, or, for a
     particle pinched between that surface and one facing it closer than twice the thickness (`pinch_height`: an
     armpit's crease), the height at which it is as far from both, below the thickness; a pinched contact's normal,
@@ -201,6 +208,9 @@ def eval_collider_contacts(
     crease's line is free (the solve's filter S = I - n n^T - m m^T, kernels/implicit.py `contact_projector`)."""
     i = wp.tid()
     pressed = contact_impulse[i] > load_speed * particle_mass[i]  # (the last step's, read before this step's contacts replace it)
+    held = float(0.0)  # (the height the element samples left it at: see above)
+    if hold_band != 0:
+        held = sample_height[i]
     contact_collider_out[i] = -1
     contact_normal_out[i] = wp.vec3(0.0)
     contact_velocity_out[i] = wp.vec3(0.0)
@@ -231,10 +241,14 @@ def eval_collider_contacts(
         pe = wp.transform_point(wp.transform_inverse(t_end), xp)
         d_end, n_end = shape_distance(shape, size, mesh, mesh_max_distance, pe)
         depth = d0 - thickness
-        if d0 < thickness * (1.0 + margin) or d_end < thickness:
+        band = thickness * (1.0 + margin)
+        kept = held > 0.0 and shape == SHAPE_MESH
+        if kept:
+            band = wp.max(band, held + SAMPLE_HOLD_SLACK * thickness)
+        if d0 < band or d_end < thickness:
             # within the margin: not when lifting off (moving away fast enough to leave the band this step; a
             # slower one stays in contact, and is released by the solve if it pulls); inside, or arriving, always
-            leaving = d0 >= thickness and d0 + dt * wp.dot(v0[i] - u, n) >= thickness * (1.0 + margin)
+            leaving = d0 >= thickness and d0 + dt * wp.dot(v0[i] - u, n) >= band
             if not leaving and (found < 0 or depth < best):
                 found = c
                 best = depth
@@ -242,11 +256,11 @@ def eval_collider_contacts(
                 contact_normal_out[i] = n
                 contact_velocity_out[i] = u
                 found_descent = -1.0  # (lands in one step)
-                if hold_band != 0 and d0 < thickness * (1.0 + margin):
+                if hold_band != 0 and d0 < band:
                     d_held, n_held = shape_distance(shape, size, mesh, mesh_max_distance, wp.transform_point(wp.transform_inverse(t_end), xh))
                     if d_held >= thickness:
                         found_descent = 0.0
-                        if pressed:
+                        if pressed and not kept:
                             found_descent = SETTLE_SPEED
     contact_collider_out[i] = found
     if found >= 0:

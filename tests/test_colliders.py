@@ -552,6 +552,39 @@ def test_element_samples_push_an_edge_out_of_a_mesh_ridge_its_particles_clear(se
     assert before < -0.2 and after > 0.25 * before  # (92-100 % of it removed: shared with the triangle's samples)
 
 
+
+@pytest.mark.parametrize("subdivisions,resolution,seed", [(2, 12, 0), (3, 16, 1), (4, 16, 2),
+                                                           pytest.param(2, 24, 3, marks=pytest.mark.slow)])
+def test_a_coarse_cloth_over_a_faceted_ball_comes_to_rest_where_its_elements_touch_it(subdivisions, resolution, seed):
+    """Check a cloth whose edges are as long as the body's facets, dropped over a mesh ball (an icosphere, turned at
+    random) onto the ground with the contacts and their friction in the solve, comes to rest though its edges and
+    triangles, not its particles, touch the ball: at rest after 6 s (the median of the last 20 frames' largest speed <=
+    1 mm/s, as benchmarks/bench_rest.py counts it: a free edge's flap may still swing at ~1 mm/s; without self-collision
+    a fold may slip late, as one did at 3.3 s here), the element samples pushing nothing by then (they pushed while it
+    wrapped the ball). Each particle the samples push keeps, as a
+    contact in the solve, the height they left it at (kernels/contact.py `eval_collider_contacts`, `sample_height`);
+    without that (`sample_holds=False`) the cloth sagged back into the ball for the samples to push again: 60-300 mm/s
+    after 5 s, 11-120 samples pushed a frame (benchmarks/bench_sample_holds.py)."""
+    rng = np.random.default_rng(seed)
+    ball = trimesh.creation.icosphere(subdivisions=subdivisions, radius=0.25)
+    turn = trimesh.transformations.random_rotation_matrix(rng.random(3))[:3, :3]
+    b = cw.ModelBuilder()
+    b.add_cloth_grid(resolution=(resolution, resolution), size=(1.0, 1.0), material="cotton",
+                     rotation=cw.quat_from_axis_angle((1, 0, 0), -90.0), position=(-0.5 + rng.uniform(-0.05, 0.05), 0.62, 0.5))
+    b.add_collider_mesh(np.asarray(ball.vertices) @ turn.T, ball.faces, position=(0.0, 0.3, 0.0), name="ball", thickness=0.004,
+                        friction=0.4)
+    b.add_ground(friction=0.6)
+    m = b.finalize("cpu")
+    sim = cw.Simulator(m, cw.SolverImplicitEuler(m, collider_contacts="solve", contact_friction="solve"), fps=60, substeps=2)
+    speeds, samples = [], []
+    for _ in range(360):
+        speeds.append(sim.step_frame().max_speed)
+        samples.append(sim.frame_report.passes["colliders"].samples)
+    assert sum(samples) > 0  # its elements cut the ball on the way
+    assert sum(samples[-20:]) == 0 and np.median(speeds[-20:]) <= 1e-3, (samples[-20:], speeds[-20:])
+    on_ball = int((collider_distance(m, 0, sim.positions())[0] < 0.012).sum())
+    assert on_ball > resolution, on_ball  # draped over it, not slid off
+
 DT_PASS = 1.0 / 120.0
 
 

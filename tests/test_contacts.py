@@ -41,7 +41,7 @@ def find_contacts(model, x, v, time=0.0, dt=DT, last_step=None, gravity=(0.0, 0.
 def landing_always(n):
     """eval_collider_contacts' last-step inputs for a taped step's rule: every contact lands at the thickness."""
     return [0, wp.zeros(n, dtype=wp.vec3), wp.zeros(1, dtype=wp.int32), wp.zeros(n, dtype=wp.int32), 1, wp.zeros(n, dtype=float),
-            wp.ones(n, dtype=float), 0.0]
+            wp.ones(n, dtype=float), 0.0, wp.zeros(n, dtype=wp.int32)]
 
 
 def particles(builder, points):
@@ -140,7 +140,7 @@ def test_a_band_contact_the_cloth_holds_up_keeps_its_height():
     impulse = np.array([0.0, 1.1, 0.0, 0.0, 0.0, 0.0, 0.9]) * load_speed * mass
     n = len(x)
     hold = [1, wp.array(dv_previous, dtype=wp.vec3), wp.ones(1, dtype=wp.int32), wp.zeros(n, dtype=wp.int32), 1,
-            wp.array(impulse, dtype=float), m.particle_mass, load_speed]
+            wp.array(impulse, dtype=float), m.particle_mass, load_speed, wp.zeros(n, dtype=wp.int32)]
 
     def contacts(last_step):
         col, _, _, dv, _, _, _, _ = find_contacts(m, x, v, last_step=last_step, gravity=(0.0, -9.81, 0.0))
@@ -155,6 +155,93 @@ def test_a_band_contact_the_cloth_holds_up_keeps_its_height():
     col, v_end = contacts(landing_always(n))
     np.testing.assert_array_equal(col, 0)
     np.testing.assert_allclose(v_end, land, rtol=1e-5)
+
+
+
+def test_a_particle_the_element_samples_pushed_keeps_its_height_over_a_mesh():
+    """Check the forward steps' rule for a particle the colliders pass's element samples pushed out of a mesh collider
+    (`sample_height`: the height they left it at; kernels/collide.py SAMPLE_HOLD_SLACK): up to that height and the
+    slack over the mesh it is a contact and keeps its height, loaded or not (its edge or triangle touches the body:
+    carried back down, the samples push it out again), however high a coarse cloth's sag left it; without a height at
+    the same place it is free; beyond the slack, leaving within the step, or over an analytic collider (no samples
+    there) it is free too; one its last step carries through the thickness lands; in the band, loaded, it keeps its
+    height where one without settles; on a taped step's rule the height is not read. (The band here is half the
+    thickness, MARGIN; production's 1 %.)"""
+    t = 0.004
+    box = trimesh.creation.box(extents=(0.8, 0.2, 0.4))
+    b = cw.ModelBuilder()
+    heights = [1.7, 1.7, 2.5, 1.7, 1.7, 1.7, 1.05, 3.0]  # [x the thickness] over the mesh's top (the 4th over the ball)
+    held = np.array([1.7, 0.0, 1.7, 1.7, 1.7, 1.7, 1.05, 3.0]) * t  # the heights the samples left them at
+    xs = [0.05 * k - 0.3 for k in range(len(heights))]
+    particles(b, [(xk, hk * t, 0.0) for xk, hk in zip(xs, heights)])
+    b.add_collider_mesh(box.vertices, box.faces, position=(0.0, -0.1, 0.0), name="body", thickness=t)
+    ball = np.array([0.0, 0.0, 1.0])
+    b.add_sphere(center=tuple(ball), radius=0.1, name="ball", thickness=t)
+    m = b.finalize("cpu")
+    x = np.array([(xk, hk * t, 0.0) for xk, hk in zip(xs, heights)], np.float32)
+    x[3] = ball + (0.0, 0.1 + 1.7 * t, 0.0)
+    v = np.zeros_like(x)
+    v[4, 1] = 1.5 * t / DT  # rising out of the band within the step
+    dv_previous = np.zeros((len(x), 3))
+    dv_previous[5] = (0.0, -1.0, 0.0)  # its last step's change carries it 8 mm down: through the thickness
+    n = len(x)
+    load_speed = 0.05 * 9.81 * DT
+    impulse = np.full(n, 2.0 * load_speed) * m.particle_mass.numpy()  # every one loaded in the last step
+
+    def contacts(hold_band, heights_held):
+        last = [hold_band, wp.array(dv_previous, dtype=wp.vec3), wp.ones(1, dtype=wp.int32), wp.zeros(n, dtype=wp.int32), 1,
+                wp.array(impulse, dtype=float), m.particle_mass, load_speed, wp.array(heights_held, dtype=float)]
+        col, _, _, dv, _, _, _, _ = find_contacts(m, x, v, last_step=last, gravity=(0.0, -9.81, 0.0))
+        return col, v[:, 1] + dv[:, 1]
+
+    col, v_end = contacts(1, held)
+    np.testing.assert_array_equal(col, [0, -1, -1, -1, -1, 0, 0, 0])
+    np.testing.assert_allclose(v_end[[0, 6, 7]], 0.0, atol=1e-6)  # kept where the samples left them, loaded as they are
+    land = (t * (1 + kct.CLEARANCE) - x[:, 1]) / DT
+    assert v_end[5] == pytest.approx(land[5], rel=1e-5)  # carried through: lands
+    col, v_end = contacts(1, np.zeros(n))  # none held: only the band's particle, loaded: settling
+    np.testing.assert_array_equal(col, [-1, -1, -1, -1, -1, -1, 0, -1])
+    assert v_end[6] == pytest.approx(-float(kct.SETTLE_SPEED), rel=1e-5)
+    col, _ = contacts(0, held)  # a taped step's rule: the heights are not read
+    np.testing.assert_array_equal(col, [-1, -1, -1, -1, -1, -1, 0, -1])
+
+
+def test_the_colliders_pass_keeps_the_heights_its_samples_left_particles_at_until_they_leave():
+    """Check the heights the colliders pass keeps for the solve (cloth_warp/collision.py `ColliderPass.sample_height`): a
+    pass whose samples push an edge out of a mesh ridge keeps, for the particles they moved and no other, their distance
+    to the ridge as the pass leaves them; a later pass with the particles moved away by more than SAMPLE_HOLD_SLACK
+    thicknesses forgets them; without the array (a solver without the contacts in its solve) the pass moves the
+    particles the same."""
+    from test_colliders import _ridge_and_triangle
+
+    from cloth_warp.collision import ColliderPass
+
+    m, _, _ = _ridge_and_triangle(0, False)
+    x0 = m.particle_q.numpy()
+    control = m.control()
+    dt = 0.01
+    x_end = wp.array(x0, dtype=wp.vec3)
+    v_end = wp.zeros_like(x_end)
+    outs = []
+    for keep in (True, False):
+        p = ColliderPass(m)
+        p.sample_height = wp.zeros(3, dtype=float) if keep else None
+        x_out, v_out = wp.zeros_like(x_end), wp.zeros_like(v_end)
+        p.apply(x_end, x_end, v_end, control, dt, x_out, v_out)
+        outs.append(x_out.numpy())
+        if keep:
+            moved = np.linalg.norm(outs[0] - x0, axis=1) > 0.0
+            assert moved[:2].all()  # the crossing edge's particles (and the third by its triangle's sample, if it pushed)
+            d = collider_distance(m, 0, outs[0])[0]
+            np.testing.assert_allclose(p.sample_height.numpy(), np.where(moved, d, 0.0), rtol=1e-5)
+            assert (d[moved] > 0.004).all()  # (its particles were clear: the edge's middle was inside)
+            near = wp.array(outs[0] + np.array([0.0, 0.001, 0.0], np.float32), dtype=wp.vec3)  # a millimetre up: kept
+            p.apply(near, near, v_end, control, dt, wp.zeros_like(near), wp.zeros_like(v_end))
+            np.testing.assert_allclose(p.sample_height.numpy(), np.where(moved, d, 0.0), rtol=1e-5)
+            far = wp.array(outs[0] + np.array([0.0, 0.2, 0.0], np.float32), dtype=wp.vec3)  # 0.2 m up: clear of the ridge
+            p.apply(far, far, v_end, control, dt, wp.zeros_like(far), wp.zeros_like(v_end))
+            np.testing.assert_array_equal(p.sample_height.numpy(), [0.0, 0.0, 0.0])
+    np.testing.assert_array_equal(outs[0], outs[1])
 
 
 def anisotropic_contact_blocks(rng, count=64):

@@ -118,6 +118,11 @@ class SolverImplicitEuler(SolverBase):
             velocity error is within it [m/s] (kernels/implicit.py begin_linear_solve), changing no contact; 0 (the
             default): none. At rest the tolerance alone left ~5 um/s RMS of error, which fed a 6.7 Hz wave on the
             shipped drape's free edge; 1e-5 rests it, at a cost (docs/contacts-in-the-solve.md).
+        sample_holds: "solve" contacts, forward steps: a particle the colliders pass's element samples pushed out of a
+            mesh collider (an edge or triangle of the cloth through the body between particles that were clear) is a
+            contact up to the height they left it at (and half a thickness) and keeps its height there (kernels/contact.py
+            eval_collider_contacts), instead of being carried back to where the samples push it again; False: such
+            particles are contacts as any other (within the band, landing at the thickness).
         self_contact_stiffening: self-contacts in the solve, forward steps: a self-contact element whose load holds it
             deeper than SELF_CONTACT_GAIN_HOLD of the way from its rest distance to the self-collision pass's reach is
             stiffened for the next steps (a gain per particle, at most 32x, followed with hysteresis: kernels/contact.py
@@ -244,6 +249,7 @@ class SolverImplicitEuler(SolverBase):
         sewn_points: str = "solve",
         velocity_tolerance: float = 0.0,
         self_contact_stiffening: bool = False,
+        sample_holds: bool = True,
     ):
         super().__init__(model, strain_limit=strain_limit, strain_limit_iterations=strain_limit_iterations,
                          strain_limit_tolerance=strain_limit_tolerance, collisions=collisions, collision_rounds=collision_rounds)
@@ -324,6 +330,12 @@ class SolverImplicitEuler(SolverBase):
         self.self_contact_stiffening = bool(self_contact_stiffening)
         n, s, t = model.particle_count, max(model.spring_count, 1), max(model.tri_count, 1)
         dev = model.device
+        # per particle, the height [m] over a mesh collider the colliders pass's element samples left it at (0: none;
+        # kernels/collide.py SAMPLE_HOLD_SLACK): with `sample_holds`, such a contact keeps its height in the solve
+        self.sample_holds = bool(sample_holds)
+        self.sample_height = wp.zeros(n, dtype=float, device=dev)
+        if colliders is not None:
+            colliders.sample_height = self.sample_height if collider_contacts == "solve" and self.sample_holds else None
         self.stiffness_block = wp.zeros(s, dtype=wp.mat33, device=dev)
         self.system_block = wp.zeros(s, dtype=wp.mat33, device=dev)
         self.spring_compact = wp.zeros(s, dtype=wp.vec4, device=dev)  # B_s as a I + u u^T, for the CG's product
@@ -888,13 +900,15 @@ class SolverImplicitEuler(SolverBase):
             self_contacts=int(r[ki.RECORD_SELF_CONTACTS]))
 
     def carried_arrays(self) -> list:
-        """The warm start, the contacts' last normal impulses (their next friction) and the self-contacts' gains."""
-        return [self.dv_previous, self.previous_ready, self.contact_impulse, self.self_contact_gain]
+        """The warm start, the contacts' last normal impulses (their next friction), the self-contacts' gains and the
+        particles the element samples pushed."""
+        return [self.dv_previous, self.previous_ready, self.contact_impulse, self.self_contact_gain, self.sample_height]
 
     def forget_world(self, world: int, particles: slice) -> None:
         self.dv_previous[particles].zero_()
         self.contact_impulse[particles].zero_()
         self.self_contact_gain[particles].fill_(1.0)
+        self.sample_height[particles].zero_()
         self.previous_ready[world : world + 1].zero_()
 
     # -- checkpoints --------------------------------------------------------------------------
@@ -907,6 +921,7 @@ class SolverImplicitEuler(SolverBase):
         out["dv_previous"] = self.dv_previous.numpy().copy()
         out["contact_impulse"] = self.contact_impulse.numpy().copy()
         out["self_contact_gain"] = self.self_contact_gain.numpy().copy()
+        out["sample_height"] = self.sample_height.numpy().copy()
         return out
 
     def restore_state(self, state: dict) -> None:
@@ -923,6 +938,9 @@ class SolverImplicitEuler(SolverBase):
         gain = state.get("self_contact_gain")  # (checkpoints written before the gains: none)
         self.self_contact_gain.assign(np.ones(self.model.particle_count, np.float32) if gain is None
                                       else np.asarray(gain, np.float32).reshape(self.model.particle_count))
+        held = state.get("sample_height")  # (checkpoints written before the samples' holds: none)
+        self.sample_height.assign(np.zeros(self.model.particle_count, np.float32) if held is None
+                                  else np.asarray(held, np.float32).reshape(self.model.particle_count))
 
     # -- the step ----------------------------------------------------------------------------
     def solve(self, state_in: State, control: Control, dt: float) -> wp.array:
@@ -1019,7 +1037,7 @@ class SolverImplicitEuler(SolverBase):
                           control.collider_transform_start, control.collider_transform_end, state_in.particle_q, state_in.particle_qd,
                           wp.vec3(*m.gravity), dt, self.contact_margin, int(not state_in.requires_grad), self.dv_previous,
                           self.previous_ready if self.warm_start else self._disabled, m.particle_world, self.worlds, self.contact_impulse,
-                          m.particle_mass, self._release_speed(dt)],
+                          m.particle_mass, self._release_speed(dt), self.sample_height],
                   outputs=[self.contact_collider, self.contact_normal, self.contact_velocity, self.contact_dv,
                            self.contact_height, self.contact_crease, self.contact_facing, self.contact_counts], device=dev)
         wp.launch(ki.filter_contact_preconditioner, dim=m.particle_count,
