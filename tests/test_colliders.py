@@ -3,6 +3,7 @@ discrete answer (physics.md 1(g)), continuous detection of a fast particle, movi
 
 import math
 import pathlib
+import sys
 
 import numpy as np
 import pytest
@@ -12,6 +13,8 @@ import warp as wp
 import cloth_warp as cw
 from cloth_warp.collision import collider_distance, penetration_depths
 from cloth_warp.model import quat_multiply
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent.parent / "benchmarks"))  # (a case shared with a benchmark)
 
 G = 9.81
 
@@ -565,17 +568,10 @@ def test_a_coarse_cloth_over_a_faceted_ball_comes_to_rest_where_its_elements_tou
     contact in the solve, the height they left it at (kernels/contact.py `eval_collider_contacts`, `sample_height`);
     without that (`sample_holds=False`) the cloth sagged back into the ball for the samples to push again: 60-300 mm/s
     after 5 s, 11-120 samples pushed a frame (benchmarks/bench_sample_holds.py)."""
-    rng = np.random.default_rng(seed)
-    ball = trimesh.creation.icosphere(subdivisions=subdivisions, radius=0.25)
-    turn = trimesh.transformations.random_rotation_matrix(rng.random(3))[:3, :3]
-    b = cw.ModelBuilder()
-    b.add_cloth_grid(resolution=(resolution, resolution), size=(1.0, 1.0), material="cotton",
-                     rotation=cw.quat_from_axis_angle((1, 0, 0), -90.0), position=(-0.5 + rng.uniform(-0.05, 0.05), 0.62, 0.5))
-    b.add_collider_mesh(np.asarray(ball.vertices) @ turn.T, ball.faces, position=(0.0, 0.3, 0.0), name="ball", thickness=0.004,
-                        friction=0.4)
-    b.add_ground(friction=0.6)
-    m = b.finalize("cpu")
-    sim = cw.Simulator(m, cw.SolverImplicitEuler(m, collider_contacts="solve", contact_friction="solve"), fps=60, substeps=2)
+    from bench_sample_holds import faceted_ball_drape
+
+    sim = faceted_ball_drape(subdivisions, resolution, seed)
+    m = sim.model
     speeds, samples = [], []
     for _ in range(360):
         speeds.append(sim.step_frame().max_speed)
