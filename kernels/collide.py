@@ -427,13 +427,14 @@ def collide_colliders(
 # samples and pulls back what they push (held at a quarter of the thickness, a 3.3 cm cloth on a 4 cm mesh cylinder,
 # which no element crossed, was kept moving at 63 mm/s instead of 3). Mesh colliders only (bodies): the 16^2 drape over
 # the ball, whose 8.8 cm diagonals sag 3.9 mm and cut the ball at 19 samples a step, never rested with them (8-108 mm/s
-# after 4 s). Samples as contact elements in the solve would rest both.
+# after 4 s). With the collider contacts in the solve, a particle a sample pushed keeps that height as a contact
+# (SAMPLE_HOLD_SLACK below), which rests a coarse cloth over a faceted mesh ball (analytic shapes still have no samples).
 SAMPLE_CLEARANCE = wp.constant(0.25)
 # A particle the element samples pushed keeps the height over the mesh they left it at (`sample_height`) until it is
 # farther than that by this many thicknesses: the implicit solve with collider contacts in it holds such a particle
 # there as a contact (kernels/contact.py eval_collider_contacts) instead of letting the cloth carry it back to where its
 # element sagged into the body and the samples pushed again (a T-shirt's shoulder particle pushed 1.14 mm out every
-# other step; a coarse cloth over a faceted ball at 60-300 mm/s after 4 s).
+# other step; a coarse cloth over a faceted ball at 79-226 mm/s after 5 s: benchmarks/bench_sample_holds.py).
 SAMPLE_HOLD_SLACK = wp.constant(0.5)
 
 
