@@ -41,7 +41,7 @@ def find_contacts(model, x, v, time=0.0, dt=DT, last_step=None, gravity=(0.0, 0.
 def landing_always(n):
     """eval_collider_contacts' last-step inputs for a taped step's rule: every contact lands at the thickness."""
     return [0, wp.zeros(n, dtype=wp.vec3), wp.zeros(1, dtype=wp.int32), wp.zeros(n, dtype=wp.int32), 1, wp.zeros(n, dtype=float),
-            wp.ones(n, dtype=float), 0.0, wp.zeros(n, dtype=wp.int32)]
+            wp.ones(n, dtype=float), 0.0, wp.zeros(n, dtype=float)]
 
 
 def particles(builder, points):
@@ -140,7 +140,7 @@ def test_a_band_contact_the_cloth_holds_up_keeps_its_height():
     impulse = np.array([0.0, 1.1, 0.0, 0.0, 0.0, 0.0, 0.9]) * load_speed * mass
     n = len(x)
     hold = [1, wp.array(dv_previous, dtype=wp.vec3), wp.ones(1, dtype=wp.int32), wp.zeros(n, dtype=wp.int32), 1,
-            wp.array(impulse, dtype=float), m.particle_mass, load_speed, wp.zeros(n, dtype=wp.int32)]
+            wp.array(impulse, dtype=float), m.particle_mass, load_speed, wp.zeros(n, dtype=float)]
 
     def contacts(last_step):
         col, _, _, dv, _, _, _, _ = find_contacts(m, x, v, last_step=last_step, gravity=(0.0, -9.81, 0.0))
