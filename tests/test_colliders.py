@@ -555,7 +555,6 @@ def test_element_samples_push_an_edge_out_of_a_mesh_ridge_its_particles_clear(se
     assert before < -0.2 and after > 0.25 * before  # (92-100 % of it removed: shared with the triangle's samples)
 
 
-
 @pytest.mark.parametrize("subdivisions,resolution,seed", [(2, 12, 0), (3, 16, 1), (4, 16, 2),
                                                            pytest.param(2, 24, 3, marks=pytest.mark.slow)])
 def test_a_coarse_cloth_over_a_faceted_ball_comes_to_rest_where_its_elements_touch_it(subdivisions, resolution, seed):
@@ -564,11 +563,11 @@ def test_a_coarse_cloth_over_a_faceted_ball_comes_to_rest_where_its_elements_tou
     triangles, not its particles, touch the ball: at rest after 6 s (the median of the last 20 frames' largest speed <=
     1 mm/s, as benchmarks/bench_rest.py counts it: a free edge's flap may still swing at ~1 mm/s; without self-collision
     a fold may slip late, as one did at 3.3 s here), the element samples pushing nothing by then (they pushed while it
-    wrapped the ball). Each particle the samples push keeps, as a
-    contact in the solve, the height they left it at (kernels/contact.py `eval_collider_contacts`, `sample_height`);
-    without that (`sample_holds=False`) the cloth sagged back into the ball for the samples to push again: 79-226 mm/s
-    after 5 s with 9-108 samples pushed a frame in 14 of bench_sample_holds.py's 18 runs (this case's three among
-    them), 18 of 18 at rest with it."""
+    wrapped the ball). Each particle the samples push keeps, as a contact in the solve, the height they left it at
+    (kernels/contact.py `eval_collider_contacts`, `sample_height`); without that (`sample_holds=False`) the cloth sagged
+    back into the ball for the samples to push again: 79-226 mm/s after 5 s with 9-108 samples pushed a frame in 14 of
+    benchmarks/bench_sample_holds.py's 18 runs (the first two cases here among them; the first at 92-206 mm/s after 6 s),
+    18 of 18 at rest with it."""
     from bench_sample_holds import faceted_ball_drape
 
     sim = faceted_ball_drape(subdivisions, resolution, seed)
@@ -581,6 +580,7 @@ def test_a_coarse_cloth_over_a_faceted_ball_comes_to_rest_where_its_elements_tou
     assert sum(samples[-20:]) == 0 and np.median(speeds[-20:]) <= 1e-3, (samples[-20:], speeds[-20:])
     on_ball = int((collider_distance(m, 0, sim.positions())[0] < 0.012).sum())
     assert on_ball > resolution, on_ball  # draped over it, not slid off
+
 
 DT_PASS = 1.0 / 120.0
 

@@ -157,7 +157,6 @@ def test_a_band_contact_the_cloth_holds_up_keeps_its_height():
     np.testing.assert_allclose(v_end, land, rtol=1e-5)
 
 
-
 def test_a_particle_the_element_samples_pushed_keeps_its_height_over_a_mesh():
     """Check the forward steps' rule for a particle the colliders pass's element samples pushed out of a mesh collider
     (`sample_height`: the height they left it at; kernels/collide.py SAMPLE_HOLD_SLACK): up to that height and the
