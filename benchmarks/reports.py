@@ -31,7 +31,7 @@ def run_workers(commands: list, jobs: int, tag: str) -> list[dict]:
         proc = running.pop(k)
         out, _ = proc.communicate()
         found = [line[len(tag):] for line in out.splitlines() if line.startswith(tag)]
-        if not found:
-            raise RuntimeError(f"a worker ({' '.join(map(str, argv[2:]))}) exited without a result (code {proc.returncode})")
+        if not found:  # (named by its own command, not the last one started)
+            raise RuntimeError(f"a worker ({' '.join(map(str, proc.args[2:]))}) exited without a result (code {proc.returncode})")
         results[k] = json.loads(found[-1])
     return results

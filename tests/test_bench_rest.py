@@ -31,3 +31,18 @@ def test_paired_comparison_counts_runs_at_rest_in_one_tree_only():
     assert "p = 1.00" in line
     ratio = math.exp((math.log(0.5 / 4.0) + math.log(2.0 / 0.5)) / 4)
     assert f"geometric mean {ratio:.2f}" in line
+
+
+def test_the_worker_pool_returns_results_in_order_and_names_a_worker_that_gave_none():
+    """benchmarks/reports.py `run_workers` (bench_rest's and bench_garments' pool): results come back in the commands'
+    order whichever finishes first, and a worker that exits without a result is named by its own command (it named the
+    last one started)."""
+    from reports import run_workers
+
+    def command(*args):
+        return [sys.executable, "-c", "import sys, time; time.sleep(float(sys.argv[1])); sys.argv[2] == 'ok' and print('TAG {\"k\": ' + sys.argv[3] + '}')", *args], None, None
+
+    assert run_workers([command("0.3", "ok", "0"), command("0.0", "ok", "1"), command("0.0", "ok", "2")], 2, "TAG ") == [
+        {"k": 0}, {"k": 1}, {"k": 2}]
+    with pytest.raises(RuntimeError, match="silent"):
+        run_workers([command("0.0", "silent", "0"), command("0.2", "ok", "1")], 2, "TAG ")
