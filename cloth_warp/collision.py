@@ -121,7 +121,8 @@ class ColliderPass(StepPass):
                 self._sample_round(control, dt, x_mid, v_mid, x_next, v_next, fresh=True)
                 x_mid, v_mid = x_next, v_next
             return
-        self._pushed_marks().zero_()
+        if self.sample_height is not None:  # (the marks are read only to keep the heights)
+            self._pushed_marks().zero_()
         self._loop.zero_()  # in place on the outputs: the first round, then more while the last pushed a sample
         self._sample_round(control, dt, x_out, v_out, x_out, v_out)
         device_while(self._loop, self._sample_round, control=control, dt=dt, x=x_out, v=v_out, x_next=x_out, v_next=v_out)

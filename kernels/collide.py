@@ -592,8 +592,7 @@ def hold_sample_heights(
     slack = float(0.0)
     for c in range(collider_count):
         if collider_shape[c] == SHAPE_MESH:
-            p = wp.transform_point(wp.transform_inverse(collider_transform_end[c]), x[i])
-            d, n = shape_distance(SHAPE_MESH, wp.vec3(0.0), collider_mesh[c], mesh_max_distance, p)
+            d, n = world_distance(SHAPE_MESH, wp.vec3(0.0), collider_mesh[c], mesh_max_distance, collider_transform_end[c], x[i])
             if d < nearest:
                 nearest = d
                 slack = SAMPLE_HOLD_SLACK * collider_thickness[c]
