@@ -1495,6 +1495,7 @@ def eval_contact_release(
     released_out: wp.array(dtype=wp.int32),
     released_normal_out: wp.array(dtype=wp.vec3),
     released_dv_out: wp.array(dtype=wp.vec3),
+    pulled_out: wp.array(dtype=wp.int32),
 ):
     """The impulse [kg m/s] each collider contact exerts along its normal in the solved step, lambda = n . (A dv - b)_i
     (the part of the momentum balance the filter took out); a contact that pulls (lambda < -release_impulse m_i
@@ -1511,7 +1512,15 @@ def eval_contact_release(
     with a damper from this solve's lambda, and the step is solved again: left sliding, the cloth round it took the
     kinetic impulse the contact did not need (`apply_contact_friction` then stops the contact alone), and the contact
     went from stick to slide and back every step, its neighbours thrown back and forth (a dress held still: 60
-    particles at 5-7 mm/s in a period-two cycle that did not move them). A pinched contact (its `contact_height` below
+    particles at 5-7 mm/s in a period-two cycle that did not move them). This check has one round more than the
+    others (`max_rounds` + 1, when `max_rounds` > 0): the re-solve after the last round that let a contact slide is
+    checked for it too, so that no step ends with a slide its kinetic impulse reversed (the T-shirt held still at 3.4 cm
+    edges: a shoulder contact let slide in the last round every other step, stopped after the solve, its neighbours
+    at +-1.7 mm/s in a period-two cycle; 0.3-0.5 mm/s with the round). A damped contact let slide because it pulled
+    (no kinetic impulse: `pulled_out` 1) that presses in the check of that extra round sticks again the same way (in
+    every round, the rest set's piles went on folding: 38 of 60 at rest against 54; in that round only, 52): left without
+    friction in the solve, friction after it stopped it alone (the T-shirt held still at 2.6 cm edges: a shoulder
+    contact bearing 0.1 N, its neighbours at 7 mm/s in a period-two cycle). A pinched contact (its `contact_height` below
     the collider's thickness, `kernels/contact.py` eval_collider_contacts) is two-sided: its impulse either way presses
     one of its surfaces, so it is never released; and frictionless, its impulse 0 (what holds it between two surfaces
     is no squeeze on one: with friction from |lambda| the shipped T-shirt's settling held an armpit seam 7 mm open, which
@@ -1582,6 +1591,8 @@ def eval_contact_release(
             slide = wp.vec3(0.0)
             if speed > 0.0:
                 slide = (-collider_kinetic_friction[c] * push / speed) * slip
+            if push == 0.0:
+                pulled_out[i] = 1  # (no kinetic impulse: its friction back if it presses again, below)
             rhs_out[i] = rhs_out[i] - friction_impulse_out[i] + slide
             effective_mass_out[i] = effective_mass_out[i] - d
             friction_mass_out[i] = 0.0
@@ -1591,17 +1602,23 @@ def eval_contact_release(
             release_out[RELEASE_FLAG] = 1
         return
     fi = friction_impulse_out[i]
-    if d == 0.0 and wp.dot(fi, fi) > 0.0 and impulse > 0.0 and release_out[rb + RELEASE_ROUNDS] < max_rounds:
+    # (one round more than the other changes: a contact the last round let slide is checked for it too)
+    reversal_rounds = max_rounds + wp.min(max_rounds, 1)
+    rounds = release_out[rb + RELEASE_ROUNDS]
+    regain = pulled_out[i] != 0 and rounds >= max_rounds  # (the extra round only)
+    if d == 0.0 and impulse > 0.0 and rounds < reversal_rounds and (wp.dot(fi, fi) > 0.0 or regain):
         c = contact_collider_out[i]
         rel = v0[i] - contact_velocity[i]
         slip = tangential_part(n, rel + dv[i])
-        if wp.dot(slip, fi) > 0.0:
-            # the kinetic impulse reversed the contact's slip: friction held it, so it sticks (a damper from this
-            # solve's normal impulse, as eval_contact_friction_terms makes one), solved again
-            # (a kinetic impulse means mu_s >= mu_k > 0 and lambda > 0: the damper's mass is positive)
+        if wp.dot(slip, fi) > 0.0 or regain:
+            # the kinetic impulse reversed the contact's slip (or the contact's friction left as it pulled, and it
+            # presses again): friction held it, so it sticks (a damper from this solve's normal impulse, as
+            # eval_contact_friction_terms makes one), solved again (a kinetic impulse means mu_s >= mu_k > 0 and
+            # lambda > 0, as does a damper it had: the damper's mass is positive)
             rhs_out[i] = rhs_out[i] - fi
             hold_contact(i, n, contact_crease_out[i], tangential_part(n, rel), collider_static_friction[c] * impulse, stick_speed, precond_free, rhs_out,
                          effective_mass_out, friction_mass_out, friction_impulse_out, precond_out)
+            pulled_out[i] = 0
             release_out[rb + RELEASE_FLAG] = 1
             release_out[RELEASE_FLAG] = 1
             return

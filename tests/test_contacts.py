@@ -1501,6 +1501,15 @@ def reversed_slides(solver, v0) -> int:
     return int((sliding & ((slip * fi).sum(axis=1) > 0.0)).sum())
 
 
+def pulled_and_pressing(solver) -> int:
+    """Collider contacts whose friction damper left the system because they pulled (`contact_pulled`) and that press in
+    the solve, still without friction in it (no damper, no kinetic impulse)."""
+    d = solver.contact_friction_mass.numpy()
+    fi = np.linalg.norm(solver.contact_friction_impulse.numpy(), axis=1)
+    pressing = (solver.contact_collider.numpy() >= 0) & (solver.contact_impulse.numpy() > 0.0)
+    return int(((solver.contact_pulled.numpy() != 0) & pressing & (d == 0.0) & (fi == 0.0)).sum())
+
+
 def reversed_self_slides(solver, v0) -> int:
     """Self-contact elements left sliding (a kinetic impulse, no damper) whose solved relative slip runs along their
     friction impulse: the kinetic impulse reversed them."""
@@ -1544,36 +1553,41 @@ def test_a_slide_its_kinetic_impulse_reverses_sticks_again(scene, resolution, se
 
 
 def test_the_default_rounds_let_a_stick_slide_stick_contact_end_its_step_stuck():
-    """Check that the default re-solve rounds (`contact_release_rounds`) leave far fewer steps ending with a slide its
-    kinetic impulse reversed (`apply_contact_friction` then stops the contact, but the cloth round it took an impulse
-    it did not need) than 2 rounds, summed over the first 2 s of the drape over the ball and the pile: a contact at
-    the static bound that one check lets slide and the next finds stuck needs two re-solves, and more when contacts
-    switch in turn. With 2 rounds a garment held still went from stick to slide and back every step (the shipped
-    dress: 13.8 mm/s; 0.08 with 4). The runs are chaotic, and a run that comes to rest with a contact at the static
-    bound ends most of its steps reversed with any rounds (the drape's seed 0 since a contact nearest at an edge is one
-    element: one particle at 0.001 mm/s, 66 steps; seed 3 at e456969: 17, against 14 with 2 rounds), so three drapes
-    and the pile are summed, and the default must end at most half as many. Measured (steps of ~240 each, drapes of
-    seeds 0, 1, 2 + pile): 161 + 24 + 15 + 10 with 2 rounds, 66 + 1 + 0 + 4 with 4; at e456969, 152 + 28 + 8 + 5 and
-    1 + 2 + 0 + 3 (the drape's seed 0 and the pile alone: 70 + 13 and 3 + 1 before contacts taken back or admitted
-    within the step were re-solved from their z; a build between, 24 + 6 and 1 + 4)."""
+    """Check that with the default re-solve rounds (`contact_release_rounds`) no step ends with a slide its kinetic
+    impulse reversed (`apply_contact_friction` would then stop the contact, but the cloth round it took an impulse it did
+    not need), summed over the first 2 s of three drapes over the ball and the pile: a contact at the static bound that
+    one check lets slide and the next finds stuck needs two re-solves, more when contacts switch in turn, and a slide the
+    last round let happen needs the reversal's own round after it (one more than the others, kernels/implicit.py
+    eval_contact_release). With 2 rounds a garment held still went from stick to slide and back every step (the shipped
+    dress: 13.8 mm/s; 0.08 with 4); without the reversal's own round the T-shirt held still at 3.4 cm edges had a
+    shoulder contact let slide in the last round every other step, its neighbours at +-1.7 mm/s in a period-two cycle
+    (0.3-0.5 mm/s with it). Measured (steps of ~240 each, drapes of seeds 0, 1, 2 + pile): 0 + 0 + 0 + 0; without the
+    reversal's own round 1 + 1 + 0 + 2 (and 19 + 36 + 13 + 7 with 2 rounds).
+
+    And that few steps end with a contact whose damper left the system as it pulled, pressing again without friction
+    in the solve (`contact_pulled`): in the reversal's round it sticks again the same way (one that presses only after
+    that round stays so). Left so, friction after the solve stopped it alone: the T-shirt held still at 2.6 cm edges, a
+    shoulder contact bearing 0.1 N, its neighbours in a period-two cycle at 7 mm/s. Measured: 11 + 7 + 7 + 2; without
+    the rule 202 + 29 + 33 + 37."""
     def steps_ending_reversed(scene, resolution, seed, rounds):
         _m, solver, sim = everything_in_the_solve(scene, resolution, seed, rounds)
         apply = solver._apply_contact_friction
-        ends = []
+        ends, pulled = [], []
 
         def counted(state_in):  # the step's last solve, before friction stops the contacts
             ends.append(reversed_slides(solver, state_in.particle_qd) > 0)
+            pulled.append(pulled_and_pressing(solver) > 0)
             apply(state_in)
 
         solver._apply_contact_friction = counted
         for _ in range(120):
             sim.step_frame()
-        return sum(ends)
+        return sum(ends), sum(pulled)
 
     runs = [("drape_sphere", 24, 0), ("drape_sphere", 24, 1), ("drape_sphere", 24, 2), ("pile", 16, 1)]
-    two = sum(steps_ending_reversed(*run, 2) for run in runs)
-    assert two >= 20
-    assert sum(steps_ending_reversed(*run, None) for run in runs) <= two / 2
+    ends = [steps_ending_reversed(*run, None) for run in runs]
+    assert sum(r for r, _ in ends) == 0
+    assert sum(p for _, p in ends) <= 60
 
 
 @pytest.mark.parametrize("scene,resolution,seed", [("drape_sphere", 24, 0), ("pile", 16, 1)])

@@ -150,7 +150,8 @@ class SolverImplicitEuler(SolverBase):
             going from stick to slide or back; with a `contact_check_tolerance` looser than `tolerance`, the last is the
             solve to the tolerance). A contact at the static bound that one check lets slide and the next finds stuck
             needs two; with 2, a garment held still went from stick to slide and back every step (the shipped dress:
-            17 contacts, 13.8 mm/s; with 4: 0.08 mm/s and 10 % fewer CG iterations a frame; `docs/garments.md`).
+            17 contacts, 13.8 mm/s; with 4: 0.08 mm/s and 10 % fewer CG iterations a frame; `docs/garments.md`). A slide
+            its kinetic impulse reversed is stuck again with one re-solve more than these (none with 0).
         contact_release_fraction: "solve" contacts: a contact is released when it pulls with more than this fraction
             of the particle's weight (times the step): below it the pull is the solve's round-off, and a released
             particle has no friction.
@@ -396,6 +397,8 @@ class SolverImplicitEuler(SolverBase):
         # the contacts released in this step (collider + 1; -1: taken back; -2: admitted within it), with their normals
         # and prescribed changes
         self.contact_released = wp.zeros(n, dtype=wp.int32, device=dev)
+        # 1: the contact's friction left its step's system as it pulled (kernels/implicit.py eval_contact_release)
+        self.contact_pulled = wp.zeros(n, dtype=wp.int32, device=dev)
         self._admit_colliders = False  # (set per step by _solve_with_contacts, with the step's start it reads)
         self.contact_released_normal = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.contact_released_dv = wp.zeros(n, dtype=wp.vec3, device=dev)
@@ -1078,6 +1081,7 @@ class SolverImplicitEuler(SolverBase):
         self.solve_cg(dt, restarted=True, tolerance=loose)
         self.release.zero_()
         self.contact_released.zero_()
+        self.contact_pulled.zero_()
         self._check_release(dt, state_in.particle_qd, rounds)
         device_while(self.release, self._resolve, dt=dt, v0=state_in.particle_qd, tolerance=loose, rounds=rounds)
         if polish:  # (to the velocity tolerance only: the worlds near rest)
@@ -1124,7 +1128,8 @@ class SolverImplicitEuler(SolverBase):
                           m.collider_kinetic_friction, self.contact_stick_speed, m.particle_world, self.worlds],
                   outputs=[self.rhs, self.effective_mass, self.contact_friction_mass, self.contact_friction_impulse, self.precond,
                            self.contact_collider, self.contact_normal, self.contact_crease, self.contact_dv, self.contact_impulse,
-                           self.release, self.contact_released, self.contact_released_normal, self.contact_released_dv],
+                           self.release, self.contact_released, self.contact_released_normal, self.contact_released_dv,
+                           self.contact_pulled],
                   device=m.device)
         if self._admit_colliders and rounds > 0:  # (forward steps; the same rounds and flag)
             c = self._contact_control
