@@ -328,6 +328,10 @@ SCHEMA: dict = {
         "sample_holds": Key("bool", True, "collider contacts in the solve: a particle the colliders pass pushed out of a "
                             "mesh collider because its edge or triangle cut the body keeps its height there as a contact "
                             "(instead of sagging back for the pass to push again; see the README)"),
+        "pulled_friction": Key("bool", False, "collider contacts and their friction in the solve: a contact whose friction "
+                               "left a step's solve as it pulled, pressing again in the reversal's re-solve round, sticks "
+                               "again in the solve instead of being stopped after it (garments held still rest; the piles "
+                               "and drapes settle later: docs/garments.md)"),
         "max_iterations": Key("int", 1000, "linear-solver iteration cap per step", L["iterations"]),
         "adaptive": Key("bool", False, "check every step and halve dt on divergence (grows back after good steps)"),
         "dt_min": Key("float", 1e-6, "adaptive floor: below it the run stops with a diagnosis", L["dt_min"]),
@@ -1109,7 +1113,8 @@ def solver_options(scene: Scene, implicit: bool) -> dict:
                     self_contacts=scene.get("solver.self_contacts"), contact_friction=scene.get("solver.contact_friction"),
                     sewn_points=scene.get("solver.sewn_points"), velocity_tolerance=float(scene.get("solver.velocity_tolerance")),
                     self_contact_stiffening=bool(scene.get("solver.self_contact_stiffening")),
-                    sample_holds=bool(scene.get("solver.sample_holds")))
+                    sample_holds=bool(scene.get("solver.sample_holds")),
+                    pulled_friction=bool(scene.get("solver.pulled_friction")))
     return opts
 
 

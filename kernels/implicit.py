@@ -1496,6 +1496,7 @@ def eval_contact_release(
     released_normal_out: wp.array(dtype=wp.vec3),
     released_dv_out: wp.array(dtype=wp.vec3),
     pulled_out: wp.array(dtype=wp.int32),
+    pulled_friction: int,
 ):
     """The impulse [kg m/s] each collider contact exerts along its normal in the solved step, lambda = n . (A dv - b)_i
     (the part of the momentum balance the filter took out); a contact that pulls (lambda < -release_impulse m_i
@@ -1517,8 +1518,9 @@ def eval_contact_release(
     checked for it too, so that no step ends with a slide its kinetic impulse reversed (the T-shirt held still at 3.4 cm
     edges: a shoulder contact let slide in the last round every other step, stopped after the solve, its neighbours
     at +-1.7 mm/s in a period-two cycle; 0.3-0.5 mm/s with the round). A damped contact let slide because it pulled
-    (no kinetic impulse: `pulled_out` 1) that presses in the check of that extra round sticks again the same way (in
-    every round, the rest set's piles went on folding: 38 of 60 at rest against 54; in that round only, 52): left without
+    (no kinetic impulse: `pulled_out` 1) that presses in the check of that extra round sticks again the same way, with
+    `pulled_friction` (SolverImplicitEuler's option; in every round, the rest set's piles went on folding: 38 of 60 at
+    rest against 54; in that round only, 52, the shipped drape at rest at 5.4 s instead of 5 s): left without
     friction in the solve, friction after it stopped it alone (the T-shirt held still at 2.6 cm edges: a shoulder
     contact bearing 0.1 N, its neighbours at 7 mm/s in a period-two cycle). A pinched contact (its `contact_height` below
     the collider's thickness, `kernels/contact.py` eval_collider_contacts) is two-sided: its impulse either way presses
@@ -1605,7 +1607,7 @@ def eval_contact_release(
     # (one round more than the other changes: a contact the last round let slide is checked for it too)
     reversal_rounds = max_rounds + wp.min(max_rounds, 1)
     rounds = release_out[rb + RELEASE_ROUNDS]
-    regain = pulled_out[i] != 0 and rounds >= max_rounds  # (the extra round only)
+    regain = pulled_friction != 0 and pulled_out[i] != 0 and rounds >= max_rounds  # (the extra round only)
     if d == 0.0 and impulse > 0.0 and rounds < reversal_rounds and (wp.dot(fi, fi) > 0.0 or regain):
         c = contact_collider_out[i]
         rel = v0[i] - contact_velocity[i]

@@ -1566,11 +1566,12 @@ def test_the_default_rounds_let_a_stick_slide_stick_contact_end_its_step_stuck()
 
     And that few steps end with a contact whose damper left the system as it pulled, pressing again without friction
     in the solve (`contact_pulled`): in the reversal's round it sticks again the same way (one that presses only after
-    that round stays so). Left so, friction after the solve stopped it alone: the T-shirt held still at 2.6 cm edges, a
-    shoulder contact bearing 0.1 N, its neighbours in a period-two cycle at 7 mm/s. Measured: 11 + 7 + 7 + 2; without
-    the rule 202 + 29 + 33 + 37."""
-    def steps_ending_reversed(scene, resolution, seed, rounds):
-        _m, solver, sim = everything_in_the_solve(scene, resolution, seed, rounds)
+    that round stays so) with `pulled_friction` (the garment scenes' setting). Left so, friction after the solve stopped
+    it alone: the T-shirt held still at 2.6 cm edges, a shoulder contact bearing 0.1 N, its neighbours in a period-two
+    cycle at 7 mm/s. Measured: 11 + 7 + 7 + 2; without it 202 + 29 + 33 + 37."""
+    def steps_ending_reversed(scene, resolution, seed, pulled_friction):
+        _m, solver, sim = everything_in_the_solve(scene, resolution, seed)
+        solver.pulled_friction = pulled_friction
         apply = solver._apply_contact_friction
         ends, pulled = [], []
 
@@ -1585,9 +1586,10 @@ def test_the_default_rounds_let_a_stick_slide_stick_contact_end_its_step_stuck()
         return sum(ends), sum(pulled)
 
     runs = [("drape_sphere", 24, 0), ("drape_sphere", 24, 1), ("drape_sphere", 24, 2), ("pile", 16, 1)]
-    ends = [steps_ending_reversed(*run, None) for run in runs]
+    ends = [steps_ending_reversed(*run, True) for run in runs]
     assert sum(r for r, _ in ends) == 0
     assert sum(p for _, p in ends) <= 60
+    assert sum(p for _, p in (steps_ending_reversed(*run, False) for run in runs)) >= 150
 
 
 @pytest.mark.parametrize("scene,resolution,seed", [("drape_sphere", 24, 0), ("pile", 16, 1)])
